@@ -1,0 +1,39 @@
+"""Shared fixtures: the bundled real data, loaded once per test session."""
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "data"
+RIGS = DATA / "rigs"
+PERFORMANCES = DATA / "performances"
+LAYOUTS = DATA / "layouts"
+
+
+@pytest.fixture(scope="session")
+def data_dir():
+    return DATA
+
+
+@pytest.fixture(scope="session")
+def rigs():
+    """All bundled rigs by file stem, read once."""
+    from core.io.gltf import read_rig
+
+    return {p.stem: read_rig(p) for p in sorted(RIGS.glob("*.glb"))}
+
+
+@pytest.fixture(scope="session")
+def ict(rigs):
+    return rigs["ict_facekit"]
+
+
+@pytest.fixture(scope="session")
+def rocketbox(rigs):
+    return rigs["rocketbox_female_adult_02"]
+
+
+@pytest.fixture(scope="session")
+def tiger(rigs):
+    return rigs["jeeliz_tiger"]
