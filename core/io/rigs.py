@@ -1,0 +1,44 @@
+"""Open a rig whatever its container, and find the marker layout that belongs to it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+from ..model import MarkerLayout, Rig
+
+RIG_FORMATS = ".glb, .gltf, or a folder of OBJs (neutral.obj + one OBJ per shape)"
+
+
+def load_rig(path) -> Rig:
+    """Read a rig from a GLB/glTF file or an OBJ folder; ValueError names the accepted formats."""
+    path = Path(path)
+    if path.is_dir():
+        from .objfolder import read_obj_folder
+
+        return read_obj_folder(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such rig file")
+    if path.suffix.lower() in (".glb", ".gltf"):
+        from .gltf import read_rig
+
+        return read_rig(path)
+    raise ValueError(f"{path}: unsupported rig format {path.suffix!r}; expected {RIG_FORMATS}")
+
+
+def read_layout_for(layout_path: Optional[str], rig_path, rig: Rig) -> MarkerLayout:
+    """The layout given, else data/layouts/<rig stem>.json; checked against ``rig``.
+
+    Raises FileNotFoundError saying how to make one (``face-retarget layout``) when neither exists.
+    """
+    from .layout import default_layout_path, read_layout
+
+    if layout_path:
+        return read_layout(layout_path, rig=rig)
+    default = default_layout_path(rig_path)
+    if default is None:
+        raise FileNotFoundError(
+            f"no marker layout for rig {Path(rig_path).name}: pass --target-layout/--source-layout, or transfer one with "
+            f"`face-retarget layout --from data/layouts/ict_facekit.json --rig {rig_path} --out my_layout.json`"
+        )
+    return read_layout(default, rig=rig)
