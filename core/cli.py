@@ -1,0 +1,153 @@
+"""``face-retarget``: the command line.
+
+    face-retarget retarget --source take.csv --source-rig ict.glb --target-rig other.glb --out r.glb
+    face-retarget layout --from data/layouts/ict_facekit.json --rig new.glb --out new.json
+    face-retarget serve [--port N] [--address A] [--show]
+    face-retarget info FILE...
+    face-retarget bench
+
+Solver flags (``--alpha``, ``--regions``, ``--mu`` ...) are generated from the pipeline's
+settings objects, the same ones that generate the dashboard's widgets.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _retarget(args) -> int:
+    import numpy as np
+
+    from .io.curves_csv import write_curves_csv
+    from .io.gltf import write_rig
+    from .pipeline import Pipeline
+    from .progress import StderrBar
+
+    settings = {k: v for k, v in vars(args).items() if k not in ("func", "out", "weights_csv", "quiet", "command")}
+    pipe = Pipeline(**settings)
+    bar = None if args.quiet else StderrBar("retarget")
+    t0 = time.perf_counter()
+    res = pipe.results(["load", "stabilize", "edit", "evaluate"], progress=bar)
+    ld, st, ev = res["load"], res["stabilize"]["source"], res["evaluate"]
+    W = res["edit"]["weights"]
+    rig = ld["target_rig"]
+    out = []
+    if args.out:
+        write_rig(args.out, rig, weights=np.nan_to_num(W), times=st.times - st.times[0])
+        out.append(f"wrote {args.out}")
+    if args.weights_csv:
+        write_curves_csv(args.weights_csv, st.times - st.times[0], W, rig.names)
+        out.append(f"wrote {args.weights_csv}")
+    timings = " ".join(f"{k}={v * 1e3:.0f}ms" for k, v in pipe.timings.items() if v)
+    print(
+        f"retargeted {len(W)} frames at {st.fps:g} fps, {len(st.names)} markers -> {rig.name} ({rig.n_shapes} shapes) "
+        f"with {pipe.solve.method} in {time.perf_counter() - t0:.1f}s\n"
+        f"marker error: median {np.nanmedian(ev['marker_error_mm']):.2f} mm, max {np.nanmax(ev['marker_error_mm']):.2f} mm; "
+        f"weights in [{np.nanmin(W):.3f}, {np.nanmax(W):.3f}]\n"
+        f"stage timings: {timings}\n" + "\n".join(out)
+    )
+    return 0
+
+
+def _layout(args) -> int:
+    from .registration import layout_command
+
+    print(layout_command(args.from_, args.rig, args.out, source_rig_path=args.source_rig))
+    return 0
+
+
+def _serve(args) -> int:
+    from dashboard.serve import serve
+
+    return serve(port=args.port, address=args.address, show=args.show, allow_websocket_origin=args.allow_websocket_origin)
+
+
+def _info(args) -> int:
+    from .io.performance import read_performance
+    from .io.rigs import load_rig
+
+    for f in args.files:
+        p = Path(f)
+        if p.is_dir() or p.suffix.lower() in (".glb", ".gltf"):
+            r = load_rig(p)
+            print(f"{p}: rig {r.name}: {r.n_vertices} vertices, {len(r.faces)} triangles, {r.n_shapes} shapes, "
+                  f"size {r.size * 100:.1f} cm, uvs={'yes' if r.uvs is not None else 'no'}")
+            print("  shapes: " + ", ".join(r.names))
+        else:
+            perf = read_performance(p)
+            print(f"{p}: {perf.kind}, {perf.n_frames} frames at {perf.fps:g} fps ({perf.duration:.1f} s), "
+                  f"{len(perf.names)} channels, {(~perf.valid).sum()} missing samples, units {perf.units}")
+            print("  channels: " + ", ".join(perf.names))
+    return 0
+
+
+def _bench(args) -> int:
+    import runpy
+
+    script = ROOT / "benchmarks" / "run.py"
+    if not script.exists():
+        print("benchmarks/ is not installed with the package; run from a source checkout", file=sys.stderr)
+        return 2
+    sys.argv = [str(script)] + (args.only or [])
+    runpy.run_path(str(script), run_name="__main__")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .pipeline import add_cli_arguments
+
+    p = argparse.ArgumentParser(prog="face-retarget", description="Facial performance retargeting onto blendshape rigs.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("retarget", help="retarget a performance onto a rig and write GLB/CSV")
+    add_cli_arguments(r)
+    r.add_argument("--out", help="output GLB: the target rig with a morph-weight animation")
+    r.add_argument("--weights-csv", help="output CSV: time_s then one column per target shape")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=_retarget)
+
+    lay = sub.add_parser("layout", help="transfer a marker layout to a rig of any topology (non-rigid ICP)")
+    lay.add_argument("--from", dest="from_", required=True, help="layout JSON to transfer")
+    lay.add_argument("--rig", required=True, help="rig to place the markers on")
+    lay.add_argument("--out", required=True, help="output layout JSON")
+    lay.add_argument("--source-rig", default=None, help="rig the layout was made for (default: its 'rig' field in data/rigs)")
+    lay.set_defaults(func=_layout)
+
+    s = sub.add_parser("serve", help="serve the dashboard")
+    s.add_argument("--port", type=int, default=5006)
+    s.add_argument("--address", default="localhost")
+    s.add_argument("--show", action="store_true", help="open a browser")
+    s.add_argument("--allow-websocket-origin", action="append", default=None, help="extra allowed origins host:port")
+    s.set_defaults(func=_serve)
+
+    i = sub.add_parser("info", help="describe rigs and performances")
+    i.add_argument("files", nargs="+")
+    i.set_defaults(func=_info)
+
+    b = sub.add_parser("bench", help="run the benchmarks (source checkout)")
+    b.add_argument("only", nargs="*", help="benchmark names to run (default: all)")
+    b.set_defaults(func=_bench)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"
+        try:
+            return args.func(args)
+        except (ValueError, FileNotFoundError, KeyError, ImportError) as e:
+            msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+            print(f"face-retarget {args.command}: error: {msg}", file=sys.stderr)
+            return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
