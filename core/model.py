@@ -289,6 +289,8 @@ class Performance:
     # -- constructors -------------------------------------------------------------------
     @classmethod
     def _build(cls, kind, data, names, fps, valid, times, units, name, extras):
+        if not (np.isfinite(fps) and fps > 0):
+            raise ValueError(f"performance {name!r}: fps must be positive, got {fps}")
         data = np.asarray(data, dtype=np.float64)
         if valid is None:
             valid = np.isfinite(data).all(axis=-1) if kind == "markers" else np.isfinite(data)
