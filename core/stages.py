@@ -20,9 +20,8 @@ PRIOR_METHODS = ("prior_pf", "spacetime")
 
 
 def run_load(inputs, s, progress=None):
-    from .io.layout import read_layout_for
     from .io.performance import read_performance
-    from .io.rigs import load_rig
+    from .io.rigs import load_rig, read_layout_for
     from .names import NameMap
 
     if not s.source:
@@ -157,7 +156,7 @@ def run_synthesize(inputs, s, progress=None):
 
 
 def run_evaluate(inputs, s, progress=None):
-    from .metrics import evaluate
+    from .evaluate import evaluate
 
     st = inputs["stabilize"]["source"]
     return evaluate(inputs["personalize"]["deltas"], inputs["edit"]["weights"], st.deltas, st.valid, step=s.jitter_window)

@@ -1,0 +1,44 @@
+"""The evaluate stage: every diagnostic of one solution, as plain arrays for views and reports.
+
+Composes :mod:`core.metrics` (marker error, Seol 2012 Fig. 11 velocity error, weight range)
+with a jitter measure, so the dashboard and the CLI read the same numbers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .metrics import marker_error_mm, velocity_error, weight_range
+
+
+def jitter(W, step: int = 1) -> np.ndarray:
+    """Mean absolute second difference of the weights per frame (T,), a jitter measure:
+    ``mean_k |w_{t+s} - 2 w_t + w_{t-s}|`` (0 at the ends)."""
+    W = np.nan_to_num(np.asarray(W, dtype=np.float64))
+    out = np.zeros(len(W))
+    if len(W) > 2 * step:
+        out[step:-step] = np.abs(W[2 * step:] - 2 * W[step:-step] + W[:-2 * step]).mean(1)
+    return out
+
+
+def evaluate(B, W, S, valid=None, step: int = 1) -> dict:
+    """Diagnostics of weights ``W`` (T, K) for target marker deltas ``B`` (K, M, 3) against
+    source marker deltas ``S`` (T, M, 3).
+
+    Returns a dict: ``marker_error_mm`` (T,) RMS per frame, ``marker_error_per_marker_mm`` (M,),
+    ``marker_distances_mm`` (T, M), ``velocity_error_mm2`` (T,) and its ``velocity_error_total``,
+    ``velocity_error_mm`` (T,) = sqrt(per-frame velocity error / M) (an RMS per marker per frame),
+    ``weight_min``/``weight_max`` (K,), ``weight_low``/``weight_high``, ``outside_01``, ``jitter`` (T,).
+    """
+    Wz = np.nan_to_num(np.asarray(W, dtype=np.float64))
+    me = marker_error_mm(B, Wz, S, valid)
+    ve = velocity_error(B, Wz, S, valid)
+    wr = weight_range(Wz)
+    M = np.asarray(S).shape[1]
+    return {
+        "marker_error_mm": me.per_frame, "marker_error_per_marker_mm": me.per_marker, "marker_distances_mm": me.distances,
+        "marker_rms_mm": me.rms, "marker_max_mm": me.max,
+        "velocity_error_mm2": ve.per_frame, "velocity_error_total": ve.total, "velocity_error_mm": np.sqrt(ve.per_frame / M),
+        "weight_min": wr.min, "weight_max": wr.max, "weight_low": wr.low, "weight_high": wr.high, "outside_01": wr.outside,
+        "jitter": jitter(Wz, step),
+    }
