@@ -1,0 +1,130 @@
+"""Retargeting diagnostics: velocity error (Seol et al. 2012, Fig. 11), marker error, weight range.
+
+Inputs follow the solvers: ``B`` (K, M, 3) target marker deltas or the paper's (3M, K) matrix,
+``W`` (T, K) weights, ``S`` (T, M, 3) source marker deltas, all lengths in metres; a (T, M)
+validity mask drops missing samples (default: where ``S`` is finite). Errors are reported in
+millimetres (squared millimetres for the velocity error).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from core.solvers.spacetime import _as_basis, _as_sequence, _as_valid, _zero_filled
+
+__all__ = ["velocity_error", "marker_error_mm", "weight_range", "VelocityError", "MarkerError", "WeightRange"]
+
+_MM = 1e3
+
+
+class VelocityError(NamedTuple):
+    """``||D(BW)^T - DS^T||_F^2`` in mm^2: ``total`` and ``per_frame`` (T,), ``per_frame[0] = 0``."""
+
+    total: float
+    per_frame: np.ndarray
+
+
+class MarkerError(NamedTuple):
+    """Marker position error in mm.
+
+    distances : (T, M) Euclidean distance ``||B_m w_t - s_tm||`` (NaN where missing)
+    per_frame : (T,) RMS over the frame's valid markers (NaN when it has none)
+    per_marker : (M,) RMS over the marker's valid frames (NaN when it has none)
+    rms : float, RMS over all valid samples
+    max : float, largest valid distance
+    """
+
+    distances: np.ndarray
+    per_frame: np.ndarray
+    per_marker: np.ndarray
+    rms: float
+    max: float
+
+
+class WeightRange(NamedTuple):
+    """Per-shape ``min`` and ``max`` (K,), overall ``low``/``high``, and ``outside``: the
+    fraction of weights outside [0, 1] (the range artists build shapes for, Seol 2012 §5)."""
+
+    min: np.ndarray
+    max: np.ndarray
+    low: float
+    high: float
+    outside: float
+
+
+def _inputs(B, W, S, valid):
+    Bm = _as_basis(B)
+    K = Bm.shape[1]
+    M = Bm.shape[0] // 3
+    S3 = _as_sequence(S, M)
+    W = np.asarray(W, dtype=np.float64)
+    if W.shape != (len(S3), K):
+        raise ValueError(f"W: expected ({len(S3)}, {K}) weights for {len(S3)} frames and {K} shapes, got {W.shape}")
+    valid = _as_valid(valid, S3)
+    return Bm, W, _zero_filled(S3, valid), valid
+
+
+def velocity_error(B, W, S, valid=None) -> VelocityError:
+    """Velocity (movement) error of Seol et al. 2012, eq. 2 and Fig. 11, in mm^2.
+
+    ``e_t = sum_m ||B_m (w_t - w_{t-1}) - (s_tm - s_{t-1,m})||^2`` over the markers valid at
+    both ``t-1`` and ``t``; ``total = sum_t e_t = ||D(BW)^T - DS^T||_F^2``.
+
+    Parameters
+    ----------
+    B : (K, M, 3) or (3M, K) float
+    W : (T, K) float
+    S : (T, M, 3) float
+    valid : (T, M) bool, optional
+
+    Returns
+    -------
+    VelocityError(total, per_frame (T,))
+    """
+    Bm, W, Sz, valid = _inputs(B, W, S, valid)
+    per = np.zeros(len(W))
+    if len(W) > 1:
+        X = W @ Bm.T - Sz
+        ve = np.repeat(valid[:-1] & valid[1:], 3, axis=1)
+        per[1:] = (((X[1:] - X[:-1]) * ve) ** 2).sum(1) * _MM**2
+    return VelocityError(float(per.sum()), per)
+
+
+def marker_error_mm(B, W, S, valid=None) -> MarkerError:
+    """Marker position error ``||B_m w_t - s_tm||`` in mm, with RMS per frame and per marker.
+
+    Parameters
+    ----------
+    B : (K, M, 3) or (3M, K) float
+    W : (T, K) float
+    S : (T, M, 3) float
+    valid : (T, M) bool, optional
+
+    Returns
+    -------
+    MarkerError(distances (T, M), per_frame (T,), per_marker (M,), rms, max)
+    """
+    Bm, W, Sz, valid = _inputs(B, W, S, valid)
+    T, M = valid.shape
+    d = np.linalg.norm((W @ Bm.T - Sz).reshape(T, M, 3), axis=2) * _MM
+    d = np.where(valid, d, np.nan)
+    d2 = np.where(valid, d, 0.0) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_frame = np.sqrt(d2.sum(1) / valid.sum(1))
+        per_marker = np.sqrt(d2.sum(0) / valid.sum(0))
+    n = int(valid.sum())
+    rms = float(np.sqrt(d2.sum() / n)) if n else float("nan")
+    mx = float(np.nanmax(d)) if n else float("nan")
+    return MarkerError(d, per_frame, per_marker, rms, mx)
+
+
+def weight_range(W) -> WeightRange:
+    """Per-shape and overall range of weights (T, K), and the fraction outside [0, 1]."""
+    W = np.asarray(W, dtype=np.float64)
+    if W.ndim != 2 or W.size == 0:
+        raise ValueError(f"W: expected non-empty (T, K) weights, got {W.shape}")
+    if not np.isfinite(W).all():
+        raise ValueError("W: contains NaN/inf")
+    return WeightRange(W.min(0), W.max(0), float(W.min()), float(W.max()), float(((W < 0) | (W > 1)).mean()))

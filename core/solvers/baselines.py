@@ -1,0 +1,232 @@
+"""Per-frame retargeting baselines of Seol et al. 2012, §7 (Fig. 9–11).
+
+* **No Const**: ``min_w ||B w_t - s_t||^2`` per frame (unconstrained least squares).
+* **Range PF**: the same with ``-0.5 <= w <= 1.5`` (hard constraint, as Bregler et al. 2002).
+* **Prior PF**: ``min_w ||B w_t - s_t||^2 + alpha E_prior(w_t)`` (soft constraint, §5 prior
+  applied per frame, as Blanz and Vetter 1999).
+
+All take ``B`` as (K, M, 3) marker deltas or the paper's (3M, K) matrix, ``S`` (T, M, 3) source
+marker deltas in metres, and a (T, M) validity mask: a missing marker sample drops out of its
+frame's fit. Frames are batched: frames sharing a mask pattern share one factorisation and are
+solved as right-hand sides of it. A frame with no valid marker gets the minimum-norm answer
+(zero weights for No Const, the prior's mode for Prior PF, the box projection of zero for
+Range PF) — its result says nothing about the data.
+"""
+
+from __future__ import annotations
+
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+
+from core.prior import alpha_for_units
+from core.solvers.spacetime import AUTO_RIDGE, _as_basis, _as_sequence, _as_valid, _prior_quadratic, _zero_filled
+
+__all__ = ["no_const", "range_pf", "prior_pf", "box_lsq"]
+
+
+def _groups(valid: np.ndarray):
+    """Frames grouped by mask pattern: yields (pattern (M,), frame indices)."""
+    if valid.all():
+        yield valid[0], np.arange(len(valid))
+        return
+    patterns, inverse = np.unique(valid, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    for g, pat in enumerate(patterns):
+        yield pat, np.flatnonzero(inverse == g)
+
+
+def _setup(B, S, valid):
+    Bm = _as_basis(B)
+    M = Bm.shape[0] // 3
+    S3 = _as_sequence(S, M)
+    valid = _as_valid(valid, S3)
+    return Bm, _zero_filled(S3, valid), valid
+
+
+def no_const(B, S, valid=None) -> np.ndarray:
+    """"No Const" per-frame least squares (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2``.
+
+    One ``scipy.linalg.lstsq`` (SVD-based, minimum-norm when ``B`` is rank deficient) per mask
+    pattern with all its frames as right-hand sides.
+
+    Parameters
+    ----------
+    B : (K, M, 3) or (3M, K) float
+    S : (T, M, 3) float, NaN = missing
+    valid : (T, M) bool, optional
+
+    Returns
+    -------
+    (T, K) float
+    """
+    Bm, Sz, valid = _setup(B, S, valid)
+    W = np.zeros((len(Sz), Bm.shape[1]))
+    for pat, frames in _groups(valid):
+        rows = np.repeat(pat, 3)
+        if not rows.any():
+            continue
+        W[frames] = scipy.linalg.lstsq(Bm[rows], Sz[frames][:, rows].T, lapack_driver="gelsd")[0].T
+    return W
+
+
+def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str = "cm") -> np.ndarray:
+    """"Prior PF" (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2 + alpha E_prior(w_t)`` per frame.
+
+    Normal equations ``(B_v^T B_v + alpha P) w_t = B_v^T s_t + alpha q`` (``B_v``: valid rows),
+    one Cholesky factorisation per mask pattern; falls back to ``lstsq`` (minimum norm) when the
+    matrix is singular.
+
+    Parameters
+    ----------
+    B, S, valid
+        As :func:`no_const`.
+    alpha : float >= 0
+        Prior weight for lengths in ``alpha_units`` (paper: 0.5 for Prior PF); see
+        :func:`core.prior.alpha_for_units`.
+    prior : PCAPrior, (P, q) tuple or None
+        None: PCA of ``B``'s shapes (paper default).
+
+    Returns
+    -------
+    (T, K) float
+    """
+    Bm, Sz, valid = _setup(B, S, valid)
+    K = Bm.shape[1]
+    a = alpha_for_units(alpha, alpha_units)
+    if a > 0:
+        P, q, _ = _prior_quadratic(prior, Bm, K)
+    else:
+        P, q = np.zeros((K, K)), np.zeros(K)
+    W = np.zeros((len(Sz), K))
+    for pat, frames in _groups(valid):
+        rows = np.repeat(pat, 3)
+        Bv = Bm[rows]
+        H = Bv.T @ Bv + a * P
+        rhs = Sz[frames][:, rows] @ Bv + a * q
+        try:
+            W[frames] = scipy.linalg.cho_solve(scipy.linalg.cho_factor(H, lower=True), rhs.T).T
+        except np.linalg.LinAlgError:
+            W[frames] = scipy.linalg.lstsq(H, rhs.T)[0].T
+    return W
+
+
+def box_lsq(H: np.ndarray, rhs: np.ndarray, lower, upper, max_iter: int = 100):
+    """Batched box-constrained quadratic programs sharing one Hessian.
+
+    ``min_w 1/2 w^T H w - r_t^T w  s.t.  lower <= w <= upper`` for every row ``r_t`` of ``rhs``,
+    by the primal-dual active-set method (Hintermüller, Ito and Kunisch 2002): guess the
+    active bounds from ``w - g / diag(H)``, solve the equality-constrained problem on the free
+    set (batched ``numpy.linalg.solve`` over frames), repeat until the sets stop changing; an
+    exact KKT point when it stops. Rows that do not settle in ``max_iter`` rounds (the method
+    can cycle on non-M-matrices) are handed to ``scipy.optimize.lsq_linear(method="bvls")``.
+    Written by hand because no library solves many small box QPs as one batch.
+
+    Parameters
+    ----------
+    H : (K, K) float, symmetric positive definite
+    rhs : (T, K) float
+    lower, upper : float or (K,) float
+
+    Returns
+    -------
+    W : (T, K) float
+    n_fallback : int, rows solved by ``lsq_linear``
+    """
+    K = H.shape[0]
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,))
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,))
+    T = len(rhs)
+    dH = np.diag(H).copy()
+    dH[dH <= 0] = 1.0
+    W = np.clip(scipy.linalg.solve(H, rhs.T, assume_a="sym").T, lo, hi) if T else np.zeros((0, K))
+    atlo = np.zeros((T, K), bool)
+    athi = np.zeros((T, K), bool)
+    todo = np.arange(T)
+    done = np.zeros(T, bool)
+    for _ in range(max_iter):
+        if not todo.size:
+            break
+        w = W[todo]
+        g = w @ H - rhs[todo]
+        y = w - g / dH
+        nlo, nhi = y < lo, y > hi
+        # solve with the guessed active set: fixed variables at their bounds
+        fixed = nlo | nhi
+        wf = np.where(nlo, lo, np.where(nhi, hi, 0.0))
+        free = ~fixed
+        Hb = np.broadcast_to(H, (len(todo), K, K)) * (free[:, :, None] & free[:, None, :])
+        Hb = Hb + np.eye(K) * fixed[:, None, :]  # identity rows for fixed variables
+        b = np.where(free, rhs[todo] - wf @ H, wf)
+        wn = np.linalg.solve(Hb, b[:, :, None])[:, :, 0]
+        wn = np.where(fixed, wf, wn)
+        same = (nlo == atlo[todo]).all(1) & (nhi == athi[todo]).all(1)
+        W[todo] = wn
+        atlo[todo], athi[todo] = nlo, nhi
+        # stop when sets repeat and the KKT conditions hold
+        gn = wn @ H - rhs[todo]
+        tol = 1e-10 * (np.abs(rhs[todo]).max(1, keepdims=True) + np.abs(H).max() * np.abs(wn).max(1, keepdims=True) + 1e-300)
+        span = 1e-12 * (hi - lo + 1)
+        ok = (
+            (wn >= lo - span).all(1) & (wn <= hi + span).all(1)
+            & (~nlo | (gn >= -tol)).all(1) & (~nhi | (gn <= tol)).all(1)
+            & (fixed | (np.abs(gn) <= tol)).all(1)
+        )
+        fin = same & ok
+        done[todo[fin]] = True
+        todo = todo[~fin]
+    n_fallback = len(todo)
+    if n_fallback:
+        Lc = np.linalg.cholesky(H).T  # H = Lc^T Lc: 1/2 w^T H w - r^T w = 1/2 ||Lc w - Lc^-T r||^2 + const
+        for t in todo:
+            y = scipy.linalg.solve_triangular(Lc, rhs[t], trans="T")
+            W[t] = scipy.optimize.lsq_linear(Lc, y, bounds=(lo, hi), method="bvls", tol=1e-14).x
+    return np.clip(W, lo, hi), n_fallback
+
+
+def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None) -> np.ndarray:
+    """"Range PF" (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2  s.t. lower <= w <= upper``.
+
+    Batched primal-dual active-set solve (:func:`box_lsq`) per mask pattern, checked against
+    ``scipy.optimize.lsq_linear`` in the tests. The paper's range is [-0.5, 1.5].
+
+    Parameters
+    ----------
+    B, S, valid
+        As :func:`no_const`.
+    lower, upper : float or (K,) float
+        Weight bounds, ``lower <= upper``.
+
+    Returns
+    -------
+    (T, K) float
+
+    When ``B`` restricted to a frame's valid markers is rank deficient the fit is not unique;
+    a ridge ``1e-9 * lambda_max(B^T B) ||w||^2`` (the spacetime solver's ``ridge="auto"``) is
+    then added to make it so.
+
+    Raises
+    ------
+    ValueError
+        ``lower > upper``.
+    """
+    Bm, Sz, valid = _setup(B, S, valid)
+    K = Bm.shape[1]
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,))
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,))
+    if (lo > hi).any():
+        raise ValueError(f"range_pf: lower must be <= upper, got {lower}, {upper}")
+    W = np.zeros((len(Sz), K))
+    for pat, frames in _groups(valid):
+        rows = np.repeat(pat, 3)
+        Bv = Bm[rows]
+        H = Bv.T @ Bv
+        try:
+            np.linalg.cholesky(H)
+        except np.linalg.LinAlgError:
+            # rank-deficient B on these markers: the bounded fit is not unique; the same
+            # relative ridge as the spacetime solver's "auto" picks the smallest-norm-ish one
+            H = H + AUTO_RIDGE * max(np.linalg.eigvalsh(H)[-1], 1e-300) * np.eye(K)
+        W[frames] = box_lsq(H, Sz[frames][:, rows] @ Bv, lo, hi)[0]
+    return W
