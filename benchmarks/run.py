@@ -5,11 +5,13 @@ Each ``benchmarks/bench_*.py`` exposes ``main()`` and prints one line per case:
 """
 
 import importlib.util
+import os
 import sys
 import time
 import traceback
 from pathlib import Path
 
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI: small dense solves
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 

@@ -100,6 +100,9 @@ class SolveSettings(param.Parameterized):
     upper = param.Number(default=1.0, softbounds=(1, 2), doc="Upper weight bound (bounded)")
     alpha = param.Number(default=0.01, bounds=(0, None), softbounds=(0, 1), doc="PCA prior weight alpha (Seol 2012 eq. 4)")
     beta = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1), doc="Sobolev position weight beta (Seol 2012 §7.1)")
+    boundary = param.Selector(default="perframe", objects=["perframe", "neutral", "none"], doc=(
+        "Spacetime boundary frames: perframe = first/last frame from the Prior PF solution (takes rarely start and end "
+        "neutral); neutral = zero weights at both ends as in Seol 2012 §3.1; none = free (needs beta > 0)"))
     mu = param.Number(default=0.3, bounds=(0, None), softbounds=(0, 2), doc="Geometric prior weight mu (Ribera 2017 eq. 16)")
     lam = param.Number(default=0.6, bounds=(0, None), softbounds=(0, 2), doc="L1 sparsity weight lambda (Ribera 2017 eq. 16)")
     sigma = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 5), doc="Gaussian temporal filter of the weights in frames (Liu 2011; 0: off)")
@@ -111,7 +114,7 @@ METHOD_PARAMS = {
     "bounded": ("lower", "upper"),
     "range_pf": (),
     "prior_pf": ("alpha",),
-    "spacetime": ("alpha", "beta"),
+    "spacetime": ("alpha", "beta", "boundary"),
     "local": ("sigma",),
     "geometric": ("mu", "lam"),
 }
@@ -273,7 +276,7 @@ class Pipeline:
                   active=lambda: method() in S.PRIOR_METHODS),
             Stage("solve", self.solve, ("load", "stabilize", "personalize", "segment", "prior"), S.run_solve,
                   relevant=lambda s: ("method",) + METHOD_PARAMS[s.method]),
-            Stage("edit", self.edit, ("solve", "personalize", "stabilize", "prior"), S.run_edit),
+            Stage("edit", self.edit, ("solve", "personalize", "stabilize", "prior", "load"), S.run_edit),
             Stage("synthesize", param.Parameterized(), ("load", "edit", "calibrate"), S.run_synthesize),
             Stage("evaluate", self.evaluate, ("stabilize", "personalize", "edit", "load"), S.run_evaluate),
         ])
@@ -326,13 +329,17 @@ class Pipeline:
         memo[name] = content_key(name, values, [self.key(d, memo) for d in stage.deps])
         return memo[name]
 
-    def run(self, upto: str = "evaluate", progress: Optional[ProgressFn] = None) -> dict:
-        """Run every stage up to ``upto`` whose key is not cached; return the result of ``upto``.
+    def run(self, upto: Optional[str] = None, progress: Optional[ProgressFn] = None) -> dict:
+        """Run every stage ``upto`` needs (default: all stages) whose key is not cached;
+        return the result of ``upto`` (default: the last stage).
 
         ``progress(fraction, message)`` hears about stage starts and long stages' progress.
         """
         with self._lock:
-            order = self._order(upto)
+            if upto is None:
+                order, upto = list(self.stages), list(self.stages)[-1]
+            else:
+                order = self._order(upto)
             memo: dict = {}
             results: dict = {}
             for i, name in enumerate(order):

@@ -16,7 +16,7 @@ from .progress import report
 from .retarget import common_markers, source_markers, target_markers
 
 #: methods that use the PCA prior stage
-PRIOR_METHODS = ("prior_pf", "spacetime")
+PRIOR_METHODS = ("prior_pf", "spacetime")  # edits use it too, see EditSettings
 
 
 def run_load(inputs, s, progress=None):
@@ -93,31 +93,37 @@ def run_prior(inputs, s, progress=None):
     return {"prior": PCAPrior().fit(deltas)}
 
 
+def _prior(inputs):
+    return inputs["prior"]["prior"] if inputs.get("prior") else None
+
+
 def run_solve(inputs, s, progress=None):
+    from .solvers import baselines
+
     st = inputs["stabilize"]["source"]
     B = inputs["personalize"]["deltas"]
     S, valid = st.deltas, st.valid
     m = s.method
     info = {}
     if m == "lsq":
-        from .solvers.perframe import solve_lsq
-
-        W = solve_lsq(B, S, valid)
+        W = baselines.no_const(B, S, valid)
     elif m == "bounded":
-        from .solvers.perframe import solve_bounded
-
-        W = solve_bounded(B, S, valid, s.lower, s.upper, progress=progress)
-    elif m in ("range_pf", "prior_pf"):
-        from .solvers import baselines
-
-        if m == "range_pf":
-            W = baselines.range_pf(B, S, valid)
-        else:
-            W = baselines.prior_pf(B, S, inputs["prior"]["prior"], s.alpha, valid)
+        W = baselines.range_pf(B, S, s.lower, s.upper, valid)
+    elif m == "range_pf":
+        W = baselines.range_pf(B, S, valid=valid)  # the paper's -0.5 <= w <= 1.5
+    elif m == "prior_pf":
+        W = baselines.prior_pf(B, S, s.alpha, _prior(inputs), valid)
     elif m == "spacetime":
-        from .solvers.spacetime import solve_spacetime
+        from .solvers.spacetime import SpacetimeSolver
 
-        W = solve_spacetime(B, S, prior=inputs["prior"]["prior"], alpha=s.alpha, beta=s.beta, valid=valid)
+        known = None
+        if s.boundary == "perframe":
+            ends = baselines.prior_pf(B, S[[0, -1]], s.alpha, _prior(inputs), valid[[0, -1]])
+            known = {0: ends[0], len(S) - 1: ends[1]}
+        solver = SpacetimeSolver(B, S, alpha=s.alpha, beta=s.beta, prior=_prior(inputs), known=known,
+                                 boundary="none" if s.boundary == "none" else "neutral", valid=valid)
+        W = solver.solve()
+        info = {"path": solver.method_}
     elif m == "local":
         from .solvers.local import solve_local
 
@@ -126,26 +132,34 @@ def run_solve(inputs, s, progress=None):
     elif m == "geometric":
         from .solvers.geometric import solve_geometric
 
-        ld = inputs["load"]
-        W = solve_geometric(B, S, ld["target_rig"], mu=s.mu, lam=s.lam, valid=valid)
+        W = solve_geometric(B, S, inputs["load"]["target_rig"], mu=s.mu, lam=s.lam, valid=valid)
     else:  # pragma: no cover - param.Selector guards this
         raise ValueError(f"unknown method {m!r}")
     W = np.asarray(W, dtype=np.float64)
-    if np.isnan(W).any():
-        warnings.warn(f"{np.isnan(W).any(1).sum()} frames had no valid marker; their weights are NaN")
-    return {"weights": W, "method": m, "info": info}
+    # the prior/Sobolev weights later edits propagate with: this method's own when it has them
+    alpha = s.alpha if m in PRIOR_METHODS else s.param.alpha.default
+    beta = s.beta if m == "spacetime" else 0.0
+    return {"weights": W, "method": m, "info": info, "alpha": alpha, "beta": beta}
 
 
 def run_edit(inputs, s, progress=None):
+    """Spacetime edits (Seol 2012 §6) on top of any method's solution."""
     W = inputs["solve"]["weights"]
     if not s.edits:
         return {"weights": W, "edits": []}
-    from .solvers.spacetime import apply_edits  # Seol 2012 §6
+    from .solvers.spacetime import Edit, SpacetimeSolver
 
     st = inputs["stabilize"]["source"]
-    prior = inputs["prior"]["prior"] if inputs.get("prior") else None
-    W2 = apply_edits(W, s.edits, inputs["personalize"]["deltas"], st.deltas, prior=prior, valid=st.valid)
-    return {"weights": W2, "edits": list(s.edits)}
+    edits = []
+    for e in s.edits:
+        win = e.get("window")
+        shapes = list(e["weights"]) if isinstance(e["weights"], dict) else e.get("shapes")
+        values = list(e["weights"].values()) if isinstance(e["weights"], dict) else e["weights"]
+        edits.append(Edit(int(e["frame"]), np.asarray(values, float), shapes, tuple(win) if win else None))
+    sol = inputs["solve"]
+    solver = SpacetimeSolver(inputs["personalize"]["deltas"], st.deltas, alpha=sol["alpha"], beta=sol["beta"], prior=_prior(inputs),
+                             known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["load"]["target_rig"].names)
+    return {"weights": solver.edit(W, edits=edits), "edits": list(s.edits)}
 
 
 def run_synthesize(inputs, s, progress=None):

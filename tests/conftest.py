@@ -1,6 +1,12 @@
 """Shared fixtures: the bundled real data, loaded once per test session."""
 
+import os
 from pathlib import Path
+
+# One BLAS thread: the solvers work on many small matrices, where OpenBLAS's threads on a
+# loaded 2-core machine made products 10-50x slower (measured in the spacetime tests).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import pytest
 

@@ -1,0 +1,95 @@
+"""The stage pipeline: exactly the stale stages re-run; reverting is a cache hit; results
+are read-only; CLI flags and widgets come from one definition."""
+
+import numpy as np
+import pytest
+
+from core.pipeline import Pipeline, StageCache, add_cli_arguments, cli_flags, content_key
+from conftest import PERFORMANCES, RIGS
+
+FILES = dict(source=str(PERFORMANCES / "livelinkface_take_s07.csv"), source_rig=str(RIGS / "ict_facekit.glb"),
+             target_rig=str(RIGS / "rocketbox_female_adult_02.glb"))
+
+
+@pytest.fixture
+def pipe():
+    return Pipeline(cache=StageCache(), first_frame=0, last_frame=119, method="lsq", **FILES)
+
+
+def test_first_run_runs_every_active_stage_once(pipe):
+    pipe.run()
+    assert pipe.runs["load"] == pipe.runs["calibrate"] == pipe.runs["solve"] == pipe.runs["evaluate"] == 1
+    assert pipe.runs["segment"] == 0  # inactive unless the method is local
+    pipe.run()
+    assert pipe.runs["solve"] == 1  # nothing stale: all hits
+
+
+def test_solver_setting_reruns_solve_and_below_only(pipe):
+    pipe.configure(method="bounded")
+    pipe.run()
+    before = dict(pipe.runs)
+    pipe.configure(upper=0.8)
+    pipe.run()
+    ran = {k for k in pipe.runs if pipe.runs[k] != before.get(k, 0)}
+    assert ran == {"solve", "edit", "synthesize", "evaluate"}
+    W = pipe.results(["solve"])["solve"]["weights"]
+    assert W.max() <= 0.8 + 1e-9
+    # reverting is a cache hit: no stage runs
+    pipe.configure(upper=1.0)
+    snapshot = dict(pipe.runs)
+    pipe.run()
+    assert dict(pipe.runs) == snapshot
+
+
+def test_irrelevant_settings_are_cache_hits(pipe):
+    pipe.run()
+    snapshot = dict(pipe.runs)
+    pipe.configure(alpha=0.5, mu=1.0, regions=3)  # not used by lsq
+    pipe.run()
+    assert dict(pipe.runs) == snapshot
+
+
+def test_upstream_setting_invalidates_downstream(pipe):
+    pipe.run()
+    pipe.configure(rbf_smoothing=0.01)
+    pipe.run()
+    assert pipe.runs["load"] == 1 and pipe.runs["stabilize"] == 1
+    assert pipe.runs["calibrate"] == 2 and pipe.runs["solve"] == 2
+
+
+def test_cached_results_are_read_only(pipe):
+    W = pipe.results(["solve"])["solve"]["weights"]
+    with pytest.raises(ValueError):
+        W[0, 0] = 1.0
+
+
+def test_shared_cache_between_sessions(pipe):
+    pipe.run()
+    other = Pipeline(cache=pipe.cache, first_frame=0, last_frame=119, method="lsq", **FILES)
+    other.run()
+    assert sum(other.runs.values()) == 0
+
+
+def test_unknown_setting_suggests():
+    with pytest.raises(KeyError, match="alpha"):
+        Pipeline(alpah=1)
+
+
+def test_content_key_hashes_whole_arrays():
+    a = np.zeros((52, 5000, 3))
+    k0 = content_key(a)
+    a[17, 4321, 2] = 1e-12  # a one-element change pandas-style samplers miss
+    assert content_key(a) != k0
+
+
+def test_cli_flags_come_from_settings():
+    import argparse
+
+    flags = {f for f, *_ in cli_flags()}
+    assert {"--alpha", "--beta", "--regions", "--mu", "--lam", "--method", "--source", "--target-rig"} <= flags
+    p = argparse.ArgumentParser()
+    add_cli_arguments(p)
+    ns = p.parse_args(["--alpha", "0.02", "--regions", "6", "--no-calibrate"])
+    assert ns.alpha == 0.02 and ns.regions == 6 and ns.calibrate is False
+    with pytest.raises(SystemExit):
+        p.parse_args(["--method", "magic"])
