@@ -1,0 +1,853 @@
+// face-retarget 3D playback viewer: a blendshape rig as three.js morph targets.
+//
+// Sent once (binary, bokeh ndarray buffers): neutral (V,3) f32, faces (F,3) u32,
+// deltas (K,V,3) f32, the weight track (T,K) f32, marker layout / marker track.
+// Per frame nothing travels while playing: the browser plays the track at `fps` on a
+// clock shared by every viewer in the same `sync_group`; the group's first viewer writes
+// `frame` back to Python at most every `sync_interval` seconds (0 = only when playback
+// stops, when every viewer writes its final frame).
+//
+// Mesh:    position = neutral + sum_k w_k delta_k
+//          blend "gpu": three.js morph targets (morphAttributes, morphTargetsRelative), the
+//          vertex shader loops over all K targets held in a texture;
+//          blend "cpu": the same sum in JS over the non-zero weights, uploaded per frame.
+//          "auto" picks cpu on a software WebGL (SwiftShader, llvmpipe), where the "GPU" is
+//          the CPU and the generic shader fetches every target for every vertex.
+// Normals: n(w) = n0 + sum_k w_k (n_k - n0), renormalised in the shader, with n_k the
+//          area-weighted vertex normals of neutral + delta_k, welded over UV seams
+//          (computed here once, so normals cost no payload).
+// Markers: p_m = sum_j b_mj (neutral[v_mj] + sum_k w_k delta_k[v_mj]) on the CPU for the
+//          M layout markers (M*3*K multiply-adds per frame), or a (T,M,3) marker track.
+
+const GROUPS = (window.__faceRetargetGroups = window.__faceRetargetGroups || new Map());
+const REGISTRY = (window.__faceRetarget = window.__faceRetarget || { viewers: {} });
+const STATS = (window.__faceRetargetStats = window.__faceRetargetStats || { viewers: {} });
+if (!STATS.reset) {
+  STATS.reset = () => {
+    for (const s of Object.values(STATS.viewers)) {
+      s.renders = 0; s.renderMs = 0; s.framesShown = 0; s.framesSkipped = 0;
+      s.t0 = performance.now();
+    }
+  };
+}
+
+const RIGHT_ANGLE = Math.PI / 2;
+
+// ---------------------------------------------------------------------------------------
+// A playback clock shared by the viewers of one sync group (or private to one viewer).
+class Clock {
+  constructor(name) {
+    this.name = name;
+    this.members = new Set();
+    this.frame = 0;
+    this.playing = false;
+    this.fps = 30;
+    this.loop = true;
+    this.t0 = 0;
+    this.f0 = 0;
+    this.raf = null;
+    this.recent = []; // [frame, time] reported to Python lately: their echoes are ignored
+    this.camera = { azimuth: 0, elevation: 0, zoom: 1, panX: 0, panY: 0 };
+  }
+  get nFrames() {
+    let n = 1;
+    for (const m of this.members) n = Math.max(n, m.nFrames);
+    return n;
+  }
+  join(v) { this.members.add(v); }
+  leave(v) {
+    this.members.delete(v);
+    if (!this.members.size) {
+      this.stopLoop();
+      if (this.name) GROUPS.delete(this.name);
+    }
+  }
+  clamp(f) {
+    const n = this.nFrames;
+    f = Math.round(Number(f) || 0);
+    return Math.min(Math.max(f, 0), n - 1);
+  }
+  remember(f) {
+    const now = performance.now();
+    this.recent.push([f, now]);
+    this.recent = this.recent.filter(([, t]) => now - t < 2000);
+  }
+  isEcho(f) {
+    const now = performance.now();
+    return this.recent.some(([g, t]) => g === f && now - t < 2000);
+  }
+  seek(f) {
+    this.frame = this.clamp(f);
+    if (this.playing) { this.t0 = performance.now(); this.f0 = this.frame; }
+    for (const m of this.members) m.showFrame(this.frame, false);
+  }
+  setFps(fps) {
+    if (!(fps > 0)) return;
+    if (this.playing) { this.f0 = this.frame; this.t0 = performance.now(); }
+    this.fps = fps;
+  }
+  play(on) {
+    on = Boolean(on);
+    if (on === this.playing) return;
+    this.playing = on;
+    if (on) {
+      if (this.frame >= this.nFrames - 1 && !this.loop) this.frame = 0;
+      this.t0 = performance.now();
+      this.f0 = this.frame;
+      for (const m of this.members) m.playbackStarted();
+      this.startLoop();
+    } else {
+      this.stopLoop();
+      for (const m of this.members) m.playbackStopped(this.frame);
+    }
+  }
+  startLoop() {
+    if (this.raf !== null) return;
+    const step = (now) => {
+      this.raf = null;
+      if (!this.playing) return;
+      this.tick(now);
+      if (this.playing) this.raf = requestAnimationFrame(step);
+    };
+    this.raf = requestAnimationFrame(step);
+  }
+  stopLoop() {
+    if (this.raf !== null) cancelAnimationFrame(this.raf);
+    this.raf = null;
+  }
+  tick(now) {
+    const n = this.nFrames;
+    let f = this.f0 + Math.floor(((now - this.t0) / 1000) * this.fps + 1e-6);
+    let ended = false;
+    if (f >= n) {
+      if (this.loop) {
+        f = f % n;
+        this.t0 = now; this.f0 = f;
+      } else {
+        f = n - 1;
+        ended = true;
+      }
+    }
+    if (f !== this.frame) {
+      this.frame = f;
+      for (const m of this.members) m.showFrame(f, true);
+    }
+    if (ended) this.play(false);
+  }
+  cameraChanged() { for (const m of this.members) m.updateCamera(); }
+}
+
+function clockFor(name) {
+  if (!name) return new Clock("");
+  if (!GROUPS.has(name)) GROUPS.set(name, new Clock(name));
+  return GROUPS.get(name);
+}
+
+// ---------------------------------------------------------------------------------------
+function asF32(a) {
+  // bokeh decodes ndarrays to typed-array subclasses; three wants plain typed arrays
+  if (a == null) return null;
+  if (a instanceof Float32Array && a.constructor === Float32Array) return a;
+  return Float32Array.from(a);
+}
+function asU32(a) {
+  if (a == null) return null;
+  return a instanceof Uint32Array && a.constructor === Uint32Array ? a : Uint32Array.from(a);
+}
+function rows(a) {
+  // (n, ...) ndarray -> n, or 0 for null / empty
+  if (a == null || !a.length) return 0;
+  return a.shape ? a.shape[0] : 0;
+}
+
+// Vertices sharing a neutral position (UV seams) get one id, so normals do not crease there.
+function weldIds(pos, V) {
+  const ids = new Uint32Array(V);
+  const seen = new Map();
+  for (let i = 0; i < V; i++) {
+    const key = `${pos[3 * i]},${pos[3 * i + 1]},${pos[3 * i + 2]}`;
+    const j = seen.get(key);
+    if (j === undefined) { seen.set(key, i); ids[i] = i; } else ids[i] = j;
+  }
+  return ids;
+}
+
+// Area-weighted vertex normals of positions `p` (+ `d` scaled by 1 when given), welded.
+function vertexNormals(p, d, faces, weld, out, acc) {
+  acc.fill(0);
+  const F = faces.length / 3;
+  for (let f = 0; f < F; f++) {
+    const a = 3 * faces[3 * f], b = 3 * faces[3 * f + 1], c = 3 * faces[3 * f + 2];
+    let ax = p[a], ay = p[a + 1], az = p[a + 2];
+    let bx = p[b], by = p[b + 1], bz = p[b + 2];
+    let cx = p[c], cy = p[c + 1], cz = p[c + 2];
+    if (d) {
+      ax += d[a]; ay += d[a + 1]; az += d[a + 2];
+      bx += d[b]; by += d[b + 1]; bz += d[b + 2];
+      cx += d[c]; cy += d[c + 1]; cz += d[c + 2];
+    }
+    const ux = bx - ax, uy = by - ay, uz = bz - az;
+    const vx = cx - ax, vy = cy - ay, vz = cz - az;
+    const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
+    for (const v of [a, b, c]) {
+      const w = 3 * weld[v / 3];
+      acc[w] += nx; acc[w + 1] += ny; acc[w + 2] += nz;
+    }
+  }
+  const V = out.length / 3;
+  for (let i = 0; i < V; i++) {
+    const w = 3 * weld[i];
+    const x = acc[w], y = acc[w + 1], z = acc[w + 2];
+    const l = Math.hypot(x, y, z) || 1;
+    out[3 * i] = x / l; out[3 * i + 1] = y / l; out[3 * i + 2] = z / l;
+  }
+  return out;
+}
+
+
+// Vertex-lit ("fast") shading: hemisphere + key + fill Lambert terms evaluated per vertex,
+// with three's own morph chunks so it works with GPU morph targets too. Per-pixel PBR
+// (MeshStandardMaterial) costs 2-3x more per frame under software WebGL.
+const FAST_VERTEX = `
+#include <common>
+#include <color_pars_vertex>
+#include <morphtarget_pars_vertex>
+uniform vec3 uAlbedo;
+uniform vec3 uSky;
+uniform vec3 uGround;
+uniform vec3 uKeyDir;
+uniform vec3 uKey;
+uniform vec3 uFillDir;
+uniform vec3 uFill;
+varying vec3 vLit;
+void main() {
+  #include <color_vertex>
+  #include <morphinstance_vertex>
+  #include <morphcolor_vertex>
+  #include <beginnormal_vertex>
+  #include <morphnormal_vertex>
+  #include <begin_vertex>
+  #include <morphtarget_vertex>
+  vec3 nView = normalize(normalMatrix * objectNormal);
+  vec3 nWorld = normalize(mat3(modelMatrix) * objectNormal);
+  vec3 albedo = uAlbedo;
+  #ifdef USE_COLOR
+    albedo *= vColor.rgb;
+  #endif
+  vec3 irradiance = mix(uGround, uSky, 0.5 * nWorld.y + 0.5)
+                  + uKey * max(dot(nView, uKeyDir), 0.0) + uFill * max(dot(nView, uFillDir), 0.0);
+  vLit = albedo * irradiance * RECIPROCAL_PI;
+  gl_Position = projectionMatrix * modelViewMatrix * vec4(transformed, 1.0);
+}`;
+const FAST_FRAGMENT = `
+varying vec3 vLit;
+void main() {
+  gl_FragColor = vec4(vLit, 1.0);
+  #include <tonemapping_fragment>
+  #include <colorspace_fragment>
+}`;
+
+const LIGHTS = { sky: 1.4, ground: 0x444444, key: 2.2, keyDir: [-0.6, 0.8, 1.0], fill: 0.6, fillDir: [0.8, -0.2, 0.6] };
+
+function rendererName(renderer) {
+  const gl = renderer.getContext();
+  const ext = gl.getExtension("WEBGL_debug_renderer_info");
+  return String(ext ? gl.getParameter(ext.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER));
+}
+
+// ---------------------------------------------------------------------------------------
+class Viewer {
+  constructor(THREE, model, el, view) {
+    this.THREE = THREE;
+    this.model = model;
+    this.el = el;
+    this.view = view;
+    this.disposed = false;
+    this.label = model.label || `viewer-${Object.keys(REGISTRY.viewers).length}`;
+    this.lastSync = 0;
+    this.lastShown = -1;
+    this.pendingRender = null;
+    this.override = null; // probe weights (diagnostics), not synced
+    this.stats = { renders: 0, renderMs: 0, framesShown: 0, framesSkipped: 0, t0: performance.now() };
+    STATS.viewers[this.label] = this.stats;
+    this.buildDom();
+    this.buildScene();
+    this.setGeometry();
+    this.setMarkers();
+    this.clock = clockFor(model.sync_group);
+    this.clock.join(this);
+    if (this.clock.members.size === 1) {
+      this.clock.fps = model.fps;
+      this.clock.loop = model.loop;
+      this.clock.frame = this.clock.clamp(model.frame);
+    }
+    this.watch();
+    this.showFrame(this.clock.frame, false);
+    if (model.playing) this.clock.play(true);
+    REGISTRY.viewers[this.label] = this.api();
+  }
+
+  // -- DOM, renderer, camera -----------------------------------------------------------
+  buildDom() {
+    const THREE = this.THREE;
+    this.root = document.createElement("div");
+    this.root.style.cssText = "position:relative;width:100%;height:100%;overflow:hidden;";
+    this.canvas = document.createElement("canvas");
+    this.canvas.className = "face-retarget-canvas";
+    this.canvas.dataset.label = this.label;
+    this.canvas.style.cssText = "display:block;width:100%;height:100%;touch-action:none;outline:none;";
+    this.canvas.tabIndex = 0;
+    this.overlay = document.createElement("div");
+    this.overlay.className = "face-retarget-overlay";
+    this.overlay.style.cssText =
+      "position:absolute;left:8px;top:6px;font:12px sans-serif;color:#ddd;pointer-events:none;" +
+      "text-shadow:0 0 3px #000;";
+    this.root.append(this.canvas, this.overlay);
+    this.el.replaceChildren(this.root);
+    this.renderer = new THREE.WebGLRenderer({ canvas: this.canvas, antialias: false, alpha: false,
+                                              powerPreference: "high-performance" });
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    this.resizeObserver = new ResizeObserver(() => this.resize());
+    this.resizeObserver.observe(this.root);
+    this.bindControls();
+  }
+
+  buildScene() {
+    const THREE = this.THREE;
+    const m = this.model;
+    this.rendererName = rendererName(this.renderer);
+    this.software = /swiftshader|llvmpipe|softpipe|software/i.test(this.rendererName);
+    this.blend = m.blend === "auto" ? (this.software ? "cpu" : "gpu") : m.blend;
+    this.shading = m.shading === "auto" ? (this.software ? "fast" : "standard") : m.shading;
+    this.scene = new THREE.Scene();
+    this.scene.background = new THREE.Color(m.background_color);
+    this.camera = new THREE.PerspectiveCamera(25, 1, 0.001, 100);
+    this.scene.add(this.camera);
+    this.scene.add(new THREE.HemisphereLight(0xffffff, LIGHTS.ground, LIGHTS.sky));
+    // key light rides with the camera (upper left of the view), so orbiting keeps the face lit
+    for (const [intensity, dir] of [[LIGHTS.key, LIGHTS.keyDir], [LIGHTS.fill, LIGHTS.fillDir]]) {
+      const light = new THREE.DirectionalLight(0xffffff, intensity);
+      light.position.set(...dir);
+      this.camera.add(light);
+      this.camera.add(light.target);
+      light.target.position.set(0, 0, 0);
+    }
+    if (this.shading === "fast") {
+      const ground = new THREE.Color(LIGHTS.ground).multiplyScalar(LIGHTS.sky);
+      this.material = new THREE.ShaderMaterial({
+        vertexShader: FAST_VERTEX,
+        fragmentShader: FAST_FRAGMENT,
+        // back faces culled: ~25% less work under SwiftShader; a look into the open neck
+        // from below shows through (the standard shading draws both sides)
+        side: THREE.FrontSide,
+        uniforms: {
+          uAlbedo: { value: new THREE.Color(m.mesh_color) },
+          uSky: { value: new THREE.Color(0xffffff).multiplyScalar(LIGHTS.sky) },
+          uGround: { value: ground },
+          uKeyDir: { value: new THREE.Vector3(...LIGHTS.keyDir).normalize() },
+          uKey: { value: new THREE.Color(0xffffff).multiplyScalar(LIGHTS.key) },
+          uFillDir: { value: new THREE.Vector3(...LIGHTS.fillDir).normalize() },
+          uFill: { value: new THREE.Color(0xffffff).multiplyScalar(LIGHTS.fill) },
+        },
+      });
+      this.material.color = this.material.uniforms.uAlbedo.value; // same API as the standard one
+    } else {
+      this.material = new THREE.MeshStandardMaterial({ color: m.mesh_color, roughness: 0.65,
+                                                       metalness: 0.0, side: THREE.DoubleSide });
+    }
+    this.markerMaterial = new THREE.MeshBasicMaterial({ color: m.marker_color });
+  }
+
+  setGeometry() {
+    const THREE = this.THREE;
+    const m = this.model;
+    if (this.mesh) {
+      this.scene.remove(this.mesh);
+      this.mesh.geometry.dispose();
+      this.mesh = null;
+    }
+    const V = rows(m.neutral);
+    this.V = V;
+    this.K = V ? rows(m.deltas) : 0;
+    if (!V) { this.nFrames = 1; return; }
+    const pos = asF32(m.neutral);
+    const faces = asU32(m.faces);
+    const geom = new THREE.BufferGeometry();
+    geom.setAttribute("position", new THREE.BufferAttribute(pos, 3));
+    geom.setIndex(new THREE.BufferAttribute(faces, 1));
+    const t = performance.now();
+    const weld = weldIds(pos, V);
+    const acc = new Float32Array(3 * V);
+    const n0 = vertexNormals(pos, null, faces, weld, new Float32Array(3 * V), acc);
+    geom.setAttribute("normal", new THREE.BufferAttribute(n0, 3));
+    const deltas = this.K ? asF32(m.deltas) : new Float32Array(0);
+    this.deltas = deltas;
+    this.neutral = pos;
+    this.normal0 = n0;
+    const mp = [], mn = [];
+    this.normalDeltas = [];
+    const nk = new Float32Array(3 * V);
+    for (let k = 0; k < this.K; k++) {
+      const dk = deltas.subarray(k * 3 * V, (k + 1) * 3 * V);
+      vertexNormals(pos, dk, faces, weld, nk, acc);
+      const dn = new Float32Array(3 * V);
+      for (let i = 0; i < 3 * V; i++) dn[i] = nk[i] - n0[i];
+      this.normalDeltas.push(dn);
+      mp.push(new THREE.BufferAttribute(dk, 3));
+      mn.push(new THREE.BufferAttribute(dn, 3));
+    }
+    this.stats.normalsMs = performance.now() - t;
+    this.current = new Float32Array(this.K);
+    this.blended = null;
+    if (this.K && this.blend === "gpu") {
+      geom.morphAttributes.position = mp;
+      geom.morphAttributes.normal = mn;
+      geom.morphTargetsRelative = true;
+    } else {
+      // cpu: own copies the blend writes into every frame
+      const pa = new THREE.BufferAttribute(new Float32Array(pos), 3);
+      const na = new THREE.BufferAttribute(new Float32Array(n0), 3);
+      pa.setUsage(THREE.DynamicDrawUsage);
+      na.setUsage(THREE.DynamicDrawUsage);
+      geom.setAttribute("position", pa);
+      geom.setAttribute("normal", na);
+    }
+    this.setColors(geom);
+    // frame the neutral: three's computeBoundingBox also adds every morph target's delta box
+    geom.boundingBox = new THREE.Box3().setFromBufferAttribute(geom.getAttribute("position"));
+    geom.boundingSphere = geom.boundingBox.getBoundingSphere(new THREE.Sphere());
+    this.mesh = new THREE.Mesh(geom, this.material);
+    this.mesh.frustumCulled = false; // the bounding box is the neutral's; morphs move outside it
+    if (this.K && this.blend === "gpu") this.mesh.updateMorphTargets();
+    this.scene.add(this.mesh);
+    this.bbox = geom.boundingBox.clone();
+    this.size = this.bbox.min.distanceTo(this.bbox.max);
+    this.setTrack();
+    this.fitCamera();
+  }
+
+  setColors(geom) {
+    const THREE = this.THREE;
+    geom = geom || (this.mesh && this.mesh.geometry);
+    if (!geom) return;
+    const c = this.model.colors;
+    if (c != null && rows(c) === this.V) {
+      geom.setAttribute("color", new THREE.BufferAttribute(asF32(c), 3));
+      this.material.vertexColors = true;
+      this.material.color.set(0xffffff);  // the map is the albedo
+    } else {
+      if (geom.getAttribute("color")) geom.deleteAttribute("color");
+      this.material.vertexColors = false;
+      this.material.color.set(this.model.mesh_color);
+    }
+    this.material.needsUpdate = true;
+  }
+
+  setTrack() {
+    const tr = this.model.track;
+    const T = rows(tr);
+    if (T && tr.shape[1] === this.K) {
+      this.track = asF32(tr);
+      this.nFrames = T;
+    } else {
+      this.track = null;
+      this.nFrames = 1;
+    }
+    const mt = this.model.marker_track;
+    this.nFrames = Math.max(this.nFrames, rows(mt));
+  }
+
+  setMarkers() {
+    const THREE = this.THREE;
+    const m = this.model;
+    if (this.markers) {
+      this.scene.remove(this.markers);
+      this.markers.geometry.dispose();
+      this.markers = null;
+    }
+    const lv = m.marker_vertices, lw = m.marker_weights, mt = m.marker_track;
+    this.layoutV = null; this.markerTrack = null;
+    let M = 0;
+    if (rows(mt)) {
+      this.markerTrack = asF32(mt);
+      M = mt.shape[1];
+    } else if (rows(lv) && rows(lw) === rows(lv)) {
+      this.layoutV = asU32(lv);
+      this.layoutW = asF32(lw);
+      M = rows(lv);
+    }
+    this.M = M;
+    if (!M || !this.V) return;
+    const r = m.marker_radius * (this.size || 1);
+    const sphere = new THREE.SphereGeometry(r, 10, 8);
+    this.markers = new THREE.InstancedMesh(sphere, this.markerMaterial, M);
+    this.markers.frustumCulled = false;
+    this.markers.visible = m.show_markers;
+    this.markerPos = new Float32Array(3 * M);
+    this.scene.add(this.markers);
+    this.nFrames = Math.max(this.nFrames || 1, rows(mt));
+  }
+
+  updateMarkers(w, frame) {
+    if (!this.markers) return;
+    const M = this.M, V = this.V, K = this.K, P = this.markerPos;
+    if (this.markerTrack) {
+      const T = this.model.marker_track.shape[0];
+      const f = Math.min(frame, T - 1);
+      P.set(this.markerTrack.subarray(3 * M * f, 3 * M * (f + 1)));
+    } else {
+      const N = this.neutral, D = this.deltas, LV = this.layoutV, LW = this.layoutW;
+      for (let i = 0; i < M; i++) {
+        let x = 0, y = 0, z = 0;
+        for (let j = 0; j < 3; j++) {
+          const b = LW[3 * i + j];
+          if (b === 0) continue;
+          const v = 3 * LV[3 * i + j];
+          let px = N[v], py = N[v + 1], pz = N[v + 2];
+          for (let k = 0; k < K; k++) {
+            const wk = w[k];
+            if (wk === 0) continue;
+            const o = k * 3 * V + v;
+            px += wk * D[o]; py += wk * D[o + 1]; pz += wk * D[o + 2];
+          }
+          x += b * px; y += b * py; z += b * pz;
+        }
+        P[3 * i] = x; P[3 * i + 1] = y; P[3 * i + 2] = z;
+      }
+    }
+    const THREE = this.THREE;
+    const mat = this._mat || (this._mat = new THREE.Matrix4());
+    for (let i = 0; i < M; i++) {
+      mat.makeTranslation(P[3 * i], P[3 * i + 1], P[3 * i + 2]);
+      this.markers.setMatrixAt(i, mat);
+    }
+    this.markers.instanceMatrix.needsUpdate = true;
+  }
+
+  // -- weights and frames ----------------------------------------------------------------
+  weightsAt(frame) {
+    const K = this.K;
+    if (this.override) return this.override;
+    const w = this.model.weights;
+    if (w && w.length === K && K) return w;
+    if (this.track) {
+      const f = Math.min(frame, this.nFrames - 1, rows(this.model.track) - 1);
+      return this.track.subarray(f * K, (f + 1) * K);
+    }
+    return null;
+  }
+
+  showFrame(frame, fromPlayback) {
+    if (this.disposed) return;
+    if (fromPlayback && this.lastShown >= 0) {
+      const n = this.clock.nFrames;
+      const step = (frame - this.lastShown + n) % n;
+      this.stats.framesShown += 1;
+      if (step > 1) this.stats.framesSkipped += step - 1;
+    }
+    this.lastShown = frame;
+    this.applyFrame(frame);
+    if (fromPlayback) {
+      this.renderNow();
+      const si = this.model.sync_interval;
+      const now = performance.now();
+      // while playing only the group's first viewer reports (they all show the same frame)
+      const leader = this.clock.members.values().next().value === this;
+      if (leader && si > 0 && now - this.lastSync >= si * 1000) this.reportFrame(frame);
+    } else {
+      this.requestRender();
+    }
+  }
+
+  applyFrame(frame) {
+    const w = this.weightsAt(frame);
+    const K = this.K, cur = this.current;
+    let same = this.blended !== null;
+    for (let k = 0; k < K; k++) {
+      const x = w ? w[k] : 0;
+      if (cur[k] !== x) { cur[k] = x; same = false; }
+    }
+    if (this.mesh && !same) {
+      if (this.blend === "gpu") {
+        const infl = this.mesh.morphTargetInfluences;
+        for (let k = 0; k < K; k++) infl[k] = cur[k];
+      } else {
+        this.blendCpu(cur);
+      }
+      this.blended = frame;
+    }
+    this.updateMarkers(cur, frame);
+    const T = this.nFrames;
+    this.overlay.textContent = `${this.model.label || ""}  frame ${frame} / ${T - 1}` +
+      (this.override ? "  (probe)" : (this.model.weights && this.model.weights.length ? "  (weights from Python)" : ""));
+  }
+
+  // position = neutral + sum_k w_k delta_k, normal = n0 + sum_k w_k dn_k over non-zero w_k
+  blendCpu(w) {
+    const t = performance.now();
+    const geom = this.mesh.geometry;
+    const pa = geom.getAttribute("position"), na = geom.getAttribute("normal");
+    const P = pa.array, Nn = na.array, D = this.deltas, n3 = 3 * this.V;
+    P.set(this.neutral);
+    Nn.set(this.normal0);
+    for (let k = 0; k < this.K; k++) {
+      const wk = w[k];
+      if (wk === 0) continue;
+      const d = D.subarray(k * n3, (k + 1) * n3), dn = this.normalDeltas[k];
+      for (let i = 0; i < n3; i++) { P[i] += wk * d[i]; Nn[i] += wk * dn[i]; }
+    }
+    pa.needsUpdate = true;
+    na.needsUpdate = true;
+    this.stats.blendMs = (this.stats.blendMs || 0) + performance.now() - t;
+  }
+
+  reportFrame(frame) {
+    this.lastSync = performance.now();
+    if (this.model.frame === frame) return;
+    this.clock.remember(frame);
+    this.reporting = true;
+    try { this.model.frame = frame; } finally { this.reporting = false; }
+  }
+
+  playbackStarted() {
+    this.lastShown = this.clock.frame;
+    this.lastSync = performance.now();
+    if (!this.model.playing) { this.reporting = true; try { this.model.playing = true; } finally { this.reporting = false; } }
+  }
+
+  playbackStopped(frame) {
+    this.reportFrame(frame);
+    if (this.model.playing) { this.reporting = true; try { this.model.playing = false; } finally { this.reporting = false; } }
+  }
+
+  // -- rendering ---------------------------------------------------------------------------
+  requestRender() {
+    if (this.pendingRender !== null || this.disposed) return;
+    this.pendingRender = requestAnimationFrame(() => { this.pendingRender = null; this.renderNow(); });
+  }
+
+  renderNow() {
+    if (this.disposed || !this.width) return;
+    const t = performance.now();
+    this.renderer.render(this.scene, this.camera);
+    this.stats.renderMs += performance.now() - t;
+    this.stats.renders += 1;
+  }
+
+  resize() {
+    const w = Math.max(1, Math.floor(this.root.clientWidth));
+    const h = Math.max(1, Math.floor(this.root.clientHeight));
+    if (w === this.width && h === this.height) return;
+    this.width = w; this.height = h;
+    this.renderer.setSize(w, h, false);
+    this.camera.aspect = w / h;
+    this.fitCamera();
+  }
+
+  // Frame the neutral's bounding box seen from the front (+Z), then apply the group's
+  // orbit (azimuth, elevation), zoom and pan; pan is in units of the box height.
+  fitCamera() {
+    if (!this.bbox || !this.width) return;
+    const THREE = this.THREE;
+    const c = this.bbox.getCenter(new THREE.Vector3());
+    const s = this.bbox.getSize(new THREE.Vector3());
+    const tanY = Math.tan((this.camera.fov * Math.PI) / 360);
+    const tanX = tanY * this.camera.aspect;
+    const margin = this.model.margin_factor;
+    const dist = margin * Math.max(s.y / 2 / tanY, s.x / 2 / tanX) + s.z / 2;
+    this.base = { center: c, dist, height: s.y };
+    this.camera.near = dist / 100;
+    this.camera.far = dist * 10;
+    this.updateCamera();
+  }
+
+  updateCamera() {
+    if (!this.base) return;
+    const cam = this.clock ? this.clock.camera : { azimuth: 0, elevation: 0, zoom: 1, panX: 0, panY: 0 };
+    const { center, dist, height } = this.base;
+    const d = dist * cam.zoom;
+    const ce = Math.cos(cam.elevation);
+    const dir = new this.THREE.Vector3(ce * Math.sin(cam.azimuth), Math.sin(cam.elevation), ce * Math.cos(cam.azimuth));
+    this.camera.position.copy(center).addScaledVector(dir, d);
+    this.camera.up.set(0, 1, 0);
+    this.camera.lookAt(center);
+    // pan in the camera plane
+    const right = new this.THREE.Vector3().setFromMatrixColumn(this.camera.matrixWorld, 0);
+    const up = new this.THREE.Vector3().setFromMatrixColumn(this.camera.matrixWorld, 1);
+    const offset = right.multiplyScalar(-cam.panX * height).add(up.multiplyScalar(cam.panY * height));
+    this.camera.position.add(offset);
+    this.camera.updateProjectionMatrix();
+    this.camera.updateMatrixWorld();
+    this.requestRender();
+  }
+
+  // A small orbit control (written here rather than loading three's OrbitControls addon:
+  // it needs 40 lines and the group sharing below). Left drag: orbit; right/shift drag: pan;
+  // wheel: zoom; double click: reset. The camera state lives on the sync group's clock, so
+  // side-by-side viewers turn together.
+  bindControls() {
+    const cv = this.canvas;
+    let drag = null;
+    const onDown = (e) => {
+      drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey };
+      cv.setPointerCapture(e.pointerId);
+    };
+    const onMove = (e) => {
+      if (!drag) return;
+      const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
+      drag.x = e.clientX; drag.y = e.clientY;
+      const cam = this.clock.camera;
+      const h = this.height || 1;
+      if (drag.pan) {
+        cam.panX += (dx / h) * cam.zoom;
+        cam.panY += (dy / h) * cam.zoom;
+      } else {
+        cam.azimuth -= (dx / h) * Math.PI;
+        cam.elevation = Math.min(Math.max(cam.elevation + (dy / h) * Math.PI, -RIGHT_ANGLE * 0.95), RIGHT_ANGLE * 0.95);
+      }
+      this.clock.cameraChanged();
+    };
+    const onUp = (e) => { drag = null; try { cv.releasePointerCapture(e.pointerId); } catch (err) {} };
+    const onWheel = (e) => {
+      e.preventDefault();
+      const cam = this.clock.camera;
+      cam.zoom = Math.min(Math.max(cam.zoom * Math.exp(e.deltaY * 0.001), 0.1), 10);
+      this.clock.cameraChanged();
+    };
+    const onDbl = () => {
+      Object.assign(this.clock.camera, { azimuth: 0, elevation: 0, zoom: 1, panX: 0, panY: 0 });
+      this.clock.cameraChanged();
+    };
+    const onCtx = (e) => e.preventDefault();
+    cv.addEventListener("pointerdown", onDown);
+    cv.addEventListener("pointermove", onMove);
+    cv.addEventListener("pointerup", onUp);
+    cv.addEventListener("pointercancel", onUp);
+    cv.addEventListener("wheel", onWheel, { passive: false });
+    cv.addEventListener("dblclick", onDbl);
+    cv.addEventListener("contextmenu", onCtx);
+  }
+
+  // -- model <-> viewer --------------------------------------------------------------------
+  watch() {
+    const m = this.model;
+    m.on("frame", () => {
+      if (this.reporting) return;
+      const f = this.clock.clamp(m.frame);
+      if (this.clock.playing && this.clock.isEcho(m.frame)) return;
+      this.clock.seek(f);
+    });
+    m.on("playing", () => { if (!this.reporting) this.clock.play(m.playing); });
+    m.on("fps", () => this.clock.setFps(m.fps));
+    m.on("loop", () => { this.clock.loop = m.loop; });
+    m.on("weights", () => { this.applyFrame(this.clock.frame); this.requestRender(); });
+    m.on(["track"], () => { this.setTrack(); this.showFrame(this.clock.clamp(this.clock.frame), false); });
+    m.on(["neutral", "faces", "deltas"], () => {
+      this.setGeometry(); this.setMarkers(); this.showFrame(this.clock.clamp(this.clock.frame), false);
+    });
+    m.on(["marker_vertices", "marker_weights", "marker_track", "marker_radius"], () => {
+      this.setMarkers(); this.setTrack(); this.showFrame(this.clock.frame, false);
+    });
+    m.on("show_markers", () => { if (this.markers) this.markers.visible = m.show_markers; this.requestRender(); });
+    m.on("marker_color", () => { this.markerMaterial.color.set(m.marker_color); this.requestRender(); });
+    m.on(["colors", "mesh_color"], () => { this.setColors(); this.requestRender(); });
+    m.on("background_color", () => { this.scene.background.set(m.background_color); this.requestRender(); });
+    m.on("margin_factor", () => this.fitCamera());
+    m.on("remove", () => this.dispose());
+  }
+
+  // Diagnostics used by the browser tests (window.__faceRetarget.viewers[label]); nothing
+  // here talks to Python.
+  api() {
+    return {
+      label: this.label,
+      get K() { return this.self.K; },
+      get V() { return this.self.V; },
+      get frame() { return this.self.clock.frame; },
+      get playing() { return this.self.clock.playing; },
+      get nFrames() { return this.self.nFrames; },
+      self: this,
+      shapeNames: () => Array.from(this.model.shape_names || []),
+      influences: () => Array.from(this.current || []),
+      gpuInfluences: () => Array.from((this.mesh && this.mesh.morphTargetInfluences) || []),
+      markerPositions: () => Array.from(this.markerPos || []),
+      // the blended mesh (cpu blend only; on the gpu it never leaves the shader)
+      positions: () => (this.blend === "cpu" && this.mesh ? Array.from(this.mesh.geometry.getAttribute("position").array) : null),
+      showMarkers: (on) => { if (this.markers) this.markers.visible = on && this.model.show_markers; this.renderNow(); },
+      // show probe weights (K floats) or null to go back to the track, render at once
+      probe: (w) => {
+        this.override = w ? Float32Array.from(w) : null;
+        this.applyFrame(this.clock.frame);
+        this.renderNow();
+      },
+      // render now and read the drawing buffer back (forces the GPU to finish)
+      pixels: () => {
+        this.renderNow();
+        const gl = this.renderer.getContext();
+        const w = gl.drawingBufferWidth, h = gl.drawingBufferHeight;
+        const buf = new Uint8Array(w * h * 4);
+        gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, buf);
+        return { width: w, height: h, data: buf };
+      },
+      // render n frames of the track (from `start`) back to back, each forced to finish with
+      // a 1-pixel readPixels: the sustainable frame time, independent of the capture fps
+      benchRender: (n, start = 0) => {
+        const gl = this.renderer.getContext();
+        const px = new Uint8Array(4);
+        const t = performance.now();
+        for (let i = 0; i < n; i++) {
+          this.applyFrame((start + i) % this.nFrames);
+          this.renderNow();
+          gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+        }
+        const ms = (performance.now() - t) / n;
+        this.applyFrame(this.clock.frame);
+        this.requestRender();
+        return ms;
+      },
+      info: () => ({
+        webgl2: this.renderer.capabilities.isWebGL2 !== false,
+        renderer: this.rendererName,
+        maxTextureSize: this.renderer.capabilities.maxTextureSize,
+        revision: this.THREE.REVISION,
+        blend: this.blend, shading: this.shading, software: this.software,
+        V: this.V, K: this.K, M: this.M, T: this.nFrames,
+        width: this.width, height: this.height,
+        normalsMs: this.stats.normalsMs,
+      }),
+    };
+  }
+
+  dispose() {
+    if (this.disposed) return;
+    this.disposed = true;
+    if (this.pendingRender !== null) cancelAnimationFrame(this.pendingRender);
+    this.clock.leave(this);
+    this.resizeObserver.disconnect();
+    if (this.mesh) this.mesh.geometry.dispose();
+    if (this.markers) this.markers.geometry.dispose();
+    this.material.dispose();
+    this.markerMaterial.dispose();
+    this.renderer.dispose();
+    if (REGISTRY.viewers[this.label] && REGISTRY.viewers[this.label].self === this) delete REGISTRY.viewers[this.label];
+  }
+}
+
+export async function render({ model, el, view }) {
+  if (view && view.__faceRetargetViewer) view.__faceRetargetViewer.dispose();
+  let THREE;
+  try {
+    THREE = await import("three");
+  } catch (err) {
+    const msg = document.createElement("div");
+    msg.style.cssText = "padding:1em;color:#b00;font:13px sans-serif;";
+    msg.textContent =
+      "The 3D viewer could not load three.js from this server (" + err + "). " +
+      "Serve the app with the three.js route: `python scripts/viewer_demo.py`, " +
+      "`panel serve app.py --plugins dashboard.assets`, and run `npm ci` at the repository root.";
+    el.replaceChildren(msg);
+    return;
+  }
+  const viewer = new Viewer(THREE, model, el, view);
+  if (view) view.__faceRetargetViewer = viewer;
+}

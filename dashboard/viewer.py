@@ -1,0 +1,254 @@
+"""3D playback of blendshape rigs in the browser: three.js morph targets in a Panel JSComponent.
+
+What travels, and when (measured numbers in ``docs/viewer.md``):
+
+* once per session, as binary websocket frames (bokeh ndarray buffers, no base64):
+  ``neutral`` (V, 3) float32, ``faces`` (F, 3) uint32, ``deltas`` (K, V, 3) float32, the
+  weight ``track`` (T, K) float32 and the marker layout or marker track;
+* while playing: nothing per frame. The browser plays the track at ``fps`` on a clock shared
+  by all viewers with the same ``sync_group``; the group's first viewer writes ``frame`` back
+  to Python at most every ``sync_interval`` seconds (0: only when playback stops);
+* scrubbing from Python: ``frame`` (one int), or ``weights`` (K floats) to show a pose that is
+  not on the track (a solver preview).
+
+The browser computes, per frame, ``mesh = neutral + sum_k w_k deltas[k]``: on the GPU as three.js
+morph targets (``morphAttributes.position`` with ``morphTargetsRelative``; WebGL2 keeps all K
+targets in a texture, so there is no 8-target limit), or in JS over the non-zero weights when
+the WebGL is software (``blend="auto"``: SwiftShader runs the vertex shader on the CPU, and the
+generic morph shader fetches all K targets per vertex). Normals are blended the same way from
+per-shape normal deltas the browser computes on load; markers are the layout's barycentric
+points on the morphed mesh. Python only packs arrays here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import panel as pn
+import param
+from panel.io.state import state
+
+from . import assets
+
+_STATIC = Path(__file__).parent / "static"
+
+
+def _f32(a, what: str, shape: tuple) -> np.ndarray:
+    """C-contiguous float32 copy of ``a``, checked against ``shape`` (None = any) and finite."""
+    arr = np.ascontiguousarray(np.asarray(a, dtype=np.float64))
+    if arr.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, arr.shape)):
+        want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{what}: expected shape {want}, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        bad = np.flatnonzero(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1))[:10].tolist()
+        raise ValueError(
+            f"{what}: contains NaN/inf (first rows {bad}); fill or drop missing samples before "
+            "display, the viewer does not guess them"
+        )
+    return arr.astype(np.float32)
+
+
+class MeshViewer(pn.custom.JSComponent):
+    """A blendshape rig played back with three.js morph targets.
+
+    ``mesh(t) = neutral + sum_k track[t, k] * deltas[k]`` is evaluated in the browser for the
+    frame ``frame`` (or for ``weights`` when those are set); markers, when given, are
+    barycentric points of the morphed mesh ``p_m = sum_j b_mj mesh[v_mj]`` (the
+    :class:`core.model.MarkerLayout` convention) or positions from ``marker_track``.
+
+    Build one with :meth:`from_rig`. Two viewers with the same ``sync_group`` share one
+    playback clock and one orbit camera in the browser, so they stay frame-locked without a
+    round trip through Python; link one of them to a frame slider.
+
+    Diagnostics for tests: ``window.__faceRetargetStats.viewers[label]`` counts renders and
+    shown/skipped frames; ``window.__faceRetarget.viewers[label]`` offers ``probe(weights)``
+    and ``pixels()`` (see ``docs/viewer.md``).
+    """
+
+    neutral = param.Array(default=None, doc="(V, 3) float32 rest positions, metres.")
+    faces = param.Array(default=None, doc="(F, 3) uint32 triangles.")
+    deltas = param.Array(default=None, doc="(K, V, 3) float32 shape deltas, metres.")
+    shape_names = param.List(default=[], item_type=str, doc="K shape names.")
+    track = param.Array(default=None, doc="(T, K) float32 weight track played in the browser.")
+    weights = param.List(default=[], doc="K floats shown instead of the track while non-empty.")
+    frame = param.Integer(default=0, bounds=(0, None), doc="Frame of the track shown.")
+    playing = param.Boolean(default=False, doc="Play the track in the browser.")
+    fps = param.Number(default=30.0, bounds=(0, None), inclusive_bounds=(False, True), doc="Playback rate.")
+    loop = param.Boolean(default=True, doc="Wrap around at the end instead of stopping.")
+    sync_group = param.String(default="", doc="Viewers with the same non-empty group share clock and camera.")
+    sync_interval = param.Number(
+        default=0.5, bounds=(0, None),
+        doc="While playing, the sync group's first viewer writes `frame` back to Python at most "
+            "this often (s); 0: only when playback stops (then every viewer writes it).")
+    marker_vertices = param.Array(default=None, doc="(M, 3) uint32 layout triangles' vertices.")
+    marker_weights = param.Array(default=None, doc="(M, 3) float32 barycentric weights.")
+    marker_track = param.Array(default=None, doc="(T, M, 3) float32 marker positions (instead of a layout).")
+    marker_radius = param.Number(default=0.006, bounds=(0, None), doc="Marker sphere radius / rig size.")
+    marker_color = param.Color(default="#19d3ff")
+    show_markers = param.Boolean(default=True)
+    colors = param.Array(default=None, doc="(V, 3) float32 per-vertex RGB in [0, 1] (e.g. an error map).")
+    mesh_color = param.Color(default="#d8b49c")
+    background_color = param.Color(default="#2b2f36")
+    margin_factor = param.Number(default=1.12, bounds=(0.2, 10), doc="Camera framing: 1 = bbox touches the edges.")
+    label = param.String(default="", doc="Overlay text and key of the browser-side stats.")
+    blend = param.Selector(
+        default="auto", objects=["auto", "gpu", "cpu"],
+        doc="gpu: three.js morph targets; cpu: the weighted sum in JS over non-zero weights; "
+            "auto: cpu on a software WebGL (SwiftShader/llvmpipe), gpu otherwise. Read once on render.")
+    shading = param.Selector(
+        default="auto", objects=["auto", "standard", "fast"],
+        doc="standard: per-pixel PBR (MeshStandardMaterial), both sides; fast: per-vertex "
+            "Lambert, front faces only; auto: fast on a software WebGL. Read once on render.")
+
+    _esm = _STATIC / "viewer.js"
+
+    # three.js is imported from our own server (dashboard.assets), never a CDN
+    _importmap = {"imports": {"three": assets.three_url(".")}}
+
+    @classmethod
+    def _process_importmap(cls):
+        prefix = state.rel_path or "."
+        return {"imports": {"three": assets.three_url(prefix)}}
+
+    # -- construction --------------------------------------------------------------------
+    @classmethod
+    def from_rig(cls, rig, track=None, fps: float = 30.0, layout=None, marker_track=None, colors=None, **params) -> "MeshViewer":
+        """A viewer for ``rig`` playing ``track``.
+
+        Parameters
+        ----------
+        rig : core.model.Rig
+            neutral (V, 3), faces (F, 3), deltas (K, V, 3), K names.
+        track : (T, K) array_like, optional
+            Weights per frame, columns in ``rig.names`` order. Must be finite.
+        fps : float
+            Playback rate of ``track``.
+        layout : core.model.MarkerLayout, optional
+            Markers drawn on the morphed mesh (computed in the browser).
+        marker_track : (T, M, 3) array_like, optional
+            Marker positions per frame in metres (e.g. captured markers), instead of ``layout``.
+        colors : (V, 3) array_like, optional
+            Per-vertex RGB in [0, 1].
+        **params
+            Any other parameter (``label``, ``sync_group``, ``height`` ...).
+
+        Raises
+        ------
+        ValueError
+            naming the argument whose shape does not match the rig, or which holds NaN.
+        """
+        name = getattr(rig, "name", "rig")
+        V, K = rig.n_vertices, rig.n_shapes
+        faces = np.asarray(rig.faces)
+        if faces.ndim != 2 or faces.shape[1] != 3:
+            raise ValueError(f"rig {name!r} faces: expected shape (F, 3), got {faces.shape}")
+        values = dict(
+            neutral=_f32(rig.neutral, f"rig {name!r} neutral", (V, 3)),
+            faces=np.ascontiguousarray(faces, dtype=np.uint32),
+            deltas=_f32(rig.deltas, f"rig {name!r} deltas", (K, V, 3)),
+            shape_names=list(rig.names),
+            fps=float(fps),
+        )
+        values.setdefault("label", name)
+        values.update(cls._track_values(track, K, "track"))
+        if layout is not None and marker_track is not None:
+            raise ValueError("give either layout (markers on the mesh) or marker_track (positions), not both")
+        if layout is not None:
+            layout.check(rig)
+            values["marker_vertices"] = np.ascontiguousarray(layout.vertices, dtype=np.uint32)
+            values["marker_weights"] = _f32(layout.weights, "layout weights", (layout.n_markers, 3))
+        if marker_track is not None:
+            values["marker_track"] = _f32(marker_track, "marker_track", (None, None, 3))
+        if colors is not None:
+            values["colors"] = cls._colors(colors, V)
+        values.update(params)
+        return cls(**values)
+
+    @staticmethod
+    def _track_values(track, K: int, what: str) -> dict:
+        if track is None:
+            return {"track": None}
+        arr = _f32(track, what, (None, K))
+        if not len(arr):
+            raise ValueError(f"{what}: expected at least one frame, got shape {arr.shape}")
+        return {"track": arr}
+
+    @staticmethod
+    def _colors(colors, V: int) -> np.ndarray:
+        c = _f32(colors, "colors", (V, 3))
+        if c.min() < 0 or c.max() > 1:
+            raise ValueError(f"colors: expected RGB in [0, 1], got range [{c.min():.3g}, {c.max():.3g}]")
+        return c
+
+    @property
+    def n_shapes(self) -> int:
+        return 0 if self.deltas is None else int(self.deltas.shape[0])
+
+    @property
+    def n_frames(self) -> int:
+        """Frames of the track (or of the marker track), at least 1."""
+        t = 0 if self.track is None else len(self.track)
+        m = 0 if self.marker_track is None else len(self.marker_track)
+        return max(t, m, 1)
+
+    # -- updates ---------------------------------------------------------------------------
+    def set_track(self, track, fps: float | None = None) -> None:
+        """Replace the (T, K) weight track (sent once, as float32); clamps ``frame``.
+
+        Raises ValueError when the track is not (T, K) for this rig's K or holds NaN.
+        """
+        values = self._track_values(track, self.n_shapes, "track")
+        T = 1 if values["track"] is None else len(values["track"])
+        values["frame"] = min(self.frame, T - 1)
+        if fps is not None:
+            values["fps"] = float(fps)
+        self.param.update(**values)
+
+    def set_weights(self, weights) -> None:
+        """Show ``weights`` (K,) instead of the track; ``None`` or ``[]`` goes back to the track.
+
+        Sent as K decimal numbers rounded to 1e-6 (far below a visible difference), i.e. a
+        few hundred bytes per update. Raises ValueError for a wrong length or NaN.
+        """
+        if weights is None or (not isinstance(weights, np.ndarray) and len(weights) == 0):
+            self.weights = []
+            return
+        w = _f32(np.reshape(weights, -1), "weights", (self.n_shapes,))
+        self.weights = [round(float(x), 6) for x in w]
+
+    def set_colors(self, colors) -> None:
+        """Per-vertex RGB (V, 3) in [0, 1], or None for the plain material."""
+        V = 0 if self.neutral is None else len(self.neutral)
+        self.colors = None if colors is None else self._colors(colors, V)
+
+    def payload_bytes(self) -> dict:
+        """Bytes of each array sent on load (float32/uint32 buffers), and their total."""
+        out = {}
+        for k in ("neutral", "faces", "deltas", "track", "marker_vertices", "marker_weights", "marker_track", "colors"):
+            v = getattr(self, k)
+            out[k] = 0 if v is None else int(v.nbytes)
+        out["total"] = sum(out.values())
+        return out
+
+
+def error_colors(values, vmax: float | None = None) -> np.ndarray:
+    """Per-vertex heat-map colours for :attr:`MeshViewer.colors`: (V,) values -> (V, 3) RGB.
+
+    ``t = clip(values / vmax, 0, 1)`` mapped from a light grey (0) through orange to red (1);
+    ``vmax`` defaults to the largest finite value. NaN values are shown in blue so missing data
+    is visible, not painted as zero error. Raises ValueError for a non-1-D input.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    if v.ndim != 1:
+        raise ValueError(f"values: expected shape (V,), got {v.shape}")
+    finite = np.isfinite(v)
+    top = float(np.max(v[finite])) if vmax is None and finite.any() else float(vmax or 0.0)
+    t = np.clip(np.where(finite, v, 0.0) / top, 0, 1) if top > 0 else np.zeros_like(v)
+    stops = np.array([[0.85, 0.82, 0.80], [1.0, 0.6, 0.1], [0.85, 0.05, 0.05]])
+    x = t * 2
+    lo = np.minimum(x.astype(int), 1)
+    frac = (x - lo)[:, None]
+    rgb = stops[lo] * (1 - frac) + stops[lo + 1] * frac
+    rgb[~finite] = (0.2, 0.35, 0.9)
+    return rgb.astype(np.float32)
