@@ -42,3 +42,21 @@ def evaluate(B, W, S, valid=None, step: int = 1) -> dict:
         "weight_min": wr.min, "weight_max": wr.max, "weight_low": wr.low, "weight_high": wr.high, "outside_01": wr.outside,
         "jitter": jitter(Wz, step),
     }
+
+
+def marker_error_field(rig, layout, per_marker_error, k: int = 3) -> np.ndarray:
+    """Per-vertex error (V,) for a heat map: inverse-distance blend of the ``k`` nearest
+    markers' errors (M,) on the neutral mesh. NaN marker errors are ignored (a vertex whose
+    nearest markers all lack data is NaN, shown as missing, not as zero)."""
+    from scipy.spatial import cKDTree
+
+    e = np.asarray(per_marker_error, dtype=np.float64)
+    pts = layout.points(rig.neutral)
+    ok = np.isfinite(e)
+    if not ok.any():
+        return np.full(rig.n_vertices, np.nan)
+    k = min(k, int(ok.sum()))
+    d, i = cKDTree(pts[ok]).query(rig.neutral, k=k)
+    d, i = d.reshape(len(rig.neutral), k), i.reshape(len(rig.neutral), k)
+    w = 1.0 / np.maximum(d, 1e-6 * rig.size) ** 2
+    return (w * e[ok][i]).sum(1) / w.sum(1)

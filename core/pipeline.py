@@ -338,6 +338,8 @@ class Pipeline:
         with self._lock:
             if upto is None:
                 order, upto = list(self.stages), list(self.stages)[-1]
+            elif isinstance(upto, (list, tuple)):
+                order, upto = self._order(*upto), upto[-1]
             else:
                 order = self._order(upto)
             memo: dict = {}
@@ -371,15 +373,15 @@ class Pipeline:
 
     def results(self, names=None, progress: Optional[ProgressFn] = None) -> dict:
         """Results of several stages (running what is stale)."""
-        names = names or list(self.stages)
-        last = max(names, key=list(self.stages).index)
-        self.run(last, progress)
+        names = list(names or self.stages)
+        self.run(names, progress)
         return {n: self.cache.get((n, self.keys[n]))[1] for n in names}
 
-    def _order(self, upto: str) -> list:
-        if upto not in self.stages:
-            raise KeyError(f"no stage {upto!r}; stages are {list(self.stages)}")
-        need, stack = set(), [upto]
+    def _order(self, *targets: str) -> list:
+        for t in targets:
+            if t not in self.stages:
+                raise KeyError(f"no stage {t!r}; stages are {list(self.stages)}")
+        need, stack = set(), list(targets)
         while stack:
             n = stack.pop()
             if n not in need:

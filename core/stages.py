@@ -165,7 +165,7 @@ def run_edit(inputs, s, progress=None):
 def run_synthesize(inputs, s, progress=None):
     tm = inputs["calibrate"]["target"]
     W = np.nan_to_num(inputs["edit"]["weights"])
-    markers = tm.neutral[None] + np.einsum("tk,kmc->tmc", W, tm.deltas)
+    markers = tm.neutral[None] + (W @ tm.deltas.reshape(len(tm.deltas), -1)).reshape((len(W),) + tm.neutral.shape)
     return {"target_markers": markers, "weights": inputs["edit"]["weights"]}
 
 

@@ -1,0 +1,363 @@
+"""The face-retarget dashboard: pick a capture and a rig, tune the solver, scrub and play.
+
+Serve with ``face-retarget serve`` (or ``panel serve dashboard/app.py --plugins dashboard.assets``).
+Widgets are generated from the pipeline's stage settings; a change re-runs only the stale
+stages (core.pipeline) and the views redraw from the session's snapshot. Views hold no
+numerics: they only place arrays into panes.
+"""
+
+from __future__ import annotations
+
+import html
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+import panel as pn
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from core.evaluate import marker_error_field  # noqa: E402
+from core.pipeline import METHOD_PARAMS  # noqa: E402
+from core.retarget import marker_rig  # noqa: E402
+from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
+from dashboard.session import NONE, Session  # noqa: E402
+from dashboard.viewer import MeshViewer, error_colors  # noqa: E402
+
+log = logging.getLogger("face_retarget.dashboard")
+
+SIDEBAR_WIDTH = 330
+VIEW_HEIGHT = 430
+CSS = """
+.fr-title h1 {font-size: 1.35em; margin: 4px 0 0 0;}
+.fr-muted {color: #666; font-size: 0.86em;}
+.fr-status {font-size: 0.86em;}
+"""
+
+STAGE_PARAMS = {
+    "solve": None,  # chosen by method, see _solve_params
+    "stabilize": ["head_motion", "neutral_frame", "first_frame", "last_frame"],
+    "calibrate": ["calibrate", "rbf_smoothing"],
+    "segment": ["regions", "min_region_size", "mask_smoothing"],
+}
+
+
+def _solve_params(method: str) -> list:
+    return ["method"] + list(METHOD_PARAMS[method])
+
+
+class DashboardApp:
+    """One browser session's page."""
+
+    def __init__(self, session: Session | None = None):
+        self.s = session or Session()
+        self.pipe = self.s.pipeline
+        self._viewer_keys = {"source": None, "target": None}
+        self._build_widgets()
+        self._build_layout()
+        self.refresh()
+
+    # -- widgets ----------------------------------------------------------------------------
+    def _build_widgets(self):
+        s = self.s
+        self.w_source = pn.widgets.Select.from_param(s.param.source, name="Source performance", sizing_mode="stretch_width")
+        self.w_source_rig = pn.widgets.Select.from_param(s.param.source_rig, name="Source rig (for weight curves)", sizing_mode="stretch_width")
+        self.w_target = pn.widgets.Select.from_param(s.param.target_rig, name="Target rig", sizing_mode="stretch_width")
+        self.w_upload = pn.widgets.FileInput(accept=".csv,.trc,.c3d,.glb,.gltf", multiple=False, sizing_mode="stretch_width")
+        self.w_upload.param.watch(self._on_upload, "value")
+        self.settings_box = pn.Column(sizing_mode="stretch_width")
+        self.w_auto = pn.widgets.Checkbox.from_param(s.param.auto_update, name="Auto-update on every change")
+        self.w_apply = pn.widgets.Button(name="Apply", button_type="primary", sizing_mode="stretch_width")
+        self.w_apply.on_click(lambda e: self.refresh())
+        self.w_progress = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width", height=12, bar_color="primary")
+        self.w_status = pn.pane.Markdown("", css_classes=["fr-status"], sizing_mode="stretch_width")
+        self.w_timings = pn.pane.HTML("", sizing_mode="stretch_width")
+        self.w_summary = pn.pane.Markdown("", sizing_mode="stretch_width")
+        # frame control: one slider + play, linked to the source viewer; both viewers share a clock
+        self.w_frame = pn.widgets.IntSlider(name="Frame", start=0, end=1, value=0, sizing_mode="stretch_width")
+        self.w_play = pn.widgets.Toggle(name="▶ Play / ❚❚ Pause", button_type="success", width=150)
+        self.w_frame.param.watch(self._on_frame, "value")
+        self.w_shapes = pn.widgets.MultiChoice(name="Curves shown (empty: the 8 most active)", options=[], sizing_mode="stretch_width")
+        self.w_shapes.param.watch(lambda e: self._draw_curves(), "value")
+        self.curves = CurvePlot(on_seek=self._seek)
+        self.diag = DiagnosticsPlot(x_range=self.curves.fig.x_range)
+        self.w_heat = pn.widgets.Checkbox(name="Error heat map on the target", value=False)
+        self.w_heat.param.watch(lambda e: self._draw_heat(), "value")
+        # spacetime edits (Seol 2012 §6)
+        self.w_edit_shape = pn.widgets.Select(name="Shape", options=[], sizing_mode="stretch_width")
+        self.w_edit_value = pn.widgets.FloatSlider(name="Weight at this frame", start=-0.5, end=1.5, step=0.01, value=0.0, sizing_mode="stretch_width")
+        self.w_edit_shape.param.watch(self._on_edit_shape, "value")
+        self.w_edit_window = pn.widgets.IntSlider(name="Propagation half-window (frames, 0: whole take)", start=0, end=120, value=12, sizing_mode="stretch_width")
+        self.w_edit_add = pn.widgets.Button(name="Set pose at this frame", button_type="primary")
+        self.w_edit_add.on_click(self._add_edit)
+        self.w_undo = pn.widgets.Button(name="Undo", width=70)
+        self.w_redo = pn.widgets.Button(name="Redo", width=70)
+        self.w_undo.on_click(lambda e: self._undo(1))
+        self.w_redo.on_click(lambda e: self._undo(-1))
+        self.w_edits = pn.Column(sizing_mode="stretch_width")
+        self._redo_stack: list = []
+        self.source_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
+        self.target_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
+        self.region_box = pn.Column(sizing_mode="stretch_width")
+        s.param.watch(self._on_busy, ["busy", "progress", "status"])
+        s.param.watch(lambda e: self._changed(), ["source", "source_rig", "target_rig"])
+        for name, obj in self.pipe.settings_objects.items():
+            if name in STAGE_PARAMS:
+                obj.param.watch(lambda e: self._changed(), [p for p in obj.param if p != "name"])
+        self.pipe.solve.param.watch(lambda e: self._build_settings(), "method")
+        self._build_settings()
+
+    def _build_settings(self):
+        m = self.pipe.solve.method
+        cards = [pn.Param(self.pipe.solve, parameters=_solve_params(m), show_name=False, sizing_mode="stretch_width")]
+        if m == "local":
+            cards.append(pn.Param(self.pipe.segment, parameters=STAGE_PARAMS["segment"], show_name=False, sizing_mode="stretch_width"))
+        more = pn.Card(
+            pn.Param(self.pipe.stabilize, parameters=STAGE_PARAMS["stabilize"], show_name=False, sizing_mode="stretch_width"),
+            pn.Param(self.pipe.calibrate, parameters=STAGE_PARAMS["calibrate"], show_name=False, sizing_mode="stretch_width"),
+            title="Source & calibration", collapsed=True, sizing_mode="stretch_width")
+        self.settings_box[:] = cards + [more]
+
+    def _build_layout(self):
+        sidebar = pn.Column(
+            pn.pane.Markdown("# face-retarget", css_classes=["fr-title"]),
+            pn.pane.Markdown("Transfer a captured face performance onto another character's blendshape rig. "
+                             "Pick a capture and a target, press play, tune the solver.", css_classes=["fr-muted"]),
+            self.w_source, self.w_source_rig, self.w_target,
+            pn.pane.Markdown("Upload a performance (.csv/.trc/.c3d) or rig (.glb)", css_classes=["fr-muted"], margin=(0, 10)),
+            self.w_upload,
+            pn.layout.Divider(),
+            pn.pane.Markdown("**Solver**"),
+            self.settings_box,
+            self.w_auto, self.w_apply, self.w_progress, self.w_status,
+            pn.layout.Divider(),
+            pn.pane.Markdown("**Timings** (server, last change)"),
+            self.w_timings,
+            width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
+        )
+        edit_card = pn.Card(
+            pn.pane.Markdown("Set a weight at the current frame; the change propagates over the window by movement "
+                             "matching (Seol 2012 §6).", css_classes=["fr-muted"]),
+            self.w_edit_shape, self.w_edit_value, self.w_edit_window,
+            pn.Row(self.w_edit_add, self.w_undo, self.w_redo), self.w_edits,
+            title="Edit (spacetime)", collapsed=False, sizing_mode="stretch_width")
+        views = pn.Row(
+            pn.Column(pn.pane.Markdown("**Source**", margin=(0, 10)), self.source_box, sizing_mode="stretch_width"),
+            pn.Column(pn.pane.Markdown("**Target**", margin=(0, 10)), self.target_box, sizing_mode="stretch_width"),
+            sizing_mode="stretch_width")
+        main = pn.Column(
+            views,
+            pn.Row(self.w_play, self.w_frame, self.w_heat, sizing_mode="stretch_width"),
+            self.w_summary,
+            pn.Row(pn.Column(self.w_shapes, pn.pane.Bokeh(self.curves.fig, sizing_mode="stretch_width"),
+                             pn.pane.Bokeh(self.diag.fig, sizing_mode="stretch_width"), sizing_mode="stretch_width"),
+                   pn.Column(edit_card, self.region_box, width=330), sizing_mode="stretch_width"),
+            sizing_mode="stretch_width",
+        )
+        self.layout = pn.Row(sidebar, main, sizing_mode="stretch_both")
+
+    # -- events -----------------------------------------------------------------------------
+    def _changed(self):
+        if self.s.auto_update:
+            self.refresh()
+
+    def _on_busy(self, *events):
+        self.w_progress.value = self.s.progress
+        self.w_status.object = html.escape(self.s.status)
+
+    def _on_upload(self, event):
+        if not self.w_upload.value:
+            return
+        try:
+            msg = self.s.add_upload(self.w_upload.filename, self.w_upload.value)
+            self._notify("info", msg)
+        except ValueError as e:
+            self._notify("error", str(e))
+
+    def _on_frame(self, event):
+        t = self._time_of(event.new)
+        self.curves.set_time(t)
+        self.diag.set_time(t)
+        self._sync_edit_value()
+
+    def _seek(self, time_s: float):
+        snap = self.s.snapshot
+        if not snap:
+            return
+        self.w_frame.value = int(np.clip(np.searchsorted(snap["times"], time_s), 0, len(snap["times"]) - 1))
+
+    def _time_of(self, frame: int) -> float:
+        times = self.s.snapshot.get("times")
+        return float(times[min(frame, len(times) - 1)]) if times is not None and len(times) else 0.0
+
+    def _notify(self, kind: str, msg: str):
+        log.info("%s: %s", kind, msg)
+        if pn.state.notifications is not None:
+            getattr(pn.state.notifications, kind)(msg, duration=8000 if kind == "error" else 4000)
+
+    # -- edits ------------------------------------------------------------------------------
+    def _on_edit_shape(self, event=None):
+        self._sync_edit_value()
+
+    def _sync_edit_value(self):
+        snap = self.s.snapshot
+        shape = self.w_edit_shape.value
+        if snap and shape in snap["target_names"]:
+            w = snap["weights"][min(self.w_frame.value, len(snap["weights"]) - 1), snap["target_names"].index(shape)]
+            self.w_edit_value.value = float(np.clip(np.nan_to_num(w), self.w_edit_value.start, self.w_edit_value.end))
+
+    def _add_edit(self, event=None):
+        snap = self.s.snapshot
+        if not snap or not self.w_edit_shape.value:
+            return
+        f, r, T = self.w_frame.value, self.w_edit_window.value, len(snap["times"])
+        window = None if r == 0 else [max(0, f - r), min(T - 1, f + r)]
+        if window is not None and (window[0] == f or window[1] == f):
+            self._notify("warning", "the window must extend on both sides of the frame; choose a frame away from the ends")
+            return
+        edit = {"frame": int(f), "weights": {self.w_edit_shape.value: round(float(self.w_edit_value.value), 4)}, "window": window}
+        self._redo_stack.clear()
+        self.pipe.edit.edits = list(self.pipe.edit.edits) + [edit]
+        self.refresh()
+
+    def _remove_edit(self, i: int):
+        edits = list(self.pipe.edit.edits)
+        self._redo_stack.append(edits.pop(i))
+        self.pipe.edit.edits = edits
+        self.refresh()
+
+    def _undo(self, direction: int):
+        edits = list(self.pipe.edit.edits)
+        if direction > 0 and edits:
+            self._redo_stack.append(edits.pop())
+        elif direction < 0 and self._redo_stack:
+            edits.append(self._redo_stack.pop())
+        else:
+            return
+        self.pipe.edit.edits = edits
+        self.refresh()
+
+    def _draw_edits(self):
+        rows = []
+        for i, e in enumerate(self.pipe.edit.edits):
+            (shape, value), = e["weights"].items()
+            win = "whole take" if not e["window"] else f"{e['window'][0]}–{e['window'][1]}"
+            b = pn.widgets.Button(name="✕", width=34, button_type="light")
+            b.on_click(lambda ev, i=i: self._remove_edit(i))
+            rows.append(pn.Row(pn.pane.Markdown(f"frame {e['frame']}: `{shape}` = {value:g} ({win})", margin=(2, 5)), b))
+        self.w_edits[:] = rows or [pn.pane.Markdown("*no edits*", css_classes=["fr-muted"])]
+
+    # -- redraw -----------------------------------------------------------------------------
+    def refresh(self):
+        """Recompute what is stale and redraw; errors become notifications."""
+        ok = self.s.recompute()
+        if not ok:
+            self._notify("error", self.s.error)
+            self.w_summary.object = f"⚠ {html.escape(self.s.error)}"
+            return
+        for w in self.s.snapshot.get("warnings", [])[:3]:
+            self._notify("warning", w)
+        self._draw()
+
+    def _draw(self):
+        snap = self.s.snapshot
+        T = len(snap["times"])
+        self.w_frame.end = max(T - 1, 1)
+        if self.w_frame.value > T - 1:
+            self.w_frame.value = 0
+        self._draw_viewers()
+        names = snap["target_names"]
+        if self.w_shapes.options != names:
+            self.w_shapes.param.update(options=names, value=[v for v in self.w_shapes.value if v in names])
+            self.w_edit_shape.options = names
+        self._draw_curves()
+        ev = snap["evaluate"]
+        self.diag.update(snap["times"], ev["marker_error_mm"], ev["velocity_error_mm"])
+        self._draw_heat()
+        self._draw_edits()
+        self._draw_regions()
+        self.w_summary.object = (
+            f"**{self.s.source}** → **{self.s.target_rig}** · {T} frames @ {snap['fps']:g} fps · "
+            f"{len(snap['marker_names'])} markers · method **{snap['method']}** · marker error RMS "
+            f"**{ev['marker_rms_mm']:.2f} mm** (max {ev['marker_max_mm']:.1f}) · velocity error "
+            f"{ev['velocity_error_total']:.3g} mm² · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
+            f"({100 * ev['outside_01']:.1f}% outside 0..1)")
+        rows = "".join(f"<tr><td>{k}</td><td style='text-align:right'>{v:.1f} ms</td></tr>" for k, v in snap["timings"].items() if v > 0.05)
+        self.w_timings.object = (f"<table style='font-size:0.85em;width:100%'>{rows}<tr><td><b>server total</b></td>"
+                                 f"<td style='text-align:right'><b>{snap['server_ms']:.1f} ms</b></td></tr></table>")
+
+    def _draw_curves(self):
+        snap = self.s.snapshot
+        if snap:
+            self.curves.update(snap["times"], snap["weights"], snap["target_names"], list(self.w_shapes.value))
+            self.curves.set_time(self._time_of(self.w_frame.value))
+
+    def _draw_viewers(self):
+        snap = self.s.snapshot
+        fps = snap["fps"]
+        # source: the driven source rig, or the captured markers on a triangulated marker mesh
+        key = (id(snap["source_rig"]), snap["source_weights"] is None, len(snap["times"]), self.s.source)
+        if key != self._viewer_keys["source"]:
+            if snap["source_rig"] is not None and snap["source_weights"] is not None:
+                rig = snap["source_rig"]
+                v = MeshViewer.from_rig(rig, np.nan_to_num(snap["source_weights"]), fps=fps, layout=snap["source_layout"],
+                                        label=rig.name, sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
+            else:
+                mrig, track = marker_rig(snap["source_markers"])
+                v = MeshViewer.from_rig(mrig, track, fps=fps, marker_track=np.nan_to_num(snap["source_markers"]),
+                                        label="captured markers", sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
+            self._link_frame(v)
+            self.source_box[:] = [v]
+            self._viewer_keys["source"] = key
+        key = id(snap["target_rig"])
+        track = np.nan_to_num(snap["weights"])
+        if key != self._viewer_keys["target"]:
+            rig = snap["target_rig"]
+            self.target_viewer = MeshViewer.from_rig(rig, track, fps=fps, layout=snap["target_layout"], label=rig.name,
+                                                     sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
+            self.target_box[:] = [self.target_viewer]
+            self._viewer_keys["target"] = key
+        else:
+            self.target_viewer.set_track(track, fps=fps)
+
+    def _link_frame(self, viewer):
+        if getattr(self, "_links", None):
+            for link in self._links:
+                link.unlink() if hasattr(link, "unlink") else None
+        self.source_viewer = viewer
+        self._links = [self.w_frame.link(viewer, value="frame", bidirectional=True),
+                       self.w_play.link(viewer, value="playing", bidirectional=True)]
+
+    def _draw_heat(self):
+        snap = self.s.snapshot
+        if not snap or not hasattr(self, "target_viewer"):
+            return
+        if not self.w_heat.value:
+            self.target_viewer.set_colors(None)
+            return
+        field = marker_error_field(snap["target_rig"], snap["target_layout"], snap["evaluate"]["marker_error_per_marker_mm"])
+        self.target_viewer.set_colors(error_colors(field))
+
+    def _draw_regions(self):
+        seg = self.s.snapshot.get("segment")
+        if not seg:
+            self.region_box[:] = []
+            return
+        self.region_box[:] = [pn.pane.Markdown(f"**Regions**: {len(seg.get('masks', []))} (see the region map in the target view)")]
+
+    def __panel__(self):
+        return self.layout
+
+
+def create_app():
+    pn.extension(notifications=True, raw_css=[CSS])
+    pn.state.notifications.position = "top-right" if pn.state.notifications is not None else None
+    app = DashboardApp()
+    return app.layout
+
+
+if __name__.startswith("bokeh"):  # panel serve dashboard/app.py --plugins dashboard.assets
+    create_app().servable(title="face-retarget")

@@ -1,0 +1,173 @@
+"""One browser session's state: the chosen files, the pipeline, the latest results.
+
+The session owns a :class:`core.pipeline.Pipeline` whose settings objects are the widgets'
+models. ``recompute()`` runs whatever is stale (the pipeline knows) and publishes a plain
+snapshot that views turn into panes; errors become a message, never a stack trace.
+No numerics live here: only choosing files, calling the pipeline and packaging results.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import threading
+import time
+import traceback
+import warnings
+from pathlib import Path
+
+import numpy as np
+import param
+
+from core.pipeline import Pipeline, StageCache
+
+log = logging.getLogger("face_retarget.dashboard")
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "data"
+NONE = "(none)"
+
+#: one cache for every session of this server process: results are keyed by content,
+#: so two reviewers looking at the same take share the work
+SHARED_CACHE = StageCache(max_entries=128)
+
+
+def bundled(kind: str) -> dict:
+    """label -> path of the bundled sample files of ``kind`` ("performances" or "rigs")."""
+    folder = DATA / kind
+    pats = {"performances": ("*.csv", "*.trc", "*.c3d"), "rigs": ("*.glb", "*.gltf")}[kind]
+    files = sorted(p for pat in pats for p in folder.glob(pat))
+    return {p.name: str(p) for p in files}
+
+
+class Session(param.Parameterized):
+    """Selections + pipeline + results for one browser tab."""
+
+    source = param.Selector(default=None, objects=[], doc="Source performance")
+    source_rig = param.Selector(default=None, objects=[], doc="Rig the source curves drive")
+    target_rig = param.Selector(default=None, objects=[], doc="Target rig")
+    auto_update = param.Boolean(default=True, doc="Recompute as soon as a setting changes (off: press Apply)")
+
+    busy = param.Boolean(default=False)
+    progress = param.Integer(default=0, bounds=(0, 100))
+    status = param.String(default="")
+    error = param.String(default="")
+    version = param.Integer(default=0, doc="Bumped whenever new results are published")
+
+    def __init__(self, cache: StageCache | None = None, **params):
+        self.files = {"performances": bundled("performances"), "rigs": bundled("rigs")}
+        super().__init__(**params)
+        self.pipeline = Pipeline(cache=cache or SHARED_CACHE)
+        self._refresh_options()
+        perf, rigs = self.files["performances"], self.files["rigs"]
+        self.source = next((k for k in perf if "take_s07" in k), next(iter(perf), None))
+        self.source_rig = next((k for k in rigs if k.startswith("ict")), NONE)
+        self.target_rig = next((k for k in rigs if k.startswith("rocketbox")), next(iter(rigs), None))
+        self.pipeline.configure(method="spacetime" if _has_spacetime() else "lsq")
+        self.snapshot: dict = {}
+        self._lock = threading.Lock()
+        self.upload_dir = Path(tempfile.mkdtemp(prefix="face-retarget-upload-"))
+
+    # -- files --------------------------------------------------------------------------
+    def _refresh_options(self):
+        self.param.source.objects = list(self.files["performances"])
+        self.param.source_rig.objects = [NONE] + list(self.files["rigs"])
+        self.param.target_rig.objects = list(self.files["rigs"])
+
+    def add_upload(self, filename: str, data: bytes) -> str:
+        """Save an uploaded file and offer it in the right list; returns what it became.
+
+        The file is not parsed here: the load stage parses it and reports errors by name.
+        """
+        name = Path(filename).name
+        if not name or not data:
+            raise ValueError("empty upload")
+        path = self.upload_dir / name
+        path.write_bytes(data)
+        suffix = path.suffix.lower()
+        label = f"⤒ {name}"
+        if suffix in (".glb", ".gltf"):
+            self.files["rigs"][label] = str(path)
+            self._refresh_options()
+            return f"rig {name} added to the rig lists"
+        if suffix in (".csv", ".trc", ".c3d"):
+            self.files["performances"][label] = str(path)
+            self._refresh_options()
+            self.source = label
+            return f"performance {name} selected as the source"
+        if suffix == ".json":
+            return name  # layouts and name maps are applied by the caller
+        raise ValueError(f"{name}: unsupported file type {suffix!r}; upload a .csv/.trc/.c3d performance, a .glb/.gltf rig or a .json layout")
+
+    def _apply_selection(self):
+        rigs = self.files["rigs"]
+        self.pipeline.configure(
+            source=self.files["performances"].get(self.source, ""),
+            source_rig="" if self.source_rig in (None, NONE) else rigs[self.source_rig],
+            target_rig=rigs.get(self.target_rig, ""),
+        )
+
+    # -- running ------------------------------------------------------------------------
+    def recompute(self) -> bool:
+        """Run the stale stages and publish a snapshot; returns False on error (see ``error``)."""
+        with self._lock:
+            self.busy, self.error, self.progress = True, "", 0
+            t0 = time.perf_counter()
+            try:
+                self._apply_selection()
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    res = self.pipeline.results(["load", "stabilize", "calibrate", "segment", "edit", "synthesize", "evaluate"],
+                                                progress=self._progress)
+                self.snapshot = self._package(res, [str(w.message) for w in caught])
+                self.snapshot["server_ms"] = (time.perf_counter() - t0) * 1e3
+                self.status = self._status_line()
+                log.info("recompute %.1f ms: %s", self.snapshot["server_ms"], self.snapshot["timings"])
+                self.version += 1
+                return True
+            except Exception as e:  # shown as a notification; the trace goes to the log only
+                log.warning("recompute failed: %s", traceback.format_exc())
+                self.error = _readable(e)
+                self.status = "error: " + self.error
+                return False
+            finally:
+                self.busy, self.progress = False, 100
+
+    def _progress(self, fraction: float, message: str):
+        self.progress = int(round(100 * min(max(fraction, 0), 1)))
+        self.status = message
+
+    def _package(self, res: dict, warnings_: list) -> dict:
+        ld, st = res["load"], res["stabilize"]["source"]
+        tm = res["calibrate"]["target"]
+        W = np.asarray(res["edit"]["weights"])
+        ev = res["evaluate"]
+        times = st.times - st.times[0]
+        source_rig = ld["source_rig"]
+        return {
+            "times": times, "fps": st.fps, "weights": W, "target_rig": ld["target_rig"], "target_names": list(ld["target_rig"].names),
+            "source_rig": source_rig, "source_weights": st.source_weights, "source_markers": st.positions,
+            "target_markers": res["synthesize"]["target_markers"], "marker_names": list(st.names),
+            "target_layout": ld["target_layout"].select(tm.names), "source_layout": ld["source_layout"].select(tm.names) if ld["source_layout"] else None,
+            "evaluate": ev, "segment": res["segment"], "method": self.pipeline.solve.method,
+            "timings": {k: v * 1e3 for k, v in self.pipeline.timings.items()}, "warnings": warnings_,
+        }
+
+    def _status_line(self) -> str:
+        s = self.snapshot
+        ev = s["evaluate"]
+        return (f"{len(s['times'])} frames @ {s['fps']:g} fps · {len(s['marker_names'])} markers · {s['method']} · "
+                f"marker error median {np.nanmedian(ev['marker_error_mm']):.2f} mm · server {s['server_ms']:.0f} ms")
+
+
+def _has_spacetime() -> bool:
+    try:
+        from core.solvers import spacetime  # noqa: F401
+        return True
+    except ImportError:
+        return False
+
+
+def _readable(e: Exception) -> str:
+    msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+    return f"{msg}" if isinstance(e, (ValueError, KeyError, FileNotFoundError)) else f"{type(e).__name__}: {msg}"
