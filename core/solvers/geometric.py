@@ -1,0 +1,401 @@
+"""Per-frame retargeting with the geometric prior and ℓ1 sparsity (Ribera et al. 2017, §5).
+
+For every frame f, with the actor's (personalised) sparse blendshapes Δp_k as the columns of
+P (3M × K) and the frame's marker displacements Δa_f (3M):
+
+    E(w) = 1/M ‖Δa_f − P w‖²  +  μ/N ‖L ΔV w‖²  +  λ/K ‖w‖₁                  (eq. 2, 15, 16)
+
+L is the (3N × 3N) cotangent Laplacian of the rig's neutral mesh (one (N × N) block per
+coordinate, :func:`core.geometry.cotangent_laplacian`) and ΔV the rig's (3N × K) dense
+deltas, so the prior only needs the (K × K) Gram matrix Q = (LΔV)ᵀ(LΔV)/N, computed once per
+rig (§5: "we pre-compute the matrix product LΔV"). The paper's μ = 0.3, λ = 0.6 hold for
+markers in centimetres.
+
+The weights are **not** bounded: the paper pairs ℓ1 with its prior precisely because valid
+expressions can need negative weights (§6.2: "less restrictive than non-negativity
+constraints"). The three priors of Fig. 14 are selectable: ``"geometric"`` (the above),
+``"pca"`` (any quadratic wᵀPw + 2qᵀw, e.g. ``core.prior.PCAPrior``'s ``P_``, ``q_``) and
+``"l2"`` (‖w‖², the elastic net); ``"none"`` keeps only ℓ1.
+
+Units
+-----
+Everything inside is in metres. With s the metres per unit the weights are quoted for (s =
+0.01 for the paper's cm), lengths scale as x_m = s x_cm, so E_Fit and the geometric prior
+(the cotangent Laplacian is dimensionless, L ΔV w is a length) scale by s² while ‖w‖₁ does
+not. Minimisers agree when
+
+    λ_m = s² λ_cm,   μ_m = μ_cm                (geometric prior)
+    μ_m = s² μ_cm                               (PCA and L2 priors: they are on weights)
+
+which :func:`effective_weights` applies: λ = 0.6 for cm becomes 6e-5 for metres. (The prior
+is normalised by the vertex count N as in eq. 15; ‖L x‖² per vertex still depends on the
+mesh resolution, so μ transfers between rigs of similar density only.)
+
+ℓ1 by IRLS
+----------
+|w_k| ≤ w_k²/(2|w_k⁰|) + |w_k⁰|/2 turns each step into a (K × K) linear solve. Written with
+H = PᵀP/M + μQ, b = PᵀΔa/M − μq, c = λ/(2K) and D = diag(|w⁰|), w = D^½ z,
+
+    (D^½ H D^½ + c I) z = D^½ b,
+
+which stays well conditioned when weights go to 0. All frames iterate in lock-step as
+batched numpy.linalg.solve calls on (T, k, k); a weight below ``drop`` × the frame's largest
+is frozen at 0 and leaves the frame's system, so k shrinks to the support size. IRLS only
+has to find the support: a *polish* then solves the exact optimality conditions on the
+support S with signs σ, H_SS w_S = b_S − c σ_S, checks the KKT conditions
+(sign(w_S) = σ_S, |(b − Hw)_k| ≤ c off S) and repairs the active set where they fail (a
+few rounds, all frames at once). Polished frames (``Solution.polished``) hold the exact ℓ1
+optimum, not an ε-smoothed one; the tests compare it with L-BFGS-B on the split
+w = w⁺ − w⁻.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import numpy as np
+
+from core.model import unit_scale
+
+#: Ribera 2017 §5 recommendations, for markers in centimetres
+MU = 0.3
+LAMBDA = 0.6
+PRIORS = ("geometric", "pca", "l2", "none")
+
+
+def laplacian_deltas(rig, laplacian=None):
+    """L ΔV of eq. 15 as (K, N, 3): the cotangent Laplacian of the neutral applied to every delta.
+
+    Parameters
+    ----------
+    rig : core.model.Rig
+    laplacian : (N, N) sparse, optional
+        Default :func:`core.geometry.cotangent_laplacian` of ``rig.neutral`` (positive
+        semi-definite convention; the sign does not matter here, only ‖L ΔV w‖²).
+
+    Returns
+    -------
+    (K, N, 3) float64
+    """
+    from core.geometry import cotangent_laplacian
+
+    N = rig.n_vertices
+    L = cotangent_laplacian(rig.neutral, rig.faces) if laplacian is None else laplacian
+    if L.shape != (N, N):
+        raise ValueError(f"laplacian: expected shape ({N}, {N}) for rig {rig.name!r}, got {L.shape}")
+    K = rig.n_shapes
+    LD = L @ rig.deltas.transpose(1, 0, 2).reshape(N, 3 * K)
+    return np.ascontiguousarray(np.asarray(LD).reshape(N, K, 3).transpose(1, 0, 2))
+
+
+def geometric_gram(rig, laplacian=None):
+    """Q = (L ΔV)ᵀ (L ΔV) / N, the (K, K) matrix of the geometric prior (Ribera 2017 eq. 15).
+
+    E_Prior(w) = wᵀ Q w = ‖L ΔV w‖² / N, in (rig units)²: metres² for our rigs.
+
+    Parameters
+    ----------
+    rig : core.model.Rig
+    laplacian : (N, N) sparse, optional
+
+    Returns
+    -------
+    (K, K) float64, symmetric positive semi-definite.
+    """
+    LD = laplacian_deltas(rig, laplacian).reshape(rig.n_shapes, -1)
+    Q = LD @ LD.T / rig.n_vertices
+    return 0.5 * (Q + Q.T)
+
+
+def effective_weights(mu=MU, lam=LAMBDA, units="cm", prior="geometric"):
+    """(μ, λ) for data in metres from values quoted for data in ``units`` (see module docstring).
+
+    ``λ_m = s² λ``; ``μ_m = μ`` for the geometric prior, ``s² μ`` for PCA/L2 priors, with
+    ``s = unit_scale(units)`` metres per unit.
+
+    Raises
+    ------
+    ValueError
+        Unknown units or prior.
+    """
+    if prior not in PRIORS:
+        raise ValueError(f"prior: expected one of {PRIORS}, got {prior!r}")
+    s2 = unit_scale(units) ** 2
+    return (float(mu) if prior == "geometric" else float(mu) * s2), float(lam) * s2
+
+
+@dataclass(frozen=True, eq=False)
+class Solution:
+    """Weights and diagnostics of :meth:`GeometricSolver.solve`.
+
+    Attributes
+    ----------
+    weights : (T, K)
+    energy : (T,) E(w) of eq. 16 (in metres², with the effective μ, λ)
+    iterations : int, IRLS iterations run
+    polished : (T,) bool, frames whose weights satisfy the exact ℓ1 optimality conditions
+    """
+
+    weights: np.ndarray
+    energy: np.ndarray
+    iterations: int
+    polished: np.ndarray
+    extras: dict = field(default_factory=dict)
+
+
+class GeometricSolver:
+    """Retarget marker frames onto blendshape weights by eq. 16 (Ribera et al. 2017 §5).
+
+    State that is reused across frames lives here: H = PᵀP/M + μ Q and the prior.
+
+    Parameters
+    ----------
+    blendshapes : (K, M, 3) float
+        The actor's sparse delta blendshapes Δp_k (metres), e.g. from
+        :func:`core.personalize.personalize`.
+    prior : {"geometric", "pca", "l2", "none"}
+    rig : core.model.Rig, optional
+        Needed for ``"geometric"`` unless ``gram`` is given.
+    gram : (K, K) float, optional
+        Precomputed :func:`geometric_gram` (or, for ``"pca"``, the prior's P).
+    linear : (K,) float, optional
+        q of the ``"pca"`` quadratic wᵀPw + 2qᵀw (default 0).
+    mu, lam : float
+        Prior and sparsity weights as quoted for ``units`` (paper: 0.3, 0.6 for cm).
+    units : str
+        Units ``mu`` and ``lam`` are quoted for; scaled to metres by :func:`effective_weights`.
+    drop : float
+        A weight below ``drop`` × the frame's largest |w| is frozen at 0 during IRLS (its
+        1/|w| weight would otherwise only push it towards 0 geometrically, one iteration at a
+        time); the polish re-admits it if the optimality conditions ask for it.
+    max_iter : int
+        IRLS iterations at most; IRLS only has to find the support, the polish does the rest.
+    tol : float
+        IRLS stops for a frame when no weight changes by more than ``tol`` × max(1, max|w|).
+    polish : bool
+        Finish with the exact support/sign solve (module docstring).
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, unknown prior, a geometric prior without rig/gram, a rig whose shape count
+        differs from K, negative weights μ/λ.
+    """
+
+    def __init__(self, blendshapes, prior="geometric", rig=None, gram=None, linear=None,
+                 mu=MU, lam=LAMBDA, units="cm", drop=0.05, max_iter=5, tol=1e-6, polish=True, greedy_rounds=3):
+        P = np.asarray(blendshapes, dtype=np.float64)
+        if P.ndim != 3 or P.shape[2] != 3:
+            raise ValueError(f"blendshapes: expected (K, M, 3), got {P.shape}")
+        if not np.isfinite(P).all():
+            raise ValueError("blendshapes: contain NaN/inf")
+        if prior not in PRIORS:
+            raise ValueError(f"prior: expected one of {PRIORS}, got {prior!r}")
+        if mu < 0 or lam < 0:
+            raise ValueError(f"mu and lam must be >= 0, got mu={mu}, lam={lam}")
+        K, M, _ = P.shape
+        self.K, self.M = K, M
+        self.prior = prior
+        self.mu, self.lam = effective_weights(mu, lam, units, prior)
+        self.drop, self.max_iter, self.tol, self.polish = float(drop), int(max_iter), float(tol), bool(polish)
+        self.greedy_rounds = int(greedy_rounds)
+        self.P = P.reshape(K, -1).T.copy()  # (3M, K): the paper's P, x0 y0 z0 x1 ...
+        q = np.zeros(K)
+        if prior == "geometric":
+            if gram is None:
+                if rig is None:
+                    raise ValueError("prior='geometric' needs rig= (or a precomputed gram=)")
+                if rig.n_shapes != K:
+                    raise ValueError(f"rig {rig.name!r} has {rig.n_shapes} shapes but blendshapes has K={K}")
+                gram = geometric_gram(rig)
+            Q = np.asarray(gram, dtype=np.float64)
+        elif prior == "pca":
+            if gram is None:
+                raise ValueError("prior='pca' needs gram= (the prior's (K, K) quadratic P_)")
+            Q = np.asarray(gram, dtype=np.float64)
+            if linear is not None:
+                q = np.asarray(linear, dtype=np.float64)
+        elif prior == "l2":
+            Q = np.eye(K)
+        else:
+            Q = np.zeros((K, K))
+        if Q.shape != (K, K) or q.shape != (K,):
+            raise ValueError(f"gram/linear: expected ({K}, {K}) and ({K},), got {Q.shape} and {q.shape}")
+        self.Q = 0.5 * (Q + Q.T)
+        self.q = q
+        self.H = self.P.T @ self.P / M + self.mu * self.Q
+        self.c = self.lam / (2.0 * K)  # the ℓ1 weight in the halved gradient
+
+    # -- pieces ---------------------------------------------------------------------------
+    def rhs(self, frames):
+        """b = PᵀΔa/M − μ q for frames (T, M, 3) -> (T, K)."""
+        A = self._frames(frames)
+        return A @ self.P / self.M - self.mu * self.q
+
+    def _frames(self, frames):
+        A = np.asarray(frames, dtype=np.float64)
+        if A.ndim == 2 and A.shape == (self.M, 3):
+            A = A[None]
+        if A.ndim != 3 or A.shape[1:] != (self.M, 3):
+            raise ValueError(f"frames: expected marker displacements (T, {self.M}, 3), got {A.shape}")
+        if not np.isfinite(A).all():
+            bad = np.flatnonzero(~np.isfinite(A).all(axis=(1, 2)))
+            raise ValueError(f"frames: frames {bad[:8].tolist()}{'...' if len(bad) > 8 else ''} contain NaN; "
+                             "fill or drop missing markers before solving")
+        return A.reshape(len(A), -1)
+
+    def energy(self, frames, weights):
+        """E(w) of eq. 16 per frame (effective μ, λ): 1/M‖Δa − Pw‖² + μ(wᵀQw + 2qᵀw) + λ/K‖w‖₁."""
+        A = self._frames(frames)
+        W = np.asarray(weights, dtype=np.float64).reshape(len(A), self.K)
+        r = A - W @ self.P.T
+        return (np.einsum("ij,ij->i", r, r) / self.M
+                + self.mu * (np.einsum("ij,jk,ik->i", W, self.Q, W) + 2 * W @ self.q)
+                + self.lam / self.K * np.abs(W).sum(axis=1))
+
+    # -- solve ----------------------------------------------------------------------------
+    def solve(self, frames) -> Solution:
+        """Weights (T, K) minimising eq. 16 for every frame, all frames at once.
+
+        IRLS (module docstring) on all frames in lock-step; a coordinate whose weight has
+        fallen below ``drop`` × the frame's largest weight is frozen at 0 and dropped from the
+        frame's system, so later iterations solve small padded (T, k, k) systems with k the
+        largest support. The polish then makes the result exact (KKT-checked).
+
+        Parameters
+        ----------
+        frames : (T, M, 3) or (M, 3) float
+            Marker displacements from the neutral (metres), markers in the blendshapes' order.
+
+        Returns
+        -------
+        Solution
+
+        Raises
+        ------
+        ValueError
+            Wrong shape or NaN in ``frames``.
+        """
+        b = self.rhs(frames)
+        T, K = b.shape
+        H, c = self.H, self.c
+        if c == 0.0 or T == 0:  # no ℓ1: one linear solve
+            W = np.linalg.solve(H, b.T).T if T else np.zeros((0, K))
+            return Solution(W, self.energy(frames, W), 0, np.ones(T, bool))
+        W, it, unconverged = self._irls(b, self.drop, self.max_iter)
+        polished = np.zeros(T, bool)
+        if self.polish:
+            W, polished = self._polish(W, b)
+            if not polished.all():  # rare: retry those frames with plain, long IRLS
+                rows = np.flatnonzero(~polished)
+                W2, _, _ = self._irls(b[rows], 1e-12, 50 * self.max_iter)
+                W2, ok2 = self._polish(W2, b[rows])
+                W[rows] = W2
+                polished[rows] = ok2
+        return Solution(W, self.energy(frames, W), it, polished, {"unconverged": unconverged})
+
+    def _irls(self, b, drop, max_iter):
+        T, K = b.shape
+        H, c = self.H, self.c
+        # first iterate (|w0| = 1 for all k): one matrix, T right-hand sides
+        W = np.linalg.solve(H + c * np.eye(K), b.T).T
+        active = np.arange(T)
+        it = 0
+        for it in range(1, max_iter + 1):
+            if not len(active):
+                break
+            Wa = W[active]
+            scale = np.maximum(np.abs(Wa).max(axis=1, keepdims=True), 1e-300)
+            on = np.abs(Wa) > drop * scale
+            d = np.sqrt(np.abs(Wa))
+            # (D^1/2 H D^1/2 + c I) z = D^1/2 b on each frame's support only
+            new = _reduced_solve(H, on, d, c, d * b[active])
+            new *= d
+            change = np.abs(new - Wa).max(axis=1)
+            W[active] = new
+            active = active[change > self.tol * np.maximum(scale[:, 0], 1.0)]
+        return W, it, int(len(active))
+
+    def _polish(self, W, b, rounds=30):
+        """Exact ℓ1 optimum from the IRLS support and signs, by active-set rounds.
+
+        Each round solves H_SS w_S = b_S − c σ_S (c = λ/2K) for every frame at once, then
+        checks the KKT conditions of eq. 16: sign(w_S) = σ_S and |(b − Hw)_k| ≤ c off S.
+        Frames that fail drop the coordinates whose sign flipped, take in the violators off S
+        (all of them in the first round, the worst one afterwards) with the sign of their
+        gradient, and try again. Frames still failing after ``rounds`` keep their IRLS weights
+        (``Solution.polished`` is False there).
+        """
+        T, K = W.shape
+        H, c = self.H, self.c
+        scale = np.maximum(np.abs(W).max(axis=1, keepdims=True), 1e-300)
+        on = np.abs(W) > self.drop * scale
+        sign = np.sign(W) * on
+        out = W.copy()
+        done = np.zeros(T, bool)
+        todo = np.arange(T)
+        tol = 1e-9 * (np.abs(b).max(axis=1) + c)
+        for rnd in range(rounds):
+            if not len(todo):
+                break
+            o, sg, bb = on[todo], sign[todo], b[todo]
+            Wp = _reduced_solve(H, o, np.ones_like(bb), 0.0, bb - c * sg)
+            g = bb - Wp @ H  # H symmetric
+            flipped = o & (np.sign(Wp) != sg)
+            viol = ~o & (np.abs(g) > c + tol[todo, None])
+            ok = ~flipped.any(axis=1) & ~viol.any(axis=1)
+            out[todo[ok]] = Wp[ok]
+            done[todo[ok]] = True
+            bad = ~ok
+            o2 = o[bad] & ~flipped[bad]
+            gb = g[bad]
+            if rnd < self.greedy_rounds:
+                add = viol[bad]
+            else:
+                excess = np.where(viol[bad], np.abs(gb) - c, -np.inf)
+                add = np.zeros_like(o2)
+                rows = np.flatnonzero(np.isfinite(excess.max(axis=1)))
+                add[rows, excess[rows].argmax(axis=1)] = True
+            sg2 = np.where(add, np.sign(gb), sg[bad] * o2)
+            on[todo[bad]] = o2 | add
+            sign[todo[bad]] = sg2
+            todo = todo[bad]
+        return out, done
+
+
+def _reduced_solve(H, on, d, c, rhs):
+    """Solve (d_S d_Sᵀ ∘ H_SS + c I) x_S = rhs_S per frame, x = 0 off S.
+
+    ``on`` (T, K) bool selects each frame's S. Frames are bucketed by |S| (rounded up to a
+    multiple of 8) and each bucket's systems gathered into a padded (n, k, k) batch for
+    numpy.linalg.solve (padding rows are identity). Hand-written: numpy/scipy have no batched
+    solve over per-item index subsets.
+    """
+    T, K = on.shape
+    out = np.zeros((T, K))
+    if T == 0:
+        return out
+    size = on.sum(axis=1)
+    bucket = np.minimum(-(-size // 8) * 8, K)
+    for k in np.unique(bucket):
+        k = int(k)
+        rows = np.flatnonzero(bucket == k)
+        if k == 0:
+            continue
+        o = on[rows]
+        order = np.argsort(~o, axis=1, kind="stable")[:, :k]  # support indices first
+        valid = np.take_along_axis(o, order, axis=1)
+        ds = np.take_along_axis(d[rows], order, axis=1) * valid
+        Hs = H[order[:, :, None], order[:, None, :]] * (ds[:, :, None] * ds[:, None, :])
+        idx = np.arange(k)
+        Hs[:, idx, idx] += c + ~valid  # c I, and identity on padding
+        r = np.take_along_axis(rhs[rows], order, axis=1) * valid
+        x = np.linalg.solve(Hs, r[..., None])[..., 0] * valid
+        sub = np.zeros((len(rows), K))
+        np.put_along_axis(sub, order, x, axis=1)
+        out[rows] = sub
+    return out
+
+
+def solve_geometric(blendshapes, frames, prior="geometric", **kw) -> Solution:
+    """One-line form of :class:`GeometricSolver`: ``GeometricSolver(blendshapes, prior, **kw).solve(frames)``."""
+    return GeometricSolver(blendshapes, prior, **kw).solve(frames)

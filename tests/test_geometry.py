@@ -1,0 +1,177 @@
+"""Mesh operators: hand-derived single-triangle cases, identities, and the real ICT mesh."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from core import geometry as g
+
+
+def _tri():
+    # right triangle with legs 1 (x) and 2 (y): angles 90 deg at 0, atan(2) at 1, atan(1/2) at 2
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])
+    F = np.array([[0, 1, 2]])
+    return V, F
+
+
+def _grid(nx=6, ny=5, seed=0, jitter=0.15):
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.arange(nx, dtype=float), np.arange(ny, dtype=float), indexing="xy")
+    V = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    V[:, :2] += rng.uniform(-jitter, jitter, size=(len(V), 2))
+    V[:, 2] = 0.3 * np.sin(V[:, 0]) * np.cos(V[:, 1])
+    F = []
+    for j in range(ny - 1):
+        for i in range(nx - 1):
+            a = j * nx + i
+            F += [[a, a + 1, a + nx + 1], [a, a + nx + 1, a + nx]]
+    return V, np.array(F)
+
+
+def test_cotangent_single_triangle_hand_derived():
+    V, F = _tri()
+    L = g.cotangent_laplacian(V, F).toarray()
+    # cot at corner 0 = 0, at corner 1 = 1/2, at corner 2 = 2
+    # edge (1,2) opposite corner 0 -> weight 0; edge (0,2) opposite corner 1 -> 1/4; edge (0,1) opposite 2 -> 1
+    want = np.array([[1.25, -1.0, -0.25], [-1.0, 1.0, 0.0], [-0.25, 0.0, 0.25]])
+    np.testing.assert_allclose(L, want, atol=1e-14)
+
+
+def test_cotangent_psd_rows_sum_zero_and_gradient_identity():
+    V, F = _grid()
+    L = g.cotangent_laplacian(V, F)
+    assert (abs(L - L.T)).max() < 1e-12
+    np.testing.assert_allclose(np.asarray(L.sum(axis=1)).ravel(), 0, atol=1e-12 * abs(L).max())
+    ev = np.linalg.eigvalsh(L.toarray())
+    assert ev.min() > -1e-10 * ev.max()  # positive semi-definite
+    G = g.gradient(V, F)
+    A = 0.5 * g.doublearea(V, F)
+    LG = (G.T @ sp.diags(np.tile(A, 3)) @ G).toarray()
+    np.testing.assert_allclose(L.toarray(), LG, atol=1e-12 * abs(L).max())
+
+
+def test_gradient_exact_on_linear_function():
+    V, F = _grid()
+    a = np.array([0.3, -1.2, 0.7])
+    u = V @ a
+    gr = (g.gradient(V, F) @ u).reshape(3, -1).T
+    n = g.face_normals(V, F)
+    tangential = a - (n @ a)[:, None] * n  # the gradient of a linear function restricted to each face
+    np.testing.assert_allclose(gr, tangential, atol=1e-12)
+
+
+def test_cotangent_reproduces_planar_linear_functions():
+    V, F = _grid(jitter=0.2)
+    V[:, 2] = 0
+    L = g.cotangent_laplacian(V, F)
+    interior = np.flatnonzero((V[:, 0] > 0.5) & (V[:, 0] < 4.5) & (V[:, 1] > 0.5) & (V[:, 1] < 3.5))
+    for c in range(2):
+        np.testing.assert_allclose((L @ V[:, c])[interior], 0, atol=1e-12)
+
+
+def test_massmatrix_single_triangle_and_total_area():
+    V, F = _tri()
+    # right angle at 0 is not obtuse: Voronoi areas, circumcentre at the hypotenuse midpoint
+    Mv = g.massmatrix(V, F, "voronoi").diagonal()
+    # hand: corner 0: (|01|^2 cot2 + |02|^2 cot1)/8 = (1*2 + 4*0.5)/8 = 0.5
+    #       corner 1: (|01|^2 cot2 + |12|^2 cot0)/8 = (2 + 0)/8 = 0.25 ; corner 2: (4*0.5 + 0)/8 = 0.25
+    np.testing.assert_allclose(Mv, [0.5, 0.25, 0.25], atol=1e-14)
+    np.testing.assert_allclose(g.massmatrix(V, F, "barycentric").diagonal(), [1 / 3] * 3)
+    obt = np.array([[0.0, 0, 0], [4, 0, 0], [2, 0.5, 0]])  # obtuse at corner 2, area 1
+    np.testing.assert_allclose(g.massmatrix(obt, F).diagonal(), [0.25, 0.25, 0.5])
+    Vg, Fg = _grid()
+    total = 0.5 * g.doublearea(Vg, Fg).sum()
+    for kind in ("voronoi", "barycentric"):
+        d = g.massmatrix(Vg, Fg, kind).diagonal()
+        assert (d > 0).all()
+        np.testing.assert_allclose(d.sum(), total, rtol=1e-12)
+    with pytest.raises(ValueError, match="kind"):
+        g.massmatrix(Vg, Fg, "cotan")
+
+
+def test_uniform_laplacian_and_adjacency():
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    A = g.vertex_adjacency(F, 5).toarray()
+    want = np.zeros((5, 5))
+    for i, j in [(0, 1), (1, 2), (0, 2), (2, 3), (0, 3)]:
+        want[i, j] = want[j, i] = 1
+    np.testing.assert_array_equal(A, want)
+    L = g.uniform_laplacian(F, 5).toarray()
+    np.testing.assert_array_equal(L, np.diag(want.sum(1)) - want)
+    assert g.vertex_adjacency(F).shape == (4, 4)
+    with pytest.raises(ValueError, match="out of range"):
+        g.vertex_adjacency(F, 3)
+
+
+def test_normals_and_orientation():
+    V, F = _tri()
+    np.testing.assert_allclose(g.face_normals(V, F), [[0, 0, 1]])
+    np.testing.assert_allclose(g.face_normals(V, F[:, ::-1]), [[0, 0, -1]])
+    Vg, Fg = _grid()
+    vn = g.vertex_normals(Vg, Fg)
+    np.testing.assert_allclose(np.linalg.norm(vn, axis=1), 1)
+    # area weighting: a vertex's normal is the normalised sum of 2A n over its faces
+    fn = g.face_normals(Vg, Fg) * g.doublearea(Vg, Fg)[:, None]
+    i = 14
+    s = fn[(Fg == i).any(1)].sum(0)
+    np.testing.assert_allclose(vn[i], s / np.linalg.norm(s))
+
+
+def test_boundary_loops_ordered():
+    V, F = _grid(4, 4, jitter=0)
+    loops = g.boundary_loops(F)
+    assert len(loops) == 1
+    loop = loops[0]
+    assert sorted(loop.tolist()) == sorted(set(range(16)) - {5, 6, 9, 10})
+    # consecutive vertices are mesh neighbours, closing back to the start
+    A = g.vertex_adjacency(F, 16)
+    assert all(A[a, b] for a, b in zip(loop, np.roll(loop, -1)))
+    # the faces orient the walk: a CCW grid seen from +z walks the outer rim counter-clockwise
+    P = V[loop, :2]
+    signed_area = 0.5 * np.sum(P[:, 0] * np.roll(P[:, 1], -1) - np.roll(P[:, 0], -1) * P[:, 1])
+    assert signed_area > 0
+    # a hole: remove the two centre faces -> an inner loop of 4
+    centre = [k for k, f in enumerate(F) if set(f) <= {5, 6, 9, 10}]
+    loops = g.boundary_loops(np.delete(F, centre, axis=0))
+    assert [len(l) for l in loops] == [12, 4]
+    assert set(loops[1].tolist()) == {5, 6, 9, 10}
+
+
+def test_bad_shapes_raise():
+    with pytest.raises(ValueError, match=r"V: expected"):
+        g.cotangent_laplacian(np.zeros((3, 4)), [[0, 1, 2]])
+    with pytest.raises(ValueError, match=r"F: expected"):
+        g.cotangent_laplacian(np.zeros((3, 3)), [[0, 1]])
+
+
+def test_degenerate_face_is_finite():
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]])
+    F = np.array([[0, 1, 2], [0, 1, 3]])
+    L = g.cotangent_laplacian(V, F)
+    assert np.isfinite(L.data).all()
+    assert np.isfinite(g.massmatrix(V, F).diagonal()).all()
+
+
+def test_real_ict_mesh(ict):
+    V, F = ict.neutral, ict.faces
+    L = g.cotangent_laplacian(V, F)
+    scale = abs(L).max()
+    np.testing.assert_allclose(np.asarray(L.sum(axis=1)).ravel(), 0, atol=1e-12 * scale)
+    assert abs(L - L.T).max() <= 1e-12 * scale
+    G = g.gradient(V, F)
+    A = 0.5 * g.doublearea(V, F)
+    assert abs(L - G.T @ sp.diags(np.tile(A, 3)) @ G).max() <= 1e-10 * scale
+    # PSD: Dirichlet energy of random functions is non-negative
+    x = np.random.default_rng(1).normal(size=(len(V), 5))
+    assert (np.einsum("ij,ij->j", x, L @ x) >= 0).all()
+    M = g.massmatrix(V, F).diagonal()
+    np.testing.assert_allclose(M.sum(), A.sum(), rtol=1e-10)
+    loops = g.boundary_loops(F)
+    Ad = g.vertex_adjacency(F, len(V))
+    for lp in loops:
+        assert all(Ad[a, b] for a, b in zip(lp, np.roll(lp, -1)))
+    # every vertex on a boundary loop appears once per loop it bounds, edges once overall
+    n_bd_edges = sum(len(lp) for lp in loops)
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(e, axis=0, return_counts=True)
+    assert n_bd_edges == (counts == 1).sum()
