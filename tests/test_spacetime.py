@@ -493,9 +493,15 @@ def test_box_lsq_fallback_is_exact():
     H = Q @ Q.T + 0.1 * np.eye(12)
     rhs = rng.normal(size=(40, 12)) * 5
     W, _ = box_lsq(H, rhs, -0.5, 1.5)
-    W1, n1 = box_lsq(H, rhs, -0.5, 1.5, max_iter=0)  # everything through lsq_linear
+    W1, n1 = box_lsq(H, rhs, -0.5, 1.5, max_iter=0)  # everything through the primal active set
     assert n1 == 40
     np.testing.assert_allclose(W, W1, atol=1e-7)
+    # reference: SciPy's BVLS on the equivalent least-squares problem
+    L = np.linalg.cholesky(H).T
+    for t in range(0, 40, 7):
+        y = scipy.linalg.solve_triangular(L, rhs[t], trans="T")
+        ref = scipy.optimize.lsq_linear(L, y, bounds=(-0.5, 1.5), method="bvls", tol=1e-14).x
+        np.testing.assert_allclose(W[t], ref, atol=1e-7)
 
 
 # -- metrics ----------------------------------------------------------------------------------

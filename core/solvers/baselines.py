@@ -112,77 +112,41 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
     return W
 
 
-def box_lsq(H: np.ndarray, rhs: np.ndarray, lower, upper, max_iter: int = 100):
+def box_lsq(H: np.ndarray, rhs: np.ndarray, lower, upper, max_iter: int = 30):
     """Batched box-constrained quadratic programs sharing one Hessian.
 
-    ``min_w 1/2 w^T H w - r_t^T w  s.t.  lower <= w <= upper`` for every row ``r_t`` of ``rhs``,
-    by the primal-dual active-set method (Hintermüller, Ito and Kunisch 2002): guess the
-    active bounds from ``w - g / diag(H)``, solve the equality-constrained problem on the free
-    set (batched ``numpy.linalg.solve`` over frames), repeat until the sets stop changing; an
-    exact KKT point when it stops. Rows that do not settle in ``max_iter`` rounds (the method
-    can cycle on non-M-matrices) are handed to ``scipy.optimize.lsq_linear(method="bvls")``.
-    Written by hand because no library solves many small box QPs as one batch.
+    ``min_w 1/2 w^T H w - r_t^T w  s.t.  lower <= w <= upper`` for every row ``r_t`` of ``rhs``.
+    With ``w = lower + D u``, ``D = diag(upper - lower)``, this is the unit-box QP
+    ``min_u 1/2 u^T (D H D) u + (D (H lower - r_t))^T u, 0 <= u <= 1`` solved exactly by the
+    batched primal-dual + primal active-set solver of :func:`core.solvers.local.solve_qp_batch`
+    (one implementation of the small-QP machinery for every method).
 
     Parameters
     ----------
     H : (K, K) float, symmetric positive definite
     rhs : (T, K) float
-    lower, upper : float or (K,) float
+    lower, upper : float or (K,) float, ``lower < upper``
 
     Returns
     -------
     W : (T, K) float
-    n_fallback : int, rows solved by ``lsq_linear``
+    n_fallback : int, rows the primal-dual iteration did not settle (finished by the primal
+        active set, still exact)
     """
+    from core.solvers.local import solve_qp_batch
+
     K = H.shape[0]
     lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,))
     hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,))
-    T = len(rhs)
-    dH = np.diag(H).copy()
-    dH[dH <= 0] = 1.0
-    W = np.clip(scipy.linalg.solve(H, rhs.T, assume_a="sym").T, lo, hi) if T else np.zeros((0, K))
-    atlo = np.zeros((T, K), bool)
-    athi = np.zeros((T, K), bool)
-    todo = np.arange(T)
-    done = np.zeros(T, bool)
-    for _ in range(max_iter):
-        if not todo.size:
-            break
-        w = W[todo]
-        g = w @ H - rhs[todo]
-        y = w - g / dH
-        nlo, nhi = y < lo, y > hi
-        # solve with the guessed active set: fixed variables at their bounds
-        fixed = nlo | nhi
-        wf = np.where(nlo, lo, np.where(nhi, hi, 0.0))
-        free = ~fixed
-        Hb = np.broadcast_to(H, (len(todo), K, K)) * (free[:, :, None] & free[:, None, :])
-        Hb = Hb + np.eye(K) * fixed[:, None, :]  # identity rows for fixed variables
-        b = np.where(free, rhs[todo] - wf @ H, wf)
-        wn = np.linalg.solve(Hb, b[:, :, None])[:, :, 0]
-        wn = np.where(fixed, wf, wn)
-        same = (nlo == atlo[todo]).all(1) & (nhi == athi[todo]).all(1)
-        W[todo] = wn
-        atlo[todo], athi[todo] = nlo, nhi
-        # stop when sets repeat and the KKT conditions hold
-        gn = wn @ H - rhs[todo]
-        tol = 1e-10 * (np.abs(rhs[todo]).max(1, keepdims=True) + np.abs(H).max() * np.abs(wn).max(1, keepdims=True) + 1e-300)
-        span = 1e-12 * (hi - lo + 1)
-        ok = (
-            (wn >= lo - span).all(1) & (wn <= hi + span).all(1)
-            & (~nlo | (gn >= -tol)).all(1) & (~nhi | (gn <= tol)).all(1)
-            & (fixed | (np.abs(gn) <= tol)).all(1)
-        )
-        fin = same & ok
-        done[todo[fin]] = True
-        todo = todo[~fin]
-    n_fallback = len(todo)
-    if n_fallback:
-        Lc = np.linalg.cholesky(H).T  # H = Lc^T Lc: 1/2 w^T H w - r^T w = 1/2 ||Lc w - Lc^-T r||^2 + const
-        for t in todo:
-            y = scipy.linalg.solve_triangular(Lc, rhs[t], trans="T")
-            W[t] = scipy.optimize.lsq_linear(Lc, y, bounds=(lo, hi), method="bvls", tol=1e-14).x
-    return np.clip(W, lo, hi), n_fallback
+    if not (hi > lo).all():
+        raise ValueError(f"box_lsq: need lower < upper for every shape, got lower={lower}, upper={upper}")
+    if not len(rhs):
+        return np.zeros((0, K)), 0
+    d = hi - lo
+    Hs = H * d[:, None] * d[None, :]
+    f = (lo @ H - rhs) * d
+    u, info = solve_qp_batch(Hs[None], f, np.zeros(len(rhs), dtype=np.int64), constraint="box", max_iter=max_iter)
+    return np.clip(lo + u * d, lo, hi), int(info["fallback"])
 
 
 def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None) -> np.ndarray:

@@ -232,7 +232,7 @@ def solve_qp_batch(H, f, idx=None, constraint: str = "simplex", max_iter: int = 
     its = 0
     if n_fallback:
         # resume from the projection of the last PDAS iterate (feasible, usually close)
-        start = project(ut[~same], constraint)
+        start = project(ut[~same] if it else u0[todo], constraint)
         u[todo], its = _primal_active_set(H, f[todo], idx[todo], simplex, eps_u, eps_l[todo], init=start)
     u = _snap(u, simplex)
     return u, {"pdas_iterations": it, "fallback": n_fallback, "active_set_iterations": its,
