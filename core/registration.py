@@ -1,0 +1,444 @@
+"""Move a marker layout to a rig of any topology by non-rigid registration.
+
+The layout's markers sit on the source rig's neutral. To put them on a target rig we
+
+1. **align** the source face to the target with a similarity transform ``x -> s R x + t``:
+   from landmark markers whose target positions are given (Umeyama 1991, least squares), else
+   automatically — bounding boxes of the two heads, refined by the motion centres of the eye-close
+   and jaw-open shapes when both rigs have them — then similarity ICP of the source face onto the
+   target surface (Besl & McKay 1992);
+2. **register** non-rigidly: the source face region (decimated to ~2,500 vertices) is deformed
+   onto the target surface, pulled by the landmarks or the eye/jaw motion centres, with
+   optimal-step non-rigid ICP (Amberg, Romdhani & Vetter 2007, ``trimesh.registration.nricp_amberg``),
+   which minimises per-vertex affine transforms X_i under
+
+   ``E(X) = E_d(X) + alpha E_s(X) + beta E_l(X)``,
+   ``E_d = sum_i w_i || X_i v_i - u_i ||^2`` (closest target points u_i),
+   ``E_s = sum_{(i,j) in edges} || (X_i - X_j) G ||_F^2`` (stiffness, G = diag(1, 1, 1, gamma)),
+   ``E_l = sum_l || X_l v_l - p_l ||^2`` (landmarks), for decreasing stiffness alpha;
+3. **project**: each registered marker goes to the closest point of the target's skin (its
+   largest connected component, so eyeballs, teeth and hair cards are never chosen), stored as a
+   face + barycentric marker.
+
+Everything is done in a normalised frame (source face region centred, unit bounding-box
+diagonal) so the registration weights do not depend on the rigs' units or size.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Mapping, Optional, Sequence, Union
+
+import numpy as np
+
+from .model import MarkerLayout, Rig
+
+#: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations)
+#: in the normalised frame; stiffness goes from stiff (almost affine) to supple. Tuned on the
+#: bundled rigs for a few seconds per pair (see scripts/layout_report.py).
+DEFAULT_STEPS = (
+    (0.02, 10.0, 0.5, 6),
+    (0.007, 5.0, 0.5, 6),
+    (0.002, 2.5, 0.5, 6),
+    (0.0007, 1.0, 0.0, 4),
+)
+
+#: shapes that locate the eyes and the jaw, by canonical ARKit name and known aliases
+_FEATURE_SHAPES = {
+    "eyeBlinkLeft": ("eyeBlinkLeft", "eyeBlink_L", "AK_09_EyeBlinkLeft", "EyeBlinkLeft", "eyeLeftClose"),
+    "eyeBlinkRight": ("eyeBlinkRight", "eyeBlink_R", "AK_10_EyeBlinkRight", "EyeBlinkRight", "eyeRightClose"),
+    "jawOpen": ("jawOpen", "AK_25_JawOpen", "JawOpen", "mouthOpen"),
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# small geometric helpers
+def similarity(src: np.ndarray, dst: np.ndarray, weights: Optional[np.ndarray] = None) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991, eq. 40-42).
+
+    Parameters
+    ----------
+    src, dst : (N, 3) float, N >= 3 not collinear
+    weights : (N,) float >= 0, optional
+
+    Returns
+    -------
+    s : float, R : (3, 3) proper rotation, t : (3,)
+
+    Raises
+    ------
+    ValueError for mismatched shapes or fewer than 3 points.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise ValueError(f"similarity: src and dst must both be (N>=3, 3), got {src.shape} and {dst.shape}")
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    ms, md = w @ src, w @ dst
+    a, b = src - ms, dst - md
+    cov = (b * w[:, None]).T @ a
+    U, S, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.diag([1.0, 1.0, d])
+    R = U @ D @ Vt
+    var = w @ (a * a).sum(1)
+    s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
+    return s, R, md - s * R @ ms
+
+
+def _apply(s, R, t, p):
+    return s * np.asarray(p) @ R.T + t
+
+
+def merged_mesh(rig: Rig, mask_faces: Optional[np.ndarray] = None):
+    """Merge the rig's UV-seam duplicates (identical positions) into one vertex.
+
+    Returns (positions (Vm, 3), faces (Fm, 3) merged ids, merged_of (V,) original -> merged,
+    face_index (Fm,) original face of each merged face). Degenerate merged faces are dropped.
+    """
+    scale = max(rig.size, 1e-12) * 1e-9
+    key = np.round(rig.neutral / scale).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    fidx = np.arange(len(rig.faces)) if mask_faces is None else np.flatnonzero(mask_faces)
+    f = inverse[rig.faces[fidx]]
+    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    return rig.neutral[first], f[ok], inverse, fidx[ok]
+
+
+def skin_faces(rig: Rig) -> np.ndarray:
+    """(F,) bool: faces of the rig's largest edge-connected component (after merging seams):
+    the skin, without separate eyeballs, teeth, hair cards or jewellery."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    _, f, _, fidx = merged_mesh(rig)
+    n = f.max() + 1
+    e = np.vstack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    _, label = connected_components(sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    face_label = label[f[:, 0]]
+    big = np.bincount(face_label).argmax()
+    out = np.zeros(len(rig.faces), bool)
+    out[fidx[face_label == big]] = True
+    return out
+
+
+def closest_on_faces(points: np.ndarray, positions: np.ndarray, faces: np.ndarray, face_ids: Optional[np.ndarray] = None):
+    """Closest surface point of each query point on the triangles ``faces`` (optionally only
+    ``face_ids``): returns (face index (N,), barycentric (N, 3), point (N, 3), distance (N,)).
+
+    Uses trimesh's proximity query (an R-tree of triangle bounds + exact point-triangle distance).
+    """
+    import trimesh
+
+    ids = np.arange(len(faces)) if face_ids is None else np.asarray(face_ids)
+    mesh = trimesh.Trimesh(positions, faces[ids], process=False)
+    pt, dist, tri = trimesh.proximity.closest_point(mesh, np.asarray(points, dtype=np.float64))
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], pt)
+    bary = np.clip(bary, 0.0, None)
+    bary /= bary.sum(1, keepdims=True)
+    return ids[tri], bary, pt, dist
+
+
+def _feature_points(rig: Rig) -> Optional[np.ndarray]:
+    """(3, 3) motion centres of the left eye-close, right eye-close and jaw-open shapes
+    (displacement-weighted mean of the vertices that move > 50 % of the maximum), or None."""
+    pts = []
+    for key, aliases in _FEATURE_SHAPES.items():
+        name = next((n for n in aliases if n in rig.names), None)
+        if name is None:
+            return None
+        d = np.linalg.norm(rig.deltas[rig.index(name)], axis=1)
+        if d.max() <= 0:
+            return None
+        m = d > 0.5 * d.max()
+        pts.append((d[m, None] * rig.neutral[m]).sum(0) / d[m].sum())
+    return np.array(pts)
+
+
+# ---------------------------------------------------------------------------------------------
+def transfer_layout(
+    layout: MarkerLayout,
+    source_rig: Rig,
+    target_rig: Rig,
+    landmarks: Union[None, Sequence[str], Mapping[str, object], MarkerLayout] = None,
+    steps: Optional[Sequence[Sequence[float]]] = None,
+    region: float = 1.35,
+    max_vertices: int = 2500,
+    feature_landmarks: bool = True,
+    target_layout_name: Optional[str] = None,
+):
+    """Transfer ``layout`` from ``source_rig`` to ``target_rig`` (any topology).
+
+    Similarity alignment (Umeyama 1991) + similarity ICP, then non-rigid ICP (Amberg et al. 2007,
+    ``E = E_d + alpha E_s + beta E_l``, see the module docstring) of the source face region onto the
+    target surface, then closest-point projection of each registered marker onto the target skin.
+
+    Parameters
+    ----------
+    layout : MarkerLayout on ``source_rig`` (M markers)
+    source_rig, target_rig : Rig
+    landmarks : optional
+        Markers whose target positions are known: a dict ``name -> (3,) position (m) | vertex id``,
+        a MarkerLayout on the target rig (its markers shared with ``layout`` are used), or None
+        for automatic alignment. Needs >= 3 names for the similarity; they also pull the
+        registration (``wl`` in ``steps``) and are placed exactly.
+    steps : sequence of (ws, wl, wn, max_iter), optional
+        nricp_amberg schedule in the normalised frame (unit face-region diagonal); default
+        :data:`DEFAULT_STEPS`. ``[]`` skips the non-rigid stage (similarity + ICP only).
+    region : float
+        The source face region registered: vertices within ``region`` x the markers' bounding
+        radius of their centroid.
+    feature_landmarks : bool
+        Without ``landmarks``, pull the registration with the motion centres of the eye-close and
+        jaw-open shapes (when both rigs have them): ICT -> Rocketbox median error 4.3 -> 3.5 mm,
+        ICT -> tiger 15.9 -> 12.1 mm (docs/layouts/transfer_report.md).
+    max_vertices : int
+        The region is decimated (quadric decimation) to about this many vertices before the
+        non-rigid registration; markers follow the decimated surface at their closest point.
+
+    Returns
+    -------
+    layout : MarkerLayout on ``target_rig``: face + barycentric markers
+        (``extras["faces"]`` holds each marker's face index).
+    info : dict
+        ``residual_mm`` (median, p90, max distance of the registered region to the target
+        surface, mm), ``residual_rel`` (median / target size), ``snap_mm`` (M,) distance from each
+        registered marker to its projection, ``similarity`` (s, R, t), ``n_region`` vertices,
+        ``seconds``, ``steps``.
+
+    Raises
+    ------
+    ValueError
+        The layout does not fit ``source_rig`` (index out of range), landmark names unknown or
+        fewer than 3, a landmark vertex out of range.
+    """
+    import trimesh
+
+    t_start = time.perf_counter()
+    layout.check(source_rig)
+    steps = DEFAULT_STEPS if steps is None else [tuple(s) for s in steps]
+    src_markers = layout.points(source_rig.neutral)
+
+    # -- landmarks ---------------------------------------------------------------------------
+    lm_names, lm_target = _landmarks(landmarks, layout, target_rig)
+
+    # -- normalised frame: source face region centred, unit diagonal ---------------------------
+    centre = src_markers.mean(0)
+    radius = np.linalg.norm(src_markers - centre, axis=1).max()
+    P, F, merged_of, _ = merged_mesh(source_rig, skin_faces(source_rig))
+    keep = np.linalg.norm(P - centre, axis=1) < region * radius
+    keep[merged_of[layout.vertices.ravel()]] = True  # marker triangles always in the region
+    fkeep = keep[F].all(1)
+    used = np.unique(F[fkeep])
+    remap = -np.ones(len(P), np.int64)
+    remap[used] = np.arange(len(used))
+    RV, RF = P[used], remap[F[fkeep]]
+    if (remap[merged_of[layout.vertices]] < 0).any():
+        raise ValueError("transfer_layout: a marker's triangle is not on the source skin; is the layout on an eyeball or teeth?")
+    # decimate the region so nricp stays at a few seconds (ICT's face region has ~12k vertices);
+    # markers ride the decimated surface at their closest point (face + barycentric)
+    RV, RF = _decimate(RV, RF, max_vertices)
+    diag = np.linalg.norm(RV.max(0) - RV.min(0))
+    norm = lambda x: (np.asarray(x) - centre) / diag  # noqa: E731
+    denorm = lambda x: np.asarray(x) * diag + centre  # noqa: E731
+    src_n = norm(RV)
+    mk_face, mk_bary, _, _ = closest_on_faces(src_markers, RV, RF)
+    mk_tri = RF[mk_face]
+
+    # -- target skin ---------------------------------------------------------------------------
+    tskin = skin_faces(target_rig)
+    T_all = target_rig.neutral
+
+    fs_ft = (_feature_points(source_rig), _feature_points(target_rig))
+    fs_ft = None if fs_ft[0] is None or fs_ft[1] is None else fs_ft
+    # -- 1. similarity ----------------------------------------------------------------------------
+    if len(lm_names) >= 3:
+        idx = [layout.names.index(n) for n in lm_names]
+        s, R, t = similarity(src_markers[idx], lm_target)
+        how = f"landmarks {list(lm_names)}"
+    else:
+        s, R, t = _auto_similarity(source_rig, target_rig, fs_ft)
+        how = "automatic (bounding boxes)" if fs_ft is None else "automatic (bounding boxes + eye/jaw shape centres)"
+    # target geometry near the aligned source face, in the normalised frame
+    aligned = _apply(s, R, t, RV)
+    lo, hi = aligned.min(0), aligned.max(0)
+    pad = 0.25 * np.linalg.norm(hi - lo)
+    near_face = tskin & (((T_all[target_rig.faces] > lo - pad) & (T_all[target_rig.faces] < hi + pad)).all(2).all(1))
+    if near_face.sum() < 10:
+        near_face = tskin
+    tmesh = trimesh.Trimesh(norm(_inv(s, R, t, T_all)), target_rig.faces[near_face], process=False)
+    # the target in the *source's* normalised frame (inverse similarity), so the stiffness and
+    # thresholds are relative to the source face region
+    src_init = src_n.copy()
+    if len(lm_names) < 3:
+        # similarity ICP of the region onto the target (both in the normalised source frame)
+        M, moved, cost = trimesh.registration.icp(src_init, tmesh, max_iterations=30, reflection=False, scale=True)
+        src_init = moved
+        Mfull = _frame_matrix(M, diag, centre)
+        # fold the ICP transform into (s, R, t): x_target = s R (T_icp x) + t
+        A = Mfull[:3, :3]
+        si = float(np.cbrt(np.linalg.det(A)))
+        R2, t2 = A / si, Mfull[:3, 3]
+        s, R, t = s * si, R @ R2, s * R @ t2 + t
+        # re-express the target in the refined frame
+        tmesh = trimesh.Trimesh(norm(_inv(s, R, t, T_all)), target_rig.faces[near_face], process=False)
+        src_init = src_n.copy()
+
+    # -- 2. non-rigid registration -------------------------------------------------------------
+    smesh = trimesh.Trimesh(src_init, RF, process=False)
+    if steps:
+        kw = {}
+        if len(lm_names):
+            idx = [layout.names.index(n) for n in lm_names]
+            kw = dict(source_landmarks=(mk_face[idx], mk_bary[idx]), target_positions=norm(_inv(s, R, t, lm_target)))
+        elif feature_landmarks and fs_ft is not None:
+            # the eye-close and jaw-open motion centres pull the registration (surface points
+            # nearest them on both rigs)
+            fs, ft = fs_ft
+            lf, lb, _, _ = closest_on_faces(fs, RV, RF)
+            _, _, ft_on, _ = closest_on_faces(ft, T_all, target_rig.faces, np.flatnonzero(tskin))
+            kw = dict(source_landmarks=(lf, lb), target_positions=norm(_inv(s, R, t, ft_on)))
+        registered = trimesh.registration.nricp_amberg(smesh, tmesh, steps=[list(x) for x in steps], distance_threshold=0.1, **kw)
+    else:
+        registered = src_init
+    # -- residual: registered region -> target surface (in metres, target frame) -------------
+    reg_world = _apply(s, R, t, denorm(registered))
+    _, _, _, dist = closest_on_faces(reg_world, T_all, target_rig.faces, np.flatnonzero(tskin))
+    # -- 3. project markers --------------------------------------------------------------------
+    mk_world = np.einsum("mjc,mj->mc", reg_world[mk_tri], mk_bary)
+    if len(lm_names):
+        for n, p in zip(lm_names, lm_target):
+            mk_world[layout.names.index(n)] = p
+    fid, bary, pt, snap = closest_on_faces(mk_world, T_all, target_rig.faces, np.flatnonzero(tskin))
+    out = MarkerLayout(
+        layout.names,
+        target_rig.faces[fid],
+        bary,
+        target_layout_name or f"{target_rig.name}.glb",
+        {"faces": fid, "notes": f"transferred from {layout.rig or source_rig.name} by face-retarget transfer_layout ({how})"},
+    )
+    info = dict(
+        residual_mm=(float(np.median(dist) * 1e3), float(np.percentile(dist, 90) * 1e3), float(dist.max() * 1e3)),
+        residual_rel=float(np.median(dist) / target_rig.size),
+        snap_mm=snap * 1e3,
+        similarity=(s, R, t),
+        alignment=how,
+        n_region=len(RV),
+        seconds=time.perf_counter() - t_start,
+        steps=[tuple(x) for x in steps],
+    )
+    return out, info
+
+
+# ---------------------------------------------------------------------------------------------
+def _decimate(V: np.ndarray, F: np.ndarray, max_vertices: int):
+    """Quadric decimation (VTK's vtkQuadricDecimation through pyvista) to about ``max_vertices``;
+    returns the input when it is already small enough."""
+    if max_vertices is None or len(V) <= max_vertices:
+        return V, F
+    import pyvista as pv
+
+    poly = pv.PolyData(V, np.hstack([np.full((len(F), 1), 3), F]).ravel())
+    dec = poly.decimate(1.0 - max_vertices / len(V))
+    return np.asarray(dec.points, dtype=np.float64), dec.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
+
+
+def _inv(s, R, t, p):
+    """Inverse similarity: target -> source frame."""
+    return (np.asarray(p) - t) @ R / s
+
+
+def _frame_matrix(M, diag, centre):
+    """A 4x4 map in the normalised frame -> the same map in world coordinates."""
+    N = np.eye(4)
+    N[:3, :3] /= diag
+    N[:3, 3] = -centre / diag
+    Ninv = np.eye(4)
+    Ninv[:3, :3] *= diag
+    Ninv[:3, 3] = centre
+    return Ninv @ M @ N
+
+
+def _auto_similarity(source: Rig, target: Rig, fs_ft):
+    """The eye/jaw shape centres' similarity (3-point Umeyama) when both rigs have them
+    (``fs_ft``), else a bounding-box similarity (no rotation: both rigs are glTF, +Y up, facing +Z)."""
+    if fs_ft is not None:
+        return similarity(*fs_ft)
+    # bounding boxes of the heads: scale by the width (x extent, least affected by necks and
+    # collars), centre the fronts
+    smin, smax = source.neutral.min(0), source.neutral.max(0)
+    tmin, tmax = target.neutral.min(0), target.neutral.max(0)
+    s = float((tmax[0] - tmin[0]) / (smax[0] - smin[0]))
+    t = 0.5 * (tmin + tmax) - s * 0.5 * (smin + smax)
+    return s, np.eye(3), t
+
+
+def _landmarks(landmarks, layout: MarkerLayout, target: Rig):
+    """(names, (L, 3) target positions) from the ``landmarks`` argument."""
+    if landmarks is None:
+        return (), np.zeros((0, 3))
+    if isinstance(landmarks, MarkerLayout):
+        names = [n for n in landmarks.names if n in layout.names]
+        landmarks.check(target)
+        pos = landmarks.points(target.neutral)
+        return tuple(names), np.array([pos[landmarks.names.index(n)] for n in names])
+    if not isinstance(landmarks, Mapping):
+        raise ValueError("transfer_layout: landmarks must be a dict name -> position/vertex, a MarkerLayout, or None")
+    names, pos = [], []
+    for n, p in landmarks.items():
+        if n not in layout.names:
+            raise ValueError(f"transfer_layout: landmark {n!r} is not a marker of the layout (markers: {list(layout.names)[:6]}...)")
+        if isinstance(p, (int, np.integer)):
+            if not 0 <= p < target.n_vertices:
+                raise ValueError(f"transfer_layout: landmark {n!r} vertex {p} out of range for rig {target.name} ({target.n_vertices} vertices)")
+            p = target.neutral[p]
+        p = np.asarray(p, dtype=np.float64)
+        if p.shape != (3,) or not np.isfinite(p).all():
+            raise ValueError(f"transfer_layout: landmark {n!r} must be a vertex id or a finite (3,) position, got shape {p.shape}")
+        names.append(n)
+        pos.append(p)
+    if 0 < len(names) < 3:
+        raise ValueError(f"transfer_layout: need at least 3 landmarks for the alignment, got {len(names)}")
+    return tuple(names), np.array(pos).reshape(-1, 3)
+
+
+# ---------------------------------------------------------------------------------------------
+def layout_command(from_path, rig_path, out_path, source_rig_path=None, steps=None) -> str:
+    """File-level transfer for the CLI: ``face-retarget layout --from A.json --rig B.glb --out C.json``.
+
+    The source rig is ``source_rig_path`` or, when None, the file the layout names (its
+    ``"rig"`` field) looked up next to the layout, then in the bundled ``data/rigs``.
+
+    Returns a summary (markers, residual, time, where it was written).
+
+    Raises
+    ------
+    FileNotFoundError when the source rig cannot be found (the message lists where it looked).
+    """
+    from .io.gltf import read_rig
+    from .io.layout import layouts_dir, read_layout, write_layout
+
+    from_path, rig_path, out_path = Path(from_path), Path(rig_path), Path(out_path)
+    src_layout = read_layout(from_path)
+    if source_rig_path is None:
+        rig_file = Path(src_layout.rig).name
+        tried = [from_path.parent / rig_file, layouts_dir().parent / "rigs" / rig_file]
+        source_rig_path = next((p for p in tried if p.exists()), None)
+        if source_rig_path is None:
+            raise FileNotFoundError(
+                f"layout {from_path.name} names rig {rig_file!r}; not found at {', '.join(map(str, tried))}; pass the source rig explicitly"
+            )
+    source = read_rig(source_rig_path)
+    src_layout = read_layout(from_path, rig=source)
+    target = read_rig(rig_path)
+    new, info = transfer_layout(src_layout, source, target, steps=steps, target_layout_name=rig_path.name)
+    write_layout(out_path, new, rig_path.name)
+    med, p90, mx = info["residual_mm"]
+    return (
+        f"transferred {new.n_markers} markers from {from_path.name} ({source.name}) to {target.name}: "
+        f"registration residual median {med:.2f} mm, p90 {p90:.2f} mm, max {mx:.2f} mm; "
+        f"marker snap median {np.median(info['snap_mm']):.2f} mm; {info['seconds']:.1f} s; wrote {out_path}"
+    )
