@@ -105,6 +105,11 @@ class SolveSettings(param.Parameterized):
         "neutral); neutral = zero weights at both ends as in Seol 2012 §3.1; none = free (needs beta > 0)"))
     mu = param.Number(default=0.3, bounds=(0, None), softbounds=(0, 2), doc="Geometric prior weight mu (Ribera 2017 eq. 16)")
     lam = param.Number(default=0.6, bounds=(0, None), softbounds=(0, 2), doc="L1 sparsity weight lambda (Ribera 2017 eq. 16)")
+    constraint = param.Selector(default="simplex", objects=["simplex", "box"], doc=(
+        "Local solve constraint: simplex = the paper's convex combination of poses (w >= 0, sum w <= 1 in delta form, "
+        "Liu 2011 eq. 2); box = 0 <= w <= 1"))
+    geometric_prior = param.Selector(default="geometric", objects=["geometric", "pca", "l2", "none"], doc=(
+        "Prior of the geometric method (Ribera 2017 Fig. 14): cotangent-Laplacian bending, Seol's PCA, plain L2, none"))
     sigma = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 5), doc="Gaussian temporal filter of the weights in frames (Liu 2011; 0: off)")
 
 
@@ -115,8 +120,8 @@ METHOD_PARAMS = {
     "range_pf": (),
     "prior_pf": ("alpha",),
     "spacetime": ("alpha", "beta", "boundary"),
-    "local": ("sigma",),
-    "geometric": ("mu", "lam"),
+    "local": ("constraint", "sigma"),
+    "geometric": ("geometric_prior", "mu", "lam"),
 }
 
 

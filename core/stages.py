@@ -16,7 +16,7 @@ from .progress import report
 from .retarget import common_markers, source_markers, target_markers
 
 #: methods that use the PCA prior stage
-PRIOR_METHODS = ("prior_pf", "spacetime")  # edits use it too, see EditSettings
+PRIOR_METHODS = ("prior_pf", "spacetime", "geometric")  # edits use it too, see EditSettings
 
 
 def run_load(inputs, s, progress=None):
@@ -67,23 +67,45 @@ def run_calibrate(inputs, s, progress=None):
 
 
 def run_personalize(inputs, s, progress=None):
+    """Actor-specific marker blendshapes by range-of-motion alignment (Ribera 2017 §4).
+
+    The ROM take is the source itself unless ``rom`` names another capture of the same
+    actor (its markers are matched by name and stabilised the same way).
+    """
     cal = inputs["calibrate"]
     if not s.personalize:
         return {"deltas": cal["deltas"], "personalized": False}
-    from .personalize import personalize_markers  # Ribera 2017 §4
+    from .personalize import personalize
 
     st = inputs["stabilize"]
-    out = personalize_markers(st["source"], cal["deltas"], st["names"], beta=s.align_beta, gamma=s.align_gamma,
-                              rom=s.rom or None, progress=progress)
-    return {"deltas": out["deltas"], "personalized": True, "diagnostics": out}
+    src = st["source"]
+    rom_deltas, rom_valid = src.deltas, src.valid
+    if s.rom:
+        from .io.performance import read_performance
+
+        ld = inputs["load"]
+        rom = source_markers(read_performance(s.rom), ld["source_rig"], ld["source_layout"], ld["name_map"])
+        missing = [n for n in st["names"] if n not in rom.names]
+        if missing:
+            raise ValueError(f"{s.rom}: the range-of-motion take lacks markers {missing}")
+        idx = [rom.names.index(n) for n in st["names"]]
+        rom_deltas, rom_valid = rom.deltas[:, idx], rom.valid[:, idx]
+    out = personalize(rom_deltas, cal["deltas"], src.neutral, names=st["names"], rig_deltas=cal["target"].deltas,
+                      valid=rom_valid, beta=s.align_beta, gamma=s.align_gamma)
+    return {"deltas": out.deltas, "personalized": True, "diagnostics": out}
 
 
 def run_segment(inputs, s, progress=None):
-    from .segment import segment_rig  # Liu 2011 §3.2.1
+    """Regions of the target rig and per-region marker weights (Liu 2011 §3.2.1–3.2.2)."""
+    from .segment import marker_weights, segment
 
-    ld = inputs["load"]
-    return segment_rig(ld["target_rig"], ld["target_layout"].select(inputs["calibrate"]["target"].names),
-                       n_regions=s.regions, min_size=s.min_region_size, smooth_iters=s.mask_smoothing)
+    rig = inputs["load"]["target_rig"]
+    layout = inputs["load"]["target_layout"].select(inputs["calibrate"]["target"].names)
+    seg = segment(rig, n_regions=s.regions, min_size=max(1, int(round(s.min_region_size * rig.n_vertices))),
+                  smooth_iters=s.mask_smoothing)
+    report(progress, 0.8, "marker weights")
+    return {"labels": seg.labels, "masks": seg.masks, "marker_weights": marker_weights(rig, layout, seg.masks),
+            "info": dict(seg.info)}
 
 
 def run_prior(inputs, s, progress=None):
@@ -125,14 +147,33 @@ def run_solve(inputs, s, progress=None):
         W = solver.solve()
         info = {"path": solver.method_}
     elif m == "local":
-        from .solvers.local import solve_local
+        from .solvers.local import blend_weights, local_precompute, smooth_weights
 
-        out = solve_local(B, S, inputs["segment"], valid=valid, sigma=s.sigma, progress=progress)
-        W, info = out["weights"], out
+        seg = inputs["segment"]
+        problem = local_precompute(np.zeros_like(st.neutral), B, seg["marker_weights"], constraint=s.constraint)
+        U = problem.solve(S, valid)  # (T, R, K) regional weights, eq. 2
+        if s.sigma > 0:
+            U = smooth_weights(U, s.sigma)
+        W = blend_weights(U, seg["masks"])
+        info = {"region_weights": U, "masks": seg["masks"]}
     elif m == "geometric":
-        from .solvers.geometric import solve_geometric
+        from .solvers.geometric import GeometricSolver
 
-        W = solve_geometric(B, S, inputs["load"]["target_rig"], mu=s.mu, lam=s.lam, valid=valid)
+        kw = {"rig": inputs["load"]["target_rig"]} if s.geometric_prior == "geometric" else {}
+        if s.geometric_prior == "pca":
+            from .solvers.spacetime import _prior_quadratic
+            from .model import flatten
+
+            P, q, _ = _prior_quadratic(_prior(inputs), flatten(B).T, len(B))
+            kw = {"gram": P, "linear": -q}
+        frames = S
+        if not valid.all():  # the L1 solver needs complete frames: fill gaps with the No Const fit
+            fill = np.einsum("tk,kmc->tmc", baselines.no_const(B, S, valid), B)
+            frames = np.where(valid[..., None], S, fill)
+            warnings.warn(f"geometric: {int((~valid).sum())} missing marker samples filled by the per-frame fit")
+        sol = GeometricSolver(B, s.geometric_prior, mu=s.mu, lam=s.lam, **kw).solve(frames)
+        W = sol.weights
+        info = {"iterations": sol.iterations}
     else:  # pragma: no cover - param.Selector guards this
         raise ValueError(f"unknown method {m!r}")
     W = np.asarray(W, dtype=np.float64)
