@@ -10,11 +10,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / "data"
-RIGS = DATA / "rigs"
-PERFORMANCES = DATA / "performances"
-LAYOUTS = DATA / "layouts"
+from datapaths import DATA, LAYOUTS, PERFORMANCES, RIGS, ROOT  # noqa: E402,F401
 
 
 @pytest.fixture(scope="session")

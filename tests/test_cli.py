@@ -5,7 +5,7 @@ import csv
 import numpy as np
 import pytest
 
-from conftest import LAYOUTS, PERFORMANCES, RIGS
+from datapaths import LAYOUTS, PERFORMANCES, RIGS
 from core.cli import main
 from core.io.gltf import read_animation, read_rig
 

@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import PERFORMANCES, RIGS, ROOT
+from datapaths import PERFORMANCES, RIGS, ROOT
 from core.io.gltf import GltfError, _estimate_fps, read_animation, read_markers, read_rig, vertex_normals, write_rig
 from core.model import MarkerLayout, Performance, Rig
 from core.names import canonical

@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from conftest import PERFORMANCES
+from datapaths import PERFORMANCES
 from core.io.livelink import (LIVELINK_CHANNELS, ROTATION_COLUMNS, read_livelink, write_livelink)
 from core.io.performance import DataQualityWarning, read_performance, write_performance
 from core.model import Performance

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import core.io.gltf
-from conftest import PERFORMANCES
+from datapaths import PERFORMANCES
 from core.io.markers import (declared_units, read_c3d, read_marker_csv, read_trc, write_c3d,
                              write_marker_csv, write_trc)
 from core.io.performance import (DataQualityWarning, estimate_fps, read_performance,

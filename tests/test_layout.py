@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from conftest import LAYOUTS, PERFORMANCES, RIGS
+from datapaths import LAYOUTS, PERFORMANCES, RIGS
 from core.io.layout import LayoutError, LayoutRigMismatch, default_layout_path, read_layout, write_layout
 from core.model import MarkerLayout
 from core.names import canonical
@@ -266,7 +266,7 @@ def test_rocketbox_layout_is_reproduced_by_the_script(rocketbox, layouts):
     """scripts/make_layouts.py regenerates the bundled file exactly (same rules, same data)."""
     import sys
 
-    from conftest import ROOT
+    from datapaths import ROOT
 
     sys.path.insert(0, str(ROOT / "scripts"))
     try:

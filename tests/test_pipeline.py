@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from core.pipeline import Pipeline, StageCache, add_cli_arguments, cli_flags, content_key
-from conftest import PERFORMANCES, RIGS
+from datapaths import PERFORMANCES, RIGS
 
 FILES = dict(source=str(PERFORMANCES / "livelinkface_take_s07.csv"), source_rig=str(RIGS / "ict_facekit.glb"),
              target_rig=str(RIGS / "rocketbox_female_adult_02.glb"))

@@ -7,7 +7,7 @@ import pytest
 
 from core.model import flatten
 from core.prior import PCAPrior, alpha_for_units
-from conftest import LAYOUTS
+from datapaths import LAYOUTS
 
 
 def _ict_marker_deltas(ict):

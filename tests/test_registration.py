@@ -7,7 +7,7 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from conftest import LAYOUTS, RIGS
+from datapaths import LAYOUTS, RIGS
 from core.io.layout import LayoutRigMismatch, read_layout
 from core.model import MarkerLayout, Rig
 from core.registration import closest_on_faces, layout_command, similarity, skin_faces, transfer_layout

@@ -17,7 +17,7 @@ from core.names import NameMap
 from core.prior import PCAPrior
 from core.solvers.baselines import box_lsq, no_const, prior_pf, range_pf
 from core.solvers.spacetime import Edit, SpacetimeSolver, known_matrix, solve_spacetime, spacetime_reference
-from conftest import LAYOUTS, PERFORMANCES
+from datapaths import LAYOUTS, PERFORMANCES
 
 TOL = 1e-8  # relative agreement with the reference, max |W - W_ref| / max |W_ref|
 

@@ -45,11 +45,14 @@ def _setup(B, S, valid):
     return Bm, _zero_filled(S3, valid), valid
 
 
-def no_const(B, S, valid=None) -> np.ndarray:
+def no_const(B, S, valid=None, rcond: float = 1e-7) -> np.ndarray:
     """"No Const" per-frame least squares (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2``.
 
     One ``scipy.linalg.lstsq`` (SVD-based, minimum-norm when ``B`` is rank deficient) per mask
-    pattern with all its frames as right-hand sides.
+    pattern with all its frames as right-hand sides. Singular values below ``rcond`` times the
+    largest count as zero: a rig with more shapes than marker coordinates (Rocketbox: 175
+    shapes, 123 coordinates) is numerically rank deficient, and machine-precision singular
+    values gave weights of 1e12 that cancel each other.
 
     Parameters
     ----------
@@ -67,7 +70,7 @@ def no_const(B, S, valid=None) -> np.ndarray:
         rows = np.repeat(pat, 3)
         if not rows.any():
             continue
-        W[frames] = scipy.linalg.lstsq(Bm[rows], Sz[frames][:, rows].T, lapack_driver="gelsd")[0].T
+        W[frames] = scipy.linalg.lstsq(Bm[rows], Sz[frames][:, rows].T, cond=rcond, lapack_driver="gelsd")[0].T
     return W
 
 

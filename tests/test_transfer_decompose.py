@@ -1,0 +1,213 @@
+"""Xu 2014 §3 decomposition: Taubin smoothing, Laplacian coating, Poisson reconstruction,
+sequence factorisation -- each against a slow, obviously-correct reference."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from core.transfer import (PoissonReconstructor, TaubinFilter, factor_sequence, laplacian_coating,
+                           laplacian_operator, taubin_smooth)
+from core.transfer._mesh import frame_vectors, local_frames, weld
+
+
+def _noisy_sphere(subdiv=2, seed=0):
+    m = trimesh.creation.icosphere(subdiv)
+    rng = np.random.default_rng(seed)
+    V = m.vertices * [1.0, 1.2, 0.8] + 0.03 * rng.standard_normal(m.vertices.shape)
+    return V, np.asarray(m.faces)
+
+
+def _dense_taubin(V, F, iterations, lam, mu):
+    """Per-iteration dense reference: neighbour sets by a loop over faces."""
+    n = len(V)
+    nbrs = [set() for _ in range(n)]
+    for a, b, c in F:
+        for i, j in ((a, b), (b, c), (c, a)):
+            nbrs[i].add(j)
+            nbrs[j].add(i)
+    U = np.zeros((n, n))
+    for i in range(n):
+        for j in nbrs[i]:
+            U[i, j] = 1.0 / len(nbrs[i])
+        U[i, i] = -1.0
+    x = V.copy()
+    for _ in range(iterations):
+        x = x + lam * (U @ x)
+        x = x + mu * (U @ x)
+    return x
+
+
+def test_taubin_matches_dense_reference_random():
+    V, F = _noisy_sphere()
+    ours = taubin_smooth(V, F, iterations=7, lam=0.5, mu=-0.53)
+    ref = _dense_taubin(V, F, 7, 0.5, -0.53)
+    size = np.linalg.norm(np.ptp(V, 0))
+    assert np.abs(ours - ref).max() < 1e-12 * size
+    assert np.abs(ours - V).max() > 1e-3 * size  # it did smooth
+
+
+def test_taubin_matches_dense_reference_real(tiger):
+    V, F = tiger.neutral, tiger.faces
+    ours = taubin_smooth(V, F, iterations=40)
+    ref = _dense_taubin(V, F, 40, 0.5, -0.53)
+    assert np.abs(ours - ref).max() < 1e-10 * tiger.size
+
+
+def test_taubin_sequence_equals_per_frame_and_keeps_input(tiger):
+    rng = np.random.default_rng(1)
+    seq = tiger.evaluate(rng.random((3, tiger.n_shapes)))
+    before = seq.copy()
+    filt = TaubinFilter(tiger.faces, tiger.n_vertices, 10)
+    batch = filt.apply(seq)
+    for t in range(3):
+        assert np.allclose(batch[t], filt.apply(seq[t]), atol=1e-12 * tiger.size)
+    assert np.array_equal(seq, before)
+
+
+def test_taubin_does_not_shrink_like_laplacian_smoothing():
+    V, F = _noisy_sphere(3)
+    r0 = np.linalg.norm(V - V.mean(0), axis=1).mean()
+    taubin = taubin_smooth(V, F, 40)
+    plain = TaubinFilter(F, len(V), 40, lam=0.5, mu=-0.5)  # |mu| = lam: still allowed
+    r_t = np.linalg.norm(taubin - taubin.mean(0), axis=1).mean()
+    # plain Laplacian smoothing: 80 steps of lam = 0.5 for comparison
+    x = V.copy()
+    for _ in range(80):
+        x = x + 0.5 * (np.asarray(_umbrella(F, len(V)) @ x))
+    r_l = np.linalg.norm(x - x.mean(0), axis=1).mean()
+    assert abs(r_t / r0 - 1) < 0.05 and r_l / r0 < 0.9
+    assert plain.apply(V).shape == V.shape
+
+
+def _umbrella(F, n):
+    import scipy.sparse as sp
+    from core.geometry import vertex_adjacency
+
+    A = vertex_adjacency(F, n)
+    d = np.asarray(A.sum(1)).ravel()
+    return sp.diags(1 / d) @ A - sp.identity(n)
+
+
+def test_taubin_validation():
+    V, F = _noisy_sphere(1)
+    with pytest.raises(ValueError, match="lam, mu"):
+        TaubinFilter(F, len(V), 5, lam=0.5, mu=0.3)
+    with pytest.raises(ValueError, match="iterations"):
+        TaubinFilter(F, len(V), -1)
+    with pytest.raises(ValueError, match="positions"):
+        taubin_smooth(V[:, :2], F)
+
+
+@pytest.mark.parametrize("kind", ["uniform", "cotangent"])
+def test_poisson_reconstruction_recovers_unsmoothed_mesh(kind, tiger):
+    # eq. 2: S = L^{-1}(L S̄ + ξ) on a real mesh and a random one
+    for V, F in ((tiger.neutral, tiger.faces), _noisy_sphere(2, 3)):
+        wi, rep, Fw = weld(V, F)
+        S = V[rep]
+        Sb = taubin_smooth(S, Fw, 40)
+        P = PoissonReconstructor(Fw, len(S), kind, S)
+        xi = laplacian_coating(S, Sb, P.L)
+        rec = P.reconstruct(Sb, xi, P.component_mean(S - Sb))
+        size = np.linalg.norm(np.ptp(S, 0))
+        assert np.abs(rec - S).max() < 1e-8 * size
+        # without the mean the result differs by one translation per component only
+        rec0 = P.reconstruct(Sb, xi)
+        off = rec0 - S
+        per_component = P.component_mean(off)[P.labels]
+        assert np.abs(off - per_component).max() < 1e-8 * size
+
+
+def test_poisson_two_components_and_batch():
+    a = trimesh.creation.icosphere(2)
+    b = trimesh.creation.icosphere(1)
+    V = np.concatenate([a.vertices, b.vertices * 0.5 + 3])
+    F = np.concatenate([a.faces, b.faces + len(a.vertices)])
+    rng = np.random.default_rng(4)
+    seq = V + 0.02 * rng.standard_normal((3,) + V.shape)
+    P = PoissonReconstructor(F, len(V))
+    smooth = taubin_smooth(seq, F, 20)
+    xi = laplacian_coating(seq, smooth, P.L)
+    for t in range(3):
+        rec = P.reconstruct(smooth[t], xi[t], P.component_mean(seq[t] - smooth[t]))
+        assert np.abs(rec - seq[t]).max() < 1e-9
+    # batched (T, V, 3) with one mean for all frames equals per-frame
+    m = P.component_mean(seq[0] - smooth[0])
+    batch = P.reconstruct(smooth, xi, m)
+    assert np.allclose(batch[0], seq[0], atol=1e-9)
+    assert np.allclose(batch[1], P.reconstruct(smooth[1], xi[1], m), atol=1e-12)
+
+
+def test_poisson_matches_dense_pseudoinverse():
+    V, F = _noisy_sphere(1, 5)
+    P = PoissonReconstructor(F, len(V))
+    L = P.L.toarray()
+    rng = np.random.default_rng(0)
+    xi = L @ rng.standard_normal((len(V), 3))
+    ours = P.displacement(xi)
+    ref = np.linalg.pinv(L) @ xi  # minimum-norm = zero-mean solution on a connected mesh
+    assert np.abs(ours - ref).max() < 1e-9 * np.abs(ref).max()
+
+
+def test_laplacian_operator_validation():
+    V, F = _noisy_sphere(1)
+    with pytest.raises(ValueError, match="kind"):
+        laplacian_operator(F, len(V), "mean")
+    with pytest.raises(ValueError, match="positions"):
+        laplacian_operator(F, len(V), "cotangent")
+
+
+def test_factor_sequence_rig_driven_is_exact_and_reports_residual(ict):
+    rng = np.random.default_rng(2)
+    W = rng.random((60, ict.n_shapes)) * (rng.random(ict.n_shapes) ** 3)
+    seq = ict.evaluate(W)
+    fac = factor_sequence(seq, rtol=1e-7, base=ict.neutral)
+    assert fac.rank <= ict.n_shapes
+    err = np.sqrt(((fac.frames() - seq) ** 2).sum(-1).mean())
+    assert err <= 1e-7 * ict.size * 1.01
+    # the reported residual is the measured one (to rounding of the ||X||² - ||C||² form)
+    assert abs(err - fac.residual_rms) <= 1e-8 * ict.size
+
+
+def test_factor_sequence_full_rank_random():
+    rng = np.random.default_rng(3)
+    seq = rng.standard_normal((8, 50, 3))
+    fac = factor_sequence(seq, rtol=1e-9)
+    assert fac.rank == 7  # 8 frames minus the base
+    assert np.abs(fac.frames() - seq).max() < 1e-8
+    with pytest.raises(ValueError, match="sequence"):
+        factor_sequence(seq[0])
+
+
+def test_smoothing_the_factored_basis_equals_smoothing_frames(tiger):
+    rng = np.random.default_rng(5)
+    seq = tiger.evaluate(rng.random((20, tiger.n_shapes)))
+    fac = factor_sequence(seq, 1e-9, base=tiger.neutral)
+    filt = TaubinFilter(tiger.faces, tiger.n_vertices, 40)
+    smooth = fac.map_basis(filt.apply)
+    assert np.abs(smooth.frames() - filt.apply(seq)).max() < 1e-8 * tiger.size
+
+
+def test_local_frames_orthonormal_right_handed(tiger):
+    F = local_frames(tiger.neutral, tiger.faces)
+    I = np.einsum("vji,vjk->vik", F, F)
+    assert np.abs(I - np.eye(3)).max() < 1e-9
+    assert np.allclose(np.linalg.det(F), 1.0)
+    t, b, n = frame_vectors(tiger.neutral.astype(np.float32), tiger.faces)
+    dev = np.abs(np.stack([t, b, n], -1) - F).max(axis=(1, 2))
+    # float32 frames: rotations to ~1e-6, worse only where the tangent edge is near the normal
+    assert t.dtype == np.float32 and np.percentile(dev, 99) < 1e-5 and dev.max() < 1e-3
+
+
+def test_screened_poisson_returns_prior_and_matches_dense_solve(tiger):
+    wi, rep, Fw = weld(tiger.neutral, tiger.faces)
+    S = tiger.neutral[rep]
+    Sb = taubin_smooth(S, Fw, 40)
+    P = PoissonReconstructor(Fw, len(S), screening=0.01)
+    y0 = S - Sb
+    assert np.abs(P.displacement(P.L @ y0, prior=y0) - y0).max() < 1e-10 * tiger.size
+    rng = np.random.default_rng(0)
+    c = rng.standard_normal((len(S), 3)) * 1e-3
+    dense = np.linalg.solve(P.L.toarray() + P.eps * np.eye(len(S)), c + P.eps * y0)
+    assert np.abs(P.displacement(c, prior=y0) - dense).max() < 1e-9 * np.abs(dense).max()
+    with pytest.raises(ValueError, match="screening"):
+        PoissonReconstructor(Fw, len(S), screening=-1)
