@@ -30,6 +30,10 @@ from dashboard.viewer import MeshViewer, error_colors  # noqa: E402
 log = logging.getLogger("face_retarget.dashboard")
 
 SIDEBAR_WIDTH = 330
+#: Category20-like palette for region maps (RGB in 0..1)
+REGION_COLORS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189], [140, 86, 75],
+                          [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207], [174, 199, 232], [255, 187, 120],
+                          [152, 223, 138], [255, 152, 150], [197, 176, 213], [196, 156, 148]], dtype=np.float32) / 255
 VIEW_HEIGHT = 430
 CSS = """
 .fr-title h1 {font-size: 1.35em; margin: 4px 0 0 0;}
@@ -84,7 +88,8 @@ class DashboardApp:
         self.w_shapes.param.watch(lambda e: self._draw_curves(), "value")
         self.curves = CurvePlot(on_seek=self._seek)
         self.diag = DiagnosticsPlot(x_range=self.curves.fig.x_range)
-        self.w_heat = pn.widgets.Checkbox(name="Error heat map on the target", value=False)
+        self.w_heat = pn.widgets.RadioButtonGroup(name="Target colouring", options=["plain", "error map", "regions"],
+                                                  value="plain", button_type="light", width=260)
         self.w_heat.param.watch(lambda e: self._draw_heat(), "value")
         # spacetime edits (Seol 2012 §6)
         self.w_edit_shape = pn.widgets.Select(name="Shape", options=[], sizing_mode="stretch_width")
@@ -335,18 +340,28 @@ class DashboardApp:
         snap = self.s.snapshot
         if not snap or not hasattr(self, "target_viewer"):
             return
-        if not self.w_heat.value:
+        mode = self.w_heat.value
+        if mode == "error map":
+            field = marker_error_field(snap["target_rig"], snap["target_layout"], snap["evaluate"]["marker_error_per_marker_mm"])
+            self.target_viewer.set_colors(error_colors(field))
+        elif mode == "regions" and snap.get("segment"):
+            labels = snap["segment"]["labels"]
+            self.target_viewer.set_colors(REGION_COLORS[labels % len(REGION_COLORS)])
+        else:
             self.target_viewer.set_colors(None)
-            return
-        field = marker_error_field(snap["target_rig"], snap["target_layout"], snap["evaluate"]["marker_error_per_marker_mm"])
-        self.target_viewer.set_colors(error_colors(field))
 
     def _draw_regions(self):
         seg = self.s.snapshot.get("segment")
         if not seg:
             self.region_box[:] = []
             return
-        self.region_box[:] = [pn.pane.Markdown(f"**Regions**: {len(seg.get('masks', []))} (see the region map in the target view)")]
+        sizes = np.bincount(seg["labels"], minlength=len(seg["masks"]))
+        swatches = "".join(
+            f"<span style='display:inline-block;width:12px;height:12px;margin:0 3px 0 8px;background:rgb"
+            f"{tuple(int(255 * c) for c in REGION_COLORS[r % len(REGION_COLORS)])}'></span>{100 * n / sizes.sum():.0f}%"
+            for r, n in enumerate(sizes))
+        self.region_box[:] = [pn.pane.HTML(f"<b>{len(sizes)} regions</b> (share of vertices; choose <i>regions</i> "
+                                           f"colouring to see them on the target)<br>{swatches}", sizing_mode="stretch_width")]
 
     def __panel__(self):
         return self.layout

@@ -1,0 +1,76 @@
+"""Baseline per-frame solvers and the dashboard's response to a setting change.
+
+* ``bounded_perframe_*``: per-frame bounded least squares 0 <= w <= 1 for a real take (ICT
+  driven by Live Link curves -> Rocketbox, 41 markers, 175 shapes), ours (batched exact active
+  set) vs SciPy's ``lsq_linear(method="bvls")`` called per frame on the same problems.
+* ``setting_change_*``: server time to recompute after changing alpha on a 1,000-frame take
+  (only the stale stages run: solve, edit, synthesize, evaluate) vs the same pipeline run
+  from scratch (every stage, cold cache). The dashboard's budget is 150 ms for the baseline.
+"""
+
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+import scipy.linalg  # noqa: E402
+import scipy.optimize  # noqa: E402
+
+from core.model import flatten  # noqa: E402
+from core.pipeline import Pipeline, StageCache  # noqa: E402
+from core.solvers.baselines import range_pf  # noqa: E402
+
+FILES = dict(source=str(ROOT / "data/performances/livelinkface_take_s07.csv"), source_rig=str(ROOT / "data/rigs/ict_facekit.glb"),
+             target_rig=str(ROOT / "data/rigs/rocketbox_female_adult_02.glb"))
+
+
+def bench_bounded(n_ref=40):
+    pipe = Pipeline(cache=StageCache(), method="lsq", **FILES)
+    r = pipe.results(["stabilize", "personalize"])
+    B, S = r["personalize"]["deltas"], r["stabilize"]["source"].deltas
+    T = len(S)
+    t0 = time.perf_counter()
+    W = range_pf(B, S, 0.0, 1.0)
+    ours = time.perf_counter() - t0
+    Bm, s = flatten(B).T, flatten(S)
+    idx = np.linspace(0, T - 1, n_ref).astype(int)
+    t0 = time.perf_counter()
+    ref = np.array([scipy.optimize.lsq_linear(Bm, s[t], bounds=(0, 1), method="bvls", tol=1e-12).x for t in idx])
+    ref_s = (time.perf_counter() - t0) * T / n_ref
+    cost = lambda w, t: np.sum((Bm @ w - s[t]) ** 2)  # noqa: E731
+    gap = max(cost(W[t], t) - cost(ref[i], t) for i, t in enumerate(idx)) / max(cost(ref[0], idx[0]), 1e-30)
+    print(f"BENCH bounded_perframe_T{T}_K{B.shape[0]}_M{B.shape[1]} ours_s={ours:.4f} ref_s={ref_s:.4f} ratio={ref_s / ours:.1f} "
+          f"ref_kind=lsq_linear_bvls_{n_ref}frames_scaled fps={T / ours:.0f} rel_cost_gap={gap:.1e}", flush=True)
+
+
+def bench_setting_change(method, alphas=(0.02, 0.05, 0.1, 0.2, 0.5)):
+    settings = dict(FILES, method=method, last_frame=999)
+    t0 = time.perf_counter()
+    pipe = Pipeline(cache=StageCache(), **settings)
+    pipe.run()
+    cold = time.perf_counter() - t0
+    times = []
+    for a in alphas:
+        pipe.configure(alpha=a)
+        t0 = time.perf_counter()
+        pipe.run()
+        times.append(time.perf_counter() - t0)
+    ours = float(np.median(times))
+    stages = " ".join(f"{k}_ms={v * 1e3:.1f}" for k, v in pipe.timings.items() if v)
+    print(f"BENCH setting_change_{method}_T1000 ours_s={ours:.4f} ref_s={cold:.4f} ratio={cold / ours:.1f} "
+          f"ref_kind=cold_full_pipeline budget_s=0.150 {stages}", flush=True)
+
+
+def main():
+    bench_bounded()
+    for m in ("prior_pf", "spacetime"):
+        bench_setting_change(m)
+
+
+if __name__ == "__main__":
+    main()
