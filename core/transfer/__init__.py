@@ -1,0 +1,311 @@
+"""Controllable high-fidelity transfer of dense mesh sequences (Xu et al. 2014).
+
+Pipeline (:func:`transfer_sequence`):
+
+1. preprocessing (§3, :mod:`.correspond`): when the target has its own topology, register the
+   source reference onto it (landmarks + non-rigid ICP) and resample it in the source topology;
+2. decomposition (eq. 1-4, :mod:`.decompose`): Taubin smoothing + Laplacian coating;
+3. basis selection (eq. 6-7, :mod:`.bases`): greedy frames with non-negative weights;
+4. feature-preserving deformation transfer of the bases (eq. 9-11, :mod:`.deformation`);
+5. fine-scale detail transfer (eq. 16, 5, :mod:`.details`).
+
+Editing (eq. 12-15 and 17-21) lives in :mod:`.edit`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Optional, Sequence, Union
+
+import numpy as np
+
+from ._mesh import bbox_size, check_faces, check_positions, weld
+from .bases import BasisSelection, gram_from_factored, nnls_gram, select_bases
+from .correspond import Registration, landmarks_from_shapes, register, similarity_align
+from .decompose import (FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence,
+                        laplacian_coating, laplacian_operator, taubin_smooth)
+from .deformation import DeformationTransfer, deformation_gradients, deformation_transfer, line_gradients
+from .details import DetailTransfer
+from .features import feature_lines_near, hole_loops, line_edges, loops_near, marker_loop, seam_loops
+
+__all__ = [
+    "TransferSettings", "TransferResult", "transfer_sequence", "naive_transfer",
+    "TaubinFilter", "taubin_smooth", "laplacian_operator", "laplacian_coating", "PoissonReconstructor",
+    "FactoredSequence", "factor_sequence", "nnls_gram", "select_bases", "BasisSelection",
+    "DeformationTransfer", "deformation_transfer", "deformation_gradients", "line_gradients",
+    "DetailTransfer", "register", "Registration", "similarity_align", "landmarks_from_shapes",
+    "line_edges", "hole_loops", "seam_loops", "loops_near", "marker_loop", "feature_lines_near",
+]
+
+
+@dataclass(frozen=True)
+class TransferSettings:
+    """Settings of :func:`transfer_sequence` (defaults follow the paper where it gives a value).
+
+    Attributes
+    ----------
+    iterations : Taubin iterations ("about 40", §3)
+    lam, mu : Taubin λ, μ
+    laplacian : "uniform" | "cotangent", the operator L of eq. 1-2
+    eps : relative residual energy that ends basis selection (eq. 7's ε)
+    max_bases, min_bases : bounds on K (deltas, not counting the neutral b_1 = S̄_0)
+    candidates : frames tried per greedy step (the worst-fitted ones)
+    alpha : feature-line weight of eq. 9 (100 in the paper)
+    feature_lines : list of vertex-id chains on the source (closed loops), or None
+    details : transfer fine-scale details (§5.1); False gives the large-scale result only
+    detail_gain : scale of the transferred coating; None = size(target) / size(source)
+    rotate_reference_details : the rotation-covariant detail variant (see :mod:`.details`)
+    detail_screening : screened-Poisson weight of the detail reconstruction (0 = eq. 5 as is;
+        see :class:`.decompose.PoissonReconstructor`)
+    rank_rtol : relative RMS tolerance of the sequence factorisation
+    chunk : frames per block in the detail stage
+    landmarks : (source vertex ids (M,), target points (M, 3)) for a target with its own topology
+    icp_steps, max_distance, icp : registration settings (see :func:`.correspond.register`);
+        ``icp=False`` stops at the landmark similarity + closest-point resampling
+    """
+
+    iterations: int = 40
+    lam: float = 0.5
+    mu: float = -0.53
+    laplacian: str = "uniform"
+    eps: float = 1e-3
+    max_bases: int = 30
+    min_bases: int = 0
+    candidates: int = 8
+    alpha: float = 100.0
+    feature_lines: Optional[Sequence] = None
+    details: bool = True
+    detail_gain: Optional[float] = None
+    rotate_reference_details: bool = False
+    detail_screening: float = 0.01
+    rank_rtol: float = 1e-6
+    chunk: int = 32
+    landmarks: Optional[tuple] = None
+    icp_steps: Optional[list] = None
+    max_distance: Optional[float] = None
+    icp: bool = True
+
+    def __post_init__(self):
+        if self.laplacian not in ("uniform", "cotangent"):
+            raise ValueError(f"laplacian: expected 'uniform' or 'cotangent', got {self.laplacian!r}")
+        for name in ("iterations", "max_bases", "min_bases", "candidates", "chunk"):
+            v = getattr(self, name)
+            if int(v) != v or v < (1 if name in ("candidates", "chunk") else 0):
+                raise ValueError(f"{name}: expected a non-negative integer, got {v!r}")
+        if self.eps < 0 or self.alpha < 0 or self.rank_rtol <= 0:
+            raise ValueError(f"eps >= 0, alpha >= 0, rank_rtol > 0 expected; got {self.eps}, {self.alpha}, {self.rank_rtol}")
+
+
+@dataclass(frozen=True, eq=False)
+class TransferResult:
+    """Transferred sequence as a blendshape rig plus per-frame details.
+
+    ``mesh_t = neutral + weights[t] @ deltas + details[t]`` in the source topology
+    (``faces``). ``neutral`` is the target reference resampled in that topology.
+
+    Attributes
+    ----------
+    faces : (F, 3) int
+    neutral : (V, 3)
+    deltas : (K, V, 3)        target bases b'_k minus the smoothed target reference
+    weights : (T, K)          non-negative (eq. 6)
+    details : (T, V, 3) float32 or None   fine-scale motion (eq. 16) as displacements
+    frames : (K,) int         source frame each basis was taken from
+    selection_errors : (K+1,) relative residual energy after 0..K bases
+    source_bases : (K, V, 3)  the smoothed source bases b_k
+    target_smooth_ref : (V, 3) T̄_0
+    registration : Registration or None
+    factor_residual_mm : RMS error of the sequence factorisation
+    timings : dict stage -> seconds
+    """
+
+    faces: np.ndarray
+    neutral: np.ndarray
+    deltas: np.ndarray
+    weights: np.ndarray
+    details: Optional[np.ndarray]
+    frames: np.ndarray
+    selection_errors: np.ndarray
+    source_bases: np.ndarray
+    target_smooth_ref: np.ndarray
+    registration: Optional[Registration] = None
+    factor_residual_mm: float = 0.0
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def n_bases(self) -> int:
+        return len(self.deltas)
+
+    def large_scale(self, idx=slice(None)) -> np.ndarray:
+        """Smoothed target frames ``T̄_t`` (t, V, 3) (eq. 8)."""
+        w = np.atleast_2d(self.weights[idx])
+        K, V = self.deltas.shape[:2]
+        return self.target_smooth_ref + (w @ self.deltas.reshape(K, -1)).reshape(len(w), V, 3)
+
+    def sequence(self, idx=slice(None)) -> np.ndarray:
+        """Full target frames ``T_t`` (t, V, 3) (eq. 5)."""
+        w = np.atleast_2d(self.weights[idx])
+        K, V = self.deltas.shape[:2]
+        out = self.neutral + (w @ self.deltas.reshape(K, -1)).reshape(len(w), V, 3)
+        if self.details is not None:
+            d = self.details[idx]
+            out += d.reshape(out.shape) if d.ndim == 3 else d[None]
+        return out
+
+    def to_rig(self, name: str = "transfer", prefix: str = "xu_basis_"):
+        """A :class:`core.model.Rig` (neutral + K deltas); details are not part of a rig."""
+        from ..model import Rig
+
+        names = [f"{prefix}{k:02d}_f{int(f)}" for k, f in enumerate(self.frames)]
+        return Rig(self.neutral, self.faces, self.deltas, names, None, "m", name)
+
+
+def _feature_edges(settings, welded_index, n):
+    if settings.feature_lines is None:
+        return np.zeros((0, 2), np.int64)
+    lines = [welded_index[np.asarray(ln, dtype=np.int64)] for ln in settings.feature_lines]
+    for ln in settings.feature_lines:
+        ln = np.asarray(ln)
+        if ln.size and (ln.min() < 0 or ln.max() >= len(welded_index)):
+            raise ValueError(f"settings.feature_lines: vertex ids must lie in [0, {len(welded_index)})")
+    return line_edges(lines, closed=True)
+
+
+def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_faces,
+                      settings: Optional[TransferSettings] = None, **overrides) -> TransferResult:
+    """Transfer a dense source sequence onto a target face (Xu et al. 2014 §3-5).
+
+    Parameters
+    ----------
+    source_ref : (V, 3)        source reference expression ``S_0`` (metres)
+    source_faces : (F, 3) int
+    source_seq : (T, V, 3)     source frames ``S_1..S_T`` in the topology of ``source_ref``
+    target_ref : (V', 3)       target reference expression ``T_0``
+    target_faces : (F', 3) int; when the target topology differs from the source's,
+                               ``settings.landmarks`` is required and §3 preprocessing runs
+    settings : TransferSettings; keyword ``overrides`` replace single fields
+
+    Returns
+    -------
+    TransferResult in the source topology (``source_faces``).
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, non-finite input, a target of another topology without landmarks.
+    """
+    import dataclasses
+
+    settings = settings or TransferSettings()
+    if overrides:
+        settings = dataclasses.replace(settings, **overrides)
+    timings = {}
+    t0 = time.perf_counter()
+    S0 = check_positions(source_ref, "source_ref")
+    Vs = len(S0)
+    Fs = check_faces(source_faces, Vs, "source_faces")
+    seq = np.asarray(source_seq)
+    if seq.ndim != 3 or seq.shape[1:] != (Vs, 3) or len(seq) == 0:
+        raise ValueError(f"source_seq: expected (T, {Vs}, 3) frames in the topology of source_ref, got {seq.shape}")
+    T0in = check_positions(target_ref, "target_ref")
+    Ft_in = check_faces(target_faces, len(T0in), "target_faces")
+
+    # weld UV-seam duplicates: Laplacians and gradients must see one connected surface
+    wi, rep, Fw = weld(S0, Fs)
+    V = len(rep)
+    Sw0 = S0[rep]
+    same_topology = len(T0in) == Vs and Ft_in.shape == Fs.shape and np.array_equal(Ft_in, Fs)
+    registration = None
+    if same_topology:
+        Tw0 = T0in[rep]
+    else:
+        if settings.landmarks is None:
+            raise ValueError("target_ref has another topology than source_ref: settings.landmarks = "
+                             "(source vertex ids, target points) is required for the registration (§3)")
+        src_lm, tgt_pts = settings.landmarks
+        src_lm = np.asarray(src_lm, dtype=np.int64)
+        if src_lm.size and (src_lm.min() < 0 or src_lm.max() >= Vs):
+            raise ValueError(f"settings.landmarks: source vertex ids must lie in [0, {Vs})")
+        registration = register(Sw0, Fw, T0in, Ft_in, wi[src_lm], tgt_pts, settings.icp_steps,
+                                settings.max_distance, settings.icp)
+        Tw0 = registration.resampled
+    timings["preprocessing"] = time.perf_counter() - t0
+
+    # -- decomposition (eq. 1-4) ----------------------------------------------------------
+    t = time.perf_counter()
+    # factor the frames as given and weld the (linear) basis: no welded copy of the sequence
+    fac = factor_sequence(seq, settings.rank_rtol, base=S0)
+    fac = FactoredSequence(fac.base[rep], fac.coeffs, fac.basis[:, rep], fac.residual_rms)
+    filt = TaubinFilter(Fw, V, settings.iterations, settings.lam, settings.mu)
+    smooth = fac.map_basis(filt.apply)  # S̄_t = P S_t, P linear
+    Sb0 = smooth.base
+    Tb0 = filt.apply(Tw0)
+    poisson = PoissonReconstructor(Fw, V, settings.laplacian, Sw0 if settings.laplacian == "cotangent" else None,
+                                   settings.detail_screening)
+    Lop = poisson.L
+    coat = FactoredSequence(np.asarray(Lop @ (fac.base - smooth.base)), fac.coeffs,
+                            np.stack([np.asarray(Lop @ (q - qb)) for q, qb in zip(fac.basis, smooth.basis)]) if fac.rank else fac.basis,
+                            fac.residual_rms)
+    timings["decomposition"] = time.perf_counter() - t
+
+    # -- basis selection (eq. 6-7) --------------------------------------------------------
+    t = time.perf_counter()
+    Qb = smooth.basis.reshape(smooth.rank, -1)
+    gram = gram_from_factored(fac.coeffs, Qb @ Qb.T)
+    sel = select_bases(gram, settings.eps, settings.max_bases, settings.candidates, settings.min_bases)
+    src_bases = smooth.frames(sel.frames) if sel.n_bases else np.zeros((0, V, 3))
+    timings["basis_selection"] = time.perf_counter() - t
+
+    # -- feature-preserving deformation transfer (eq. 9-11) -------------------------------
+    t = time.perf_counter()
+    edges = _feature_edges(settings, wi, V)
+    dt = DeformationTransfer(Sb0, Tb0, Fw, edges, settings.alpha)
+    tgt_bases = dt.transfer(src_bases) if sel.n_bases else np.zeros((0, V, 3))
+    deltas = tgt_bases - Tb0
+    timings["transfer"] = time.perf_counter() - t
+
+    # -- fine-scale details (eq. 16, 5) ---------------------------------------------------
+    t = time.perf_counter()
+    details = None
+    n_frames = len(seq)
+    if settings.details:
+        gain = settings.detail_gain if settings.detail_gain is not None else bbox_size(Tw0) / max(bbox_size(Sw0), 1e-300)
+        det = DetailTransfer(Fw, poisson, Sb0, coat.base, Tw0, Tb0, gain, settings.rotate_reference_details)
+        Wt = sel.weights
+        dflat = deltas.reshape(len(deltas), -1)
+
+        def target_smooth(idx):
+            w = np.atleast_2d(Wt[idx])
+            return Tb0 + (w @ dflat).reshape(len(w), V, 3)
+
+        y = det.displacements(smooth, coat, target_smooth, n_frames, settings.chunk)
+        y -= det.ref_displacement.astype(np.float32)  # details relative to the neutral T_0
+        details = y[:, wi, :]
+    timings["details"] = time.perf_counter() - t
+
+    unw = lambda a: np.ascontiguousarray(a[..., wi, :])
+    return TransferResult(
+        faces=Fs, neutral=unw(Tw0), deltas=unw(deltas), weights=sel.weights, details=details,
+        frames=sel.frames, selection_errors=sel.errors, source_bases=unw(src_bases),
+        target_smooth_ref=unw(Tb0), registration=registration,
+        factor_residual_mm=fac.residual_rms * 1000.0, timings=timings)
+
+
+def naive_transfer(source_ref, target_ref, faces, frames, feature_edges=None, alpha: float = 100.0,
+                   factorised: Optional[DeformationTransfer] = None) -> np.ndarray:
+    """Reference: per-frame deformation transfer of every frame (Sumner & Popović 2004).
+
+    The "naive method that transfers the motions of all frames" of Xu et al. 2014 §6: no
+    smoothing, no bases, no details; one shared factorisation, one solve per frame.
+    Welds seam duplicates like :func:`transfer_sequence`. Returns (T, V, 3).
+    """
+    S0 = check_positions(source_ref, "source_ref")
+    Fs = check_faces(faces, len(S0))
+    wi, rep, Fw = weld(S0, Fs)
+    dt = factorised or DeformationTransfer(S0[rep], np.asarray(target_ref, dtype=np.float64)[rep], Fw, feature_edges, alpha)
+    fr = np.asarray(frames, dtype=np.float64)
+    out = np.empty(fr.shape)
+    for t in range(len(fr)):
+        out[t] = dt.transfer(fr[t][rep])[wi]
+    return out

@@ -1,0 +1,578 @@
+r"""Editing the transferred sequence (Xu et al. 2014 §4.3 eq. 12-15, §5.2 eq. 18-21).
+
+Large scale (:class:`LargeScaleEditor`)
+    ``min λ_b E_b + λ_w E_w + λ_e E_e`` over the target bases ``b'`` and weights ``w' >= 0``
+    (eq. 12), alternating (i) bases with weights fixed — a linear solve, and (ii) weights
+    with bases fixed — non-negative least squares in the temporal window — until the
+    energy drops by less than ``tol`` (5 % in the paper) between two rounds.
+
+    * ``E_b = Σ_k E_{b'_k}`` is the deformation-transfer energy of eq. 9 (the factorised
+      :class:`~core.transfer.deformation.DeformationTransfer` system ``A``; its minimiser is the
+      unedited transfer ``Δ⁰``, so ``E_b = Σ_k (Δ_k - Δ⁰_k)^T A (Δ_k - Δ⁰_k)`` up to a constant);
+    * ``E_w = Σ_{t=t_s-1}^{t_e} ||(w'_{t+1} - w'_t) - (w_{t+1} - w_t)||²`` (eq. 13, forward
+      differences, frames outside the window fixed so the edit blends in);
+    * ``E_e``: point constraints ``v'_t = v*`` (eq. 14) and distance constraints
+      ``v'_i - v'_j = d*`` (eq. 15), with ``v'_t = T̄_0[v] + Σ_k w'_tk Δ_k[v]``.
+
+    Step (i) is ``(λ_b I⊗A + λ_e C^T C) x = λ_b (I⊗A) x⁰ + λ_e C^T y`` with ``C`` a few rows
+    (one per constraint): solved by the Woodbury identity with ``A^{-1}`` applied only to the
+    constrained vertices' indicator vectors (one back-substitution per constrained vertex,
+    reused across iterations). Step (ii) is a banded (block-tridiagonal in time) system,
+    solved by an active-set NNLS on a sparse factorisation. ``λ_b = 0`` updates weights only,
+    ``λ_w = 0`` bases only.
+
+Fine scale (:func:`detail_window`, :func:`scale_details`, :func:`propagate_details`)
+    Region selection and the frame window by coating ratio ``μ`` (0.23); a key-frame edit
+    (scaling the details in the region, with a linear fall-off band at its border); and the
+    propagation of eq. 18-21 over the window, solved in the eigenbasis of the region's
+    spatial Laplacian with one tridiagonal (time) solve per eigenmode.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from ..geometry import uniform_laplacian, vertex_adjacency
+from .deformation import DeformationTransfer
+
+__all__ = ["PointConstraint", "DistanceConstraint", "LargeScaleEditor", "detail_window", "region_near_curve",
+           "scale_details", "propagate_details", "benchmark"]
+
+
+@dataclass(frozen=True)
+class PointConstraint:
+    """Vertex ``vertex`` at frame ``frame`` should be at ``position`` (eq. 14)."""
+
+    frame: int
+    vertex: int
+    position: tuple
+
+
+@dataclass(frozen=True)
+class DistanceConstraint:
+    """At ``frame``, ``v_i - v_j`` should keep its direction with length ``distance`` (eq. 15)."""
+
+    frame: int
+    i: int
+    j: int
+    distance: float
+
+
+@dataclass
+class EditResult:
+    """Edited deltas (K, V, 3), weights (T, K), and the energy after each round."""
+
+    deltas: np.ndarray
+    weights: np.ndarray
+    energies: list = field(default_factory=list)
+    iterations: int = 0
+
+
+class LargeScaleEditor:
+    """Large-scale edit propagation (eq. 12-15) for a transferred blendshape sequence.
+
+    Parameters
+    ----------
+    transfer : DeformationTransfer   the factorised eq. 9 system of the transfer
+    target_smooth_ref : (V, 3)       ``T̄_0``
+    deltas : (K, V, 3)               the transferred bases minus ``T̄_0`` (``Δ⁰``)
+    weights : (T, K)                 the transferred weights (source weights ``w``)
+    """
+
+    def __init__(self, transfer: DeformationTransfer, target_smooth_ref, deltas, weights):
+        self.dt = transfer
+        self.T0 = np.asarray(target_smooth_ref, dtype=np.float64)
+        self.D0 = np.asarray(deltas, dtype=np.float64)
+        self.W0 = np.asarray(weights, dtype=np.float64)
+        K, V, _ = self.D0.shape
+        if self.W0.shape[1] != K or self.T0.shape != (V, 3) or transfer.V != V:
+            raise ValueError(f"deltas (K, V, 3), weights (T, K), target_smooth_ref (V, 3) must agree; got "
+                             f"{self.D0.shape}, {self.W0.shape}, {self.T0.shape}")
+        self.K, self.V = K, V
+        # A of eq. 9 as a matrix, for the energy E_b and Woodbury solves (A + mu I: the
+        # translation of each basis is held by a weak tie to the unedited transfer)
+        A = (transfer.Ga @ transfer.G).tocsr()
+        if len(transfer.edges):
+            Bm = sp.csr_matrix((np.r_[-np.ones(len(transfer.edges)), np.ones(len(transfer.edges))],
+                                (np.r_[np.arange(len(transfer.edges)), np.arange(len(transfer.edges))],
+                                 np.r_[transfer.edges[:, 0], transfer.edges[:, 1]])), shape=(len(transfer.edges), V))
+            A = A + transfer.Bw @ Bm
+        self.mu = 1e-6 * float(A.diagonal().mean())
+        # E_b is dimensionless per triangle; E_e is in m²: divide it by the mean edge length²
+        e = transfer.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        self.h2 = float(np.mean(np.sum((self.T0[e[:, 0]] - self.T0[e[:, 1]]) ** 2, axis=1)))
+        self.A = (A + self.mu * sp.identity(V)).tocsc()
+        self._lu = None
+        self._z = {}
+
+    # -- energies -----------------------------------------------------------------------
+    def _rows(self, constraints):
+        """Constraint rows: (frame, {vertex: coefficient}, target (3,) relative to T̄_0)."""
+        rows = []
+        for c in constraints:
+            if isinstance(c, PointConstraint):
+                rows.append((int(c.frame), {int(c.vertex): 1.0}, np.asarray(c.position, dtype=np.float64) - self.T0[c.vertex]))
+            elif isinstance(c, DistanceConstraint):
+                cur = self.mesh(self.W0[c.frame], self.D0)
+                d = cur[c.i] - cur[c.j]
+                n = np.linalg.norm(d)
+                if n == 0:
+                    raise ValueError(f"DistanceConstraint at frame {c.frame}: vertices {c.i}, {c.j} coincide")
+                want = d / n * float(c.distance)
+                rows.append((int(c.frame), {int(c.i): 1.0, int(c.j): -1.0}, want - (self.T0[c.i] - self.T0[c.j])))
+            else:
+                raise TypeError(f"constraints: expected PointConstraint or DistanceConstraint, got {type(c).__name__}")
+            if not 0 <= rows[-1][0] < len(self.W0):
+                raise ValueError(f"constraint frame {rows[-1][0]} outside [0, {len(self.W0)})")
+        return rows
+
+    def mesh(self, w, deltas=None) -> np.ndarray:
+        D = self.D0 if deltas is None else deltas
+        return self.T0 + np.tensordot(np.asarray(w, dtype=np.float64), D, axes=1)
+
+    def energy(self, deltas, weights, rows, lam_b, lam_w, lam_e, window) -> float:
+        dD = (deltas - self.D0).transpose(1, 0, 2).reshape(self.V, -1)
+        Eb = float(np.einsum("ij,ij->", dD, self.A @ dD))
+        ts, te = window
+        a, b = max(ts - 1, 0), min(te + 1, len(weights) - 1)
+        Ew = float(((np.diff(weights[a:b + 1], axis=0) - np.diff(self.W0[a:b + 1], axis=0)) ** 2).sum())
+        Ee = 0.0
+        for t, g, y in rows:
+            v = sum(c * np.tensordot(weights[t], deltas[:, i], axes=1) for i, c in g.items())
+            Ee += float(((v - y) ** 2).sum())
+        return lam_b * Eb + lam_w * Ew + lam_e * Ee
+
+    # -- step (i): bases ------------------------------------------------------------------
+    def _solve_A(self, vertex: int) -> np.ndarray:
+        if vertex not in self._z:
+            if self._lu is None:
+                self._lu = spla.splu(self.A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                     options=dict(SymmetricMode=True))
+            e = np.zeros(self.V)
+            e[vertex] = 1.0
+            self._z[vertex] = self._lu.solve(e)
+        return self._z[vertex]
+
+    def update_bases(self, deltas, weights, rows, lam_b, lam_e) -> np.ndarray:
+        r"""Step (i): ``min λ_b Σ_k (Δ_k-Δ⁰_k)^T A (Δ_k-Δ⁰_k) + λ_e Σ_r (g_r^T Δ w_r - y_r)²``.
+
+        With ``x = Δ - Δ⁰`` (per coordinate, V x K): ``(λ_b I⊗A + λ_e C^T C) x = λ_e C^T (y - C x⁰)``
+        where row r of C is ``w_r ⊗ g_r``. Woodbury: ``x = H^{-1}C^T (I/λ_e + C H^{-1} C^T)^{-1} r``.
+        """
+        if not rows:
+            return deltas.copy()
+        R = len(rows)
+        verts = sorted({v for _, g, _ in rows for v in g})
+        Z = {v: self._solve_A(v) for v in verts}
+        # H^{-1} C^T column r = (w_r ⊗ A^{-1} g_r) / λ_b ; C H^{-1} C^T [r, s] = (w_r.w_s)(g_r^T A^{-1} g_s)/λ_b
+        Wr = np.stack([weights[t] for t, _, _ in rows])  # (R, K)
+        AG = np.stack([sum(c * Z[v] for v, c in g.items()) for _, g, _ in rows], axis=1)  # (V, R)
+        GAG = np.stack([sum(c * AG[v] for v, c in g.items()) for _, g, _ in rows])  # (R, R)
+        M = np.eye(R) / lam_e + (Wr @ Wr.T) * GAG / lam_b
+        # residual of the unedited bases at the constraints
+        cur = np.stack([sum(c * np.tensordot(w, self.D0[:, v], axes=1) for v, c in g.items())
+                        for w, (_, g, _) in zip(Wr, rows)])  # (R, 3)
+        y = np.stack([yy for _, _, yy in rows]) - cur
+        alpha = np.linalg.solve(M, y)  # (R, 3)
+        # x (V, K, 3) = Σ_r AG[:, r] ⊗ w_r ⊗ alpha_r / λ_b
+        x = np.einsum("vr,rk,rc->kvc", AG, Wr, alpha) / lam_b
+        return self.D0 + x
+
+    # -- step (ii): weights -----------------------------------------------------------------
+    def update_weights(self, deltas, weights, rows, lam_w, lam_e, window) -> np.ndarray:
+        """Step (ii): NNLS over the window's weights (eq. 13 + eq. 14/15), others fixed."""
+        ts, te = window
+        n, K = te - ts + 1, self.K
+        T = len(weights)
+        # E_w: forward differences over t in [ts-1, te], neighbours outside the window fixed
+        D = sp.diags([-np.ones(n + 1), np.ones(n + 1)], [0, 1], shape=(n + 1, n + 2)).tocsr()
+        inside = slice(1, n + 1)
+        Wfull = np.zeros((n + 2, K))
+        Wfull[1:n + 1] = 0.0
+        left = weights[ts - 1] if ts > 0 else None
+        right = weights[te + 1] if te + 1 < T else None
+        keep_rows = np.ones(n + 1, dtype=bool)
+        if left is None:
+            keep_rows[0] = False
+        if right is None:
+            keep_rows[-1] = False
+        D = D[keep_rows]
+        src = np.zeros((n + 2, K))
+        a = max(ts - 1, 0)
+        src_vals = self.W0[a:min(te + 2, T)]
+        off = 0 if ts > 0 else 1
+        src[off:off + len(src_vals)] = src_vals
+        dsrc = D @ src
+        fixed = np.zeros((n + 2, K))
+        if left is not None:
+            fixed[0] = left
+        if right is not None:
+            fixed[-1] = right
+        Dn = D[:, inside]  # acts on the unknown window rows
+        rhs_w = dsrc - D @ fixed  # (rows, K)
+        # quadratic form in vec(W_window) (row-major: t major, k minor)
+        # + a 1e-8 λ_w ridge towards the source weights: E_w sees only velocities, so with no
+        # fixed neighbour (window = whole sequence) the offsets would be undetermined
+        ridge = 1e-8 * lam_w
+        Q = lam_w * sp.kron(Dn.T @ Dn, sp.identity(K)) + ridge * sp.identity(n * K)
+        q = lam_w * (Dn.T @ rhs_w).ravel() + ridge * self.W0[ts:te + 1].ravel()
+        # constraint rows at frames inside the window: (g^T Δ) w_t = y  -> per coordinate c
+        extra_rows, extra_cols, extra_vals = [], [], []
+        cvec = []
+        for t, g, y in rows:
+            if not ts <= t <= te:
+                continue
+            P = sum(c * deltas[:, v] for v, c in g.items())  # (K, 3): row k = g^T Δ_k
+            for c in range(3):
+                extra_rows.append(len(cvec))
+                cvec.append(y[c])
+                extra_cols.append((t - ts) * K + np.arange(K))
+                extra_vals.append(P[:, c])
+        if cvec:
+            Cm = sp.csr_matrix((np.concatenate(extra_vals), (np.repeat(extra_rows, K), np.concatenate(extra_cols))),
+                               shape=(len(cvec), n * K))
+            Q = Q + lam_e * (Cm.T @ Cm)
+            q = q + lam_e * (Cm.T @ np.asarray(cvec))
+        x = _nnls_sparse(Q.tocsc(), q, weights[ts:te + 1].ravel())
+        out = weights.copy()
+        out[ts:te + 1] = x.reshape(n, K)
+        return out
+
+    def edit(self, constraints, lam_b: float = 1.0, lam_w: float = 1.0, lam_e: float = 100.0, window=None,
+             tol: float = 0.05, max_iter: int = 10) -> EditResult:
+        """Propagate ``constraints`` (eq. 12) by alternating bases and weights.
+
+        Parameters
+        ----------
+        constraints : list of PointConstraint / DistanceConstraint
+        lam_b, lam_w, lam_e : weights of E_b, E_w, E_e (λ_b = 0: weights only; λ_w = 0: bases only);
+            E_e is measured in units of the target's mean edge length, so λ_e = 100 weighs a
+            one-edge miss like 100 fully distorted triangles of E_b
+        window : (t_s, t_e) inclusive, default the whole sequence
+        tol : stop when the energy drops by less than ``tol`` of its value (5 % in the paper)
+
+        Raises
+        ------
+        ValueError
+            Negative weights of the energy, both λ_b and λ_w zero, a bad window or constraint.
+        """
+        if min(lam_b, lam_w, lam_e) < 0 or (lam_b == 0 and lam_w == 0):
+            raise ValueError(f"lam_b, lam_w, lam_e: expected >= 0 and not both lam_b and lam_w 0, got {lam_b}, {lam_w}, {lam_e}")
+        T = len(self.W0)
+        window = (0, T - 1) if window is None else (int(window[0]), int(window[1]))
+        if not 0 <= window[0] <= window[1] < T:
+            raise ValueError(f"window: expected 0 <= t_s <= t_e < {T}, got {window}")
+        rows = self._rows(constraints)
+        lam_e = lam_e / self.h2
+        D, W = self.D0.copy(), self.W0.copy()
+        E = [self.energy(D, W, rows, lam_b, lam_w, lam_e, window)]
+        it = 0
+        for it in range(1, max_iter + 1):
+            if lam_b > 0:
+                D = self.update_bases(D, W, rows, lam_b, lam_e)
+            if lam_w > 0:
+                W = self.update_weights(D, W, rows, lam_w, lam_e, window)
+            E.append(self.energy(D, W, rows, lam_b, lam_w, lam_e, window))
+            if E[-2] - E[-1] <= tol * E[-2] or E[-1] <= 1e-9 * E[0] or lam_b == 0 or lam_w == 0:
+                break
+        return EditResult(D, W, E, it)
+
+
+def _nnls_sparse(Q: sp.csc_matrix, q: np.ndarray, x0: np.ndarray, max_iter: int = 300) -> np.ndarray:
+    """``min x^T Q x / 2 - q^T x`` s.t. ``x >= 0`` for sparse SPD ``Q``: Lawson–Hanson's
+    active set on a sparse factorisation. Starts from the support of ``x0``, releases the
+    variables whose gradient points inwards (all at once for the first rounds, then one at
+    a time, which cannot cycle), and steps back to feasibility when the free solution turns
+    negative. Exact at termination (KKT checked); RuntimeError after ``max_iter`` rounds."""
+    n = len(q)
+    scale = max(1.0, float(np.abs(q).max()))
+    x = np.maximum(np.asarray(x0, dtype=np.float64), 0.0)
+    free = x > 0
+    rounds = 0
+    for _ in range(max_iter):
+        idx = np.flatnonzero(free)
+        if len(idx):
+            xf = spla.splu(Q[idx][:, idx].tocsc(), permc_spec="MMD_AT_PLUS_A").solve(q[idx])
+        else:
+            xf = np.zeros(0)
+        if (xf >= 0).all():
+            x = np.zeros(n)
+            x[idx] = xf
+            g = Q @ x - q  # at the optimum: g = 0 on free, g >= 0 on the active set
+            cand = np.flatnonzero(~free & (g < -1e-12 * scale))
+            if not len(cand):
+                return x
+            rounds += 1
+            if rounds > 5:
+                cand = cand[[int(np.argmin(g[cand]))]]
+            free[cand] = True
+        else:
+            cur = x[idx]
+            neg = xf < 0
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(neg, cur / (cur - xf), np.inf)
+            s = float(np.clip(np.min(ratio), 0.0, 1.0))
+            x = np.zeros(n)
+            x[idx] = cur + s * (xf - cur)
+            hit = idx[neg & (ratio <= s + 1e-12)]
+            free[hit] = False
+            x[hit] = 0.0
+    raise RuntimeError("weights NNLS did not converge in max_iter active-set steps")
+
+
+# -- fine scale --------------------------------------------------------------------------
+
+def region_near_curve(positions, curve, radius: float) -> np.ndarray:
+    """Vertices within ``radius`` of a polyline ``curve`` (m, 3) (§5.2 wrinkle selection)."""
+    p = np.asarray(positions, dtype=np.float64)
+    c = np.asarray(curve, dtype=np.float64)
+    if c.ndim != 2 or c.shape[1] != 3 or len(c) < 1:
+        raise ValueError(f"curve: expected (m, 3) points, got {c.shape}")
+    best = np.full(len(p), np.inf)
+    segs = [(c[i], c[i + 1]) for i in range(len(c) - 1)] or [(c[0], c[0])]
+    for a, b in segs:
+        ab = b - a
+        den = float(ab @ ab)
+        u = np.clip(((p - a) @ ab) / den, 0, 1) if den > 0 else np.zeros(len(p))
+        best = np.minimum(best, np.linalg.norm(p - (a + u[:, None] * ab), axis=1))
+    return np.flatnonzero(best <= radius)
+
+
+def detail_window(coating_norms, region, key_frame: int, mu: float = 0.23) -> tuple[int, int]:
+    r"""Frames ``[t_s, t_e]`` around ``key_frame`` where the region's details are active (§5.2):
+
+    .. math:: \frac{\sum_{v \in P} |\xi^v_t|}{\sum_{v \in P} |\xi^v_{t_k}|} \ge \mu
+
+    Parameters
+    ----------
+    coating_norms : (T, V) magnitudes of the (transferred) detail coating per frame
+    region : (m,) int vertex ids
+    key_frame : int
+    mu : float, the threshold (0.23 in the paper)
+    """
+    s = np.asarray(coating_norms, dtype=np.float64)[:, np.asarray(region)].sum(1)
+    if s[key_frame] <= 0:
+        return key_frame, key_frame
+    ok = s / s[key_frame] >= mu
+    ts = key_frame
+    while ts > 0 and ok[ts - 1]:
+        ts -= 1
+    te = key_frame
+    while te < len(s) - 1 and ok[te + 1]:
+        te += 1
+    return ts, te
+
+
+def scale_details(details, faces, region, factor: float, band: int = 2) -> np.ndarray:
+    """Key-frame edit: details (V, 3) scaled by ``factor`` in ``region`` (0 removes them, >1
+    enhances), blending linearly to 1 over ``band`` rings outside it (§5.2: "linear
+    interpolations between the edited and original coating values")."""
+    d = np.asarray(details, dtype=np.float64)
+    V = len(d)
+    A = vertex_adjacency(np.asarray(faces), V)
+    ring = np.full(V, np.inf)
+    cur = np.zeros(V, dtype=bool)
+    cur[np.asarray(region)] = True
+    ring[cur] = 0
+    for r in range(1, band + 1):
+        nxt = (A @ cur.astype(np.float64)) > 0
+        new = nxt & ~np.isfinite(ring)
+        ring[new] = r
+        cur = cur | nxt
+    s = np.ones(V)
+    inside = np.isfinite(ring)
+    s[inside] = factor + (1 - factor) * ring[inside] / (band + 1)
+    return d * s[:, None]
+
+
+def _thomas_many(lower, diag, upper, rhs):
+    """Solve tridiagonal systems with shared off-diagonals and per-system diagonals.
+
+    diag : (m, n) (one diagonal per system), lower/upper : (n-1,), rhs : (m, n)."""
+    m, n = diag.shape
+    c = np.zeros((m, n))
+    d = np.zeros((m, n))
+    b0 = diag[:, 0]
+    c[:, 0] = (upper[0] / b0) if n > 1 else 0
+    d[:, 0] = rhs[:, 0] / b0
+    for i in range(1, n):
+        den = diag[:, i] - lower[i - 1] * c[:, i - 1]
+        if i < n - 1:
+            c[:, i] = upper[i] / den
+        d[:, i] = (rhs[:, i] - lower[i - 1] * d[:, i - 1]) / den
+    x = np.zeros((m, n))
+    x[:, -1] = d[:, -1]
+    for i in range(n - 2, -1, -1):
+        x[:, i] = d[:, i] - c[:, i] * x[:, i + 1]
+    return x
+
+
+def propagate_details(edit, faces, n_vertices: int, region, window, key_frame: int,
+                      lam_e: float = 1.0, lam_t: float = 0.1, lam_s: float = 1.0) -> np.ndarray:
+    r"""Propagate a key-frame detail edit over the window (Xu et al. 2014 eq. 18-21).
+
+    With ``E_t = D'_t - R(D_t)`` the change of the transferred details (zero outside the
+    region and the window), eq. 18 becomes
+
+    .. math:: \lambda_e\|E_{t_k} - \Delta^*\|^2 + \lambda_t\sum_t (\|d_t E\|^2 + \|d_s E\|^2)
+              + \lambda_s(\|E_{t_s}\|^2 + \|E_{t_e}\|^2)
+
+    with ``Δ* = D*_{t_k} - R(D_{t_k})`` the key-frame edit, ``d_t`` forward differences in time
+    and ``d_s`` differences along mesh edges (edges leaving the region count, with the
+    outside held at zero). The normal matrix is ``T_op ⊗ I + λ_t I ⊗ L_s``; in the eigenbasis
+    of the region Laplacian ``L_s`` it splits into one tridiagonal time system per mode.
+
+    Parameters
+    ----------
+    edit : (m, 3) ``Δ*`` on the region's vertices (in ``region`` order)
+    faces : (F, 3) int, n_vertices : int
+    region : (m,) int
+    window : (t_s, t_e) inclusive, containing ``key_frame``
+    lam_e, lam_t, lam_s : 1, 0.1, 1 in the paper
+
+    Returns
+    -------
+    (t_e - t_s + 1, m, 3) the change ``E_t`` to add to the details in the window.
+
+    Raises
+    ------
+    ValueError
+        ``key_frame`` outside the window or ``edit`` not (m, 3).
+    """
+    region = np.asarray(region, dtype=np.int64)
+    ts, te = int(window[0]), int(window[1])
+    if not ts <= key_frame <= te:
+        raise ValueError(f"key_frame {key_frame} outside window {window}")
+    e = np.asarray(edit, dtype=np.float64)
+    m = len(region)
+    if e.shape != (m, 3):
+        raise ValueError(f"edit: expected ({m}, 3), got {e.shape}")
+    n = te - ts + 1
+    L = uniform_laplacian(np.asarray(faces), n_vertices)
+    Ls = L[region][:, region].toarray()  # Dirichlet: degrees count edges leaving the region
+    mu, Phi = np.linalg.eigh(Ls)
+    # time operator: λ_t * path Laplacian + λ_e at key frame + λ_s at both ends
+    main = np.zeros(n)
+    if n > 1:
+        main[:-1] += 1
+        main[1:] += 1
+    main *= lam_t
+    main[key_frame - ts] += lam_e
+    main[0] += lam_s
+    main[-1] += lam_s
+    off = -lam_t * np.ones(max(n - 1, 0))
+    diag = main[None, :] + lam_t * mu[:, None]  # (m modes, n)
+    coef = Phi.T @ e  # (m, 3)
+    out = np.zeros((n, m, 3))
+    for c in range(3):
+        rhs = np.zeros((m, n))
+        rhs[:, key_frame - ts] = lam_e * coef[:, c]
+        x = _thomas_many(off, diag, off, rhs)  # (m, n)
+        out[:, :, c] = (Phi @ x).T
+    return out
+
+
+def benchmark(n_frames: int = 1300):
+    """Print the ``xu_edit_large_1300f`` / ``xu_edit_fine_1300f`` BENCH lines (see benchmarks/)."""
+    import time
+
+    from ..io.gltf import read_rig
+    from ._mesh import weld
+    from .decompose import taubin_smooth
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    ict = read_rig(root / "data" / "rigs" / "ict_facekit.glb")
+    wi, rep, F = weld(ict.neutral, ict.faces)
+    S0 = ict.neutral[rep]
+    Sb0 = taubin_smooth(S0, F)
+    Tb0 = Sb0 * [1.1, 0.95, 1.0]
+    rng = np.random.default_rng(0)
+    K = 10
+    bases = Sb0 + ict.deltas[rng.choice(ict.n_shapes, K, replace=False)][:, rep]
+    dt = DeformationTransfer(Sb0, Tb0, F)
+    D = dt.transfer(bases) - Tb0
+    t = np.arange(n_frames)
+    W = np.clip(0.5 + 0.5 * np.sin(t[:, None] / (20 + 7 * np.arange(K)) + np.arange(K)), 0, 1)
+    ed = LargeScaleEditor(dt, Tb0, D, W)
+    v = int(np.argmax(np.linalg.norm(D[0], axis=1)))
+    f = n_frames // 2
+    target = ed.mesh(W[f])[v] + np.array([0, 0.004, 0.002])
+    cons = [PointConstraint(f, v, tuple(target))]
+    ed._solve_A(v)  # the one back-substitution per constrained vertex is set-up, timed separately
+    c0 = time.perf_counter()
+    res = ed.edit(cons, 1.0, 1.0, 100.0)
+    ours = time.perf_counter() - c0
+    # reference: the weights step as one dense-free general bounded LS (scipy lsq_linear) on the
+    # same objective, bases fixed (the edit's dominant cost), on the whole 1,300-frame window
+    from scipy.optimize import lsq_linear
+
+    c0 = time.perf_counter()
+    rows = ed._rows(cons)
+    ref_w = _reference_weights(ed, res.deltas, W, rows, 1.0, 100.0, (0, n_frames - 1), lsq_linear)
+    ref = time.perf_counter() - c0
+    ours_w = ed.update_weights(res.deltas, W, rows, 1.0, 100.0, (0, n_frames - 1))
+    e_ours = ed.energy(res.deltas, ours_w, rows, 0.0, 1.0, 100.0, (0, n_frames - 1))
+    e_ref = ed.energy(res.deltas, ref_w, rows, 0.0, 1.0, 100.0, (0, n_frames - 1))
+    print(f"BENCH xu_edit_large_1300f ours_s={ours:.3f} ref_s={ref:.3f} ratio={ref / ours:.2f} T={n_frames} K={K} "
+          f"V={len(S0)} iterations={res.iterations} ref=lsq_linear_one_weights_step "
+          f"weights_energy_ours={e_ours:.3e} weights_energy_ref={e_ref:.3e}", flush=True)
+
+    # fine scale: a region of ~300 vertices around the same vertex, a key-frame scale edit
+    region = np.argsort(np.linalg.norm(S0 - S0[v], axis=1))[:300]
+    edit = 0.5 * rng.standard_normal((len(region), 3)) * 1e-4
+    c0 = time.perf_counter()
+    E = propagate_details(edit, F, len(S0), region, (0, n_frames - 1), f)
+    ours = time.perf_counter() - c0
+    c0 = time.perf_counter()
+    Eref = _reference_propagation(edit, F, len(S0), region, (0, n_frames - 1), f)
+    ref = time.perf_counter() - c0
+    err = float(np.abs(E - Eref).max() / np.abs(Eref).max())
+    print(f"BENCH xu_edit_fine_1300f ours_s={ours:.3f} ref_s={ref:.3f} ratio={ref / ours:.2f} T={n_frames} "
+          f"region={len(region)} ref=sparse_direct_spacetime rel_maxdiff={err:.2e}", flush=True)
+
+
+def _reference_weights(ed, deltas, weights, rows, lam_w, lam_e, window, lsq_linear):
+    """Same objective as :meth:`LargeScaleEditor.update_weights` as a stacked LS, by lsq_linear."""
+    ts, te = window
+    n, K = te - ts + 1, ed.K
+    blocks, rhs = [], []
+    Dn = sp.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], shape=(n - 1, n))
+    blocks.append(np.sqrt(lam_w) * sp.kron(Dn, sp.identity(K)))
+    rhs.append(np.sqrt(lam_w) * np.diff(ed.W0[ts:te + 1], axis=0).ravel())
+    blocks.append(np.sqrt(1e-8 * lam_w) * sp.identity(n * K))
+    rhs.append(np.sqrt(1e-8 * lam_w) * ed.W0[ts:te + 1].ravel())
+    for t, g, y in rows:
+        P = sum(c * deltas[:, v] for v, c in g.items())
+        for c in range(3):
+            row = sp.csr_matrix((P[:, c], (np.zeros(K, int), (t - ts) * K + np.arange(K))), shape=(1, n * K))
+            blocks.append(np.sqrt(lam_e) * row)
+            rhs.append(np.sqrt(lam_e) * np.array([y[c]]))
+    A = sp.vstack(blocks).tocsr()
+    b = np.concatenate(rhs)
+    if n * K < 2000:  # small: the exact bounded-variable solver on the dense matrix
+        x = lsq_linear(A.toarray(), b, bounds=(0, np.inf), method="bvls", tol=1e-12, max_iter=5000).x
+    else:
+        x = lsq_linear(A, b, bounds=(0, np.inf), method="trf", tol=1e-12, lsmr_tol="auto", max_iter=5000).x
+    return x.reshape(n, K)
+
+
+def _reference_propagation(edit, faces, n_vertices, region, window, key_frame, lam_e=1.0, lam_t=0.1, lam_s=1.0):
+    """Eq. 18-21 assembled as one sparse space-time system and solved directly."""
+    ts, te = window
+    n, m = te - ts + 1, len(region)
+    L = uniform_laplacian(np.asarray(faces), n_vertices)
+    Ls = L[region][:, region]
+    Lt = sp.diags([np.r_[1, 2 * np.ones(n - 2), 1], -np.ones(n - 1), -np.ones(n - 1)], [0, -1, 1])
+    Dt = np.zeros(n)
+    Dt[key_frame - ts] += lam_e
+    Dt[0] += lam_s
+    Dt[-1] += lam_s
+    M = (sp.kron(lam_t * Lt + sp.diags(Dt), sp.identity(m)) + lam_t * sp.kron(sp.identity(n), Ls)).tocsc()
+    rhs = np.zeros((n * m, 3))
+    rhs[(key_frame - ts) * m:(key_frame - ts + 1) * m] = lam_e * edit
+    return spla.splu(M).solve(rhs).reshape(n, m, 3)
