@@ -26,8 +26,50 @@ ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+def _transfer(args) -> int:
+    """``--method transfer``: dense transfer (Xu 2014) to a rig of new morph targets."""
+    import numpy as np
+
+    from .io.curves_csv import write_curves_csv
+    from .io.gltf import write_rig
+    from .io.performance import read_performance
+    from .io.rigs import load_rig, read_layout_for
+    from .progress import StderrBar
+    from .transfer.performance import transfer_performance
+
+    if not getattr(args, "source", None) or not getattr(args, "target_rig", None):
+        raise ValueError("transfer needs --source and --target-rig")
+    t0 = time.perf_counter()
+    source = read_performance(args.source)
+    source_rig = load_rig(args.source_rig) if getattr(args, "source_rig", "") else None
+    if source_rig is None:
+        raise ValueError("transfer needs the source rig (--source-rig): its topology carries the dense sequence")
+    target = load_rig(args.target_rig)
+    src_layout = read_layout_for(getattr(args, "source_layout", ""), args.source_rig, source_rig)
+    tgt_layout = read_layout_for(getattr(args, "target_layout", ""), args.target_rig, target)
+    first = getattr(args, "first_frame", 0)
+    last = getattr(args, "last_frame", -1)
+    source = source.frames(first, None if last < 0 else last + 1)
+    res = transfer_performance(source, source_rig, src_layout, target, tgt_layout,
+                               progress=None if args.quiet else StderrBar("transfer"))
+    rig = res.to_rig(name=f"{target.name}_transfer")
+    times = source.times - source.times[0]
+    if args.out:
+        write_rig(args.out, rig, weights=res.weights, times=times)
+    if args.weights_csv:
+        write_curves_csv(args.weights_csv, times, res.weights, rig.names)
+    stages = " ".join(f"{k}={v:.1f}s" for k, v in res.timings.items() if isinstance(v, (int, float)))
+    print(f"transferred {len(res.weights)} frames to {target.name}: {rig.n_shapes} bases on {rig.n_vertices} vertices "
+          f"(source topology fitted to the target) in {time.perf_counter() - t0:.1f}s; stages: {stages}"
+          + (f"\nwrote {args.out}" if args.out else "") + (f"\nwrote {args.weights_csv}" if args.weights_csv else ""))
+    return 0
+
+
 def _retarget(args) -> int:
     import numpy as np
+
+    if getattr(args, "method", None) == "transfer":
+        return _transfer(args)
 
     from .io.curves_csv import write_curves_csv
     from .io.gltf import write_rig
@@ -111,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("retarget", help="retarget a performance onto a rig and write GLB/CSV")
-    add_cli_arguments(r)
+    add_cli_arguments(r, extra_methods=("transfer",))
     r.add_argument("--out", help="output GLB: the target rig with a morph-weight animation")
     r.add_argument("--weights-csv", help="output CSV: time_s then one column per target shape")
     r.add_argument("--quiet", action="store_true", help="no progress bar")

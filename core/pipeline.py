@@ -412,8 +412,12 @@ def cli_flags(pipeline_or_cls=None):
     return out
 
 
-def add_cli_arguments(parser, skip=()) -> None:
-    """Add one argparse option per setting (types, choices, defaults and help from param)."""
+def add_cli_arguments(parser, skip=(), extra_methods=()) -> None:
+    """Add one argparse option per setting (types, choices, defaults and help from param).
+
+    ``extra_methods`` are accepted by ``--method`` without being pipeline stages (the CLI's
+    dense ``transfer``, which produces a new rig rather than weights for the target's shapes).
+    """
     import argparse
 
     for flag, pname, p, stage in cli_flags():
@@ -425,7 +429,7 @@ def add_cli_arguments(parser, skip=()) -> None:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, **kw)
             continue
         if isinstance(p, param.Selector):
-            kw["choices"] = p.objects
+            kw["choices"] = list(p.objects) + (list(extra_methods) if pname == "method" else [])
         elif isinstance(p, param.Integer):
             kw["type"] = int
         elif isinstance(p, param.Number):

@@ -78,3 +78,22 @@ def test_layout_command_transfers_to_another_rig(tmp_path, capsys):
 
     lay = read_layout(out)
     assert lay.n_markers == 41 and "wrote" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_dense_transfer_method_writes_a_rig_of_transferred_bases(tmp_path, capsys):
+    out = tmp_path / "xu.glb"
+    code = main(["retarget", "--method", "transfer", "--source", str(PERFORMANCES / "livelinkface_take_s07.csv"),
+                 "--source-rig", str(RIGS / "ict_facekit.glb"), "--target-rig", str(RIGS / "rocketbox_female_adult_02.glb"),
+                 "--last-frame", "39", "--out", str(out), "--quiet"])
+    assert code == 0
+    rig, anim = read_rig(out), read_animation(out)
+    assert anim.n_frames == 40 and anim.names == rig.names and rig.n_shapes >= 1
+    # the fitted neutral lies on the Rocketbox head, not on ICT (which sits ~1.5 m lower)
+    assert 1.3 < np.median(rig.neutral[:, 1]) < 1.8
+
+
+def test_transfer_refuses_marker_sources(capsys):
+    code = main(["retarget", "--method", "transfer", "--source", str(PERFORMANCES / "animface_markers_jaw_60hz.csv"),
+                 "--source-rig", str(RIGS / "ict_facekit.glb"), "--target-rig", str(RIGS / "jeeliz_tiger.glb")])
+    assert code == 2 and "dense source" in capsys.readouterr().err
