@@ -91,6 +91,14 @@ def _retarget(args) -> int:
     if args.weights_csv:
         write_curves_csv(args.weights_csv, st.times - st.times[0], W, rig.names)
         out.append(f"wrote {args.weights_csv}")
+        U = pipe.results(["solve"])["solve"]["info"].get("region_weights")
+        if U is not None:  # Liu 2011 §6.4: the regional curves an animator edits
+            from .solvers.local import region_curves
+
+            curves = region_curves(U, rig.names)
+            path = Path(args.weights_csv).with_name(Path(args.weights_csv).stem + "_regions.csv")
+            write_curves_csv(path, st.times - st.times[0], np.column_stack(list(curves.values())), list(curves))
+            out.append(f"wrote {path} (per-region curves <shape>@r<k>; {args.weights_csv} holds their mask-area blend)")
     timings = " ".join(f"{k}={v * 1e3:.0f}ms" for k, v in pipe.timings.items() if v)
     print(
         f"retargeted {len(W)} frames at {st.fps:g} fps, {len(st.names)} markers -> {rig.name} ({rig.n_shapes} shapes) "

@@ -21,9 +21,10 @@ def jitter(W, step: int = 1) -> np.ndarray:
     return out
 
 
-def evaluate(B, W, S, valid=None, step: int = 1) -> dict:
+def evaluate(B, W, S, valid=None, step: int = 1, predicted=None) -> dict:
     """Diagnostics of weights ``W`` (T, K) for target marker deltas ``B`` (K, M, 3) against
-    source marker deltas ``S`` (T, M, 3).
+    source marker deltas ``S`` (T, M, 3). ``predicted`` (T, M, 3) replaces ``B w_t`` as the
+    prediction for methods that do not synthesise with one weight vector (Liu 2011 eq. 3).
 
     Returns a dict: ``marker_error_mm`` (T,) RMS per frame, ``marker_error_per_marker_mm`` (M,),
     ``marker_distances_mm`` (T, M), ``velocity_error_mm2`` (T,) and its ``velocity_error_total``,
@@ -31,8 +32,8 @@ def evaluate(B, W, S, valid=None, step: int = 1) -> dict:
     ``weight_min``/``weight_max`` (K,), ``weight_low``/``weight_high``, ``outside_01``, ``jitter`` (T,).
     """
     Wz = np.nan_to_num(np.asarray(W, dtype=np.float64))
-    me = marker_error_mm(B, Wz, S, valid)
-    ve = velocity_error(B, Wz, S, valid)
+    me = marker_error_mm(B, Wz, S, valid, predicted)
+    ve = velocity_error(B, Wz, S, valid, predicted)
     wr = weight_range(Wz)
     M = np.asarray(S).shape[1]
     return {

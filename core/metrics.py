@@ -66,7 +66,15 @@ def _inputs(B, W, S, valid):
     return Bm, W, _zero_filled(S3, valid), valid
 
 
-def velocity_error(B, W, S, valid=None) -> VelocityError:
+def _residual(B, W, S, valid, predicted):
+    """(T, 3M) residual of the prediction (``B w_t``, or ``predicted`` (T, M, 3) when a method
+    does not synthesise by one global weight vector, e.g. Liu 2011's mask blending)."""
+    Bm, W, Sz, valid = _inputs(B, W, S, valid)
+    P = W @ Bm.T if predicted is None else np.asarray(predicted, dtype=np.float64).reshape(Sz.shape)
+    return P - Sz, valid
+
+
+def velocity_error(B, W, S, valid=None, predicted=None) -> VelocityError:
     """Velocity (movement) error of Seol et al. 2012, eq. 2 and Fig. 11, in mm^2.
 
     ``e_t = sum_m ||B_m (w_t - w_{t-1}) - (s_tm - s_{t-1,m})||^2`` over the markers valid at
@@ -78,21 +86,22 @@ def velocity_error(B, W, S, valid=None) -> VelocityError:
     W : (T, K) float
     S : (T, M, 3) float
     valid : (T, M) bool, optional
+    predicted : (T, M, 3) float, optional
+        Predicted marker deltas when they are not ``B w_t`` (local methods).
 
     Returns
     -------
     VelocityError(total, per_frame (T,))
     """
-    Bm, W, Sz, valid = _inputs(B, W, S, valid)
-    per = np.zeros(len(W))
-    if len(W) > 1:
-        X = W @ Bm.T - Sz
+    X, valid = _residual(B, W, S, valid, predicted)
+    per = np.zeros(len(X))
+    if len(X) > 1:
         ve = np.repeat(valid[:-1] & valid[1:], 3, axis=1)
         per[1:] = (((X[1:] - X[:-1]) * ve) ** 2).sum(1) * _MM**2
     return VelocityError(float(per.sum()), per)
 
 
-def marker_error_mm(B, W, S, valid=None) -> MarkerError:
+def marker_error_mm(B, W, S, valid=None, predicted=None) -> MarkerError:
     """Marker position error ``||B_m w_t - s_tm||`` in mm, with RMS per frame and per marker.
 
     Parameters
@@ -101,14 +110,16 @@ def marker_error_mm(B, W, S, valid=None) -> MarkerError:
     W : (T, K) float
     S : (T, M, 3) float
     valid : (T, M) bool, optional
+    predicted : (T, M, 3) float, optional
+        Predicted marker deltas when they are not ``B w_t`` (local methods).
 
     Returns
     -------
     MarkerError(distances (T, M), per_frame (T,), per_marker (M,), rms, max)
     """
-    Bm, W, Sz, valid = _inputs(B, W, S, valid)
+    X, valid = _residual(B, W, S, valid, predicted)
     T, M = valid.shape
-    d = np.linalg.norm((W @ Bm.T - Sz).reshape(T, M, 3), axis=2) * _MM
+    d = np.linalg.norm(X.reshape(T, M, 3), axis=2) * _MM
     d = np.where(valid, d, np.nan)
     d2 = np.where(valid, d, 0.0) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -108,6 +108,9 @@ class SolveSettings(param.Parameterized):
     constraint = param.Selector(default="simplex", objects=["simplex", "box"], doc=(
         "Local solve constraint: simplex = the paper's convex combination of poses (w >= 0, sum w <= 1 in delta form, "
         "Liu 2011 eq. 2); box = 0 <= w <= 1"))
+    local_temporal = param.Selector(default="perframe", objects=["perframe", "spacetime"], doc=(
+        "Local method in time: perframe = Liu 2011's per-frame constrained QP (optionally Gaussian-filtered); spacetime = "
+        "Seol 2012 movement matching inside each region (uses alpha/beta; unconstrained between the end frames)"))
     geometric_prior = param.Selector(default="geometric", objects=["geometric", "pca", "l2", "none"], doc=(
         "Prior of the geometric method (Ribera 2017 Fig. 14): cotangent-Laplacian bending, Seol's PCA, plain L2, none"))
     sigma = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 5), doc="Gaussian temporal filter of the weights in frames (Liu 2011; 0: off)")
@@ -120,7 +123,7 @@ METHOD_PARAMS = {
     "range_pf": (),
     "prior_pf": ("alpha",),
     "spacetime": ("alpha", "beta", "boundary"),
-    "local": ("constraint", "sigma"),
+    "local": ("constraint", "local_temporal", "alpha", "beta", "sigma"),
     "geometric": ("geometric_prior", "mu", "lam"),
 }
 
@@ -283,7 +286,7 @@ class Pipeline:
                   relevant=lambda s: ("method",) + METHOD_PARAMS[s.method]),
             Stage("edit", self.edit, ("solve", "personalize", "stabilize", "prior", "load"), S.run_edit),
             Stage("synthesize", param.Parameterized(), ("load", "edit", "calibrate"), S.run_synthesize),
-            Stage("evaluate", self.evaluate, ("stabilize", "personalize", "edit", "load"), S.run_evaluate),
+            Stage("evaluate", self.evaluate, ("stabilize", "personalize", "solve", "edit", "load"), S.run_evaluate),
         ])
         self.runs: Counter = Counter()
         self.timings: dict = {}

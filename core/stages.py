@@ -104,8 +104,10 @@ def run_segment(inputs, s, progress=None):
     seg = segment(rig, n_regions=s.regions, min_size=max(1, int(round(s.min_region_size * rig.n_vertices))),
                   smooth_iters=s.mask_smoothing)
     report(progress, 0.8, "marker weights")
+    from .solvers.local import masks_at
+
     return {"labels": seg.labels, "masks": seg.masks, "marker_weights": marker_weights(rig, layout, seg.masks),
-            "info": dict(seg.info)}
+            "marker_masks": masks_at(layout, seg.masks), "info": dict(seg.info)}
 
 
 def run_prior(inputs, s, progress=None):
@@ -152,10 +154,18 @@ def run_solve(inputs, s, progress=None):
         seg = inputs["segment"]
         problem = local_precompute(np.zeros_like(st.neutral), B, seg["marker_weights"], constraint=s.constraint)
         U = problem.solve(S, valid)  # (T, R, K) regional weights, eq. 2
+        if s.local_temporal == "spacetime":  # movement matching per region, ends from the QP
+            from .solvers.local import local_spacetime
+
+            U = local_spacetime(B, S, seg["marker_weights"], U, s.alpha, s.beta, valid)
         if s.sigma > 0:
             U = smooth_weights(U, s.sigma)
         W = blend_weights(U, seg["masks"])
-        info = {"region_weights": U, "masks": seg["masks"]}
+        from .solvers.local import reconstruct_markers
+
+        # eq. 3 at the markers: what the mask-blended meshes show (the blended curves are a summary)
+        predicted = reconstruct_markers(np.zeros_like(st.neutral), B, U, seg["marker_masks"])
+        info = {"region_weights": U, "masks": seg["masks"], "predicted": predicted}
     elif m == "geometric":
         from .solvers.geometric import GeometricSolver
 
@@ -214,4 +224,6 @@ def run_evaluate(inputs, s, progress=None):
     from .evaluate import evaluate
 
     st = inputs["stabilize"]["source"]
-    return evaluate(inputs["personalize"]["deltas"], inputs["edit"]["weights"], st.deltas, st.valid, step=s.jitter_window)
+    predicted = inputs["solve"]["info"].get("predicted") if not inputs["edit"]["edits"] else None
+    return evaluate(inputs["personalize"]["deltas"], inputs["edit"]["weights"], st.deltas, st.valid, step=s.jitter_window,
+                    predicted=predicted)

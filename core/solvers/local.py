@@ -786,3 +786,47 @@ def region_curves(region_weights, shape_names: Sequence[str], region_names: Opti
     if len(region_names) != R:
         raise ValueError(f"region_names: expected {R} names, got {len(region_names)}")
     return {f"{s}@{r}": U[:, k, i].copy() for k, r in enumerate(region_names) for i, s in enumerate(shape_names)}
+
+
+def local_spacetime(marker_deltas, source_deltas, marker_weights, per_frame, alpha: float = 0.01, beta: float = 0.0,
+                    valid=None) -> np.ndarray:
+    """Local spacetime retargeting: Seol et al. 2012 movement matching inside each region.
+
+    For region k the spacetime energy is evaluated on markers weighted by ``m_k`` (the
+    diagonal of M_k, Liu 2011 §3.2.2): ``B_k = M_k B``, ``S_k = M_k S``, so region k follows
+    the movement of its own markers; the PCA prior is the one of ``B_k``'s shapes. The first
+    and last frames are fixed to the per-frame regional solution, and the result is
+    unconstrained in between (movement matching has no bounds). A region whose markers all
+    have (numerically) zero weight, or whose weighted shapes do not move, keeps the
+    per-frame solution.
+
+    Parameters
+    ----------
+    marker_deltas : (K, M, 3); source_deltas : (T, M, 3); marker_weights : (R, M)
+    per_frame : (T, R, K) the per-frame regional solution (eq. 2): end frames and fallback
+    alpha, beta : spacetime prior and Sobolev weights (see :class:`SpacetimeSolver`)
+    valid : (T, M) bool, optional
+
+    Returns
+    -------
+    (T, R, K) regional weights
+    """
+    from .spacetime import SpacetimeSolver
+
+    D = np.asarray(marker_deltas, dtype=np.float64)
+    S = np.asarray(source_deltas, dtype=np.float64)
+    mw = np.asarray(marker_weights, dtype=np.float64)
+    T, R = len(S), len(mw)
+    U = np.asarray(per_frame, dtype=np.float64)
+    out = U.copy()
+    for r in range(R):
+        if mw[r].max() <= 1e-9 * max(mw.max(), 1e-300):
+            continue
+        g = np.sqrt(mw[r])[:, None]
+        try:
+            solver = SpacetimeSolver(D * g[None], S * g[None], alpha=alpha, beta=beta, valid=valid,
+                                     known={0: U[0, r], T - 1: U[-1, r]})
+        except ValueError:  # the region's weighted shapes do not move: nothing to match
+            continue
+        out[:, r] = solver.solve()
+    return out
