@@ -117,7 +117,8 @@ class Session(param.Parameterized):
                 self._apply_selection()
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
-                    res = self.pipeline.results(["load", "stabilize", "calibrate", "segment", "edit", "synthesize", "evaluate"],
+                    res = self.pipeline.results(["load", "stabilize", "calibrate", "personalize", "segment", "solve", "edit", "synthesize",
+                                                 "evaluate"],
                                                 progress=self._progress)
                 self.snapshot = self._package(res, [str(w.message) for w in caught])
                 self.snapshot["server_ms"] = (time.perf_counter() - t0) * 1e3
@@ -150,6 +151,8 @@ class Session(param.Parameterized):
             "target_markers": res["synthesize"]["target_markers"], "marker_names": list(st.names),
             "target_layout": ld["target_layout"].select(tm.names), "source_layout": ld["source_layout"].select(tm.names) if ld["source_layout"] else None,
             "evaluate": ev, "segment": res["segment"], "method": self.pipeline.solve.method,
+            "personalize": res["personalize"], "calibrated_deltas": tm.calibrated, "raw_deltas": tm.deltas,
+            "solve_info": res["solve"]["info"],
             "timings": {k: v * 1e3 for k, v in self.pipeline.timings.items()}, "warnings": warnings_,
         }
 
