@@ -80,9 +80,9 @@ def _retarget(args) -> int:
     pipe = Pipeline(**settings)
     bar = None if args.quiet else StderrBar("retarget")
     t0 = time.perf_counter()
-    res = pipe.results(["load", "stabilize", "edit", "evaluate"], progress=bar)
+    res = pipe.results(["load", "stabilize", "synthesize", "evaluate"], progress=bar)
     ld, st, ev = res["load"], res["stabilize"]["source"], res["evaluate"]
-    W = res["edit"]["weights"]
+    W = res["synthesize"]["weights"]
     rig = ld["target_rig"]
     out = []
     if args.out:

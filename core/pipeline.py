@@ -61,6 +61,9 @@ class CalibrateSettings(param.Parameterized):
     """Scale-proportion matching of the target's marker blendshapes (Seol 2012 §3.2)."""
 
     calibrate = param.Boolean(default=True, doc="Warp the target's marker blendshapes into the actor's proportions with an RBF")
+    target_shapes = param.String(default="", doc=(
+        "Target shapes the solvers may use: empty = all; 'arkit' = the shapes with an ARKit name (all when the rig has "
+        "none); or comma-separated shape names. The others stay at zero"))
     rbf_smoothing = param.Number(default=0.0, bounds=(0, 1), softbounds=(0, 0.1), doc="RBF ridge relative to the mean marker distance (0: exact interpolation)")
 
 
@@ -103,6 +106,9 @@ class SolveSettings(param.Parameterized):
     boundary = param.Selector(default="perframe", objects=["perframe", "neutral", "none"], doc=(
         "Spacetime boundary frames: perframe = first/last frame from the Prior PF solution (takes rarely start and end "
         "neutral); neutral = zero weights at both ends as in Seol 2012 §3.1; none = free (needs beta > 0)"))
+    ridge = param.Number(default=1e-5, bounds=(0, 1), softbounds=(0, 1e-3), doc=(
+        "Relative Tikhonov weight rho / sigma_max(B)^2 on the weights (bounded, range_pf, prior_pf, spacetime): pulls "
+        "combinations of shapes the markers barely see (e.g. eye-wide vs look-up vs blink) to zero; 0 = the papers' methods"))
     mu = param.Number(default=0.3, bounds=(0, None), softbounds=(0, 2), doc="Geometric prior weight mu (Ribera 2017 eq. 16)")
     lam = param.Number(default=0.6, bounds=(0, None), softbounds=(0, 2), doc="L1 sparsity weight lambda (Ribera 2017 eq. 16)")
     constraint = param.Selector(default="simplex", objects=["simplex", "box"], doc=(
@@ -119,10 +125,10 @@ class SolveSettings(param.Parameterized):
 #: which solve settings matter to which method (a change elsewhere is a cache hit)
 METHOD_PARAMS = {
     "lsq": (),
-    "bounded": ("lower", "upper"),
-    "range_pf": (),
-    "prior_pf": ("alpha",),
-    "spacetime": ("alpha", "beta", "boundary"),
+    "bounded": ("lower", "upper", "ridge"),
+    "range_pf": ("ridge",),
+    "prior_pf": ("alpha", "ridge"),
+    "spacetime": ("alpha", "beta", "boundary", "ridge"),
     "local": ("constraint", "local_temporal", "alpha", "beta", "sigma"),
     "geometric": ("geometric_prior", "mu", "lam"),
 }
@@ -284,7 +290,7 @@ class Pipeline:
                   active=lambda: method() in S.PRIOR_METHODS),
             Stage("solve", self.solve, ("load", "stabilize", "personalize", "segment", "prior"), S.run_solve,
                   relevant=lambda s: ("method",) + METHOD_PARAMS[s.method]),
-            Stage("edit", self.edit, ("solve", "personalize", "stabilize", "prior", "load"), S.run_edit),
+            Stage("edit", self.edit, ("solve", "personalize", "stabilize", "prior", "calibrate"), S.run_edit),
             Stage("synthesize", param.Parameterized(), ("load", "edit", "calibrate"), S.run_synthesize),
             Stage("evaluate", self.evaluate, ("stabilize", "personalize", "solve", "edit", "load"), S.run_evaluate),
         ])

@@ -16,7 +16,10 @@ from .progress import report
 from .retarget import common_markers, source_markers, target_markers
 
 #: methods that use the PCA prior stage
-PRIOR_METHODS = ("prior_pf", "spacetime", "geometric")  # edits use it too, see EditSettings
+PRIOR_METHODS = ("prior_pf", "spacetime", "geometric")
+#: a shape whose largest marker displacement is below this fraction of the largest shape's
+#: is invisible to the markers
+INVISIBLE = 1e-3  # edits use it too, see EditSettings
 
 
 def run_load(inputs, s, progress=None):
@@ -60,10 +63,38 @@ def run_stabilize(inputs, s, progress=None):
     return {"source": sm, "names": tuple(names)}
 
 
+def solver_shapes(rig, spec: str) -> list:
+    """Indices of the target shapes the solvers may use: ``""`` all; ``"arkit"`` the shapes
+    with a canonical ARKit name (all shapes when the rig has none); else comma-separated names."""
+    from .names import ARKIT_NAMES, canonical
+
+    spec = (spec or "").strip()
+    if not spec:
+        return list(range(rig.n_shapes))
+    if spec.lower() == "arkit":
+        idx = [i for i, n in enumerate(rig.names) if canonical(n) in ARKIT_NAMES]
+        return idx or list(range(rig.n_shapes))
+    return [rig.index(n.strip()) for n in spec.split(",") if n.strip()]
+
+
 def run_calibrate(inputs, s, progress=None):
     ld, st = inputs["load"], inputs["stabilize"]
-    tm = target_markers(ld["target_rig"], ld["target_layout"], st["names"], st["source"].neutral, s.calibrate, s.rbf_smoothing)
-    return {"target": tm, "deltas": tm.calibrated}
+    rig = ld["target_rig"]
+    idx = solver_shapes(rig, s.target_shapes)
+    # shapes that move no marker (tongue, eyeball-only, empty shapes) cannot be determined from
+    # markers: solving for them only injects noise (weights of 1e3 through near-null modes)
+    layout = ld["target_layout"].select(st["names"])
+    reach = np.linalg.norm(layout.points(rig.deltas), axis=2).max(1)
+    unseen = [i for i in idx if reach[i] <= INVISIBLE * reach.max()]
+    if unseen:
+        warnings.warn(f"{len(unseen)} target shapes move no marker and stay at zero: "
+                      + ", ".join(rig.names[i] for i in unseen[:8]) + (" ..." if len(unseen) > 8 else ""))
+        idx = [i for i in idx if i not in set(unseen)]
+    if len(idx) < rig.n_shapes:
+        rig = rig.subset([rig.names[i] for i in idx])
+    tm = target_markers(rig, ld["target_layout"], st["names"], st["source"].neutral, s.calibrate, s.rbf_smoothing)
+    return {"target": tm, "deltas": tm.calibrated, "shape_index": np.asarray(idx), "rig": rig,
+            "unseen": [ld["target_rig"].names[i] for i in unseen]}
 
 
 def run_personalize(inputs, s, progress=None):
@@ -99,7 +130,7 @@ def run_segment(inputs, s, progress=None):
     """Regions of the target rig and per-region marker weights (Liu 2011 §3.2.1–3.2.2)."""
     from .segment import marker_weights, segment
 
-    rig = inputs["load"]["target_rig"]
+    rig = inputs["calibrate"]["rig"]
     layout = inputs["load"]["target_layout"].select(inputs["calibrate"]["target"].names)
     seg = segment(rig, n_regions=s.regions, min_size=max(1, int(round(s.min_region_size * rig.n_vertices))),
                   smooth_iters=s.mask_smoothing)
@@ -132,20 +163,21 @@ def run_solve(inputs, s, progress=None):
     if m == "lsq":
         W = baselines.no_const(B, S, valid)
     elif m == "bounded":
-        W = baselines.range_pf(B, S, s.lower, s.upper, valid)
+        W = baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge)
     elif m == "range_pf":
-        W = baselines.range_pf(B, S, valid=valid)  # the paper's -0.5 <= w <= 1.5
+        W = baselines.range_pf(B, S, valid=valid, ridge=s.ridge)  # the paper's -0.5 <= w <= 1.5
     elif m == "prior_pf":
-        W = baselines.prior_pf(B, S, s.alpha, _prior(inputs), valid)
+        W = baselines.prior_pf(B, S, s.alpha, _prior(inputs), valid, ridge=s.ridge)
     elif m == "spacetime":
         from .solvers.spacetime import SpacetimeSolver
 
         known = None
         if s.boundary == "perframe":
-            ends = baselines.prior_pf(B, S[[0, -1]], s.alpha, _prior(inputs), valid[[0, -1]])
+            ends = baselines.prior_pf(B, S[[0, -1]], s.alpha, _prior(inputs), valid[[0, -1]], ridge=s.ridge)
             known = {0: ends[0], len(S) - 1: ends[1]}
         solver = SpacetimeSolver(B, S, alpha=s.alpha, beta=s.beta, prior=_prior(inputs), known=known,
-                                 boundary="none" if s.boundary == "none" else "neutral", valid=valid)
+                                 boundary="none" if s.boundary == "none" else "neutral", valid=valid,
+                                 ridge=s.ridge if s.ridge > 0 else "auto")
         W = solver.solve()
         info = {"path": solver.method_}
     elif m == "local":
@@ -169,7 +201,7 @@ def run_solve(inputs, s, progress=None):
     elif m == "geometric":
         from .solvers.geometric import GeometricSolver
 
-        kw = {"rig": inputs["load"]["target_rig"]} if s.geometric_prior == "geometric" else {}
+        kw = {"rig": inputs["calibrate"]["rig"]} if s.geometric_prior == "geometric" else {}
         if s.geometric_prior == "pca":
             from .solvers.spacetime import _prior_quadratic
             from .model import flatten
@@ -209,15 +241,21 @@ def run_edit(inputs, s, progress=None):
         edits.append(Edit(int(e["frame"]), np.asarray(values, float), shapes, tuple(win) if win else None))
     sol = inputs["solve"]
     solver = SpacetimeSolver(inputs["personalize"]["deltas"], st.deltas, alpha=sol["alpha"], beta=sol["beta"], prior=_prior(inputs),
-                             known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["load"]["target_rig"].names)
+                             known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["calibrate"]["rig"].names)
     return {"weights": solver.edit(W, edits=edits), "edits": list(s.edits)}
 
 
 def run_synthesize(inputs, s, progress=None):
-    tm = inputs["calibrate"]["target"]
-    W = np.nan_to_num(inputs["edit"]["weights"])
+    """Target markers, and the weights for every shape of the target rig (shapes the solver
+    did not use, see ``target_shapes``, stay at zero)."""
+    cal = inputs["calibrate"]
+    tm = cal["target"]
+    Wsub = inputs["edit"]["weights"]
+    W = np.nan_to_num(Wsub)
     markers = tm.neutral[None] + (W @ tm.deltas.reshape(len(tm.deltas), -1)).reshape((len(W),) + tm.neutral.shape)
-    return {"target_markers": markers, "weights": inputs["edit"]["weights"]}
+    full = np.zeros((len(Wsub), inputs["load"]["target_rig"].n_shapes))
+    full[:, cal["shape_index"]] = Wsub
+    return {"target_markers": markers, "weights": full}
 
 
 def run_evaluate(inputs, s, progress=None):

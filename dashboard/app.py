@@ -277,7 +277,8 @@ class DashboardApp:
         names = snap["target_names"]
         if self.w_shapes.options != names:
             self.w_shapes.param.update(options=names, value=[v for v in self.w_shapes.value if v in names])
-            self.w_edit_shape.options = names
+            keep = self.w_edit_shape.value if self.w_edit_shape.value in names else names[int(np.nanargmax(np.ptp(snap["weights"], axis=0)))]
+            self.w_edit_shape.param.update(options=names, value=keep)
         self._draw_curves()
         ev = snap["evaluate"]
         self.diag.update(snap["times"], ev["marker_error_mm"], ev["velocity_error_mm"])

@@ -93,3 +93,22 @@ def test_cli_flags_come_from_settings():
     assert ns.alpha == 0.02 and ns.regions == 6 and ns.calibrate is False
     with pytest.raises(SystemExit):
         p.parse_args(["--method", "magic"])
+
+
+def test_target_shape_subset_and_unseen_shapes_stay_zero():
+    from core.names import ARKIT_NAMES, canonical
+
+    pipe = Pipeline(cache=StageCache(), last_frame=299, method="spacetime", target_shapes="arkit", **FILES)
+    with pytest.warns(UserWarning, match="move no marker"):
+        res = pipe.results(["calibrate", "synthesize"])
+    names = pipe.results(["load"])["load"]["target_rig"].names
+    W = res["synthesize"]["weights"]
+    assert W.shape == (300, 175)
+    non_arkit = [i for i, n in enumerate(names) if canonical(n) not in ARKIT_NAMES]
+    assert np.all(W[:, non_arkit] == 0)
+    assert res["calibrate"]["unseen"] == ["AK_52_TongueOut"]
+    assert np.all(W[:, names.index("AK_52_TongueOut")] == 0)
+    # the relative ridge keeps nearly invisible combinations (eye wide/look up/blink) in range
+    assert np.abs(W).max() < 2
+    pipe.configure(ridge=0.0)
+    assert np.abs(pipe.results(["synthesize"])["synthesize"]["weights"]).max() > np.abs(W).max()

@@ -74,7 +74,7 @@ def no_const(B, S, valid=None, rcond: float = 1e-7) -> np.ndarray:
     return W
 
 
-def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str = "cm") -> np.ndarray:
+def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str = "cm", ridge: float = 0.0) -> np.ndarray:
     """"Prior PF" (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2 + alpha E_prior(w_t)`` per frame.
 
     Normal equations ``(B_v^T B_v + alpha P) w_t = B_v^T s_t + alpha q`` (``B_v``: valid rows),
@@ -103,10 +103,11 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
     else:
         P, q = np.zeros((K, K)), np.zeros(K)
     W = np.zeros((len(Sz), K))
+    rho = ridge * _smax2(Bm)
     for pat, frames in _groups(valid):
         rows = np.repeat(pat, 3)
         Bv = Bm[rows]
-        H = Bv.T @ Bv + a * P
+        H = Bv.T @ Bv + a * P + rho * np.eye(K)
         rhs = Sz[frames][:, rows] @ Bv + a * q
         try:
             W[frames] = scipy.linalg.cho_solve(scipy.linalg.cho_factor(H, lower=True), rhs.T).T
@@ -152,7 +153,12 @@ def box_lsq(H: np.ndarray, rhs: np.ndarray, lower, upper, max_iter: int = 30):
     return np.clip(lo + u * d, lo, hi), int(info["fallback"])
 
 
-def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None) -> np.ndarray:
+def _smax2(Bm) -> float:
+    """sigma_max(B)^2: the scale relative ridges are quoted in (as the spacetime solver's)."""
+    return float(np.linalg.norm(Bm, 2) ** 2) if Bm.size else 0.0
+
+
+def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: float = 0.0) -> np.ndarray:
     """"Range PF" (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2  s.t. lower <= w <= upper``.
 
     Batched primal-dual active-set solve (:func:`box_lsq`) per mask pattern, checked against
@@ -169,7 +175,8 @@ def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None) -> np.nd
     -------
     (T, K) float
 
-    When ``B`` restricted to a frame's valid markers is rank deficient the fit is not unique;
+    ``ridge`` adds ``ridge * sigma_max(B)^2 ||w||^2`` (a relative Tikhonov term, 0 = the
+    paper's method). When ``B`` restricted to a frame's valid markers is rank deficient the fit is not unique;
     a ridge ``1e-9 * lambda_max(B^T B) ||w||^2`` (the spacetime solver's ``ridge="auto"``) is
     then added to make it so.
 
@@ -185,10 +192,11 @@ def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None) -> np.nd
     if (lo > hi).any():
         raise ValueError(f"range_pf: lower must be <= upper, got {lower}, {upper}")
     W = np.zeros((len(Sz), K))
+    rho = ridge * _smax2(Bm)
     for pat, frames in _groups(valid):
         rows = np.repeat(pat, 3)
         Bv = Bm[rows]
-        H = Bv.T @ Bv
+        H = Bv.T @ Bv + rho * np.eye(K)
         try:
             np.linalg.cholesky(H)
         except np.linalg.LinAlgError:
