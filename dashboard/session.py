@@ -141,7 +141,7 @@ class Session(param.Parameterized):
     def _package(self, res: dict, warnings_: list) -> dict:
         ld, st = res["load"], res["stabilize"]["source"]
         tm = res["calibrate"]["target"]
-        W = np.asarray(res["edit"]["weights"])
+        W = np.asarray(res["synthesize"]["weights"])
         ev = res["evaluate"]
         times = st.times - st.times[0]
         source_rig = ld["source_rig"]
@@ -152,6 +152,7 @@ class Session(param.Parameterized):
             "target_layout": ld["target_layout"].select(tm.names), "source_layout": ld["source_layout"].select(tm.names) if ld["source_layout"] else None,
             "evaluate": ev, "segment": res["segment"], "method": self.pipeline.solve.method,
             "personalize": res["personalize"], "calibrated_deltas": tm.calibrated, "raw_deltas": tm.deltas,
+            "solver_names": list(res["calibrate"]["rig"].names),  # the shapes of the (K_solver, M, 3) deltas
             "solve_info": res["solve"]["info"],
             "timings": {k: v * 1e3 for k, v in self.pipeline.timings.items()}, "warnings": warnings_,
         }
