@@ -142,6 +142,24 @@ def _info(args) -> int:
     return 0
 
 
+def _names(args) -> int:
+    """Write the automatic name map (same canonical ARKit names) for a user to edit."""
+    from .io.performance import read_performance
+    from .io.rigs import load_rig
+    from .names import NameMap
+
+    src = Path(args.source)
+    source_names = load_rig(src).names if src.is_dir() or src.suffix.lower() in (".glb", ".gltf") else read_performance(src).names
+    target = load_rig(args.target_rig)
+    nm = NameMap.automatic(source_names, target.names)
+    missing = nm.unmapped(target.names)
+    # unmapped shapes are written with an empty list: the keys a user fills in
+    NameMap({t: nm.entries.get(t, []) for t in target.names}).to_json(args.out)
+    print(f"wrote {args.out}: {len(nm.entries)} of {target.n_shapes} shapes of {target.name} mapped by ARKit name"
+          + (f"; unmapped (edit the file to drive them): {', '.join(missing[:12])}{' ...' if len(missing) > 12 else ''}" if missing else ""))
+    return 0
+
+
 def _bench(args) -> int:
     import runpy
 
@@ -180,6 +198,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--show", action="store_true", help="open a browser")
     s.add_argument("--allow-websocket-origin", action="append", default=None, help="extra allowed origins host:port")
     s.set_defaults(func=_serve)
+
+    n = sub.add_parser("names", help="write the automatic channel->shape name map (JSON) for editing")
+    n.add_argument("--source", required=True, help="performance or rig whose channel/shape names drive")
+    n.add_argument("--target-rig", required=True, help="rig whose shapes are driven")
+    n.add_argument("--out", required=True, help="name map JSON to write (pass it back with --name-map)")
+    n.set_defaults(func=_names)
 
     i = sub.add_parser("info", help="describe rigs and performances")
     i.add_argument("files", nargs="+")

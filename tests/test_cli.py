@@ -97,3 +97,20 @@ def test_transfer_refuses_marker_sources(capsys):
     code = main(["retarget", "--method", "transfer", "--source", str(PERFORMANCES / "animface_markers_jaw_60hz.csv"),
                  "--source-rig", str(RIGS / "ict_facekit.glb"), "--target-rig", str(RIGS / "jeeliz_tiger.glb")])
     assert code == 2 and "dense source" in capsys.readouterr().err
+
+
+def test_names_writes_an_editable_map_and_bundled_jeeliz_map_drives_the_tiger(tmp_path, capsys):
+    from core.names import NameMap
+
+    out = tmp_path / "map.json"
+    assert main(["names", "--source", str(PERFORMANCES / "livelinkface_rom.csv"), "--target-rig", str(RIGS / "jeeliz_tiger.glb"),
+                 "--out", str(out)]) == 0
+    nm = NameMap.from_json(out)
+    assert set(nm.entries) == {"smileRight", "smileLeft", "eyeBrowLeftDown", "eyeBrowRightDown", "eyeBrowLeftUp", "eyeBrowRightUp",
+                               "mouthOpen", "mouthRound", "eyeRightClose", "eyeLeftClose", "mouthNasty"}
+    assert all(v == [] for v in nm.entries.values()) and "unmapped" in capsys.readouterr().out
+    # the bundled map lets Live Link curves drive the tiger as a source rig
+    code = main(["retarget", "--source", str(PERFORMANCES / "livelinkface_take_s07.csv"), "--source-rig", str(RIGS / "jeeliz_tiger.glb"),
+                 "--name-map", str(RIGS.parent / "namemaps" / "arkit_to_jeeliz.json"), "--target-rig", str(RIGS / "ict_facekit.glb"),
+                 "--method", "lsq", "--last-frame", "59", "--quiet"])
+    assert code == 0 and "retargeted 60 frames" in capsys.readouterr().out
