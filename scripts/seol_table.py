@@ -76,8 +76,8 @@ def run(take: Path, target: str, cache: StageCache) -> list:
             a = alpha
         else:
             a = None
-        out = pipe.results(["solve", "evaluate"])
-        W = out["solve"]["weights"]
+        out = pipe.results(["synthesize", "evaluate"])
+        W = out["synthesize"]["weights"]  # every shape of the rig (unseen ones at zero)
         ev = out["evaluate"]
         row = {"target": target, "method": label, "alpha": a, "velocity_error_mm2": ev["velocity_error_total"],
                "marker_rms_mm": ev["marker_rms_mm"], "w_min": float(W.min()), "w_max": float(W.max())}
