@@ -61,9 +61,15 @@ class MeshViewer(pn.custom.JSComponent):
     playback clock and one orbit camera in the browser, so they stay frame-locked without a
     round trip through Python; link one of them to a frame slider.
 
+    Direct manipulation (``pick_mode="vertex"``): the browser raycasts the mesh as shown (the
+    blended positions of the shown frame) and takes the hit triangle's vertex nearest to the
+    hit; a click sets :attr:`picked`, a drag sets :attr:`dragged` whose ``end`` is the start
+    point moved in the camera plane through it. :attr:`highlight` marks vertices. Vertex ids
+    are the rig's (unwelded) ids.
+
     Diagnostics for tests: ``window.__faceRetargetStats.viewers[label]`` counts renders and
-    shown/skipped frames; ``window.__faceRetarget.viewers[label]`` offers ``probe(weights)``
-    and ``pixels()`` (see ``docs/viewer.md``).
+    shown/skipped frames; ``window.__faceRetarget.viewers[label]`` offers ``probe(weights)``,
+    ``pixels()``, ``pickAt(x, y)`` and ``camera()`` (see ``docs/viewer.md``).
     """
 
     neutral = param.Array(default=None, doc="(V, 3) float32 rest positions, metres.")
@@ -100,6 +106,22 @@ class MeshViewer(pn.custom.JSComponent):
         default="auto", objects=["auto", "standard", "fast"],
         doc="standard: per-pixel PBR (MeshStandardMaterial), both sides; fast: per-vertex "
             "Lambert, front faces only; auto: fast on a software WebGL. Read once on render.")
+    pick_mode = param.Selector(
+        default="off", objects=["off", "vertex"],
+        doc="vertex: a left click on the mesh sets `picked`, a left drag that starts on the mesh "
+            "sets `dragged`; orbit then with a left drag off the mesh, alt + left drag or a "
+            "middle-button drag (right/shift drag pans, wheel zooms, as always). off: the "
+            "default controls, nothing is picked.")
+    picked = param.Dict(
+        default={}, doc="Set by the browser on a click in pick mode: {'vertex': int, 'frame': int, "
+                        "'position': [x, y, z] (metres, the vertex as shown), 'count': int}.")
+    dragged = param.Dict(
+        default={}, doc="Set by the browser when a drag in pick mode ends: {'vertex', 'frame', "
+                        "'start': [x, y, z] (the vertex as shown at mouse-down), 'end': [x, y, z] "
+                        "(the start moved in the camera plane through it), 'count'}.")
+    highlight = param.List(default=[], item_type=int, doc="Vertex ids drawn as small spheres on the morphed mesh.")
+    highlight_radius = param.Number(default=0.012, bounds=(0, None), doc="Highlight sphere radius / rig size.")
+    highlight_color = param.Color(default="#ffd400")
 
     _esm = _STATIC / "viewer.js"
 
@@ -221,6 +243,22 @@ class MeshViewer(pn.custom.JSComponent):
         """Per-vertex RGB (V, 3) in [0, 1], or None for the plain material."""
         V = 0 if self.neutral is None else len(self.neutral)
         self.colors = None if colors is None else self._colors(colors, V)
+
+    def set_deltas(self, deltas) -> None:
+        """Replace the (K, V, 3) shape deltas (same K and V; sent once as float32, the browser
+        recomputes its normals). Raises ValueError for another shape or NaN."""
+        K = self.n_shapes
+        V = 0 if self.neutral is None else len(self.neutral)
+        self.deltas = _f32(deltas, "deltas", (K, V, 3))
+
+    def set_highlight(self, vertices) -> None:
+        """Mark ``vertices`` (ids of this rig) with spheres; raises ValueError for ids outside [0, V)."""
+        V = 0 if self.neutral is None else len(self.neutral)
+        ids = [int(v) for v in np.reshape(np.asarray(vertices if vertices is not None else [], dtype=np.int64), -1)]
+        bad = [v for v in ids if not 0 <= v < V]
+        if bad:
+            raise ValueError(f"highlight: vertex ids must lie in [0, {V}), got {bad[:10]}")
+        self.highlight = ids
 
     def payload_bytes(self) -> dict:
         """Bytes of each array sent on load (float32/uint32 buffers), and their total."""

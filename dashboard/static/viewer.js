@@ -18,6 +18,11 @@
 //          (computed here once, so normals cost no payload).
 // Markers: p_m = sum_j b_mj (neutral[v_mj] + sum_k w_k delta_k[v_mj]) on the CPU for the
 //          M layout markers (M*3*K multiply-adds per frame), or a (T,M,3) marker track.
+// Picking (pick_mode "vertex"): a three.js Raycaster against the mesh as shown (cpu blend:
+//          the blended buffer; gpu: three's raycast applies the morph influences on the
+//          CPU), then the hit triangle's vertex nearest to the hit point, its position
+//          recomputed here from the weights shown. A click sets `picked`; a drag sets
+//          `dragged` with the end point in the camera plane through the start point.
 
 const GROUPS = (window.__faceRetargetGroups = window.__faceRetargetGroups || new Map());
 const REGISTRY = (window.__faceRetarget = window.__faceRetarget || { viewers: {} });
@@ -32,6 +37,7 @@ if (!STATS.reset) {
 }
 
 const RIGHT_ANGLE = Math.PI / 2;
+const DRAG_PX = 4; // a pointer that moves less than this between down and up is a click
 
 // ---------------------------------------------------------------------------------------
 // A playback clock shared by the viewers of one sync group (or private to one viewer).
@@ -270,10 +276,12 @@ class Viewer {
     this.override = null; // probe weights (diagnostics), not synced
     this.stats = { renders: 0, renderMs: 0, framesShown: 0, framesSkipped: 0, t0: performance.now() };
     STATS.viewers[this.label] = this.stats;
+    this.pickCount = 0;
     this.buildDom();
     this.buildScene();
     this.setGeometry();
     this.setMarkers();
+    this.setHighlight();
     this.clock = clockFor(model.sync_group);
     this.clock.join(this);
     if (this.clock.members.size === 1) {
@@ -297,6 +305,7 @@ class Viewer {
     this.canvas.dataset.label = this.label;
     this.canvas.style.cssText = "display:block;width:100%;height:100%;touch-action:none;outline:none;";
     this.canvas.tabIndex = 0;
+    if (this.model.pick_mode === "vertex") this.canvas.style.cursor = "crosshair";
     this.overlay = document.createElement("div");
     this.overlay.className = "face-retarget-overlay";
     this.overlay.style.cssText =
@@ -356,6 +365,19 @@ class Viewer {
                                                        metalness: 0.0, side: THREE.DoubleSide });
     }
     this.markerMaterial = new THREE.MeshBasicMaterial({ color: m.marker_color });
+    this.highlightMaterial = new THREE.MeshBasicMaterial({ color: m.highlight_color });
+    // drag preview: a line from the start point to the pointer, drawn over the mesh
+    this.dragMaterial = new THREE.LineBasicMaterial({ color: m.highlight_color, depthTest: false, transparent: true });
+    const lg = new THREE.BufferGeometry();
+    lg.setAttribute("position", new THREE.BufferAttribute(new Float32Array(6), 3));
+    this.dragLine = new THREE.Line(lg, this.dragMaterial);
+    this.dragLine.frustumCulled = false;
+    this.dragLine.renderOrder = 10;
+    this.dragLine.visible = false;
+    this.dragEnd = new THREE.Mesh(new THREE.SphereGeometry(1, 12, 10), this.highlightMaterial);
+    this.dragEnd.frustumCulled = false;
+    this.dragEnd.visible = false;
+    this.scene.add(this.dragLine, this.dragEnd);
   }
 
   setGeometry() {
@@ -397,6 +419,15 @@ class Viewer {
       mn.push(new THREE.BufferAttribute(dn, 3));
     }
     this.stats.normalsMs = performance.now() - t;
+    // per shape, the largest |delta| per axis: bounds the morphed mesh for ray tests
+    this.deltaExtent = new Float32Array(3 * this.K);
+    for (let k = 0; k < this.K; k++) {
+      const o = k * 3 * V;
+      for (let i = 0; i < 3 * V; i++) {
+        const a = Math.abs(deltas[o + i]);
+        if (a > this.deltaExtent[3 * k + (i % 3)]) this.deltaExtent[3 * k + (i % 3)] = a;
+      }
+    }
     this.current = new Float32Array(this.K);
     this.blended = null;
     if (this.K && this.blend === "gpu") {
@@ -524,6 +555,138 @@ class Viewer {
     this.markers.instanceMatrix.needsUpdate = true;
   }
 
+  // -- highlighted vertices -----------------------------------------------------------------
+  setHighlight() {
+    const THREE = this.THREE;
+    if (this.highlights) {
+      this.scene.remove(this.highlights);
+      this.highlights.geometry.dispose();
+      this.highlights = null;
+    }
+    const ids = (this.model.highlight || []).filter((v) => Number.isInteger(v) && v >= 0 && v < this.V);
+    this.highlightIds = ids;
+    if (!ids.length) return;
+    const r = this.model.highlight_radius * (this.size || 1);
+    this.highlights = new THREE.InstancedMesh(new THREE.SphereGeometry(r, 12, 10), this.highlightMaterial, ids.length);
+    this.highlights.frustumCulled = false;
+    this.highlights.renderOrder = 5;
+    this.scene.add(this.highlights);
+    this.updateHighlight();
+  }
+
+  updateHighlight() {
+    if (!this.highlights) return;
+    const mat = this._hmat || (this._hmat = new this.THREE.Matrix4());
+    const p = this._hvec || (this._hvec = new this.THREE.Vector3());
+    this.highlightIds.forEach((v, i) => {
+      this.vertexPosition(v, p);
+      mat.makeTranslation(p.x, p.y, p.z);
+      this.highlights.setMatrixAt(i, mat);
+    });
+    this.highlights.instanceMatrix.needsUpdate = true;
+  }
+
+  // -- picking -------------------------------------------------------------------------------
+  // Vertex v as shown now: neutral + sum_k w_k delta_k with the weights of the shown frame
+  // (the cpu blend wrote exactly this into the position buffer; on the gpu it never leaves
+  // the shader, so it is recomputed here from the same weights).
+  vertexPosition(v, out) {
+    const N = this.neutral, D = this.deltas, w = this.current, V = this.V;
+    let x = N[3 * v], y = N[3 * v + 1], z = N[3 * v + 2];
+    for (let k = 0; k < this.K; k++) {
+      const wk = w[k];
+      if (wk === 0) continue;
+      const o = k * 3 * V + 3 * v;
+      x += wk * D[o]; y += wk * D[o + 1]; z += wk * D[o + 2];
+    }
+    return out.set(x, y, z);
+  }
+
+  // Bounds of the shown mesh for the raycaster's early-outs (the geometry's own are the
+  // neutral's): exact on the cpu path; on the gpu, the neutral box grown by
+  // sum_k |w_k| max|delta_k| per axis, which contains every morphed vertex.
+  currentBounds() {
+    const THREE = this.THREE;
+    if (this.blend !== "gpu" || !this.K) return new THREE.Box3().setFromBufferAttribute(this.mesh.geometry.getAttribute("position"));
+    const grow = [0, 0, 0];
+    for (let k = 0; k < this.K; k++) {
+      const a = Math.abs(this.current[k]);
+      if (a) for (let c = 0; c < 3; c++) grow[c] += a * this.deltaExtent[3 * k + c];
+    }
+    const g = new THREE.Vector3(...grow);
+    return this.bbox.clone().expandByVector(g);
+  }
+
+  rayAt(clientX, clientY) {
+    const THREE = this.THREE;
+    const rect = this.canvas.getBoundingClientRect();
+    const ndc = new THREE.Vector2(((clientX - rect.left) / rect.width) * 2 - 1, -((clientY - rect.top) / rect.height) * 2 + 1);
+    const rc = this.raycaster || (this.raycaster = new THREE.Raycaster());
+    this.camera.updateMatrixWorld();
+    rc.setFromCamera(ndc, this.camera);
+    return rc;
+  }
+
+  // The vertex under the pointer: {vertex, position: Vector3, point: Vector3 (the ray hit),
+  // face: [a, b, c]} or null when the ray misses the mesh.
+  pickAt(clientX, clientY) {
+    if (!this.mesh || !this.V) return null;
+    const THREE = this.THREE;
+    const t = performance.now();
+    const rc = this.rayAt(clientX, clientY);
+    const geom = this.mesh.geometry;
+    const box = geom.boundingBox, sphere = geom.boundingSphere;
+    geom.boundingBox = this.currentBounds();
+    geom.boundingSphere = geom.boundingBox.getBoundingSphere(new THREE.Sphere());
+    let hits;
+    try {
+      this.mesh.updateMatrixWorld();
+      hits = rc.intersectObject(this.mesh, false);
+    } finally {
+      geom.boundingBox = box; geom.boundingSphere = sphere;
+    }
+    this.stats.pickMs = performance.now() - t;
+    if (!hits.length) return null;
+    const h = hits[0];
+    let best = null;
+    for (const v of [h.face.a, h.face.b, h.face.c]) {
+      const p = this.vertexPosition(v, new THREE.Vector3());
+      const d = p.distanceToSquared(h.point);
+      if (!best || d < best.d) best = { vertex: v, position: p, d };
+    }
+    return { vertex: best.vertex, position: best.position, point: h.point.clone(), face: [h.face.a, h.face.b, h.face.c] };
+  }
+
+  // Where the pointer's ray meets the plane through `p` facing the camera (a drag in the
+  // view plane), or null if the ray is parallel to it.
+  planePoint(clientX, clientY, p) {
+    const THREE = this.THREE;
+    const rc = this.rayAt(clientX, clientY);
+    const n = this.camera.getWorldDirection(new THREE.Vector3());
+    const plane = new THREE.Plane().setFromNormalAndCoplanarPoint(n, p);
+    return rc.ray.intersectPlane(plane, new THREE.Vector3());
+  }
+
+  showDrag(start, end) {
+    const a = this.dragLine.geometry.getAttribute("position");
+    if (start && end) {
+      a.array.set([start.x, start.y, start.z, end.x, end.y, end.z]);
+      a.needsUpdate = true;
+      this.dragEnd.position.copy(end);
+      this.dragEnd.scale.setScalar(0.7 * this.model.highlight_radius * (this.size || 1));
+      this.dragLine.visible = this.dragEnd.visible = true;
+    } else {
+      this.dragLine.visible = this.dragEnd.visible = false;
+    }
+    this.requestRender();
+  }
+
+  // JS -> Python: a fresh object each time (and a count), so a repeated pick is an event too
+  report(name, value) {
+    this.pickCount += 1;
+    this.model[name] = { ...value, count: this.pickCount };
+  }
+
   // -- weights and frames ----------------------------------------------------------------
   weightsAt(frame) {
     const K = this.K;
@@ -577,6 +740,7 @@ class Viewer {
       this.blended = frame;
     }
     this.updateMarkers(cur, frame);
+    this.updateHighlight();
     const T = this.nFrames;
     this.overlay.textContent = `${this.model.label || ""}  frame ${frame} / ${T - 1}` +
       (this.override ? "  (probe)" : (this.model.weights && this.model.weights.length ? "  (weights from Python)" : ""));
@@ -685,15 +849,34 @@ class Viewer {
   // it needs 40 lines and the group sharing below). Left drag: orbit; right/shift drag: pan;
   // wheel: zoom; double click: reset. The camera state lives on the sync group's clock, so
   // side-by-side viewers turn together.
+  // pick_mode "vertex": a plain left click on the mesh picks its vertex, a left drag that
+  // starts on the mesh drags it (in the view plane); orbit with a left drag that starts off
+  // the mesh, alt + left drag or a middle-button drag; pan and zoom as above.
   bindControls() {
     const cv = this.canvas;
     let drag = null;
     const onDown = (e) => {
+      const plain = e.button === 0 && !e.altKey && !e.shiftKey && !e.ctrlKey && !e.metaKey;
+      if (plain && this.model.pick_mode === "vertex") {
+        const hit = this.pickAt(e.clientX, e.clientY);
+        if (hit) {
+          drag = { pick: hit, frame: this.clock.frame, x0: e.clientX, y0: e.clientY, moved: false, end: null };
+          cv.setPointerCapture(e.pointerId);
+          return;
+        }
+      }
       drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey };
       cv.setPointerCapture(e.pointerId);
     };
     const onMove = (e) => {
       if (!drag) return;
+      if (drag.pick) {
+        if (!drag.moved && Math.hypot(e.clientX - drag.x0, e.clientY - drag.y0) < DRAG_PX) return;
+        drag.moved = true;
+        drag.end = this.planePoint(e.clientX, e.clientY, drag.pick.position) || drag.end;
+        if (drag.end) this.showDrag(drag.pick.position, drag.end);
+        return;
+      }
       const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
       drag.x = e.clientX; drag.y = e.clientY;
       const cam = this.clock.camera;
@@ -707,7 +890,20 @@ class Viewer {
       }
       this.clock.cameraChanged();
     };
-    const onUp = (e) => { drag = null; try { cv.releasePointerCapture(e.pointerId); } catch (err) {} };
+    const onUp = (e) => {
+      const d = drag;
+      drag = null;
+      try { cv.releasePointerCapture(e.pointerId); } catch (err) {}
+      if (!d || !d.pick || e.type === "pointercancel") { if (d && d.pick) this.showDrag(null); return; }
+      const p = d.pick.position;
+      if (d.moved) {
+        const end = this.planePoint(e.clientX, e.clientY, p) || d.end;
+        this.showDrag(null);
+        if (end) this.report("dragged", { vertex: d.pick.vertex, frame: d.frame, start: [p.x, p.y, p.z], end: [end.x, end.y, end.z] });
+      } else {
+        this.report("picked", { vertex: d.pick.vertex, frame: d.frame, position: [p.x, p.y, p.z] });
+      }
+    };
     const onWheel = (e) => {
       e.preventDefault();
       const cam = this.clock.camera;
@@ -743,7 +939,7 @@ class Viewer {
     m.on("weights", () => { this.applyFrame(this.clock.frame); this.requestRender(); });
     m.on(["track"], () => { this.setTrack(); this.showFrame(this.clock.clamp(this.clock.frame), false); });
     m.on(["neutral", "faces", "deltas"], () => {
-      this.setGeometry(); this.setMarkers(); this.showFrame(this.clock.clamp(this.clock.frame), false);
+      this.setGeometry(); this.setMarkers(); this.setHighlight(); this.showFrame(this.clock.clamp(this.clock.frame), false);
     });
     m.on(["marker_vertices", "marker_weights", "marker_track", "marker_radius"], () => {
       this.setMarkers(); this.setTrack(); this.showFrame(this.clock.frame, false);
@@ -753,6 +949,11 @@ class Viewer {
     m.on(["colors", "mesh_color"], () => { this.setColors(); this.requestRender(); });
     m.on("background_color", () => { this.scene.background.set(m.background_color); this.requestRender(); });
     m.on("margin_factor", () => this.fitCamera());
+    m.on(["highlight", "highlight_radius"], () => { this.setHighlight(); this.requestRender(); });
+    m.on("highlight_color", () => {
+      this.highlightMaterial.color.set(m.highlight_color); this.dragMaterial.color.set(m.highlight_color); this.requestRender();
+    });
+    m.on("pick_mode", () => { this.canvas.style.cursor = m.pick_mode === "vertex" ? "crosshair" : ""; });
     m.on("remove", () => this.dispose());
   }
 
@@ -805,6 +1006,24 @@ class Viewer {
         this.requestRender();
         return ms;
       },
+      // picking as a click would do it, without telling Python (client coordinates)
+      pickAt: (x, y) => {
+        const h = this.pickAt(x, y);
+        return h && { vertex: h.vertex, position: h.position.toArray(), point: h.point.toArray(), face: h.face };
+      },
+      vertexPositions: (ids) => ids.map((v) => this.vertexPosition(v, new this.THREE.Vector3()).toArray()),
+      highlightPositions: () => (this.highlights ? this.highlightIds.map((v, i) => {
+        const m = new this.THREE.Matrix4();
+        this.highlights.getMatrixAt(i, m);
+        return new this.THREE.Vector3().setFromMatrixPosition(m).toArray();
+      }) : []),
+      // the camera as rendered: column-major view and projection matrices, canvas CSS size
+      camera: () => {
+        this.camera.updateMatrixWorld();
+        const r = this.canvas.getBoundingClientRect();
+        return { view: this.camera.matrixWorldInverse.elements.slice(), projection: this.camera.projectionMatrix.elements.slice(),
+                 position: this.camera.position.toArray(), left: r.left, top: r.top, width: r.width, height: r.height };
+      },
       info: () => ({
         webgl2: this.renderer.capabilities.isWebGL2 !== false,
         renderer: this.rendererName,
@@ -828,6 +1047,11 @@ class Viewer {
     if (this.markers) this.markers.geometry.dispose();
     this.material.dispose();
     this.markerMaterial.dispose();
+    if (this.highlights) this.highlights.geometry.dispose();
+    this.highlightMaterial.dispose();
+    this.dragLine.geometry.dispose();
+    this.dragEnd.geometry.dispose();
+    this.dragMaterial.dispose();
     this.renderer.dispose();
     if (REGISTRY.viewers[this.label] && REGISTRY.viewers[this.label].self === this) delete REGISTRY.viewers[this.label];
   }

@@ -1,0 +1,209 @@
+"""The dense-transfer editing view (dashboard/transfer_view.py), driven through its params and
+widgets without a browser: a drag on the viewer (its ``dragged`` param, as the browser sets it)
+becomes a point constraint, Apply runs core's LargeScaleEditor, the viewer gets the new
+bases/weights; undo restores them.
+
+Fast tests use a same-topology transfer of the tiger (no registration); the slow one runs the
+real ICT → Rocketbox transfer of a Live Link take through a dashboard Session.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.transfer import TransferSettings, transfer_sequence
+from core.transfer.edit import LargeScaleEditor, PointConstraint
+
+
+def shown(result_neutral, D, W):
+    """(T, V, 3) the frames of the shown rig: neutral + W @ D."""
+    return result_neutral[None] + np.einsum("tk,kvc->tvc", W, D)
+
+
+@pytest.fixture(scope="module")
+def tiger_transfer(tiger):
+    t = np.arange(40)
+    K = tiger.n_shapes
+    W = np.clip(0.5 + 0.5 * np.sin(t[:, None] / (5 + 2 * np.arange(K)) + np.arange(K)), 0, 1)
+    res = transfer_sequence(tiger.neutral, tiger.faces, tiger.evaluate(W), tiger.neutral * [1.1, 0.95, 1.0], tiger.faces,
+                            max_bases=8)
+    return res
+
+
+@pytest.fixture
+def view(tiger, tiger_transfer):
+    from dashboard.session import Session
+    from dashboard.transfer_view import EditableTransfer, TransferView
+
+    v = TransferView(Session())
+    v.show(EditableTransfer(tiger_transfer, tiger), first_frame=0, target_name="tiger")
+    return v
+
+
+def moving_vertex(res, frame):
+    """The vertex that moves most over the sequence, and the frame where it is farthest from
+    its position at ``frame`` (a target the weights can reach)."""
+    S = shown(res.neutral, res.deltas, res.weights)
+    v = int(np.argmax(np.linalg.norm(S - S.mean(0), axis=2).max(0)))
+    f2 = int(np.argmax(np.linalg.norm(S[:, v] - S[frame, v], axis=1)))
+    return v, f2, S
+
+
+def drag(viewer, vertex, frame, start, end, count=1):
+    """What the browser sends at the end of a drag in pick mode."""
+    viewer.dragged = {"vertex": int(vertex), "frame": int(frame), "start": [float(x) for x in start],
+                      "end": [float(x) for x in end], "count": count}
+
+
+def test_editable_transfer_rebuilds_the_transfer_system(tiger, rocketbox, tiger_transfer):
+    from dashboard.transfer_view import EditableTransfer
+
+    ed = EditableTransfer(tiger_transfer, tiger)
+    assert ed.consistency() < 1e-9
+    # other smoothing than the transfer used: not the same system, and the check says so
+    assert EditableTransfer(tiger_transfer, tiger, TransferSettings(iterations=5)).consistency() > 1e-3
+    with pytest.raises(ValueError, match="source_rig 'rocketbox.*expected the topology"):
+        EditableTransfer(tiger_transfer, rocketbox)
+
+
+def test_drag_becomes_a_point_constraint_and_apply_edits_the_window(view, tiger_transfer):
+    res = tiger_transfer
+    T = len(res.weights)
+    f = 20
+    v, f2, S = moving_vertex(res, f)
+    start, target = S[f, v], S[f2, v]
+    assert np.linalg.norm(target - start) > 1e-3 * 0.25  # the test needs a real move (tiger ~0.25 m)
+    assert view.viewer.pick_mode == "vertex"
+    view.w_lam_b.value = 0.0  # weights only: frames outside the window must not change at all
+    view.w_half.value = 4
+    drag(view.viewer, v, f, start, target)
+    assert view.pending == [{"kind": "point", "frame": f, "vertex": v, "target": target.tolist(), "start": start.tolist()}]
+    assert view.viewer.highlight == [v]
+    assert view.window() == (16, 24)
+    assert view.apply_edit(), view.status
+    D1, W1 = view.states[-1]
+    after = res.neutral[v] + W1[f] @ D1[:, v]
+    miss0, miss1 = np.linalg.norm(start - target), np.linalg.norm(after - target)
+    assert miss1 < 0.5 * miss0, f"vertex did not move towards the target: {miss0 * 1e3:.2f} -> {miss1 * 1e3:.2f} mm"
+    outside = np.r_[0:16, 25:T]
+    np.testing.assert_array_equal(W1[outside], res.weights[outside])
+    np.testing.assert_array_equal(D1, res.deltas)
+    S1 = shown(res.neutral, D1, W1)
+    np.testing.assert_array_equal(S1[outside], S[outside])
+    assert not np.allclose(S1[16:25], S[16:25])
+    # the viewer plays the edited weights; constraints are consumed, the edit is listed
+    np.testing.assert_allclose(view.viewer.track, W1.astype(np.float32))
+    assert view.pending == [] and len(view.edits) == 1 and view.viewer.highlight == []
+    # the same edit by core's editor directly (the view only glues): identical weights
+    ed = LargeScaleEditor(view.editable.transfer, np.asarray(res.neutral)[view.editable.rep],
+                          np.asarray(res.deltas)[:, view.editable.rep], res.weights)
+    direct = ed.edit([PointConstraint(f, int(view.editable.welded[v]), tuple(target))], 0.0, 1.0, 100.0, (16, 24))
+    np.testing.assert_allclose(direct.weights, W1, rtol=0, atol=1e-12)
+
+    # a second edit with λ_b > 0 edits the bases (every frame using them moves) but not the
+    # weights outside the window; the viewer gets the new deltas
+    view.w_lam_b.value = 1.0
+    f = 30
+    v2, f3, _ = moving_vertex(res, f)
+    S1f = S1[f, v2]
+    target2 = S1f + 0.5 * (S[f3, v2] - S1f)
+    drag(view.viewer, v2, f, S1f, target2, count=2)
+    assert view.apply_edit(), view.status
+    D2, W2 = view.states[-1]
+    after2 = res.neutral[v2] + W2[f] @ D2[:, v2]
+    assert np.linalg.norm(after2 - target2) < 0.5 * np.linalg.norm(S1f - target2)
+    assert not np.allclose(D2, D1)
+    out2 = np.r_[0:26, 35:T]
+    np.testing.assert_array_equal(W2[out2], W1[out2])
+    np.testing.assert_allclose(view.viewer.deltas, D2.astype(np.float32))
+
+    # undo twice: back to the transfer, in the viewer too
+    assert view.undo()
+    np.testing.assert_array_equal(view.states[-1][1], W1)
+    np.testing.assert_allclose(view.viewer.deltas, D1.astype(np.float32))
+    assert view.undo() and not view.undo()
+    np.testing.assert_allclose(view.viewer.track, res.weights.astype(np.float32))
+    assert len(view.edits) == 0
+
+
+def test_distance_and_fixed_constraints(view, tiger_transfer):
+    res = tiger_transfer
+    f = 12
+    S = shown(res.neutral, res.deltas, res.weights)
+    # two vertices across the mouth: the most moving vertex of the sequence and its farthest partner nearby
+    v, _, _ = moving_vertex(res, f)
+    near = np.argsort(np.linalg.norm(res.neutral - res.neutral[v], axis=1))[1:200]
+    j = int(near[np.argmax(np.linalg.norm(S[:, near] - S[:, [v]], axis=2).std(0))])
+    view.w_mode.value = "distance"
+    view.viewer.picked = {"vertex": v, "frame": f, "position": S[f, v].tolist(), "count": 1}
+    assert view.w_add_distance.disabled
+    view.viewer.picked = {"vertex": j, "frame": f, "position": S[f, j].tolist(), "count": 2}
+    d0 = np.linalg.norm(S[f, v] - S[f, j])
+    assert view.w_distance.value == pytest.approx(d0 * 1000, abs=1e-3)
+    assert not view.w_add_distance.disabled and sorted(view.viewer.highlight) == sorted([v, j])
+    view.w_distance.value = round(d0 * 1000 * 1.3, 3)
+    view.add_distance()
+    # and a fixed vertex elsewhere (point mode, fixed on: a click pins it)
+    view.w_mode.value = "point"
+    view.w_fixed.value = True
+    far = int(np.argmax(np.linalg.norm(res.neutral - res.neutral[v], axis=1)))
+    view.viewer.picked = {"vertex": far, "frame": f, "position": S[f, far].tolist(), "count": 3}
+    assert [p["kind"] for p in view.pending] == ["distance", "fixed"]
+    view.w_lam_b.value = 1.0
+    view.w_half.value = 0  # whole range
+    assert view.window() is None
+    assert view.apply_edit(), view.status
+    D1, W1 = view.states[-1]
+    S1 = shown(res.neutral, D1, W1)
+    d1 = np.linalg.norm(S1[f, v] - S1[f, j])
+    want = d0 * 1.3
+    assert abs(d1 - want) < 0.5 * abs(d0 - want), f"distance {d0 * 1e3:.2f} -> {d1 * 1e3:.2f} mm, wanted {want * 1e3:.2f}"
+    assert np.linalg.norm(S1[f, far] - S[f, far]) < 0.1 * abs(d1 - d0), "the fixed vertex moved"
+
+
+def test_apply_without_constraints_and_update_without_results(view):
+    assert not view.apply_edit()
+    assert "nothing to apply" in view.status
+    view.update({})  # no snapshot yet: nothing to do, no error
+
+
+@pytest.mark.slow
+def test_ict_to_rocketbox_run_then_drag_edit():
+    """The real thing: Session on the Live Link take (ICT drives, Rocketbox target), the
+    transfer of 30 frames (non-rigid ICP: tens of seconds), a drag at one frame."""
+    from dashboard.session import Session
+    from dashboard.transfer_view import TransferView
+
+    session = Session()
+    session.param.update(source="livelinkface_take_s07.csv", source_rig="ict_facekit.glb",
+                         target_rig="rocketbox_female_adult_02.glb")
+    assert session.recompute(), session.error
+    view = TransferView(session)
+    view.update(session.snapshot)
+    assert view.w_range.value == (0, 299) and not view.w_run.disabled
+    view.w_range.value = (600, 629)
+    assert view.run(block=True), view.status
+    assert view.editable is not None, view.status
+    res = view.editable.result
+    assert res.weights.shape[0] == 30 and res.n_bases >= 1
+    assert res.registration is not None and res.registration.report["landmark_residual_mm_mean"] < 5
+    assert view.editable.consistency() < 1e-8
+    assert view.viewer.n_shapes == res.n_bases and view.viewer.pick_mode == "vertex"
+    assert view.first_frame == 600 and "30 frames" in view.status
+
+    f = 15
+    v, f2, S = moving_vertex(res, f)
+    start, target = S[f, v], S[f2, v]
+    assert np.linalg.norm(target - start) > 0.5e-3, "ICT → Rocketbox: expected a vertex that moves > 0.5 mm"
+    view.w_lam_b.value = 0.0
+    view.w_half.value = 5
+    drag(view.viewer, v, f, start, target)
+    assert view.apply_edit(), view.status
+    D1, W1 = view.states[-1]
+    after = res.neutral[v] + W1[f] @ D1[:, v]
+    assert np.linalg.norm(after - target) < 0.5 * np.linalg.norm(start - target)
+    outside = np.r_[0:10, 21:30]
+    np.testing.assert_array_equal(W1[outside], res.weights[outside])
+    np.testing.assert_array_equal(D1, res.deltas)
+    np.testing.assert_allclose(view.viewer.track, W1.astype(np.float32))
