@@ -25,6 +25,7 @@ from core.pipeline import METHOD_PARAMS  # noqa: E402
 from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
 from dashboard.session import NONE, Session  # noqa: E402
+from dashboard.transfer_view import TransferView  # noqa: E402
 from dashboard.viewer import MeshViewer, error_colors  # noqa: E402
 
 log = logging.getLogger("face_retarget.dashboard")
@@ -61,6 +62,7 @@ class DashboardApp:
         self.pipe = self.s.pipeline
         self._viewer_keys = {"source": None, "target": None}
         self._build_widgets()
+        self.transfer_view = TransferView(self.s)
         self._build_layout()
         self.refresh()
 
@@ -162,7 +164,8 @@ class DashboardApp:
                    pn.Column(edit_card, self.region_box, width=330), sizing_mode="stretch_width"),
             sizing_mode="stretch_width",
         )
-        self.layout = pn.Row(sidebar, main, sizing_mode="stretch_both")
+        self.tabs = pn.Tabs(("Retarget", main), ("Dense transfer (Xu 2014)", self.transfer_view), sizing_mode="stretch_width")
+        self.layout = pn.Row(sidebar, self.tabs, sizing_mode="stretch_both")
 
     # -- events -----------------------------------------------------------------------------
     def _changed(self):
@@ -292,6 +295,7 @@ class DashboardApp:
             f"{ev['velocity_error_total']:.3g} mm² · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
             f"({100 * ev['outside_01']:.1f}% outside 0..1)")
         rows = "".join(f"<tr><td>{k}</td><td style='text-align:right'>{v:.1f} ms</td></tr>" for k, v in snap["timings"].items() if v > 0.05)
+        self.transfer_view.update(snap)
         self.w_timings.object = (f"<table style='font-size:0.85em;width:100%'>{rows}<tr><td><b>server total</b></td>"
                                  f"<td style='text-align:right'><b>{snap['server_ms']:.1f} ms</b></td></tr></table>")
 
