@@ -25,6 +25,7 @@ from core.pipeline import METHOD_PARAMS  # noqa: E402
 from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
 from dashboard.session import NONE, Session  # noqa: E402
+from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.transfer_view import TransferView  # noqa: E402
 from dashboard.viewer import MeshViewer, error_colors  # noqa: E402
 
@@ -45,7 +46,7 @@ CSS = """
 STAGE_PARAMS = {
     "solve": None,  # chosen by method, see _solve_params
     "stabilize": ["head_motion", "neutral_frame", "first_frame", "last_frame"],
-    "calibrate": ["calibrate", "rbf_smoothing"],
+    "calibrate": ["calibrate", "target_shapes", "rbf_smoothing"],
     "segment": ["regions", "min_region_size", "mask_smoothing"],
 }
 
@@ -63,6 +64,7 @@ class DashboardApp:
         self._viewer_keys = {"source": None, "target": None}
         self._build_widgets()
         self.transfer_view = TransferView(self.s)
+        self.normalmap_view = NormalMapView(active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
         self._build_layout()
         self.refresh()
 
@@ -82,6 +84,8 @@ class DashboardApp:
         self.w_status = pn.pane.Markdown("", css_classes=["fr-status"], sizing_mode="stretch_width")
         self.w_timings = pn.pane.HTML("", sizing_mode="stretch_width")
         self.w_summary = pn.pane.Markdown("", sizing_mode="stretch_width")
+        # errors: a banner in the page (Panel's toast area rendered without its text outside a template)
+        self.w_alert = pn.pane.Alert("", alert_type="danger", visible=False, sizing_mode="stretch_width", css_classes=["fr-error"])
         # frame control: one slider + play, linked to the source viewer; both viewers share a clock
         self.w_frame = pn.widgets.IntSlider(name="Frame", start=0, end=1, value=0, sizing_mode="stretch_width")
         self.w_play = pn.widgets.Toggle(name="▶ Play / ❚❚ Pause", button_type="success", width=150)
@@ -119,12 +123,14 @@ class DashboardApp:
 
     def _build_settings(self):
         m = self.pipe.solve.method
-        cards = [pn.Param(self.pipe.solve, parameters=_solve_params(m), show_name=False, sizing_mode="stretch_width")]
+        # tiny relative weights read better typed than on a slider that shows 1e-5 as "0"
+        typed = {"ridge": pn.widgets.FloatInput, "rbf_smoothing": pn.widgets.FloatInput}
+        cards = [pn.Param(self.pipe.solve, parameters=_solve_params(m), widgets=typed, show_name=False, sizing_mode="stretch_width")]
         if m == "local":
             cards.append(pn.Param(self.pipe.segment, parameters=STAGE_PARAMS["segment"], show_name=False, sizing_mode="stretch_width"))
         more = pn.Card(
             pn.Param(self.pipe.stabilize, parameters=STAGE_PARAMS["stabilize"], show_name=False, sizing_mode="stretch_width"),
-            pn.Param(self.pipe.calibrate, parameters=STAGE_PARAMS["calibrate"], show_name=False, sizing_mode="stretch_width"),
+            pn.Param(self.pipe.calibrate, parameters=STAGE_PARAMS["calibrate"], widgets=typed, show_name=False, sizing_mode="stretch_width"),
             title="Source & calibration", collapsed=True, sizing_mode="stretch_width")
         self.settings_box[:] = cards + [more]
 
@@ -156,6 +162,7 @@ class DashboardApp:
             pn.Column(pn.pane.Markdown("**Target**", margin=(0, 10)), self.target_box, sizing_mode="stretch_width"),
             sizing_mode="stretch_width")
         main = pn.Column(
+            self.w_alert,
             views,
             pn.Row(self.w_play, self.w_frame, self.w_heat, sizing_mode="stretch_width"),
             self.w_summary,
@@ -165,6 +172,9 @@ class DashboardApp:
             sizing_mode="stretch_width",
         )
         self.tabs = pn.Tabs(("Retarget", main), ("Dense transfer (Xu 2014)", self.transfer_view), sizing_mode="stretch_width")
+        self.tabs.append(("Normal maps (Liu 2011 §5)", self.normalmap_view))
+        self._normalmap_tab = len(self.tabs) - 1
+        self.tabs.param.watch(lambda e: setattr(self.normalmap_view, "active", e.new == self._normalmap_tab), "active")
         self.layout = pn.Row(sidebar, self.tabs, sizing_mode="stretch_both")
 
     # -- events -----------------------------------------------------------------------------
@@ -181,7 +191,8 @@ class DashboardApp:
             return
         try:
             msg = self.s.add_upload(self.w_upload.filename, self.w_upload.value)
-            self._notify("info", msg)
+            if not self.s.error:  # selecting it may already have failed to load: keep that error in view
+                self._notify("info", msg)
         except ValueError as e:
             self._notify("error", str(e))
 
@@ -190,6 +201,7 @@ class DashboardApp:
         self.curves.set_time(t)
         self.diag.set_time(t)
         self._sync_edit_value()
+        self.normalmap_view.update(self.s.snapshot, event.new)
 
     def _seek(self, time_s: float):
         snap = self.s.snapshot
@@ -202,9 +214,10 @@ class DashboardApp:
         return float(times[min(frame, len(times) - 1)]) if times is not None and len(times) else 0.0
 
     def _notify(self, kind: str, msg: str):
+        """Errors and notices as a banner at the top of the page (never a stack trace)."""
         log.info("%s: %s", kind, msg)
-        if pn.state.notifications is not None:
-            getattr(pn.state.notifications, kind)(msg, duration=8000 if kind == "error" else 4000)
+        self.w_alert.param.update(object=f"**{'Error' if kind == 'error' else 'Note'}:** {html.escape(msg)}",
+                                  alert_type="danger" if kind == "error" else "info", visible=True)
 
     # -- edits ------------------------------------------------------------------------------
     def _on_edit_shape(self, event=None):
@@ -262,12 +275,12 @@ class DashboardApp:
     def refresh(self):
         """Recompute what is stale and redraw; errors become notifications."""
         ok = self.s.recompute()
+        if ok:
+            self.w_alert.visible = False
         if not ok:
             self._notify("error", self.s.error)
             self.w_summary.object = f"⚠ {html.escape(self.s.error)}"
             return
-        for w in self.s.snapshot.get("warnings", [])[:3]:
-            self._notify("warning", w)
         self._draw()
 
     def _draw(self):
@@ -294,8 +307,12 @@ class DashboardApp:
             f"**{ev['marker_rms_mm']:.2f} mm** (max {ev['marker_max_mm']:.1f}) · velocity error "
             f"{ev['velocity_error_total']:.3g} mm² · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
             f"({100 * ev['outside_01']:.1f}% outside 0..1)")
+        notes = list(dict.fromkeys(snap.get("warnings", [])))  # data-quality notes stay on the page, not as toasts
+        if notes:
+            self.w_summary.object += "\n\n" + "\n".join(f"ℹ {html.escape(n)}" for n in notes[:4])
         rows = "".join(f"<tr><td>{k}</td><td style='text-align:right'>{v:.1f} ms</td></tr>" for k, v in snap["timings"].items() if v > 0.05)
         self.transfer_view.update(snap)
+        self.normalmap_view.update(snap, self.w_frame.value)
         self.w_timings.object = (f"<table style='font-size:0.85em;width:100%'>{rows}<tr><td><b>server total</b></td>"
                                  f"<td style='text-align:right'><b>{snap['server_ms']:.1f} ms</b></td></tr></table>")
 
@@ -373,8 +390,7 @@ class DashboardApp:
 
 
 def create_app():
-    pn.extension(notifications=True, raw_css=[CSS])
-    pn.state.notifications.position = "top-right" if pn.state.notifications is not None else None
+    pn.extension(raw_css=[CSS])
     app = DashboardApp()
     return app.layout
 

@@ -128,7 +128,7 @@ class Session(param.Parameterized):
                 return True
             except Exception as e:  # shown as a notification; the trace goes to the log only
                 log.warning("recompute failed: %s", traceback.format_exc())
-                self.error = _readable(e)
+                self.error = _readable(e).replace(str(self.upload_dir) + "/", "")  # uploads by their own name
                 self.status = "error: " + self.error
                 return False
             finally:

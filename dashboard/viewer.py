@@ -9,7 +9,10 @@ What travels, and when (measured numbers in ``docs/viewer.md``):
   by all viewers with the same ``sync_group``; the group's first viewer writes ``frame`` back
   to Python at most every ``sync_interval`` seconds (0: only when playback stops);
 * scrubbing from Python: ``frame`` (one int), or ``weights`` (K floats) to show a pose that is
-  not on the track (a solver preview).
+  not on the track (a solver preview);
+* a texture-space normal map (optional): ``uvs`` (V, 2) float32 once, ``normal_map`` (H, W, 3)
+  uint8 whenever it changes (H*W*3 bytes, binary), e.g. Liu et al. 2011 §5's per-frame blended
+  map on a decimated mesh (``dashboard.normalmap_view``).
 
 The browser computes, per frame, ``mesh = neutral + sum_k w_k deltas[k]``: on the GPU as three.js
 morph targets (``morphAttributes.position`` with ``morphTargetsRelative``; WebGL2 keeps all K
@@ -17,7 +20,8 @@ targets in a texture, so there is no 8-target limit), or in JS over the non-zero
 the WebGL is software (``blend="auto"``: SwiftShader runs the vertex shader on the CPU, and the
 generic morph shader fetches all K targets per vertex). Normals are blended the same way from
 per-shape normal deltas the browser computes on load; markers are the layout's barycentric
-points on the morphed mesh. Python only packs arrays here.
+points on the morphed mesh. With a normal map, the fragment normal is read from the map
+instead (``MeshStandardMaterial.normalMap``, object or tangent space). Python only packs arrays here.
 """
 
 from __future__ import annotations
@@ -97,6 +101,9 @@ class MeshViewer(pn.custom.JSComponent):
     mesh_color = param.Color(default="#d8b49c")
     background_color = param.Color(default="#2b2f36")
     margin_factor = param.Number(default=1.12, bounds=(0.2, 10), doc="Camera framing: 1 = bbox touches the edges.")
+    frame_bounds = param.List(
+        default=[], doc="[xmin, ymin, zmin, xmax, ymax, zmax] (metres) to frame the camera on instead of the "
+                        "neutral's bounding box, so views of different meshes of one head line up pixel for pixel.")
     label = param.String(default="", doc="Overlay text and key of the browser-side stats.")
     blend = param.Selector(
         default="auto", objects=["auto", "gpu", "cpu"],
@@ -122,6 +129,21 @@ class MeshViewer(pn.custom.JSComponent):
     highlight = param.List(default=[], item_type=int, doc="Vertex ids drawn as small spheres on the morphed mesh.")
     highlight_radius = param.Number(default=0.012, bounds=(0, None), doc="Highlight sphere radius / rig size.")
     highlight_color = param.Color(default="#ffd400")
+    uvs = param.Array(
+        default=None,
+        doc="(V, 2) float32 texture coordinates of `normal_map`, in [0, 1] of the image: u along "
+            "columns, v along rows, (0, 0) the top-left corner = first row of the array (glTF's "
+            "convention; the texture is uploaded with flipY = false). Sent once.")
+    normal_map = param.Array(
+        default=None,
+        doc="(H, W, 3) uint8 RGB normal map, n = 2 rgb / 255 - 1 (see `encode_normal_map`); None: "
+            "the blended vertex normals. Needs `uvs`. Forces per-pixel standard shading (the "
+            "per-vertex 'fast' shader has no per-pixel normal). Sent whenever it changes.")
+    normal_map_space = param.Selector(
+        default="object", objects=["object", "tangent"],
+        doc="object: the map holds normals in the mesh's own frame (three.js ObjectSpaceNormalMap), "
+            "what core.normalmap bakes; tangent: a tangent-space map (frame from screen-space "
+            "derivatives of the UVs).")
 
     _esm = _STATIC / "viewer.js"
 
@@ -135,7 +157,8 @@ class MeshViewer(pn.custom.JSComponent):
 
     # -- construction --------------------------------------------------------------------
     @classmethod
-    def from_rig(cls, rig, track=None, fps: float = 30.0, layout=None, marker_track=None, colors=None, **params) -> "MeshViewer":
+    def from_rig(cls, rig, track=None, fps: float = 30.0, layout=None, marker_track=None, colors=None,
+                 uvs=None, normal_map=None, **params) -> "MeshViewer":
         """A viewer for ``rig`` playing ``track``.
 
         Parameters
@@ -152,6 +175,11 @@ class MeshViewer(pn.custom.JSComponent):
             Marker positions per frame in metres (e.g. captured markers), instead of ``layout``.
         colors : (V, 3) array_like, optional
             Per-vertex RGB in [0, 1].
+        uvs : (V, 2) array_like, optional
+            Texture coordinates of ``normal_map`` in [0, 1] of the image (see :attr:`uvs`);
+            not ``rig.uvs``, whose UDIM range need not be [0, 1].
+        normal_map : (H, W, 3) uint8, optional
+            RGB-encoded normals (:func:`encode_normal_map`); needs ``uvs``.
         **params
             Any other parameter (``label``, ``sync_group``, ``height`` ...).
 
@@ -184,6 +212,12 @@ class MeshViewer(pn.custom.JSComponent):
             values["marker_track"] = _f32(marker_track, "marker_track", (None, None, 3))
         if colors is not None:
             values["colors"] = cls._colors(colors, V)
+        if uvs is not None:
+            values["uvs"] = cls._uvs(uvs, V)
+        if normal_map is not None:
+            if uvs is None:
+                raise ValueError("normal_map: needs uvs (V, 2), the texture coordinates to read it with")
+            values["normal_map"] = cls._normal_map(normal_map)
         values.update(params)
         return cls(**values)
 
@@ -202,6 +236,22 @@ class MeshViewer(pn.custom.JSComponent):
         if c.min() < 0 or c.max() > 1:
             raise ValueError(f"colors: expected RGB in [0, 1], got range [{c.min():.3g}, {c.max():.3g}]")
         return c
+
+    @staticmethod
+    def _uvs(uvs, V: int) -> np.ndarray:
+        return _f32(uvs, "uvs", (V, 2))
+
+    @staticmethod
+    def _normal_map(image) -> np.ndarray:
+        img = np.asarray(image)
+        if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
+            raise ValueError(f"normal_map: expected an (H, W, 3) RGB image, got shape {img.shape}")
+        if img.dtype != np.uint8:
+            raise ValueError(f"normal_map: expected uint8 RGB (encode unit normals with encode_normal_map), got {img.dtype}")
+        if max(img.shape[:2]) > 8192:
+            raise ValueError(f"normal_map: {img.shape[1]}x{img.shape[0]} exceeds 8192 texels per side, more than WebGL "
+                             "guarantees; bake at a lower resolution")
+        return np.ascontiguousarray(img)
 
     @property
     def n_shapes(self) -> int:
@@ -260,14 +310,48 @@ class MeshViewer(pn.custom.JSComponent):
             raise ValueError(f"highlight: vertex ids must lie in [0, {V}), got {bad[:10]}")
         self.highlight = ids
 
+    def set_uvs(self, uvs) -> None:
+        """Texture coordinates (V, 2) of the normal map in [0, 1] of the image, or None.
+        Raises ValueError for another V or NaN."""
+        V = 0 if self.neutral is None else len(self.neutral)
+        self.uvs = None if uvs is None else self._uvs(uvs, V)
+
+    def set_normal_map(self, image) -> None:
+        """Show an (H, W, 3) uint8 RGB normal map (n = 2 rgb/255 - 1), or None for the vertex
+        normals. Only the image travels (H·W·3 bytes, binary). Raises ValueError for another
+        shape or dtype, or when :attr:`uvs` is not set."""
+        if image is None:
+            self.normal_map = None
+            return
+        if self.uvs is None:
+            raise ValueError("normal_map: set uvs (V, 2) first, the texture coordinates to read it with")
+        self.normal_map = self._normal_map(image)
+
     def payload_bytes(self) -> dict:
-        """Bytes of each array sent on load (float32/uint32 buffers), and their total."""
+        """Bytes of each array sent on load (float32/uint32/uint8 buffers), and their total."""
         out = {}
-        for k in ("neutral", "faces", "deltas", "track", "marker_vertices", "marker_weights", "marker_track", "colors"):
+        for k in ("neutral", "faces", "deltas", "track", "marker_vertices", "marker_weights", "marker_track", "colors",
+                  "uvs", "normal_map"):
             v = getattr(self, k)
             out[k] = 0 if v is None else int(v.nbytes)
         out["total"] = sum(out.values())
         return out
+
+
+def encode_normal_map(normals) -> np.ndarray:
+    """RGB bytes of unit normals for :attr:`MeshViewer.normal_map`: (..., 3) -> (..., 3) uint8.
+
+    ``rgb = round(255 (n + 1) / 2)``, the inverse of the shader's ``n = 2 rgb / 255 - 1`` (up
+    to 1/255). Components are clipped to [-1, 1]; zero vectors (texels no triangle covers)
+    come out as (128, 128, 128), i.e. no direction: fill them before display. Raises
+    ValueError for a last axis other than 3 or NaN.
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    if n.ndim < 1 or n.shape[-1] != 3:
+        raise ValueError(f"normals: expected shape (..., 3), got {n.shape}")
+    if not np.isfinite(n).all():
+        raise ValueError("normals: contain NaN/inf")
+    return np.rint((np.clip(n, -1, 1) + 1) * 127.5).astype(np.uint8)
 
 
 def error_colors(values, vmax: float | None = None) -> np.ndarray:

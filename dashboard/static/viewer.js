@@ -18,6 +18,10 @@
 //          (computed here once, so normals cost no payload).
 // Markers: p_m = sum_j b_mj (neutral[v_mj] + sum_k w_k delta_k[v_mj]) on the CPU for the
 //          M layout markers (M*3*K multiply-adds per frame), or a (T,M,3) marker track.
+// Normal map (optional): uvs (V,2) f32 once, normal_map (H,W,3) u8 when it changes, decoded
+//          n = 2 rgb/255 - 1 by three's MeshStandardMaterial (ObjectSpaceNormalMap by default:
+//          the map's normal replaces the vertex normal per pixel). A normal map forces the
+//          standard material, also when shading is "fast" (per-vertex lighting cannot use it).
 // Picking (pick_mode "vertex"): a three.js Raycaster against the mesh as shown (cpu blend:
 //          the blended buffer; gpu: three's raycast applies the morph influences on the
 //          CPU), then the hit triangle's vertex nearest to the hit point, its position
@@ -280,6 +284,7 @@ class Viewer {
     this.buildDom();
     this.buildScene();
     this.setGeometry();
+    this.setNormalMap();
     this.setMarkers();
     this.setHighlight();
     this.clock = clockFor(model.sync_group);
@@ -341,29 +346,8 @@ class Viewer {
       this.camera.add(light.target);
       light.target.position.set(0, 0, 0);
     }
-    if (this.shading === "fast") {
-      const ground = new THREE.Color(LIGHTS.ground).multiplyScalar(LIGHTS.sky);
-      this.material = new THREE.ShaderMaterial({
-        vertexShader: FAST_VERTEX,
-        fragmentShader: FAST_FRAGMENT,
-        // back faces culled: ~25% less work under SwiftShader; a look into the open neck
-        // from below shows through (the standard shading draws both sides)
-        side: THREE.FrontSide,
-        uniforms: {
-          uAlbedo: { value: new THREE.Color(m.mesh_color) },
-          uSky: { value: new THREE.Color(0xffffff).multiplyScalar(LIGHTS.sky) },
-          uGround: { value: ground },
-          uKeyDir: { value: new THREE.Vector3(...LIGHTS.keyDir).normalize() },
-          uKey: { value: new THREE.Color(0xffffff).multiplyScalar(LIGHTS.key) },
-          uFillDir: { value: new THREE.Vector3(...LIGHTS.fillDir).normalize() },
-          uFill: { value: new THREE.Color(0xffffff).multiplyScalar(LIGHTS.fill) },
-        },
-      });
-      this.material.color = this.material.uniforms.uAlbedo.value; // same API as the standard one
-    } else {
-      this.material = new THREE.MeshStandardMaterial({ color: m.mesh_color, roughness: 0.65,
-                                                       metalness: 0.0, side: THREE.DoubleSide });
-    }
+    this.normalTexture = null;
+    this.material = this.makeMaterial(this.materialKind());
     this.markerMaterial = new THREE.MeshBasicMaterial({ color: m.marker_color });
     this.highlightMaterial = new THREE.MeshBasicMaterial({ color: m.highlight_color });
     // drag preview: a line from the start point to the pointer, drawn over the mesh
@@ -380,6 +364,111 @@ class Viewer {
     this.scene.add(this.dragLine, this.dragEnd);
   }
 
+  // "fast" (per-vertex Lambert) unless shading is "standard" or a normal map is shown: the
+  // per-vertex shader has no per-pixel normal to read a map into.
+  materialKind() {
+    return this.shading === "standard" || (this.normalTexture && this.hasUvs) ? "standard" : "fast";
+  }
+
+  makeMaterial(kind) {
+    const THREE = this.THREE;
+    const m = this.model;
+    let material;
+    if (kind === "fast") {
+      const ground = new THREE.Color(LIGHTS.ground).multiplyScalar(LIGHTS.sky);
+      material = new THREE.ShaderMaterial({
+        vertexShader: FAST_VERTEX,
+        fragmentShader: FAST_FRAGMENT,
+        // back faces culled: ~25% less work under SwiftShader; a look into the open neck
+        // from below shows through (the standard shading draws both sides)
+        side: THREE.FrontSide,
+        uniforms: {
+          uAlbedo: { value: new THREE.Color(m.mesh_color) },
+          uSky: { value: new THREE.Color(0xffffff).multiplyScalar(LIGHTS.sky) },
+          uGround: { value: ground },
+          uKeyDir: { value: new THREE.Vector3(...LIGHTS.keyDir).normalize() },
+          uKey: { value: new THREE.Color(0xffffff).multiplyScalar(LIGHTS.key) },
+          uFillDir: { value: new THREE.Vector3(...LIGHTS.fillDir).normalize() },
+          uFill: { value: new THREE.Color(0xffffff).multiplyScalar(LIGHTS.fill) },
+        },
+      });
+      material.color = material.uniforms.uAlbedo.value; // same API as the standard one
+    } else {
+      material = new THREE.MeshStandardMaterial({ color: m.mesh_color, roughness: 0.65,
+                                                  metalness: 0.0, side: THREE.DoubleSide });
+    }
+    material.userData.kind = kind;
+    return material;
+  }
+
+  // Swap the material when its kind changes (normal map on/off under "fast" shading), then
+  // attach or detach the normal map.
+  updateMaterial() {
+    const THREE = this.THREE;
+    const kind = this.materialKind();
+    if (this.material.userData.kind !== kind) {
+      const old = this.material;
+      this.material = this.makeMaterial(kind);
+      if (this.mesh) this.mesh.material = this.material;
+      old.dispose();
+      this.setColors();
+    }
+    if (kind !== "standard") return;
+    const tex = this.normalTexture && this.hasUvs ? this.normalTexture : null;
+    const type = this.model.normal_map_space === "tangent" ? THREE.TangentSpaceNormalMap : THREE.ObjectSpaceNormalMap;
+    if (this.material.normalMap !== tex || this.material.normalMapType !== type) {
+      this.material.normalMap = tex;
+      this.material.normalMapType = type;
+      this.material.needsUpdate = true;
+    }
+  }
+
+  // uvs (V, 2) as the geometry's "uv" attribute (the normal map's channel 0)
+  setUvs(geom) {
+    const THREE = this.THREE;
+    geom = geom || (this.mesh && this.mesh.geometry);
+    if (!geom) return;
+    const uv = this.model.uvs;
+    this.hasUvs = uv != null && rows(uv) === this.V && this.V > 0;
+    if (this.hasUvs) geom.setAttribute("uv", new THREE.BufferAttribute(asF32(uv), 2));
+    else if (geom.getAttribute("uv")) geom.deleteAttribute("uv");
+  }
+
+  // normal_map (H, W, 3) uint8 -> an RGBA DataTexture (WebGL2 has no RGB8 upload in three r187).
+  // Row 0 of the array is v = 0 (flipY false): glTF's top-left UV origin, core.normalmap's layout.
+  // A map of the same size reuses its texture (re-uploaded on change, no new GL object).
+  setNormalMap() {
+    const THREE = this.THREE;
+    const nm = this.model.normal_map;
+    const t = performance.now();
+    if (nm == null || !rows(nm) || !nm.shape || nm.shape.length !== 3 || nm.shape[2] !== 3) {
+      if (this.normalTexture) this.normalTexture.dispose();
+      this.normalTexture = null;
+    } else {
+      const H = nm.shape[0], W = nm.shape[1], n = W * H;
+      let tex = this.normalTexture;
+      if (!tex || tex.image.width !== W || tex.image.height !== H) {
+        if (tex) tex.dispose();
+        tex = new THREE.DataTexture(new Uint8Array(4 * n), W, H, THREE.RGBAFormat, THREE.UnsignedByteType);
+        tex.flipY = false;
+        tex.colorSpace = THREE.NoColorSpace; // vectors, not colours: no sRGB decode
+        tex.magFilter = THREE.LinearFilter;
+        tex.minFilter = THREE.LinearMipmapLinearFilter;
+        tex.generateMipmaps = true;
+        tex.wrapS = tex.wrapT = THREE.ClampToEdgeWrapping;
+        this.normalTexture = tex;
+      }
+      const out = tex.image.data;
+      for (let i = 0, j = 0; i < n; i++, j += 3) {
+        out[4 * i] = nm[j]; out[4 * i + 1] = nm[j + 1]; out[4 * i + 2] = nm[j + 2]; out[4 * i + 3] = 255;
+      }
+      tex.needsUpdate = true;
+      this.stats.normalMapUpdates = (this.stats.normalMapUpdates || 0) + 1;
+    }
+    this.stats.normalMapMs = performance.now() - t;
+    this.updateMaterial();
+  }
+
   setGeometry() {
     const THREE = this.THREE;
     const m = this.model;
@@ -391,7 +480,7 @@ class Viewer {
     const V = rows(m.neutral);
     this.V = V;
     this.K = V ? rows(m.deltas) : 0;
-    if (!V) { this.nFrames = 1; return; }
+    if (!V) { this.nFrames = 1; this.hasUvs = false; return; }
     const pos = asF32(m.neutral);
     const faces = asU32(m.faces);
     const geom = new THREE.BufferGeometry();
@@ -444,6 +533,7 @@ class Viewer {
       geom.setAttribute("normal", na);
     }
     this.setColors(geom);
+    this.setUvs(geom);
     // frame the neutral: three's computeBoundingBox also adds every morph target's delta box
     geom.boundingBox = new THREE.Box3().setFromBufferAttribute(geom.getAttribute("position"));
     geom.boundingSphere = geom.boundingBox.getBoundingSphere(new THREE.Sphere());
@@ -451,6 +541,7 @@ class Viewer {
     this.mesh.frustumCulled = false; // the bounding box is the neutral's; morphs move outside it
     if (this.K && this.blend === "gpu") this.mesh.updateMorphTargets();
     this.scene.add(this.mesh);
+    this.updateMaterial();
     this.bbox = geom.boundingBox.clone();
     this.size = this.bbox.min.distanceTo(this.bbox.max);
     this.setTrack();
@@ -808,13 +899,16 @@ class Viewer {
     this.fitCamera();
   }
 
-  // Frame the neutral's bounding box seen from the front (+Z), then apply the group's
+  // Frame the neutral's bounding box (or frame_bounds) seen from the front (+Z), then apply the group's
   // orbit (azimuth, elevation), zoom and pan; pan is in units of the box height.
   fitCamera() {
     if (!this.bbox || !this.width) return;
     const THREE = this.THREE;
-    const c = this.bbox.getCenter(new THREE.Vector3());
-    const s = this.bbox.getSize(new THREE.Vector3());
+    const fb = this.model.frame_bounds;
+    const box = fb && fb.length === 6 && fb.every(Number.isFinite)
+      ? new THREE.Box3(new THREE.Vector3(fb[0], fb[1], fb[2]), new THREE.Vector3(fb[3], fb[4], fb[5])) : this.bbox;
+    const c = box.getCenter(new THREE.Vector3());
+    const s = box.getSize(new THREE.Vector3());
     const tanY = Math.tan((this.camera.fov * Math.PI) / 360);
     const tanX = tanY * this.camera.aspect;
     const margin = this.model.margin_factor;
@@ -948,11 +1042,14 @@ class Viewer {
     m.on("marker_color", () => { this.markerMaterial.color.set(m.marker_color); this.requestRender(); });
     m.on(["colors", "mesh_color"], () => { this.setColors(); this.requestRender(); });
     m.on("background_color", () => { this.scene.background.set(m.background_color); this.requestRender(); });
-    m.on("margin_factor", () => this.fitCamera());
+    m.on(["margin_factor", "frame_bounds"], () => this.fitCamera());
     m.on(["highlight", "highlight_radius"], () => { this.setHighlight(); this.requestRender(); });
     m.on("highlight_color", () => {
       this.highlightMaterial.color.set(m.highlight_color); this.dragMaterial.color.set(m.highlight_color); this.requestRender();
     });
+    m.on("uvs", () => { this.setUvs(); this.updateMaterial(); this.requestRender(); });
+    m.on("normal_map", () => { this.setNormalMap(); this.requestRender(); });
+    m.on("normal_map_space", () => { this.updateMaterial(); this.requestRender(); });
     m.on("pick_mode", () => { this.canvas.style.cursor = m.pick_mode === "vertex" ? "crosshair" : ""; });
     m.on("remove", () => this.dispose());
   }
@@ -1030,6 +1127,11 @@ class Viewer {
         maxTextureSize: this.renderer.capabilities.maxTextureSize,
         revision: this.THREE.REVISION,
         blend: this.blend, shading: this.shading, software: this.software,
+        material: this.material.userData.kind,
+        normalMap: this.material.normalMap ? { width: this.material.normalMap.image.width, height: this.material.normalMap.image.height,
+                                               space: this.model.normal_map_space, updates: this.stats.normalMapUpdates || 0,
+                                               ms: this.stats.normalMapMs } : null,
+        uvs: Boolean(this.hasUvs),
         V: this.V, K: this.K, M: this.M, T: this.nFrames,
         width: this.width, height: this.height,
         normalsMs: this.stats.normalsMs,
@@ -1046,6 +1148,7 @@ class Viewer {
     if (this.mesh) this.mesh.geometry.dispose();
     if (this.markers) this.markers.geometry.dispose();
     this.material.dispose();
+    if (this.normalTexture) this.normalTexture.dispose();
     this.markerMaterial.dispose();
     if (this.highlights) this.highlights.geometry.dispose();
     this.highlightMaterial.dispose();
