@@ -288,7 +288,7 @@ class Pipeline:
                   active=lambda: method() == "local"),
             Stage("prior", self.prior, ("personalize",), S.run_prior,
                   active=lambda: method() in S.PRIOR_METHODS),
-            Stage("solve", self.solve, ("load", "stabilize", "personalize", "segment", "prior"), S.run_solve,
+            Stage("solve", self.solve, ("load", "stabilize", "calibrate", "personalize", "segment", "prior"), S.run_solve,
                   relevant=lambda s: ("method",) + METHOD_PARAMS[s.method]),
             Stage("edit", self.edit, ("solve", "personalize", "stabilize", "prior", "calibrate"), S.run_edit),
             Stage("synthesize", param.Parameterized(), ("load", "edit", "calibrate"), S.run_synthesize),

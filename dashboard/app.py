@@ -26,6 +26,7 @@ from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
 from dashboard.session import NONE, Session  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
+from dashboard.personalize_view import PersonalizeView  # noqa: E402
 from dashboard.transfer_view import TransferView  # noqa: E402
 from dashboard.viewer import MeshViewer, error_colors  # noqa: E402
 
@@ -48,6 +49,7 @@ STAGE_PARAMS = {
     "stabilize": ["head_motion", "neutral_frame", "first_frame", "last_frame"],
     "calibrate": ["calibrate", "target_shapes", "rbf_smoothing"],
     "segment": ["regions", "min_region_size", "mask_smoothing"],
+    "personalize": ["personalize", "rom", "align_beta", "align_gamma"],
 }
 
 
@@ -65,6 +67,7 @@ class DashboardApp:
         self._build_widgets()
         self.transfer_view = TransferView(self.s)
         self.normalmap_view = NormalMapView(active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
+        self.personalize_view = PersonalizeView()
         self._build_layout()
         self.refresh()
 
@@ -132,6 +135,7 @@ class DashboardApp:
             pn.Param(self.pipe.stabilize, parameters=STAGE_PARAMS["stabilize"], show_name=False, sizing_mode="stretch_width"),
             pn.Param(self.pipe.calibrate, parameters=STAGE_PARAMS["calibrate"], widgets=typed, show_name=False, sizing_mode="stretch_width"),
             title="Source & calibration", collapsed=True, sizing_mode="stretch_width")
+        cards.append(pn.Param(self.pipe.personalize, parameters=STAGE_PARAMS["personalize"], show_name=False, sizing_mode="stretch_width"))
         self.settings_box[:] = cards + [more]
 
     def _build_layout(self):
@@ -175,6 +179,7 @@ class DashboardApp:
         self.tabs.append(("Normal maps (Liu 2011 §5)", self.normalmap_view))
         self._normalmap_tab = len(self.tabs) - 1
         self.tabs.param.watch(lambda e: setattr(self.normalmap_view, "active", e.new == self._normalmap_tab), "active")
+        self.tabs.append(("Actor ROM alignment (Ribera 2017 §4)", self.personalize_view))
         self.layout = pn.Row(sidebar, self.tabs, sizing_mode="stretch_both")
 
     # -- events -----------------------------------------------------------------------------
@@ -313,6 +318,7 @@ class DashboardApp:
         rows = "".join(f"<tr><td>{k}</td><td style='text-align:right'>{v:.1f} ms</td></tr>" for k, v in snap["timings"].items() if v > 0.05)
         self.transfer_view.update(snap)
         self.normalmap_view.update(snap, self.w_frame.value)
+        self.personalize_view.update(snap)
         self.w_timings.object = (f"<table style='font-size:0.85em;width:100%'>{rows}<tr><td><b>server total</b></td>"
                                  f"<td style='text-align:right'><b>{snap['server_ms']:.1f} ms</b></td></tr></table>")
 

@@ -8,7 +8,7 @@ the session snapshot:
 * the cumulative filtered similarity whose peaks are the key expressions (§4.2, Fig. 8),
   with the key frames marked and the selected shape's c̃_kf row on a second axis;
 * the selected shape's RBF initial guess Δg_k (Seol 2012 §3.2) next to the personalised
-  Δp_k, as arrows from the actor's neutral markers (front view, x/y, magnified), the markers
+  Δp_k, as segments from the actor's neutral markers (front view, x/y, magnified), the markers
   coloured by the local-support mask u_k (§4.3), the trust t_k (eq. 6) in the title;
 * the alignment energies (eq. 4, 10, 11, 13) before and after.
 
@@ -23,8 +23,8 @@ import math
 
 import numpy as np
 import panel as pn
-from bokeh.models import (Arrow, BoxAnnotation, ColorBar, ColumnDataSource, CustomJSHover, FixedTicker, HoverTool,
-                          LinearAxis, LinearColorMapper, Range1d, TapTool, VeeHead)
+from bokeh.models import (BoxAnnotation, ColorBar, ColumnDataSource, CustomJSHover, FixedTicker, HoverTool,
+                          LinearAxis, LinearColorMapper, Range1d, TapTool)
 from bokeh.palettes import Viridis256
 from bokeh.plotting import figure
 
@@ -45,13 +45,16 @@ MASK_PALETTE = ("#c6dbef", "#9ecae1", "#6baed6", "#fdae6b", "#fd8d3c", "#e6550d"
 MM = 1e3  # metres inside, millimetres on screen
 
 
-def _default_shape(names, previous):
+def _default_shape(names, previous, similarity, key_frames):
+    """Keep the user's choice; else the shape the key expressions resemble most (the one the
+    alignment pulls hardest), the first on ties."""
     if previous in names:
         return previous
-    for n in names:
-        if n.lower() == "jawopen":
-            return n
-    return names[0] if names else None
+    if not names:
+        return None
+    kf = np.asarray(key_frames, dtype=int)
+    S = np.asarray(similarity)
+    return names[int(np.argmax(S[:, kf].max(axis=1)))] if len(kf) else names[0]
 
 
 class PersonalizeView:
@@ -73,8 +76,8 @@ class PersonalizeView:
         self.header = pn.pane.Markdown("", sizing_mode="stretch_width")
         self.energies = pn.pane.HTML("", sizing_mode="stretch_width")
         self.shape_info = pn.pane.Markdown("", sizing_mode="stretch_width")
-        self.w_shape = pn.widgets.Select(name="Shape (or tap a row of the similarity image)", options=[], width=300)
-        self.w_gain = pn.widgets.FloatSlider(name="Magnification of the deltas", start=1.0, end=20.0, step=0.5, value=3.0,
+        self.w_shape = pn.widgets.Select(label="Shape (or tap a row of the similarity image)", options=[], width=300)
+        self.w_gain = pn.widgets.FloatSlider(label="Magnification of the deltas", start=1.0, end=20.0, step=0.5, value=3.0,
                                              width=260)
         self.w_shape.param.watch(lambda e: self._draw_shape(), "value")
         self.w_gain.param.watch(lambda e: self._draw_shape(), "value")
@@ -139,13 +142,13 @@ class PersonalizeView:
         k = f.scatter("t", "c", source=self.key_source, size=8, color="#d62728", marker="circle",
                       legend_label="key frames (local maxima)")
         f.add_tools(HoverTool(renderers=[k], tooltips=[("key frame", "@frame"), ("time", "@t{0.00} s")]))
-        f.legend.location = "top_left"
+        f.legend.location = "bottom_right"
         f.legend.label_text_font_size = "8pt"
         f.legend.background_fill_alpha = 0.6
         self.cum_fig = f
 
     def _build_markers(self):
-        """Δg_k and Δp_k as arrows from the neutral markers, front view, same axes."""
+        """Δg_k and Δp_k as segments from the neutral markers, front view, same axes."""
         self.mask_mapper = LinearColorMapper(palette=list(MASK_PALETTE), low=0.0, high=1.0)
         x_range, y_range = Range1d(-1, 1), Range1d(-1, 1)
         self.wire_source = ColumnDataSource(data=dict(xs=[], ys=[]))
@@ -167,8 +170,9 @@ class PersonalizeView:
         f.title.text_font_size = "11pt"
         f.multi_line("xs", "ys", source=self.wire_source, line_color="#cccccc", line_width=1)
         f.scatter("x0", "y0", source=source, size=4, color="#888888")
-        f.add_layout(Arrow(source=source, x_start="x0", y_start="y0", x_end="x1", y_end="y1", line_color="#444444",
-                           line_width=1.3, end=VeeHead(size=7, line_color="#444444", fill_color="#444444")))
+        # segments, not Arrow annotations: a zero delta would still draw an arrowhead at every marker;
+        # the direction reads from the small grey neutral dot to the coloured displaced marker
+        f.segment("x0", "y0", "x1", "y1", source=source, line_color="#444444", line_width=1.5)
         r = f.scatter("x1", "y1", source=source, size=9, line_color="#333333",
                       fill_color={"field": "mask", "transform": self.mask_mapper})
         f.add_tools(HoverTool(renderers=[r], tooltips=[("marker", "@name"), ("Δ (mm)", "@dx{0.00}, @dy{0.00}, @dz{0.00}"),
@@ -198,7 +202,8 @@ class PersonalizeView:
             return  # same cached results: nothing to redraw
         self._snap_ref = refs
         self._diag = diag
-        self.names = list(snapshot["target_names"])
+        # the shapes of the (K, M, 3) deltas: the solver's subset of the rig when the snapshot says so
+        self.names = list(snapshot.get("solver_names") or snapshot["target_names"])
         self.marker_names = list(snapshot["marker_names"])
         self._initial = np.asarray(snapshot["calibrated_deltas"])
         self._personal = np.asarray(pers["deltas"])
@@ -210,11 +215,13 @@ class PersonalizeView:
         self._draw_wire(diag)
         self._draw_energies(diag)
         T, K, F = len(times), len(self.names), len(diag.key_frames)
+        left_out = len(snapshot["target_names"]) - K
         self.header.object = (
-            f"**Range-of-motion alignment** (Ribera et al. 2017 §4) of {K} target shapes on {len(self.marker_names)} markers "
+            f"**Range-of-motion alignment** (Ribera et al. 2017 §4) of {K} target shapes"
+            f"{f' ({left_out} move no marker and are left out)' if left_out > 0 else ''} on {len(self.marker_names)} markers "
             f"over {T} frames ({times[-1] - times[0]:.1f} s): {F} key expressions; the **{html.escape(str(snapshot.get('method', '')))}** "
             f"solve uses the personalised shapes.")
-        shape = _default_shape(self.names, self.w_shape.value)
+        shape = _default_shape(self.names, self.w_shape.value, diag.similarity, diag.key_frames)
         self.w_shape.options = self.names
         if self.w_shape.value != shape:
             self.w_shape.value = shape  # draws the shape
@@ -245,8 +252,9 @@ class PersonalizeView:
         """Every n-th shape name on the y axis (all when they fit) plus the selected one."""
         K = len(self.names)
         step = max(1, math.ceil(K * LABEL_PX / (SIM_HEIGHT - 60)))
-        ticks = sorted(set(range(0, K, step)) - set(range(selected - step + 1, selected + step)) | {selected}) \
-            if selected is not None else list(range(0, K, step))
+        # drop the regular labels that would collide with the selected shape's
+        near = set(range(selected - step + 1, selected + step))
+        ticks = sorted((set(range(0, K, step)) - near) | {selected})
         self.sim_ticker.ticks = ticks
         self.sim_fig.yaxis.major_label_overrides = {i: self.names[i] for i in ticks}
 
@@ -291,14 +299,14 @@ class PersonalizeView:
                             y1=P[:, 1] + gain * Dmm[:, 1], dx=Dmm[:, 0], dy=Dmm[:, 1], dz=Dmm[:, 2], mask=mask)
         t_k = float(self._diag.trust[k])
         name = self.names[k]
-        self.initial_fig.title.text = f"RBF initial guess Δg of {name} (Seol 2012 §3.2) · ×{gain:g}"
-        self.personal_fig.title.text = f"Personalised Δp of {name} (Ribera 2017 §4) · ×{gain:g} · trust t = {t_k:.2f}"
+        self.initial_fig.title.text = f"RBF initial guess Δg (Seol 2012 §3.2) ×{gain:g}"
+        self.personal_fig.title.text = f"Personalised Δp (Ribera 2017 §4) ×{gain:g}"
         self.row_source.data = dict(t=self.times, c=np.asarray(self._diag.similarity[k], dtype=float))
         self.row_axis.axis_label = f"c̃ of {name}"
         self.shape_band.update(top=k - 0.5, bottom=k + 0.5, fill_alpha=0.0)
         self._label_ticks(k)
-        self.shape_info.object = (f"**{html.escape(name)}** · trust t = {t_k:.2f} (eq. 6) · marker colour: mask u "
-                                  "(§4.3) · arrows from the actor's neutral, front view")
+        self.shape_info.object = (f"**{html.escape(name)}**: trust t = {t_k:.2f} (eq. 6) · segments from the actor's "
+                                  f"neutral markers, front view, ×{gain:g} · marker colour: mask u (§4.3)")
 
     def __panel__(self):
         return self.layout

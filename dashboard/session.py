@@ -152,7 +152,8 @@ class Session(param.Parameterized):
             "target_layout": ld["target_layout"].select(tm.names), "source_layout": ld["source_layout"].select(tm.names) if ld["source_layout"] else None,
             "evaluate": ev, "segment": res["segment"], "method": self.pipeline.solve.method,
             "personalize": res["personalize"], "calibrated_deltas": tm.calibrated, "raw_deltas": tm.deltas,
-            "solver_names": list(res["calibrate"]["rig"].names),  # the shapes of the (K_solver, M, 3) deltas
+            "solver_names": list(res["calibrate"]["rig"].names),
+            "source_neutral": st.neutral,  # the shapes of the (K_solver, M, 3) deltas
             "solve_info": res["solve"]["info"],
             "timings": {k: v * 1e3 for k, v in self.pipeline.timings.items()}, "warnings": warnings_,
         }
