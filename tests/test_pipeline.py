@@ -112,3 +112,17 @@ def test_target_shape_subset_and_unseen_shapes_stay_zero():
     assert np.abs(W).max() < 2
     pipe.configure(ridge=0.0)
     assert np.abs(pipe.results(["synthesize"])["synthesize"]["weights"]).max() > np.abs(W).max()
+
+
+@pytest.mark.parametrize("method", ["lsq", "bounded", "range_pf", "prior_pf", "spacetime", "local", "geometric"])
+def test_every_method_runs_through_every_stage(method):
+    """Each stage reads only what its declared dependencies give it (a missing dependency is a
+    KeyError here), and every method yields finite weights for all target shapes."""
+    pipe = Pipeline(cache=StageCache(), source=FILES["source"], source_rig=FILES["source_rig"],
+                    target_rig=str(RIGS / "jeeliz_tiger.glb"), method=method, last_frame=59, regions=3,
+                    edits=[{"frame": 30, "weights": {"mouthOpen": 0.5}, "window": [20, 40]}])
+    res = pipe.results()
+    W = res["synthesize"]["weights"]
+    assert W.shape == (60, 11) and np.isfinite(W).all()
+    assert abs(W[30, pipe.results(["load"])["load"]["target_rig"].names.index("mouthOpen")] - 0.5) < 1e-9
+    assert np.isfinite(res["evaluate"]["marker_error_mm"]).all()
