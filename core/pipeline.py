@@ -101,16 +101,16 @@ class SolveSettings(param.Parameterized):
         "spacetime: Seol 2012 movement matching; local: Liu 2011 regions; geometric: Ribera 2017 prior + L1"))
     lower = param.Number(default=0.0, softbounds=(-1, 0), doc="Lower weight bound (bounded)")
     upper = param.Number(default=1.0, softbounds=(1, 2), doc="Upper weight bound (bounded)")
-    alpha = param.Number(default=0.01, bounds=(0, None), softbounds=(0, 1), doc="PCA prior weight alpha (Seol 2012 eq. 4)")
-    beta = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1), doc="Sobolev position weight beta (Seol 2012 §7.1)")
+    alpha = param.Number(default=0.01, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="PCA prior weight alpha (Seol 2012 eq. 4)")
+    beta = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="Sobolev position weight beta (Seol 2012 §7.1)")
     boundary = param.Selector(default="perframe", objects=["perframe", "neutral", "none"], doc=(
         "Spacetime boundary frames: perframe = first/last frame from the Prior PF solution (takes rarely start and end "
         "neutral); neutral = zero weights at both ends as in Seol 2012 §3.1; none = free (needs beta > 0)"))
     ridge = param.Number(default=1e-5, bounds=(0, 1), softbounds=(0, 1e-3), doc=(
         "Relative Tikhonov weight rho / sigma_max(B)^2 on the weights (bounded, range_pf, prior_pf, spacetime): pulls "
         "combinations of shapes the markers barely see (e.g. eye-wide vs look-up vs blink) to zero; 0 = the papers' methods"))
-    mu = param.Number(default=0.3, bounds=(0, None), softbounds=(0, 2), doc="Geometric prior weight mu (Ribera 2017 eq. 16)")
-    lam = param.Number(default=0.6, bounds=(0, None), softbounds=(0, 2), doc="L1 sparsity weight lambda (Ribera 2017 eq. 16)")
+    mu = param.Number(default=0.3, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="Geometric prior weight mu (Ribera 2017 eq. 16)")
+    lam = param.Number(default=0.6, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="L1 sparsity weight lambda (Ribera 2017 eq. 16)")
     constraint = param.Selector(default="simplex", objects=["simplex", "box"], doc=(
         "Local solve constraint: simplex = the paper's convex combination of poses (w >= 0, sum w <= 1 in delta form, "
         "Liu 2011 eq. 2); box = 0 <= w <= 1"))

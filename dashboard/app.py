@@ -160,7 +160,7 @@ class DashboardApp:
                              "matching (Seol 2012 §6).", css_classes=["fr-muted"]),
             self.w_edit_shape, self.w_edit_value, self.w_edit_window,
             pn.Row(self.w_edit_add, self.w_undo, self.w_redo), self.w_edits,
-            title="Edit (spacetime)", collapsed=False, sizing_mode="stretch_width")
+            title="Edit (spacetime propagation, any method)", collapsed=False, sizing_mode="stretch_width")
         views = pn.Row(
             pn.Column(pn.pane.Markdown("**Source**", margin=(0, 10)), self.source_box, sizing_mode="stretch_width"),
             pn.Column(pn.pane.Markdown("**Target**", margin=(0, 10)), self.target_box, sizing_mode="stretch_width"),
@@ -319,6 +319,7 @@ class DashboardApp:
         self.transfer_view.update(snap)
         self.normalmap_view.update(snap, self.w_frame.value)
         self.personalize_view.update(snap)
+        self._sync_edit_value()  # the edit slider shows the new result's weight at this frame
         self.w_timings.object = (f"<table style='font-size:0.85em;width:100%'>{rows}<tr><td><b>server total</b></td>"
                                  f"<td style='text-align:right'><b>{snap['server_ms']:.1f} ms</b></td></tr></table>")
 
