@@ -135,8 +135,10 @@ class DashboardApp:
             pn.Param(self.pipe.stabilize, parameters=STAGE_PARAMS["stabilize"], show_name=False, sizing_mode="stretch_width"),
             pn.Param(self.pipe.calibrate, parameters=STAGE_PARAMS["calibrate"], widgets=typed, show_name=False, sizing_mode="stretch_width"),
             title="Source & calibration", collapsed=True, sizing_mode="stretch_width")
-        cards.append(pn.Param(self.pipe.personalize, parameters=STAGE_PARAMS["personalize"], show_name=False, sizing_mode="stretch_width"))
-        self.settings_box[:] = cards + [more]
+        personal = pn.Card(
+            pn.Param(self.pipe.personalize, parameters=STAGE_PARAMS["personalize"], show_name=False, sizing_mode="stretch_width"),
+            title="Actor personalisation (Ribera 2017)", collapsed=not self.pipe.personalize.personalize, sizing_mode="stretch_width")
+        self.settings_box[:] = cards + [more, personal]
 
     def _build_layout(self):
         sidebar = pn.Column(

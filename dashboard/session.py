@@ -63,7 +63,9 @@ class Session(param.Parameterized):
         self.source = next((k for k in perf if "take_s07" in k), next(iter(perf), None))
         self.source_rig = next((k for k in rigs if k.startswith("ict")), NONE)
         self.target_rig = next((k for k in rigs if k.startswith("rocketbox")), next(iter(rigs), None))
-        self.pipeline.configure(method="spacetime" if _has_spacetime() else "lsq")
+        # the sample's target has 175 shapes of which 52 are ARKit: solving on those gives curves an
+        # animator recognises (a rig without ARKit names keeps all its shapes, see core.stages.solver_shapes)
+        self.pipeline.configure(method="spacetime" if _has_spacetime() else "lsq", target_shapes="arkit")
         self.snapshot: dict = {}
         self._lock = threading.Lock()
         self.upload_dir = Path(tempfile.mkdtemp(prefix="face-retarget-upload-"))
