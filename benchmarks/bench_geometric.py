@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _setup(M=60, noise=2e-4):
-    from core.geometry import vertex_normals
+    from core.geometry import vertex_normals, farthest_points
     from core.io.gltf import read_rig
     from core.names import NameMap
 
@@ -37,13 +37,7 @@ def _setup(M=60, noise=2e-4):
     n = vertex_normals(V, rig.faces)
     cand = np.flatnonzero((V[:, 2] > 0.07) & (n[:, 2] > 0.4) & (V[:, 1] > -0.085) & (V[:, 1] < 0.09))
     P = V[cand]
-    chosen = [int(np.argmax(P[:, 2]))]
-    d = np.linalg.norm(P - P[chosen[0]], axis=1)
-    for _ in range(M - 1):
-        i = int(np.argmax(d))
-        chosen.append(i)
-        d = np.minimum(d, np.linalg.norm(P - P[i], axis=1))
-    idx = cand[chosen]
+    idx = cand[farthest_points(P, M, start=int(np.argmax(P[:, 2])))]
     path = ROOT / "data" / "performances" / "livelinkface_rom.csv"
     header = open(path).readline().strip().split(",")[2:54]
     W = np.genfromtxt(path, delimiter=",", skip_header=1, usecols=range(2, 54))

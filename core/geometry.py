@@ -355,3 +355,31 @@ def boundary_loops(F):
             loops.append(np.array(loop, dtype=np.int64))
     loops.sort(key=len, reverse=True)
     return loops
+
+
+def farthest_points(points, n: int, start: int = 0) -> np.ndarray:
+    """Indices of ``n`` well-spread points by greedy farthest-point sampling from ``start``.
+
+    Each next point maximises its distance to the points chosen so far (Gonzalez 1985, a
+    2-approximation of the k-centre problem). Used to place virtual markers on a mesh.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    n : int, 1 <= n <= N
+    start : index of the first point
+
+    Returns
+    -------
+    (n,) int
+    """
+    P = np.asarray(points, dtype=np.float64)
+    if not 1 <= n <= len(P):
+        raise ValueError(f"farthest_points: n must lie in [1, {len(P)}], got {n}")
+    chosen = [int(start)]
+    d = np.linalg.norm(P - P[chosen[0]], axis=1)
+    for _ in range(n - 1):
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, np.linalg.norm(P - P[i], axis=1))
+    return np.asarray(chosen)

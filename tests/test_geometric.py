@@ -5,7 +5,7 @@ import pytest
 import scipy.sparse as sp
 from scipy.optimize import minimize
 
-from core.geometry import cotangent_laplacian, vertex_normals
+from core.geometry import cotangent_laplacian, vertex_normals, farthest_points
 from core.model import Rig
 from core.names import NameMap
 from core.solvers.geometric import (GeometricSolver, effective_weights, geometric_gram,
@@ -51,13 +51,7 @@ def face_markers(rig, M=60):
     n = vertex_normals(V, rig.faces)
     cand = np.flatnonzero((V[:, 2] > 0.07) & (n[:, 2] > 0.4) & (V[:, 1] > -0.085) & (V[:, 1] < 0.09))
     P = V[cand]
-    chosen = [int(np.argmax(P[:, 2]))]
-    d = np.linalg.norm(P - P[chosen[0]], axis=1)
-    for _ in range(M - 1):
-        i = int(np.argmax(d))
-        chosen.append(i)
-        d = np.minimum(d, np.linalg.norm(P - P[i], axis=1))
-    return cand[chosen]
+    return cand[farthest_points(P, M, start=int(np.argmax(P[:, 2])))]
 
 
 def rom_weights(rig, path=PERFORMANCES / "livelinkface_rom.csv"):

@@ -175,3 +175,12 @@ def test_real_ict_mesh(ict):
     e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
     _, counts = np.unique(e, axis=0, return_counts=True)
     assert n_bd_edges == (counts == 1).sum()
+
+
+def test_farthest_points_on_a_line_and_errors():
+    from core.geometry import farthest_points
+
+    P = np.c_[np.arange(11.0), np.zeros(11), np.zeros(11)]
+    assert list(farthest_points(P, 3, start=0)) == [0, 10, 5]
+    with pytest.raises(ValueError, match="n must lie"):
+        farthest_points(P, 12)
