@@ -16,12 +16,20 @@ ICP is preprocessing and not timed, as in the paper).
 Edit cases (``xu_edit_large_1300f``, ``xu_edit_fine_1300f``) time the propagation of one
 edit over 1,300 frames (:mod:`core.transfer.edit`) against a dense reference solve.
 
+Both sides run with one OpenBLAS thread, as under ``benchmarks/run.py``, the CLI and the
+dashboard (``blas_threads`` in the line): on the shared 2-core machine OpenBLAS's second
+thread spins against the other processes (ours took 41 s of CPU for 43 s wall with two
+threads, 22 s with one).
+
 Run: ``python benchmarks/bench_transfer.py``
 """
 
 from __future__ import annotations
 
 import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads OpenBLAS; as run.py
+
 import time
 from pathlib import Path
 
@@ -96,7 +104,7 @@ def bench_transfer(n_frames=363, n_bases=10):
           f"basis_selection_s={tm['basis_selection']:.3f} transfer_s={tm['transfer']:.3f} "
           f"details_s={tm['details']:.3f} ref_frames_timed={len(idx)} ref_scaled=1 "
           f"rms_vs_ref_mm={err:.3f} motion_rms_mm={motion:.3f} ours_cpu_s={ours_cpu:.3f} ref_cpu_s={ref_cpu:.3f} "
-          f"load1={os.getloadavg()[0]:.1f}", flush=True)
+          f"load1={os.getloadavg()[0]:.1f} blas_threads={os.environ.get('OPENBLAS_NUM_THREADS')}", flush=True)
 
 
 def bench_edits(n_frames=1300):

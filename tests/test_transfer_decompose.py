@@ -211,3 +211,56 @@ def test_screened_poisson_returns_prior_and_matches_dense_solve(tiger):
     assert np.abs(P.displacement(c, prior=y0) - dense).max() < 1e-9 * np.abs(dense).max()
     with pytest.raises(ValueError, match="screening"):
         PoissonReconstructor(Fw, len(S), screening=-1)
+
+
+@pytest.mark.parametrize("screening", [0.0, 0.05])
+def test_poisson_block_solve_matches_dense(screening, tiger):
+    """(V, m) right-hand sides at once (any m, blocks of 16 inside) = dense solves column by column."""
+    wi, rep, Fw = weld(tiger.neutral, tiger.faces)
+    V = len(rep)
+    P = PoissonReconstructor(Fw, V, screening=screening)
+    rng = np.random.default_rng(1)
+    L = P.L.toarray()
+    B = L @ rng.standard_normal((V, 37))  # orthogonal to the constants, as L^+ needs
+    ours = P.solve(B)
+    if screening:
+        ref = np.linalg.solve(L + P.eps * np.eye(V), B)
+        assert P._pinned is None  # the plain factorisation is never built when screened
+    else:
+        # zero mean on every component: with E the (V, C) component indicators, L x = B and
+        # E^T x = 0 is (L + E E^T) x = B (B ⊥ range E), a non-singular dense system
+        E = (P.labels[:, None] == np.arange(P.labels.max() + 1)).astype(float)
+        assert E.shape[1] > 1  # the tiger has several components (eyes, teeth): gauge per component
+        ref = np.linalg.solve(L + E @ E.T, B)
+    assert ours.shape == (V, 37)
+    assert np.abs(ours - ref).max() < 1e-9 * np.abs(ref).max()
+    assert np.allclose(P.solve(np.asfortranarray(B[:, :5])), ours[:, :5], atol=1e-12 * np.abs(ref).max())
+    with pytest.raises(ValueError, match="B"):
+        P.solve(B[:-1])
+
+
+def test_factor_sequence_truncates_like_the_svd():
+    """Eckart–Young: one pass of the float64 Gram picks the best rank-k subspace, so rank and
+    residual equal those of the truncated SVD with the same tolerance (np.linalg.svd reference)."""
+    rng = np.random.default_rng(9)
+    T, V = 40, 300
+    U = np.linalg.qr(rng.standard_normal((T, 12)))[0]
+    W = np.linalg.qr(rng.standard_normal((3 * V, 12)))[0]
+    X = (U * np.geomspace(1.0, 1e-7, 12)) @ W.T  # singular values over 7 decades
+    base = rng.standard_normal((V, 3))
+    seq = base + X.reshape(T, V, 3)
+    size = np.linalg.norm(np.ptp(base, 0))
+    s = np.linalg.svd(X, compute_uv=False)
+    for rtol in (1e-4, 1e-6, 1e-8):
+        tol2 = (rtol * size) ** 2 * T * V
+        tail = np.concatenate([np.cumsum((s ** 2)[::-1])[::-1], [0.0]])
+        k = int(np.argmax(tail <= tol2))
+        fac = factor_sequence(seq, rtol, base=base)
+        assert fac.rank == k, (rtol, fac.rank, k)
+        assert abs(fac.residual_rms - np.sqrt(tail[k] / (T * V))) < 1e-6 * np.sqrt(tail[k] / (T * V)) + 1e-15
+        Q = fac.basis.reshape(k, -1)
+        assert np.abs(Q @ Q.T - np.eye(k)).max() < 1e-12
+    capped = factor_sequence(seq, 1e-12, max_rank=5, base=base)
+    assert capped.rank == 5 and capped.residual_rms > 0
+    with pytest.raises(ValueError, match="NaN"):
+        factor_sequence(np.where(np.arange(T)[:, None, None] == 3, np.nan, seq), 1e-6)

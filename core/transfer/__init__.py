@@ -238,20 +238,26 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     fac = factor_sequence(seq, settings.rank_rtol, base=S0)
     fac = FactoredSequence(fac.base[rep], fac.coeffs, fac.basis[:, rep], fac.residual_rms)
     filt = TaubinFilter(Fw, V, settings.iterations, settings.lam, settings.mu)
-    smooth = fac.map_basis(filt.apply)  # S̄_t = P S_t, P linear
+    # S̄_t = P S_t with P linear: one filter pass over base, basis and T_0 together
+    r = fac.rank
+    block = np.concatenate([fac.base[:, :, None], fac.basis.transpose(1, 2, 0), Tw0[:, :, None]], axis=2)
+    block = filt.apply(block.reshape(V, 3 * (r + 2))).reshape(V, 3, r + 2)
+    smooth = FactoredSequence(block[:, :, 0].copy(), fac.coeffs, block[:, :, 1:r + 1].transpose(2, 0, 1).copy(),
+                              fac.residual_rms)
     Sb0 = smooth.base
-    Tb0 = filt.apply(Tw0)
+    Tb0 = block[:, :, r + 1].copy()
     poisson = PoissonReconstructor(Fw, V, settings.laplacian, Sw0 if settings.laplacian == "cotangent" else None,
                                    settings.detail_screening)
-    Lop = poisson.L
-    coat = FactoredSequence(np.asarray(Lop @ (fac.base - smooth.base)), fac.coeffs,
-                            np.stack([np.asarray(Lop @ (q - qb)) for q, qb in zip(fac.basis, smooth.basis)]) if fac.rank else fac.basis,
-                            fac.residual_rms)
+    # eq. 1 on base and basis: ξ = L (S - S̄), linear, one sparse product for the whole block
+    detail = np.concatenate([(fac.base - smooth.base)[None], fac.basis - smooth.basis])  # (r+1, V, 3)
+    lap = np.asarray(poisson.L @ detail.transpose(1, 2, 0).reshape(V, 3 * (r + 1))).reshape(V, 3, r + 1)
+    coat = FactoredSequence(np.ascontiguousarray(lap[:, :, 0]), fac.coeffs,
+                            np.ascontiguousarray(lap[:, :, 1:].transpose(2, 0, 1)), fac.residual_rms)
     timings["decomposition"] = time.perf_counter() - t
 
     # -- basis selection (eq. 6-7) --------------------------------------------------------
     t = time.perf_counter()
-    Qb = smooth.basis.reshape(smooth.rank, -1)
+    Qb = smooth.basis.reshape(smooth.rank, 3 * V)
     gram = gram_from_factored(fac.coeffs, Qb @ Qb.T)
     sel = select_bases(gram, settings.eps, settings.max_bases, settings.candidates, settings.min_bases)
     src_bases = smooth.frames(sel.frames) if sel.n_bases else np.zeros((0, V, 3))
@@ -272,16 +278,10 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     if settings.details:
         gain = settings.detail_gain if settings.detail_gain is not None else bbox_size(Tw0) / max(bbox_size(Sw0), 1e-300)
         det = DetailTransfer(Fw, poisson, Sb0, coat.base, Tw0, Tb0, gain, settings.rotate_reference_details)
-        Wt = sel.weights
-        dflat = deltas.reshape(len(deltas), -1)
-
-        def target_smooth(idx):
-            w = np.atleast_2d(Wt[idx])
-            return Tb0 + (w @ dflat).reshape(len(w), V, 3)
-
-        y = det.displacements(smooth, coat, target_smooth, n_frames, settings.chunk)
-        y -= det.ref_displacement.astype(np.float32)  # details relative to the neutral T_0
-        details = y[:, wi, :]
+        # T̄_t = T̄_0 + W_t Δ (eq. 8) as a factored sequence; details relative to the neutral
+        # T_0, written straight in the unwelded vertex order
+        target_smooth = FactoredSequence(Tb0, sel.weights, deltas, 0.0)
+        details = det.displacements(smooth, coat, target_smooth, n_frames, settings.chunk, relative=True, vertices=wi)
     timings["details"] = time.perf_counter() - t
 
     unw = lambda a: np.ascontiguousarray(a[..., wi, :])
