@@ -141,13 +141,13 @@ class TransferResult:
         """Smoothed target frames ``T̄_t`` (t, V, 3) (eq. 8)."""
         w = np.atleast_2d(self.weights[idx])
         K, V = self.deltas.shape[:2]
-        return self.target_smooth_ref + (w @ self.deltas.reshape(K, -1)).reshape(len(w), V, 3)
+        return self.target_smooth_ref + (w @ self.deltas.reshape(K, 3 * V)).reshape(len(w), V, 3)
 
     def sequence(self, idx=slice(None)) -> np.ndarray:
         """Full target frames ``T_t`` (t, V, 3) (eq. 5)."""
         w = np.atleast_2d(self.weights[idx])
         K, V = self.deltas.shape[:2]
-        out = self.neutral + (w @ self.deltas.reshape(K, -1)).reshape(len(w), V, 3)
+        out = self.neutral + (w @ self.deltas.reshape(K, 3 * V)).reshape(len(w), V, 3)
         if self.details is not None:
             d = self.details[idx]
             out += d.reshape(out.shape) if d.ndim == 3 else d[None]
