@@ -120,8 +120,7 @@ class DashboardApp:
         s.param.watch(lambda e: self._changed(), ["source", "source_rig", "target_rig"])
         for name, obj in self.pipe.settings_objects.items():
             if name in STAGE_PARAMS:
-                obj.param.watch(lambda e: self._changed(), [p for p in obj.param if p != "name"])
-        self.pipe.solve.param.watch(lambda e: self._build_settings(), "method")
+                obj.param.watch(self._on_setting, [p for p in obj.param if p != "name"])
         self._build_settings()
 
     def _build_settings(self):
@@ -185,6 +184,12 @@ class DashboardApp:
         self.layout = pn.Row(sidebar, self.tabs, sizing_mode="stretch_both")
 
     # -- events -----------------------------------------------------------------------------
+    def _on_setting(self, *events):
+        # a new method shows its own widgets before the (possibly long) recompute starts
+        if any(e.name == "method" for e in events):
+            self._build_settings()
+        self._changed()
+
     def _changed(self):
         if self.s.auto_update:
             self.refresh()
