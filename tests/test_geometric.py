@@ -5,9 +5,10 @@ import pytest
 import scipy.sparse as sp
 from scipy.optimize import minimize
 
-from core.geometry import cotangent_laplacian, vertex_normals, farthest_points
+from core.geometry import cotangent_laplacian
 from core.model import Rig
 from core.names import NameMap
+from datapaths import face_markers
 from core.solvers.geometric import (GeometricSolver, effective_weights, geometric_gram,
                                     laplacian_deltas, solve_geometric)
 from pathlib import Path
@@ -43,15 +44,6 @@ def kkt_violation(solver, frames, W):
     v_on = np.abs(np.where(on, g - c * np.sign(W), 0.0))
     v_off = np.maximum(np.where(on, 0.0, np.abs(g) - c), 0.0)
     return max(v_on.max(), v_off.max()) / c
-
-
-def face_markers(rig, M=60):
-    """Well-spread front-of-face vertices (farthest-point sampling from the nose tip)."""
-    V = rig.neutral
-    n = vertex_normals(V, rig.faces)
-    cand = np.flatnonzero((V[:, 2] > 0.07) & (n[:, 2] > 0.4) & (V[:, 1] > -0.085) & (V[:, 1] < 0.09))
-    P = V[cand]
-    return cand[farthest_points(P, M, start=int(np.argmax(P[:, 2])))]
 
 
 def rom_weights(rig, path=PERFORMANCES / "livelinkface_rom.csv"):

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from core import geometry
-from core.geometry import vertex_normals, farthest_points
 from core.names import NameMap
+from datapaths import face_markers
 from core.personalize import (AlignmentProblem, amplitude, blended_similarity, contact_edges, contrast,
                               cross_expression_laplacian, key_expressions, marker_laplacian,
                               marker_triangulation, personalize, similarity, support_masks, trust)
@@ -17,15 +17,6 @@ DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 # -- helpers --------------------------------------------------------------------------------
-
-def face_markers(rig, M=60):
-    """Well-spread front-of-face vertices (farthest-point sampling from the nose tip)."""
-    V = rig.neutral
-    n = vertex_normals(V, rig.faces)
-    cand = np.flatnonzero((V[:, 2] > 0.07) & (n[:, 2] > 0.4) & (V[:, 1] > -0.085) & (V[:, 1] < 0.09))
-    P = V[cand]
-    return cand[farthest_points(P, M, start=int(np.argmax(P[:, 2])))]
-
 
 def rom_weights(rig):
     path = DATA / "performances" / "livelinkface_rom.csv"
