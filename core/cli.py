@@ -28,8 +28,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 def _transfer(args) -> int:
     """``--method transfer``: dense transfer (Xu 2014) to a rig of new morph targets."""
-    import numpy as np
-
     from .io.curves_csv import write_curves_csv
     from .io.gltf import write_rig
     from .io.performance import read_performance

@@ -24,7 +24,7 @@ from core.evaluate import marker_error_field  # noqa: E402
 from core.pipeline import METHOD_PARAMS  # noqa: E402
 from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
-from dashboard.session import NONE, Session  # noqa: E402
+from dashboard.session import Session  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
 from dashboard.transfer_view import TransferView  # noqa: E402
