@@ -109,10 +109,11 @@ def bench_transfer(n_frames=363, n_bases=10):
 
 def bench_edits(n_frames=1300):
     try:
-        from core.transfer import edit
+        from core.transfer import detail_edit, edit
     except ImportError:
         return
     edit.benchmark(n_frames)
+    detail_edit.benchmark(n_frames)
 
 
 def main():

@@ -1,4 +1,4 @@
-r"""Editing the transferred sequence (Xu et al. 2014 §4.3 eq. 12-15, §5.2 eq. 18-21).
+r"""Large-scale editing of the transferred sequence (Xu et al. 2014 §4.3 eq. 12-15).
 
 Large scale (:class:`LargeScaleEditor`)
     ``min λ_b E_b + λ_w E_w + λ_e E_e`` over the target bases ``b'`` and weights ``w' >= 0``
@@ -21,11 +21,7 @@ Large scale (:class:`LargeScaleEditor`)
     solved by an active-set NNLS on a sparse factorisation. ``λ_b = 0`` updates weights only,
     ``λ_w = 0`` bases only.
 
-Fine scale (:func:`detail_window`, :func:`scale_details`, :func:`propagate_details`)
-    Region selection and the frame window by coating ratio ``μ`` (0.23); a key-frame edit
-    (scaling the details in the region, with a linear fall-off band at its border); and the
-    propagation of eq. 18-21 over the window, solved in the eigenbasis of the region's
-    spatial Laplacian with one tridiagonal (time) solve per eigenmode.
+Fine-scale editing (§5.2, eq. 17-21) is :mod:`.detail_edit`.
 """
 
 from __future__ import annotations
@@ -36,11 +32,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..geometry import uniform_laplacian, vertex_adjacency
 from .deformation import DeformationTransfer
 
-__all__ = ["PointConstraint", "DistanceConstraint", "LargeScaleEditor", "detail_window", "region_near_curve",
-           "scale_details", "propagate_details", "benchmark"]
+__all__ = ["PointConstraint", "DistanceConstraint", "LargeScaleEditor", "benchmark"]
 
 
 @dataclass(frozen=True)
@@ -324,164 +318,13 @@ def _nnls_sparse(Q: sp.csc_matrix, q: np.ndarray, x0: np.ndarray, max_iter: int 
     raise RuntimeError("weights NNLS did not converge in max_iter active-set steps")
 
 
-# -- fine scale --------------------------------------------------------------------------
-
-def region_near_curve(positions, curve, radius: float) -> np.ndarray:
-    """Vertices within ``radius`` of a polyline ``curve`` (m, 3) (§5.2 wrinkle selection)."""
-    p = np.asarray(positions, dtype=np.float64)
-    c = np.asarray(curve, dtype=np.float64)
-    if c.ndim != 2 or c.shape[1] != 3 or len(c) < 1:
-        raise ValueError(f"curve: expected (m, 3) points, got {c.shape}")
-    best = np.full(len(p), np.inf)
-    segs = [(c[i], c[i + 1]) for i in range(len(c) - 1)] or [(c[0], c[0])]
-    for a, b in segs:
-        ab = b - a
-        den = float(ab @ ab)
-        u = np.clip(((p - a) @ ab) / den, 0, 1) if den > 0 else np.zeros(len(p))
-        best = np.minimum(best, np.linalg.norm(p - (a + u[:, None] * ab), axis=1))
-    return np.flatnonzero(best <= radius)
-
-
-def detail_window(coating_norms, region, key_frame: int, mu: float = 0.23) -> tuple[int, int]:
-    r"""Frames ``[t_s, t_e]`` around ``key_frame`` where the region's details are active (§5.2):
-
-    .. math:: \frac{\sum_{v \in P} |\xi^v_t|}{\sum_{v \in P} |\xi^v_{t_k}|} \ge \mu
-
-    Parameters
-    ----------
-    coating_norms : (T, V) magnitudes of the (transferred) detail coating per frame
-    region : (m,) int vertex ids
-    key_frame : int
-    mu : float, the threshold (0.23 in the paper)
-    """
-    s = np.asarray(coating_norms, dtype=np.float64)[:, np.asarray(region)].sum(1)
-    if s[key_frame] <= 0:
-        return key_frame, key_frame
-    ok = s / s[key_frame] >= mu
-    ts = key_frame
-    while ts > 0 and ok[ts - 1]:
-        ts -= 1
-    te = key_frame
-    while te < len(s) - 1 and ok[te + 1]:
-        te += 1
-    return ts, te
-
-
-def scale_details(details, faces, region, factor: float, band: int = 2) -> np.ndarray:
-    """Key-frame edit: details (V, 3) scaled by ``factor`` in ``region`` (0 removes them, >1
-    enhances), blending linearly to 1 over ``band`` rings outside it (§5.2: "linear
-    interpolations between the edited and original coating values")."""
-    d = np.asarray(details, dtype=np.float64)
-    V = len(d)
-    A = vertex_adjacency(np.asarray(faces), V)
-    ring = np.full(V, np.inf)
-    cur = np.zeros(V, dtype=bool)
-    cur[np.asarray(region)] = True
-    ring[cur] = 0
-    for r in range(1, band + 1):
-        nxt = (A @ cur.astype(np.float64)) > 0
-        new = nxt & ~np.isfinite(ring)
-        ring[new] = r
-        cur = cur | nxt
-    s = np.ones(V)
-    inside = np.isfinite(ring)
-    s[inside] = factor + (1 - factor) * ring[inside] / (band + 1)
-    return d * s[:, None]
-
-
-def _thomas_many(lower, diag, upper, rhs):
-    """Solve tridiagonal systems with shared off-diagonals and per-system diagonals.
-
-    diag : (m, n) (one diagonal per system), lower/upper : (n-1,), rhs : (m, n)."""
-    m, n = diag.shape
-    c = np.zeros((m, n))
-    d = np.zeros((m, n))
-    b0 = diag[:, 0]
-    c[:, 0] = (upper[0] / b0) if n > 1 else 0
-    d[:, 0] = rhs[:, 0] / b0
-    for i in range(1, n):
-        den = diag[:, i] - lower[i - 1] * c[:, i - 1]
-        if i < n - 1:
-            c[:, i] = upper[i] / den
-        d[:, i] = (rhs[:, i] - lower[i - 1] * d[:, i - 1]) / den
-    x = np.zeros((m, n))
-    x[:, -1] = d[:, -1]
-    for i in range(n - 2, -1, -1):
-        x[:, i] = d[:, i] - c[:, i] * x[:, i + 1]
-    return x
-
-
-def propagate_details(edit, faces, n_vertices: int, region, window, key_frame: int,
-                      lam_e: float = 1.0, lam_t: float = 0.1, lam_s: float = 1.0) -> np.ndarray:
-    r"""Propagate a key-frame detail edit over the window (Xu et al. 2014 eq. 18-21).
-
-    With ``E_t = D'_t - R(D_t)`` the change of the transferred details (zero outside the
-    region and the window), eq. 18 becomes
-
-    .. math:: \lambda_e\|E_{t_k} - \Delta^*\|^2 + \lambda_t\sum_t (\|d_t E\|^2 + \|d_s E\|^2)
-              + \lambda_s(\|E_{t_s}\|^2 + \|E_{t_e}\|^2)
-
-    with ``Δ* = D*_{t_k} - R(D_{t_k})`` the key-frame edit, ``d_t`` forward differences in time
-    and ``d_s`` differences along mesh edges (edges leaving the region count, with the
-    outside held at zero). The normal matrix is ``T_op ⊗ I + λ_t I ⊗ L_s``; in the eigenbasis
-    of the region Laplacian ``L_s`` it splits into one tridiagonal time system per mode.
-
-    Parameters
-    ----------
-    edit : (m, 3) ``Δ*`` on the region's vertices (in ``region`` order)
-    faces : (F, 3) int, n_vertices : int
-    region : (m,) int
-    window : (t_s, t_e) inclusive, containing ``key_frame``
-    lam_e, lam_t, lam_s : 1, 0.1, 1 in the paper
-
-    Returns
-    -------
-    (t_e - t_s + 1, m, 3) the change ``E_t`` to add to the details in the window.
-
-    Raises
-    ------
-    ValueError
-        ``key_frame`` outside the window or ``edit`` not (m, 3).
-    """
-    region = np.asarray(region, dtype=np.int64)
-    ts, te = int(window[0]), int(window[1])
-    if not ts <= key_frame <= te:
-        raise ValueError(f"key_frame {key_frame} outside window {window}")
-    e = np.asarray(edit, dtype=np.float64)
-    m = len(region)
-    if e.shape != (m, 3):
-        raise ValueError(f"edit: expected ({m}, 3), got {e.shape}")
-    n = te - ts + 1
-    L = uniform_laplacian(np.asarray(faces), n_vertices)
-    Ls = L[region][:, region].toarray()  # Dirichlet: degrees count edges leaving the region
-    mu, Phi = np.linalg.eigh(Ls)
-    # time operator: λ_t * path Laplacian + λ_e at key frame + λ_s at both ends
-    main = np.zeros(n)
-    if n > 1:
-        main[:-1] += 1
-        main[1:] += 1
-    main *= lam_t
-    main[key_frame - ts] += lam_e
-    main[0] += lam_s
-    main[-1] += lam_s
-    off = -lam_t * np.ones(max(n - 1, 0))
-    diag = main[None, :] + lam_t * mu[:, None]  # (m modes, n)
-    coef = Phi.T @ e  # (m, 3)
-    out = np.zeros((n, m, 3))
-    for c in range(3):
-        rhs = np.zeros((m, n))
-        rhs[:, key_frame - ts] = lam_e * coef[:, c]
-        x = _thomas_many(off, diag, off, rhs)  # (m, n)
-        out[:, :, c] = (Phi @ x).T
-    return out
-
-
 def benchmark(n_frames: int = 1300):
     """Print the ``xu_edit_large_1300f`` / ``xu_edit_fine_1300f`` BENCH lines (see benchmarks/)."""
     import time
 
     from ..io.gltf import read_rig
     from ._mesh import weld
+    from .detail_edit import _reference_propagation, propagate_details
     from .decompose import taubin_smooth
     from pathlib import Path
 
@@ -559,20 +402,3 @@ def _reference_weights(ed, deltas, weights, rows, lam_w, lam_e, window, lsq_line
     else:
         x = lsq_linear(A, b, bounds=(0, np.inf), method="trf", tol=1e-12, lsmr_tol="auto", max_iter=5000).x
     return x.reshape(n, K)
-
-
-def _reference_propagation(edit, faces, n_vertices, region, window, key_frame, lam_e=1.0, lam_t=0.1, lam_s=1.0):
-    """Eq. 18-21 assembled as one sparse space-time system and solved directly."""
-    ts, te = window
-    n, m = te - ts + 1, len(region)
-    L = uniform_laplacian(np.asarray(faces), n_vertices)
-    Ls = L[region][:, region]
-    Lt = sp.diags([np.r_[1, 2 * np.ones(n - 2), 1], -np.ones(n - 1), -np.ones(n - 1)], [0, -1, 1])
-    Dt = np.zeros(n)
-    Dt[key_frame - ts] += lam_e
-    Dt[0] += lam_s
-    Dt[-1] += lam_s
-    M = (sp.kron(lam_t * Lt + sp.diags(Dt), sp.identity(m)) + lam_t * sp.kron(sp.identity(n), Ls)).tocsc()
-    rhs = np.zeros((n * m, 3))
-    rhs[(key_frame - ts) * m:(key_frame - ts + 1) * m] = lam_e * edit
-    return spla.splu(M).solve(rhs).reshape(n, m, 3)
