@@ -12,15 +12,20 @@ What travels, and when (measured numbers in ``docs/viewer.md``):
   not on the track (a solver preview);
 * a texture-space normal map (optional): ``uvs`` (V, 2) float32 once, ``normal_map`` (H, W, 3)
   uint8 whenever it changes (H*W*3 bytes, binary), e.g. Liu et al. 2011 §5's per-frame blended
-  map on a decimated mesh (``dashboard.normalmap_view``).
+  map on a decimated mesh (``dashboard.normalmap_view``);
+* per-vertex offsets (optional): ``offsets`` (V, 3) float32 whenever they change (V*3*4 bytes,
+  binary, nothing else with them), e.g. the fine-scale detail (wrinkles) of a dense transfer
+  that the blendshape rig does not hold.
 
-The browser computes, per frame, ``mesh = neutral + sum_k w_k deltas[k]``: on the GPU as three.js
+The browser computes, per frame, ``mesh = neutral + sum_k w_k deltas[k] (+ offsets)``: on the GPU as three.js
 morph targets (``morphAttributes.position`` with ``morphTargetsRelative``; WebGL2 keeps all K
 targets in a texture, so there is no 8-target limit), or in JS over the non-zero weights when
 the WebGL is software (``blend="auto"``: SwiftShader runs the vertex shader on the CPU, and the
 generic morph shader fetches all K targets per vertex). Normals are blended the same way from
 per-shape normal deltas the browser computes on load; markers are the layout's barycentric
-points on the morphed mesh. With a normal map, the fragment normal is read from the map
+points on the morphed mesh. With offsets set, the mesh is blended in JS (also when ``blend`` is
+gpu) and its normals are the exact vertex normals of the offset mesh, so the offsets show in the
+shading. With a normal map, the fragment normal is read from the map
 instead (``MeshStandardMaterial.normalMap``, object or tangent space). Python only packs arrays here.
 """
 
@@ -56,8 +61,9 @@ def _f32(a, what: str, shape: tuple) -> np.ndarray:
 class MeshViewer(pn.custom.JSComponent):
     """A blendshape rig played back with three.js morph targets.
 
-    ``mesh(t) = neutral + sum_k track[t, k] * deltas[k]`` is evaluated in the browser for the
-    frame ``frame`` (or for ``weights`` when those are set); markers, when given, are
+    ``mesh(t) = neutral + sum_k track[t, k] * deltas[k] + offsets`` is evaluated in the browser
+    for the frame ``frame`` (or for ``weights`` when those are set; ``offsets`` only when set,
+    see :meth:`set_offsets`); markers, when given, are
     barycentric points of the morphed mesh ``p_m = sum_j b_mj mesh[v_mj]`` (the
     :class:`core.model.MarkerLayout` convention) or positions from ``marker_track``.
 
@@ -73,7 +79,7 @@ class MeshViewer(pn.custom.JSComponent):
 
     Diagnostics for tests: ``window.__faceRetargetStats.viewers[label]`` counts renders and
     shown/skipped frames; ``window.__faceRetarget.viewers[label]`` offers ``probe(weights)``,
-    ``pixels()``, ``pickAt(x, y)`` and ``camera()`` (see ``docs/viewer.md``).
+    ``pixels()``, ``pickAt(x, y)``, ``vertexPositions(ids)`` and ``camera()`` (see ``docs/viewer.md``).
     """
 
     neutral = param.Array(default=None, doc="(V, 3) float32 rest positions, metres.")
@@ -98,6 +104,16 @@ class MeshViewer(pn.custom.JSComponent):
     marker_color = param.Color(default="#19d3ff")
     show_markers = param.Boolean(default=True)
     colors = param.Array(default=None, doc="(V, 3) float32 per-vertex RGB in [0, 1] (e.g. an error map).")
+    offsets = param.Array(
+        default=None,
+        doc="(V, 3) float32 per-vertex displacement (metres) added to the shown mesh on top of the blend "
+            "(e.g. a dense transfer's wrinkles, which the rig does not hold), or None. One displacement, not "
+            "a track: set it again when the frame changes. Sent alone whenever it changes (V*3*4 bytes); the "
+            "geometry is not resent or rebuilt. While set, the browser blends this mesh in JS even when "
+            "`blend` is gpu (morph targets are swapped out, and back in when cleared), normals are the exact "
+            "area-weighted vertex normals of the displaced mesh (so the offsets show in the shading), and "
+            "picking, highlights and layout markers use the displaced positions. None: the plain blend again, "
+            "exactly as before. Set it with `set_offsets` (validated).")
     mesh_color = param.Color(default="#d8b49c")
     background_color = param.Color(default="#2b2f36")
     margin_factor = param.Number(default=1.12, bounds=(0.2, 10), doc="Camera framing: 1 = bbox touches the edges.")
@@ -158,7 +174,7 @@ class MeshViewer(pn.custom.JSComponent):
     # -- construction --------------------------------------------------------------------
     @classmethod
     def from_rig(cls, rig, track=None, fps: float = 30.0, layout=None, marker_track=None, colors=None,
-                 uvs=None, normal_map=None, **params) -> "MeshViewer":
+                 uvs=None, normal_map=None, offsets=None, **params) -> "MeshViewer":
         """A viewer for ``rig`` playing ``track``.
 
         Parameters
@@ -180,6 +196,8 @@ class MeshViewer(pn.custom.JSComponent):
             not ``rig.uvs``, whose UDIM range need not be [0, 1].
         normal_map : (H, W, 3) uint8, optional
             RGB-encoded normals (:func:`encode_normal_map`); needs ``uvs``.
+        offsets : (V, 3) array_like, optional
+            Per-vertex displacement in metres added after the blend (see :attr:`offsets`).
         **params
             Any other parameter (``label``, ``sync_group``, ``height`` ...).
 
@@ -218,6 +236,8 @@ class MeshViewer(pn.custom.JSComponent):
             if uvs is None:
                 raise ValueError("normal_map: needs uvs (V, 2), the texture coordinates to read it with")
             values["normal_map"] = cls._normal_map(normal_map)
+        if offsets is not None:
+            values["offsets"] = _f32(offsets, "offsets", (V, 3))
         values.update(params)
         return cls(**values)
 
@@ -310,6 +330,21 @@ class MeshViewer(pn.custom.JSComponent):
             raise ValueError(f"highlight: vertex ids must lie in [0, {V}), got {bad[:10]}")
         self.highlight = ids
 
+    def set_offsets(self, offsets) -> None:
+        """Show ``mesh = neutral + sum_k w_k deltas[k] + offsets`` with a (V, 3) per-vertex
+        displacement in metres (e.g. the fine-scale detail of a dense transfer); None clears it
+        and the viewer shows the plain blend exactly as before.
+
+        Only the offsets travel (V*3 float32, binary); the browser recomputes the normals of the
+        displaced mesh, so the offsets show in the shading (see :attr:`offsets`). The input is
+        copied, never modified. Raises ValueError for another shape than (V, 3) or NaN/inf.
+        """
+        if offsets is None:
+            self.offsets = None
+            return
+        V = 0 if self.neutral is None else len(self.neutral)
+        self.offsets = _f32(offsets, "offsets", (V, 3))
+
     def set_uvs(self, uvs) -> None:
         """Texture coordinates (V, 2) of the normal map in [0, 1] of the image, or None.
         Raises ValueError for another V or NaN."""
@@ -328,10 +363,11 @@ class MeshViewer(pn.custom.JSComponent):
         self.normal_map = self._normal_map(image)
 
     def payload_bytes(self) -> dict:
-        """Bytes of each array sent on load (float32/uint32/uint8 buffers), and their total."""
+        """Bytes of each array sent on load (float32/uint32/uint8 buffers), and their total;
+        ``offsets`` travel again (alone) whenever they change."""
         out = {}
         for k in ("neutral", "faces", "deltas", "track", "marker_vertices", "marker_weights", "marker_track", "colors",
-                  "uvs", "normal_map"):
+                  "uvs", "normal_map", "offsets"):
             v = getattr(self, k)
             out[k] = 0 if v is None else int(v.nbytes)
         out["total"] = sum(out.values())

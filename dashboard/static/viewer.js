@@ -16,8 +16,14 @@
 // Normals: n(w) = n0 + sum_k w_k (n_k - n0), renormalised in the shader, with n_k the
 //          area-weighted vertex normals of neutral + delta_k, welded over UV seams
 //          (computed here once, so normals cost no payload).
-// Markers: p_m = sum_j b_mj (neutral[v_mj] + sum_k w_k delta_k[v_mj]) on the CPU for the
-//          M layout markers (M*3*K multiply-adds per frame), or a (T,M,3) marker track.
+// Offsets (optional): offsets (V,3) f32, a per-vertex displacement added after the blend
+//          (fine-scale detail of a dense transfer, not in the rig), sent whenever it changes
+//          and nothing else with it. While set, the mesh is blended in JS (a gpu-blended mesh
+//          swaps its morph targets out for the JS buffers, kept for switching back), and the
+//          normals are the exact area-weighted vertex normals of the final positions, so the
+//          offsets show in the shading. Cleared (null), the previous blend comes back as it was.
+// Markers: p_m = sum_j b_mj (neutral[v_mj] + sum_k w_k delta_k[v_mj] + offset[v_mj]) on the
+//          CPU for the M layout markers (M*3*K multiply-adds per frame), or a (T,M,3) marker track.
 // Normal map (optional): uvs (V,2) f32 once, normal_map (H,W,3) u8 when it changes, decoded
 //          n = 2 rgb/255 - 1 by three's MeshStandardMaterial (ObjectSpaceNormalMap by default:
 //          the map's normal replaces the vertex normal per pixel). A normal map forces the
@@ -25,8 +31,9 @@
 // Picking (pick_mode "vertex"): a three.js Raycaster against the mesh as shown (cpu blend:
 //          the blended buffer; gpu: three's raycast applies the morph influences on the
 //          CPU), then the hit triangle's vertex nearest to the hit point, its position
-//          recomputed here from the weights shown. A click sets `picked`; a drag sets
-//          `dragged` with the end point in the camera plane through the start point.
+//          recomputed here from the weights shown (plus its offset, when offsets are set).
+//          A click sets `picked`; a drag sets `dragged` with the end point in the camera
+//          plane through the start point.
 
 const GROUPS = (window.__faceRetargetGroups = window.__faceRetargetGroups || new Map());
 const REGISTRY = (window.__faceRetarget = window.__faceRetarget || { viewers: {} });
@@ -278,7 +285,9 @@ class Viewer {
     this.lastShown = -1;
     this.pendingRender = null;
     this.override = null; // probe weights (diagnostics), not synced
-    this.stats = { renders: 0, renderMs: 0, framesShown: 0, framesSkipped: 0, t0: performance.now() };
+    this.offsets = null;  // (3V) per-vertex displacement added after the blend, or null
+    this.stats = { renders: 0, renderMs: 0, framesShown: 0, framesSkipped: 0, t0: performance.now(),
+                   geometryBuilds: 0, offsetUpdates: 0 };
     STATS.viewers[this.label] = this.stats;
     this.pickCount = 0;
     this.buildDom();
@@ -474,9 +483,10 @@ class Viewer {
     const m = this.model;
     if (this.mesh) {
       this.scene.remove(this.mesh);
-      this.mesh.geometry.dispose();
+      this.disposeGeometry();
       this.mesh = null;
     }
+    this.gpu = null; this.dynamic = null; this.morphing = false; this.offsets = null;
     const V = rows(m.neutral);
     this.V = V;
     this.K = V ? rows(m.deltas) : 0;
@@ -489,6 +499,8 @@ class Viewer {
     const t = performance.now();
     const weld = weldIds(pos, V);
     const acc = new Float32Array(3 * V);
+    this.faces = faces; this.weld = weld; this.acc = acc; // reused for the normals of offset meshes
+    this.stats.geometryBuilds += 1;
     const n0 = vertexNormals(pos, null, faces, weld, new Float32Array(3 * V), acc);
     geom.setAttribute("normal", new THREE.BufferAttribute(n0, 3));
     const deltas = this.K ? asF32(m.deltas) : new Float32Array(0);
@@ -523,14 +535,15 @@ class Viewer {
       geom.morphAttributes.position = mp;
       geom.morphAttributes.normal = mn;
       geom.morphTargetsRelative = true;
+      // kept to swap back in after the JS blend stood in for them (offsets set)
+      this.gpu = { base: { position: geom.getAttribute("position"), normal: geom.getAttribute("normal") },
+                   morph: { position: mp, normal: mn } };
+      this.morphing = true;
     } else {
       // cpu: own copies the blend writes into every frame
-      const pa = new THREE.BufferAttribute(new Float32Array(pos), 3);
-      const na = new THREE.BufferAttribute(new Float32Array(n0), 3);
-      pa.setUsage(THREE.DynamicDrawUsage);
-      na.setUsage(THREE.DynamicDrawUsage);
-      geom.setAttribute("position", pa);
-      geom.setAttribute("normal", na);
+      const d = this.jsBuffers();
+      geom.setAttribute("position", d.position);
+      geom.setAttribute("normal", d.normal);
     }
     this.setColors(geom);
     this.setUvs(geom);
@@ -539,13 +552,69 @@ class Viewer {
     geom.boundingSphere = geom.boundingBox.getBoundingSphere(new THREE.Sphere());
     this.mesh = new THREE.Mesh(geom, this.material);
     this.mesh.frustumCulled = false; // the bounding box is the neutral's; morphs move outside it
-    if (this.K && this.blend === "gpu") this.mesh.updateMorphTargets();
+    if (this.gpu) this.mesh.updateMorphTargets();
     this.scene.add(this.mesh);
     this.updateMaterial();
     this.bbox = geom.boundingBox.clone();
     this.size = this.bbox.min.distanceTo(this.bbox.max);
     this.setTrack();
+    this.setOffsets();
     this.fitCamera();
+  }
+
+  // The JS blend's dynamic position/normal buffers (created once per geometry).
+  jsBuffers() {
+    if (!this.dynamic) {
+      const THREE = this.THREE;
+      const pa = new THREE.BufferAttribute(new Float32Array(this.neutral), 3);
+      const na = new THREE.BufferAttribute(new Float32Array(this.normal0), 3);
+      pa.setUsage(THREE.DynamicDrawUsage);
+      na.setUsage(THREE.DynamicDrawUsage);
+      this.dynamic = { position: pa, normal: na };
+    }
+    return this.dynamic;
+  }
+
+  // gpu blend only: put the morph targets (and the static neutral) into the geometry, or the
+  // JS blend's buffers in their place. Both sets stay alive, so switching rebuilds nothing
+  // (three keeps its morph texture per geometry and recompiles nothing it has seen before).
+  useMorphTargets(on) {
+    const g = this.gpu;
+    this.morphing = Boolean(g && on);
+    if (!g) return;
+    const geom = this.mesh.geometry;
+    const want = on ? g.base : this.jsBuffers();
+    if (geom.getAttribute("position") === want.position) return;
+    geom.setAttribute("position", want.position);
+    geom.setAttribute("normal", want.normal);
+    if (on) {
+      geom.morphAttributes.position = g.morph.position;
+      geom.morphAttributes.normal = g.morph.normal;
+    } else {
+      delete geom.morphAttributes.position;
+      delete geom.morphAttributes.normal;
+    }
+  }
+
+  // offsets (V, 3) f32 -> this.offsets (or null when unset or of another V). The next
+  // applyFrame re-blends: with offsets in JS (exact normals), without them as before.
+  setOffsets() {
+    const o = this.model.offsets;
+    this.offsets = o != null && this.V > 0 && rows(o) === this.V && o.length === 3 * this.V ? asF32(o) : null;
+    if (this.mesh) this.useMorphTargets(this.offsets === null);
+    this.blended = null;
+    this.stats.offsetUpdates += 1;
+  }
+
+  // Dispose the mesh's geometry with the attribute set swapped out of it (gpu blend).
+  disposeGeometry() {
+    const geom = this.mesh.geometry;
+    if (this.gpu && this.dynamic) {
+      const spare = geom.getAttribute("position") === this.dynamic.position ? this.gpu.base : this.dynamic;
+      geom.setAttribute("sparePosition", spare.position); // only so that dispose() frees their GL buffers
+      geom.setAttribute("spareNormal", spare.normal);
+    }
+    geom.dispose();
   }
 
   setColors(geom) {
@@ -618,7 +687,7 @@ class Viewer {
       const f = Math.min(frame, T - 1);
       P.set(this.markerTrack.subarray(3 * M * f, 3 * M * (f + 1)));
     } else {
-      const N = this.neutral, D = this.deltas, LV = this.layoutV, LW = this.layoutW;
+      const N = this.neutral, D = this.deltas, LV = this.layoutV, LW = this.layoutW, O = this.offsets;
       for (let i = 0; i < M; i++) {
         let x = 0, y = 0, z = 0;
         for (let j = 0; j < 3; j++) {
@@ -626,6 +695,7 @@ class Viewer {
           if (b === 0) continue;
           const v = 3 * LV[3 * i + j];
           let px = N[v], py = N[v + 1], pz = N[v + 2];
+          if (O) { px += O[v]; py += O[v + 1]; pz += O[v + 2]; }
           for (let k = 0; k < K; k++) {
             const wk = w[k];
             if (wk === 0) continue;
@@ -678,11 +748,12 @@ class Viewer {
   }
 
   // -- picking -------------------------------------------------------------------------------
-  // Vertex v as shown now: neutral + sum_k w_k delta_k with the weights of the shown frame
-  // (the cpu blend wrote exactly this into the position buffer; on the gpu it never leaves
-  // the shader, so it is recomputed here from the same weights).
+  // Vertex v as shown now: neutral + sum_k w_k delta_k (+ offset) with the weights of the
+  // shown frame (the JS blend wrote exactly this into the position buffer, in the same order
+  // of float32 operations; on the gpu it never leaves the shader, so it is recomputed here
+  // from the same weights).
   vertexPosition(v, out) {
-    const N = this.neutral, D = this.deltas, w = this.current, V = this.V;
+    const N = this.neutral, D = this.deltas, w = this.current, V = this.V, O = this.offsets;
     let x = N[3 * v], y = N[3 * v + 1], z = N[3 * v + 2];
     for (let k = 0; k < this.K; k++) {
       const wk = w[k];
@@ -690,15 +761,16 @@ class Viewer {
       const o = k * 3 * V + 3 * v;
       x += wk * D[o]; y += wk * D[o + 1]; z += wk * D[o + 2];
     }
+    if (O) { x += O[3 * v]; y += O[3 * v + 1]; z += O[3 * v + 2]; }
     return out.set(x, y, z);
   }
 
   // Bounds of the shown mesh for the raycaster's early-outs (the geometry's own are the
-  // neutral's): exact on the cpu path; on the gpu, the neutral box grown by
+  // neutral's): exact when blended in JS; with morph targets, the neutral box grown by
   // sum_k |w_k| max|delta_k| per axis, which contains every morphed vertex.
   currentBounds() {
     const THREE = this.THREE;
-    if (this.blend !== "gpu" || !this.K) return new THREE.Box3().setFromBufferAttribute(this.mesh.geometry.getAttribute("position"));
+    if (!this.morphing) return new THREE.Box3().setFromBufferAttribute(this.mesh.geometry.getAttribute("position"));
     const grow = [0, 0, 0];
     for (let k = 0; k < this.K; k++) {
       const a = Math.abs(this.current[k]);
@@ -822,7 +894,7 @@ class Viewer {
       if (cur[k] !== x) { cur[k] = x; same = false; }
     }
     if (this.mesh && !same) {
-      if (this.blend === "gpu") {
+      if (this.morphing) {
         const infl = this.mesh.morphTargetInfluences;
         for (let k = 0; k < K; k++) infl[k] = cur[k];
       } else {
@@ -837,19 +909,34 @@ class Viewer {
       (this.override ? "  (probe)" : (this.model.weights && this.model.weights.length ? "  (weights from Python)" : ""));
   }
 
-  // position = neutral + sum_k w_k delta_k, normal = n0 + sum_k w_k dn_k over non-zero w_k
+  // position = neutral + sum_k w_k delta_k, normal = n0 + sum_k w_k dn_k over non-zero w_k;
+  // with offsets: position += offset, normal = the area-weighted vertex normal of the final
+  // positions (exact: blended normal deltas know nothing of the offsets).
   blendCpu(w) {
     const t = performance.now();
     const geom = this.mesh.geometry;
     const pa = geom.getAttribute("position"), na = geom.getAttribute("normal");
-    const P = pa.array, Nn = na.array, D = this.deltas, n3 = 3 * this.V;
+    const P = pa.array, Nn = na.array, D = this.deltas, n3 = 3 * this.V, O = this.offsets;
     P.set(this.neutral);
-    Nn.set(this.normal0);
-    for (let k = 0; k < this.K; k++) {
-      const wk = w[k];
-      if (wk === 0) continue;
-      const d = D.subarray(k * n3, (k + 1) * n3), dn = this.normalDeltas[k];
-      for (let i = 0; i < n3; i++) { P[i] += wk * d[i]; Nn[i] += wk * dn[i]; }
+    if (O) {
+      for (let k = 0; k < this.K; k++) {
+        const wk = w[k];
+        if (wk === 0) continue;
+        const d = D.subarray(k * n3, (k + 1) * n3);
+        for (let i = 0; i < n3; i++) P[i] += wk * d[i];
+      }
+      for (let i = 0; i < n3; i++) P[i] += O[i];
+      const tn = performance.now();
+      vertexNormals(P, null, this.faces, this.weld, Nn, this.acc);
+      this.stats.offsetNormalsMs = performance.now() - tn;
+    } else {
+      Nn.set(this.normal0);
+      for (let k = 0; k < this.K; k++) {
+        const wk = w[k];
+        if (wk === 0) continue;
+        const d = D.subarray(k * n3, (k + 1) * n3), dn = this.normalDeltas[k];
+        for (let i = 0; i < n3; i++) { P[i] += wk * d[i]; Nn[i] += wk * dn[i]; }
+      }
     }
     pa.needsUpdate = true;
     na.needsUpdate = true;
@@ -1049,6 +1136,7 @@ class Viewer {
     });
     m.on("uvs", () => { this.setUvs(); this.updateMaterial(); this.requestRender(); });
     m.on("normal_map", () => { this.setNormalMap(); this.requestRender(); });
+    m.on("offsets", () => { this.setOffsets(); this.applyFrame(this.clock.frame); this.requestRender(); });
     m.on("normal_map_space", () => { this.updateMaterial(); this.requestRender(); });
     m.on("pick_mode", () => { this.canvas.style.cursor = m.pick_mode === "vertex" ? "crosshair" : ""; });
     m.on("remove", () => this.dispose());
@@ -1069,8 +1157,11 @@ class Viewer {
       influences: () => Array.from(this.current || []),
       gpuInfluences: () => Array.from((this.mesh && this.mesh.morphTargetInfluences) || []),
       markerPositions: () => Array.from(this.markerPos || []),
-      // the blended mesh (cpu blend only; on the gpu it never leaves the shader)
-      positions: () => (this.blend === "cpu" && this.mesh ? Array.from(this.mesh.geometry.getAttribute("position").array) : null),
+      // the mesh as shown when it is blended in JS (blend cpu, or offsets set); null while
+      // morph targets blend it on the gpu (it never leaves the shader)
+      positions: () => (!this.morphing && this.mesh ? Array.from(this.mesh.geometry.getAttribute("position").array) : null),
+      normals: () => (!this.morphing && this.mesh ? Array.from(this.mesh.geometry.getAttribute("normal").array) : null),
+      offsets: () => (this.offsets ? Array.from(this.offsets) : null),
       showMarkers: (on) => { if (this.markers) this.markers.visible = on && this.model.show_markers; this.renderNow(); },
       // show probe weights (K floats) or null to go back to the track, render at once
       probe: (w) => {
@@ -1127,6 +1218,7 @@ class Viewer {
         maxTextureSize: this.renderer.capabilities.maxTextureSize,
         revision: this.THREE.REVISION,
         blend: this.blend, shading: this.shading, software: this.software,
+        morphTargets: Boolean(this.morphing), offsets: Boolean(this.offsets),
         material: this.material.userData.kind,
         normalMap: this.material.normalMap ? { width: this.material.normalMap.image.width, height: this.material.normalMap.image.height,
                                                space: this.model.normal_map_space, updates: this.stats.normalMapUpdates || 0,
@@ -1134,7 +1226,8 @@ class Viewer {
         uvs: Boolean(this.hasUvs),
         V: this.V, K: this.K, M: this.M, T: this.nFrames,
         width: this.width, height: this.height,
-        normalsMs: this.stats.normalsMs,
+        normalsMs: this.stats.normalsMs, offsetNormalsMs: this.stats.offsetNormalsMs,
+        geometryBuilds: this.stats.geometryBuilds, offsetUpdates: this.stats.offsetUpdates,
       }),
     };
   }
@@ -1145,7 +1238,7 @@ class Viewer {
     if (this.pendingRender !== null) cancelAnimationFrame(this.pendingRender);
     this.clock.leave(this);
     this.resizeObserver.disconnect();
-    if (this.mesh) this.mesh.geometry.dispose();
+    if (this.mesh) this.disposeGeometry();
     if (this.markers) this.markers.geometry.dispose();
     this.material.dispose();
     if (this.normalTexture) this.normalTexture.dispose();

@@ -390,6 +390,285 @@ def test_three_route_serves_only_js(demo_url):
     assert e.value.code in (403, 404)
 
 
+# -- offsets: a per-vertex displacement on top of the blend --------------------------------
+# A Panel server in a thread of the test process (dashboard.assets.serve), so the test sets
+# `offsets` from Python on the very viewers the browser shows: ICT (the demo's rig and track)
+# at an expression frame, once with blend="cpu" and once with blend="gpu" (morph targets,
+# reachable under SwiftShader when forced).
+OFFSETS_APP = "offsets_app"
+OFFSETS_FRAME = 700
+OFFSETS_LABELS = {"cpu": "offsets cpu", "gpu": "offsets gpu"}
+
+
+def bump(rig, centre=(0.03, 0.085), radius=0.02, height=0.005):
+    """(V, 3) float32 offsets and the patch's vertex ids: ``height (1 - (d / radius)^2)^2``
+    along the patch's outward (camera-facing) area-weighted normal, d the neutral distance to
+    the front-most vertex near ``centre`` (x, y) (ICT's left forehead). Vertices split along
+    UV seams share a position, so they get the same offset and the surface does not tear."""
+    P = np.asarray(rig.neutral, dtype=np.float64)
+    near = np.flatnonzero(np.hypot(P[:, 0] - centre[0], P[:, 1] - centre[1]) < 0.006)
+    apex = int(near[np.argmax(P[near, 2])])
+    d = np.linalg.norm(P - P[apex], axis=1)
+    patch = np.flatnonzero(d < radius)
+    F = np.asarray(rig.faces)
+    touch = np.isin(F, patch).any(axis=1)
+    a, b, c = (P[F[touch, i]] for i in range(3))
+    n = np.cross(b - a, c - a).sum(axis=0)
+    n = n / np.linalg.norm(n) * np.sign(n[2])
+    O = np.zeros_like(P)
+    O[patch] = height * (1 - (d[patch] / radius) ** 2)[:, None] ** 2 * n
+    return O.astype(np.float32), patch, apex
+
+
+def in_session(doc, fn, timeout=60):
+    """Run ``fn`` on the server's event loop as a callback of ``doc`` (bokeh's thread-safe
+    entry point) with Panel's current document set, as a widget callback would run."""
+    import threading
+
+    from panel.io.state import set_curdoc
+
+    done, errors = threading.Event(), []
+
+    def cb():
+        try:
+            with set_curdoc(doc):
+                fn()
+        except BaseException as e:  # noqa: BLE001 - re-raised in the test thread
+            errors.append(e)
+        finally:
+            done.set()
+
+    doc.add_next_tick_callback(cb)
+    assert done.wait(timeout), "server callback did not run"
+    if errors:
+        raise errors[0]
+
+
+@pytest.fixture(scope="module")
+def offsets_server(demo):
+    """Base URL and sessions ((document, {blend: viewer}) per page load) of the in-process server."""
+    import socket
+    import types
+
+    from dashboard import assets
+    from dashboard.viewer import MeshViewer
+    from panel.io.state import state
+
+    rig, track, _ = demo.load()["source"]
+    sessions = []
+
+    def app():
+        import panel as pn
+
+        viewers = {mode: MeshViewer.from_rig(rig, track, fps=30, frame=OFFSETS_FRAME, blend=mode, label=label,
+                                             width=520, height=520)
+                   for mode, label in OFFSETS_LABELS.items()}
+        sessions.append((state.curdoc, viewers))
+        return pn.Row(*viewers.values())
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    server = assets.serve({OFFSETS_APP: app}, port=port, address="127.0.0.1", threaded=True, liveness=True,
+                          websocket_origin=[f"127.0.0.1:{port}"], title="viewer offsets test")
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                with urllib.request.urlopen(url + "/liveness", timeout=2) as r:
+                    if r.status == 200:
+                        break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        yield types.SimpleNamespace(url=url, sessions=sessions, rig=rig, track=track)
+    finally:
+        server.stop()
+
+
+@pytest.fixture(scope="module")
+def offsets_page(new_page, offsets_server):
+    """One page of the offsets app for the module, and its viewers in Python."""
+    ctx, pg = new_page()
+    n = len(offsets_server.sessions)
+    pg.goto(f"{offsets_server.url}/{OFFSETS_APP}")
+    pg.wait_for_function(
+        "(labels) => labels.every(l => { const v = window.__faceRetarget && window.__faceRetarget.viewers[l]; "
+        "return v && v.self.width > 0 && v.self.stats.renders > 0 && v.self.pendingRender === null; })",
+        arg=list(OFFSETS_LABELS.values()), timeout=120_000)
+    assert len(offsets_server.sessions) == n + 1
+    pg.doc, pg.viewers = offsets_server.sessions[n]
+    yield pg
+    ctx.close()
+
+
+def settle(page, label):
+    """Wait until the viewer has no render pending, then two animation frames, so the last
+    render has reached the compositor (what a screenshot shows)."""
+    page.wait_for_function("(l) => window.__faceRetarget.viewers[l].self.pendingRender === null", arg=label)
+    page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+
+
+def set_offsets_from_python(page, mode, offsets):
+    """``viewer.set_offsets(offsets)`` in the server; waits until the browser applied it and
+    returns the websocket frames that arrived meanwhile."""
+    label = OFFSETS_LABELS[mode]
+    n0 = js(page, label, "v.info().offsetUpdates")
+    f0 = len(page.ws_frames)
+    in_session(page.doc, lambda: page.viewers[mode].set_offsets(offsets))
+    page.wait_for_function(
+        "([l, n, on]) => { const v = window.__faceRetarget.viewers[l]; "
+        "return v.info().offsetUpdates > n && v.info().offsets === on; }",
+        arg=[label, n0, offsets is not None], timeout=30_000)
+    settle(page, label)
+    return page.ws_frames[f0:]
+
+
+@pytest.mark.browser
+@pytest.mark.parametrize("mode", ["cpu", "gpu"])
+def test_offsets_bump_shows_in_shading_picks_and_clears(offsets_page, offsets_server, mode, artifacts):
+    """A 5 mm bump on ICT's forehead at a track frame: (a) the canvas changes over the bump's
+    screen area and hardly elsewhere; (b) the vertices shown (and picked) are
+    neutral + blend + offset to float32 precision, their normals those of the shown mesh;
+    (c) clearing restores the same pixels. Only the V*3 float32 offsets cross the wire; the
+    geometry is not rebuilt.
+
+    Zero offsets are shown first: they switch to exact normals without moving anything, so
+    bump vs zero isolates what the displacement does, and zero vs plain what exact normals
+    instead of blended ones do (a few pixels at creases the expression deforms)."""
+    from PIL import Image
+
+    page, rig, track = offsets_page, offsets_server.rig, offsets_server.track
+    label = OFFSETS_LABELS[mode]
+    O, patch, apex = bump(rig)
+    info0 = js(page, label, "v.info()")
+    assert info0["blend"] == mode and info0["morphTargets"] == (mode == "gpu") and not info0["offsets"]
+    assert js(page, label, "v.frame") == OFFSETS_FRAME
+    if mode == "cpu":
+        pos0 = np.array(js(page, label, "v.positions()"))
+    else:
+        assert js(page, label, "v.positions()") is None  # the blend never leaves the shader
+    settle(page, label)
+    before = shot(page, label, artifacts / f"viewer_offsets_{mode}_before.png")
+
+    set_offsets_from_python(page, mode, np.zeros_like(O))
+    zero = shot(page, label, artifacts / f"viewer_offsets_{mode}_zero.png")
+    got = set_offsets_from_python(page, mode, O)
+    with_offsets = shot(page, label, artifacts / f"viewer_offsets_{mode}_with.png")
+    info = js(page, label, "v.info()")
+    # the gpu mesh is blended in JS while offsets are set; nothing was rebuilt or resent
+    assert info["offsets"] and not info["morphTargets"] and info["blend"] == mode
+    assert info["geometryBuilds"] == info0["geometryBuilds"] == 1
+    V = rig.n_vertices
+    size_in = sum(f["size"] for f in got if f["dir"] == "in")
+    assert 12 * V <= size_in < 12 * V + 4096, f"{size_in} bytes arrived for {12 * V} bytes of offsets"
+    assert not any(f["text"] and any(k in f["text"] for k in ('"neutral"', '"deltas"', '"faces"', '"track"'))
+                   for f in got), "geometry or track resent with the offsets"
+    MEASURED[f"offsets_{mode}"] = {"ws_bytes_in": size_in, "offset_bytes": 12 * V,
+                                   "exact_normals_ms": round(info["offsetNormalsMs"], 1)}
+
+    # (b) what the browser shows and picks: neutral + blend + offset, to float32 precision
+    w = track[OFFSETS_FRAME].astype(np.float32).astype(np.float64)
+    want = (rig.neutral.astype(np.float32).astype(np.float64)
+            + np.einsum("k,kvc->vc", w, rig.deltas.astype(np.float32).astype(np.float64)) + O)
+    tol = 16 * np.finfo(np.float32).eps * np.abs(want).max()  # a few float32 roundings of ~0.2 m
+    shown = np.array(js(page, label, "v.positions()")).reshape(-1, 3)
+    err = np.abs(shown - want).max()
+    assert err < tol, f"shown mesh differs from neutral + blend + offset by {err:.3g} m (tol {tol:.3g})"
+    ids = [apex, *patch[:: max(1, len(patch) // 20)].tolist()]
+    picked_pos = np.array(js(page, label, "v.vertexPositions(arg)", ids))
+    assert np.abs(picked_pos - want[ids]).max() < tol
+    assert np.linalg.norm(O[apex]) > 0.0049
+    # the normals are the exact vertex normals of the shown mesh (the bump's tilt is there)
+    normals = np.array(js(page, label, "v.normals()")).reshape(-1, 3)
+    F = np.asarray(rig.faces)
+    fn = np.cross(want[F[:, 1]] - want[F[:, 0]], want[F[:, 2]] - want[F[:, 0]])
+    acc = np.zeros_like(want)
+    for i in range(3):
+        np.add.at(acc, F[:, i], fn)
+    flank = patch[np.linalg.norm(rig.neutral[patch] - rig.neutral[apex], axis=1) > 0.008]
+    ref = acc[flank] / np.linalg.norm(acc[flank], axis=1, keepdims=True)
+    cos = np.einsum("ij,ij->i", normals[flank], ref)  # unwelded here: seam vertices may differ a little
+    tilt = np.einsum("ij,ij->i", normals[flank], np.array(js(page, label, "Array.from(v.self.normal0)")).reshape(-1, 3)[flank])
+    assert np.median(cos) > 0.999, f"normals on the bump's flank are not the shown mesh's (median cos {np.median(cos):.4f})"
+    assert np.median(tilt) < 0.99, "the bump's flank is not tilted in the normals"
+
+    # a click on the bump's apex picks a vertex of the bump, where it is drawn
+    cam = js(page, label, "v.camera()")
+    M = np.array(cam["projection"]).reshape(4, 4).T @ np.array(cam["view"]).reshape(4, 4).T
+
+    def to_screen(points):
+        p = np.c_[points, np.ones(len(points))] @ M.T
+        ndc = p[:, :3] / p[:, 3:]
+        return np.c_[(ndc[:, 0] + 1) / 2 * cam["width"], (1 - ndc[:, 1]) / 2 * cam["height"]]
+
+    ax, ay = to_screen(want[[apex]])[0]
+    hit = js(page, label, "v.pickAt(arg[0], arg[1])", [cam["left"] + ax, cam["top"] + ay])
+    assert hit is not None and hit["vertex"] in set(patch.tolist()), hit
+    np.testing.assert_allclose(hit["position"], want[hit["vertex"]], rtol=0, atol=tol)
+    assert np.linalg.norm(np.array(hit["point"]) - want[apex]) < 0.3 * np.linalg.norm(O[apex]), \
+        "the ray hit the surface below the bump, not the bump as drawn"
+    # so does a highlight sphere set from Python; it goes back down when the offsets are cleared
+    viewer = page.viewers[mode]
+    in_session(page.doc, lambda: viewer.set_highlight([apex]))
+    page.wait_for_function("(l) => window.__faceRetarget.viewers[l].highlightPositions().length === 1", arg=label)
+    np.testing.assert_allclose(js(page, label, "v.highlightPositions()")[0], want[apex], rtol=0, atol=tol)
+
+    # (a) the pixels change over the bump's screen area (its 1-ring's normals too: 8 px
+    # margin) and nowhere else; exact normals alone change a few pixels elsewhere
+    scr = to_screen(np.r_[want[patch], want[patch] - O[patch]])
+    x0, y0 = np.floor(scr.min(axis=0)).astype(int) - 8
+    x1, y1 = np.ceil(scr.max(axis=0)).astype(int) + 8
+    region = np.zeros(before.shape[:2], bool)
+    region[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1] = True
+
+    def changed(a, b):
+        return np.abs(a.astype(int) - b.astype(int)).sum(axis=2) > 12
+
+    bumped, exact = changed(zero, with_offsets), changed(before, zero)
+    res = {"patch_box_px": [int(x1 - x0), int(y1 - y0)], "changed_in_box": round(float(bumped[region].mean()), 3),
+           "changed_outside_box": int(bumped[~region].sum()), "exact_normals_changed_pixels": int(exact.sum()),
+           "plain_to_bump_changed_outside_box": int(changed(before, with_offsets)[~region].sum())}
+    MEASURED[f"offsets_{mode}"].update(res)
+    print("offsets", mode, json.dumps(MEASURED[f"offsets_{mode}"]))
+    assert res["changed_in_box"] > 0.25, res
+    assert res["changed_outside_box"] <= 10, res
+    assert exact.mean() < 0.002, f"exact normals changed {exact.sum()} pixels of the plain blend: {res}"
+
+    # (c) clearing: back to the plain blend, the same picture
+    got = set_offsets_from_python(page, mode, None)
+    np.testing.assert_allclose(js(page, label, "v.highlightPositions()")[0], want[apex] - O[apex], rtol=0, atol=tol)
+    in_session(page.doc, lambda: viewer.set_highlight([]))
+    page.wait_for_function("(l) => window.__faceRetarget.viewers[l].highlightPositions().length === 0", arg=label)
+    settle(page, label)
+    cleared = shot(page, label, artifacts / f"viewer_offsets_{mode}_cleared.png")
+    assert sum(f["size"] for f in got if f["dir"] == "in") < 4096  # "offsets": null
+    info = js(page, label, "v.info()")
+    assert not info["offsets"] and info["morphTargets"] == (mode == "gpu") and info["geometryBuilds"] == 1
+    diff = np.abs(before.astype(int) - cleared.astype(int)).sum(axis=2)
+    MEASURED[f"offsets_{mode}"]["cleared_pixels_differing"] = int((diff > 0).sum())
+    assert changed_fraction(before, cleared) < 1e-4, f"{(diff > 12).sum()} pixels differ after clearing"
+    if mode == "cpu":
+        np.testing.assert_array_equal(np.array(js(page, label, "v.positions()")), pos0)
+    else:
+        assert js(page, label, "v.positions()") is None
+    np.testing.assert_allclose(js(page, label, "v.vertexPositions([arg])", apex)[0], want[apex] - O[apex],
+                               rtol=0, atol=tol)
+    assert not page.console_errors, page.console_errors
+
+    # plain, zero offsets, bump, cleared side by side, magnified around the bump, for a person to look at
+    pad = 30
+    box = (max(x0 - pad, 0), max(y0 - pad, 0), min(x1 + pad, before.shape[1]), min(y1 + pad, before.shape[0]))
+    crops = [Image.fromarray(im).crop(box) for im in (before, zero, with_offsets, cleared)]
+    cw, ch = crops[0].size
+    strip = Image.new("RGB", (len(crops) * (cw * 4 + 4) - 4, ch * 4), (0, 0, 0))
+    for i, im in enumerate(crops):
+        strip.paste(im.resize((cw * 4, ch * 4), Image.NEAREST), (i * (cw * 4 + 4), 0))
+    strip.save(artifacts / f"viewer_offsets_{mode}_patch.png")
+
+
 # -- no browser needed --------------------------------------------------------------------
 def test_assets_locates_three_and_explains_npm_ci(monkeypatch, tmp_path):
     from dashboard import assets
@@ -443,6 +722,29 @@ def test_from_rig_packs_float32_and_validates(ict):
     assert v.frame == 1
     with pytest.raises(ValueError, match="colors"):
         v.set_colors(np.full((ict.n_vertices, 3), 2.0))
+
+
+def test_set_offsets_validates_copies_and_counts_payload(ict):
+    from dashboard.viewer import MeshViewer
+
+    V = ict.n_vertices
+    O = np.random.default_rng(1).normal(0, 1e-3, (V, 3))
+    v = MeshViewer.from_rig(ict, offsets=O)
+    assert v.offsets.dtype == np.float32 and v.offsets.flags.c_contiguous and not np.shares_memory(v.offsets, O)
+    assert v.payload_bytes()["offsets"] == 12 * V
+    v.set_offsets(None)
+    assert v.offsets is None and v.payload_bytes()["offsets"] == 0
+    v.set_offsets(O.tolist())
+    np.testing.assert_array_equal(v.offsets, O.astype(np.float32))
+    with pytest.raises(ValueError, match=rf"offsets: expected shape \({V}, 3\), got \(3, {V}\)"):
+        v.set_offsets(O.T)
+    bad = O.copy()
+    bad[7, 1] = np.inf
+    with pytest.raises(ValueError, match=r"offsets: contains NaN/inf \(first rows \[7\]\)"):
+        v.set_offsets(bad)
+    with pytest.raises(ValueError, match="offsets"):
+        MeshViewer.from_rig(ict, offsets=O[:10])
+    assert np.isinf(bad[7, 1]), "input modified"
 
 
 def test_error_colors_ramp_and_missing_values():
