@@ -1,5 +1,6 @@
 """Dense transfer (Xu et al. 2014) in the dashboard: run it on the loaded take, then edit it by
-dragging vertices on the 3D view (large-scale edits, §4.3 eq. 12-15).
+dragging vertices on the 3D view (large-scale edits, §4.3 eq. 12-15) and by selecting and
+editing its fine-scale details (§5.2).
 
 * **Run**: :func:`core.transfer.performance.transfer_performance` on a frame range of the
   session's source (its weight curves drive the source rig into a dense sequence; the marker
@@ -7,7 +8,10 @@ dragging vertices on the 3D view (large-scale edits, §4.3 eq. 12-15).
   on this machine for a few hundred ICT frames, most of it the non-rigid ICP.
 * **Show**: the transferred rig (``result.to_rig()``: target neutral in the source topology +
   K bases) playing ``result.weights`` in a :class:`~dashboard.viewer.MeshViewer` with
-  ``pick_mode="vertex"``. Fine-scale details are not part of the rig and are not shown.
+  ``pick_mode="vertex"``. Fine-scale details are not part of the rig: the paused frame shows
+  them as the viewer's ``offsets``.
+* **Fine-scale details** (§5.2): :class:`~dashboard.detail_view.DetailPanel` — shown on the
+  paused frame, selected by paint or curve, scaled / copy-pasted / reshaped and propagated.
 * **Edit**: *point* mode — drag a vertex: :class:`~core.transfer.edit.PointConstraint` at that
   frame, target = the drag's end (with *fixed* on, a click pins the vertex where it is);
   *distance* mode — pick two vertices, type a distance: a
@@ -37,6 +41,7 @@ from core.transfer._mesh import weld
 from core.transfer.edit import DistanceConstraint, EditResult, LargeScaleEditor, PointConstraint
 from core.transfer.performance import transfer_performance
 
+from .detail_view import TOOLS, DetailPanel
 from .viewer import MeshViewer
 
 log = logging.getLogger("face_retarget.dashboard")
@@ -131,8 +136,9 @@ class _Edit:
     specs: list
     window: Optional[tuple]
     lams: tuple
-    result: EditResult
+    result: Optional[EditResult]
     report: str = ""
+    kind: str = "large"  # "large" (eq. 12-15) or "detail" (§5.2)
 
 
 class TransferView(param.Parameterized):
@@ -150,6 +156,7 @@ class TransferView(param.Parameterized):
         self.first_frame = 0
         self.fps = 30.0
         self.states: list = []  # (deltas (K, V, 3), weights (T, K)); [0] is the transfer
+        self.detail_states: list = []  # details (T, V, 3) or None, one per state
         self.edits: list[_Edit] = []
         self.pending: list[dict] = []
         self._pair: list = []
@@ -189,6 +196,9 @@ class TransferView(param.Parameterized):
         self.w_undo.on_click(lambda e: self.undo())
         self.w_edits = pn.pane.Markdown("", sizing_mode="stretch_width")
         self.param.watch(self._on_status, ["status", "busy"])
+        self.w_tool = pn.widgets.Select(name="Click does", options=TOOLS, value=TOOLS[0], sizing_mode="stretch_width")
+        self.w_tool.param.watch(lambda e: self._draw_lists(), "value")
+        self.details = DetailPanel(self)
         help_ = pn.pane.Markdown(
             "**point**: drag a vertex (left button) to where it should be at that frame; **distance**: click two "
             "vertices, set their distance. Orbit: drag off the face, alt + drag or middle-drag; pan: right-drag; "
@@ -199,7 +209,8 @@ class TransferView(param.Parameterized):
             pn.Row(self.w_distance, self.w_add_distance), self.w_pending, pn.Row(self.w_apply, self.w_clear, self.w_undo),
             self.w_edits, title="Edit (Xu 2014 §4.3)", sizing_mode="stretch_width")
         self.layout = pn.Row(
-            pn.Column(self.w_range, self.w_run, self.w_progress, self.w_status, edit_card, width=380),
+            pn.Column(self.w_range, self.w_run, self.w_progress, self.w_status, self.w_tool, edit_card, self.details.card,
+                      width=380),
             pn.Column(self.viewer_box, pn.Row(self.w_play, self.w_frame, sizing_mode="stretch_width"), sizing_mode="stretch_width"),
             sizing_mode="stretch_width")
         self._draw_lists()
@@ -305,18 +316,22 @@ class TransferView(param.Parameterized):
         self.first_frame = int(first_frame)
         self._key = key
         self.states = [(np.asarray(r.deltas, dtype=np.float64), np.asarray(r.weights, dtype=np.float64))]
+        self.detail_states = [r.details]
         self.edits, self.pending, self._pair = [], [], []
         rig = r.to_rig(name=f"{target_name}_transfer")
         self.viewer = MeshViewer.from_rig(rig, r.weights, fps=self.fps, pick_mode="vertex", label=f"{target_name} (dense transfer)",
                                           height=VIEW_HEIGHT, sizing_mode="stretch_width")
         self.viewer.param.watch(self._on_picked, "picked")
         self.viewer.param.watch(self._on_dragged, "dragged")
+        self.viewer.param.watch(self.details.show_frame, ["frame", "playing"])
+        self.details.reset(r, editable.settings)
         for widget, link in self._links:  # the old viewer's reverse links go with it
             widget.param.unwatch(link)
         self.w_frame.param.update(end=max(len(r.weights) - 1, 1), value=0)
         self._links = [(self.w_frame, self.w_frame.link(self.viewer, value="frame", bidirectional=True)),
                        (self.w_play, self.w_play.link(self.viewer, value="playing", bidirectional=True))]
         self.viewer_box[:] = [self.viewer]
+        self.details.show_frame()
         stages = ", ".join(f"{k} {v:.1f} s" for k, v in r.timings.items() if isinstance(v, (int, float)))
         rep = r.registration.report if r.registration is not None else {}
         regtxt = (f" · registration: landmarks {rep['landmark_residual_mm_mean']:.2f} mm mean, surface "
@@ -337,6 +352,9 @@ class TransferView(param.Parameterized):
         if not p or self.editable is None:
             return
         v, f = int(p["vertex"]), int(p["frame"])
+        if self.w_tool.value != TOOLS[0]:
+            self.details.on_pick(self.w_tool.value, v, f, p.get("position", [0.0, 0.0, 0.0]))
+            return
         if self.w_mode.value == "distance":
             self._pair = (self._pair + [(v, f)])[-2:]
             if len(self._pair) == 2:
@@ -356,7 +374,7 @@ class TransferView(param.Parameterized):
 
     def _on_dragged(self, event):
         d = event.new
-        if not d or self.editable is None or self.w_mode.value != "point":
+        if not d or self.editable is None or self.w_mode.value != "point" or self.w_tool.value != TOOLS[0]:
             return
         start, end = np.asarray(d["start"], dtype=float), np.asarray(d["end"], dtype=float)
         self.pending.append({"kind": "point", "frame": int(d["frame"]), "vertex": int(d["vertex"]),
@@ -409,6 +427,7 @@ class TransferView(param.Parameterized):
         win = "whole range" if window is None else f"frames {window[0]}–{window[1]}"
         edit = _Edit(list(self.pending), window, lams, res, report)
         self.states.append((D2, W2))
+        self.detail_states.append(self.detail_states[-1])
         self.edits.append(edit)
         self.pending, self._pair = [], []
         self._show_state()
@@ -426,12 +445,21 @@ class TransferView(param.Parameterized):
         v, f = spec["vertex"], spec["frame"]
         return float(np.linalg.norm(neutral[v] + W[f] @ D[:, v] - np.asarray(spec["target"]))) * 1000
 
+    def push_details(self, details, report: str) -> None:
+        """A detail edit's result becomes the current state (bases and weights unchanged)."""
+        self.states.append(self.states[-1])
+        self.detail_states.append(details)
+        self.edits.append(_Edit([], None, (), None, report, kind="detail"))
+        self._draw_lists()
+
     def undo(self) -> bool:
         if not self.edits:
             return False
         self.edits.pop()
         self.states.pop()
+        self.detail_states.pop()
         self._show_state()
+        self.details.show_frame()
         self.status = f"undone; {len(self.edits)} edit(s) left"
         return True
 
@@ -460,6 +488,9 @@ class TransferView(param.Parameterized):
         self.w_pending.object = ("**Constraints for the next edit**\n\n" + "\n".join(rows)) if rows else "*no constraints yet*"
         erows = []
         for k, e in enumerate(self.edits, start=1):
+            if e.kind == "detail":
+                erows.append(f"{k}. details: {e.report}")
+                continue
             win = "whole range" if e.window is None else f"frames {e.window[0]}–{e.window[1]}"
             erows.append(f"{k}. {len(e.specs)} constraint(s), {win}, λ = {e.lams}: miss {e.report}")
         self.w_edits.object = ("**Edits**\n\n" + "\n".join(erows)) if erows else ""
@@ -467,6 +498,7 @@ class TransferView(param.Parameterized):
             ids = [p["vertex"] for p in self.pending if "vertex" in p]
             ids += [x for p in self.pending if p["kind"] == "distance" for x in (p["i"], p["j"])]
             ids += [v for v, _ in self._pair]
+            ids += self.details.highlight_ids()
             self.viewer.set_highlight(sorted(set(ids)))
 
     def _on_status(self, *events):

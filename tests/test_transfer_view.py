@@ -207,3 +207,103 @@ def test_ict_to_rocketbox_run_then_drag_edit():
     np.testing.assert_array_equal(W1[outside], res.weights[outside])
     np.testing.assert_array_equal(D1, res.deltas)
     np.testing.assert_allclose(view.viewer.track, W1.astype(np.float32))
+
+
+def busiest_vertex(view, frame):
+    """The rig vertex with the largest detail coating at ``frame`` on a smooth part of the
+    surface (the brush around it faces one way: not an eyelid rim or a lip edge)."""
+    ed = view.details.current()
+    N = ed.normals(frame)
+    r = view.details.w_radius.value / 1000
+    for v in np.argsort(-np.linalg.norm(ed.coating(frame), axis=1)):
+        if (N[ed.select_paint([v], r, frame)] @ N[v]).min() > 0.8:
+            return int(ed.rep[v])
+    raise AssertionError("no smooth vertex with details")
+
+
+def test_details_shown_on_the_paused_frame(view, tiger_transfer):
+    res = tiger_transfer
+    v = view.viewer
+    assert res.details is not None and view.details.editor is not None
+    np.testing.assert_array_equal(v.offsets, res.details[0].astype(np.float32))
+    v.frame = 17
+    np.testing.assert_array_equal(v.offsets, res.details[17].astype(np.float32))
+    v.playing = True
+    assert v.offsets is None  # the rig only while playing
+    v.playing = False
+    np.testing.assert_array_equal(v.offsets, res.details[17].astype(np.float32))
+    view.details.w_show.value = False
+    assert v.offsets is None
+
+
+def test_detail_scale_edit_from_clicks_then_undo(view, tiger_transfer):
+    res = tiger_transfer
+    k = 20
+    vtx = busiest_vertex(view, k)
+    view.w_tool.value = "detail selection"
+    view.viewer.picked = {"vertex": vtx, "frame": k, "position": [0.0, 0.0, 0.0], "count": 1}
+    assert view.pending == [] and view.details.picks == [vtx] and view.details.key_frame == k
+    assert view.viewer.colors is not None  # the selection is coloured
+    n_sel = int((np.abs(view.viewer.colors - np.float32([1.0, 0.78, 0.1])).sum(1) < 1e-6).sum())
+    assert n_sel > 1
+    view.details.w_factor.value = 0.0
+    view.details.w_lam_e.value = 100.0
+    assert view.details.apply(), view.status
+    new = view.detail_states[-1]
+    assert len(view.edits) == 1 and view.edits[0].kind == "detail" and "scale ×0" in view.status
+    # the same edit by core directly: identical details
+    ed = view.details.editor
+    region = ed.select_paint(ed.to_editor([vtx]), view.details.w_radius.value / 1000, k)
+    direct = ed.apply(ed.scale(region, k, 0.0), lam_e=100.0)
+    np.testing.assert_array_equal(new, direct.details)
+    ts, te = direct.window
+    assert ts <= k <= te
+    changed = np.flatnonzero(np.abs(new - res.details).reshape(len(new), -1).max(1) > 0)
+    assert changed.min() >= ts and changed.max() <= te and k in changed
+    # the region's details at the key frame are mostly gone
+    after = view.details.current()
+    assert after.activity(region)[k] < 0.2 * ed.activity(region)[k]
+    # shown: the viewer's offsets are the edited details of its frame; bases/weights unchanged
+    view.viewer.frame = k
+    np.testing.assert_array_equal(view.viewer.offsets, new[k])
+    np.testing.assert_array_equal(view.states[-1][0], view.states[0][0])
+    assert view.undo()
+    np.testing.assert_array_equal(view.viewer.offsets, res.details[k].astype(np.float32))
+
+
+def test_detail_copy_paste_and_reshape_from_clicks(view, tiger_transfer):
+    res = tiger_transfer
+    k = 20
+    vtx = busiest_vertex(view, k)
+    view.w_tool.value = "detail selection"
+    view.details.w_op.value = "copy-paste"
+    view.viewer.picked = {"vertex": vtx, "frame": k, "position": [0.0, 0.0, 0.0], "count": 1}
+    assert not view.details.apply() and "paste anchor" in view.status
+    # an anchor 2-5 cm away on a part of the face that faces the same way
+    ed = view.details.current()
+    N = ed.normals(k)[ed.wi]
+    dist = np.linalg.norm(res.neutral - res.neutral[vtx], axis=1)
+    far = int(np.flatnonzero((dist > 0.02) & (dist < 0.05) & (N @ N[vtx] > 0.95))[0])
+    view.w_tool.value = "paste anchor"
+    view.viewer.picked = {"vertex": far, "frame": k, "position": res.neutral[far].tolist(), "count": 2}
+    assert far in view.viewer.highlight
+    assert view.details.apply(), view.status
+    pasted = view.detail_states[-1][k] - res.details[k]
+    assert np.linalg.norm(pasted[far]) > 0 and "copy-paste" in view.edits[-1].report
+    # reshape: the wrinkle as a curve through two vertices near the busiest one, a target beside it
+    view.details.clear()
+    view.details.w_op.value = "reshape wrinkle"
+    view.details.w_select.value = "curve"
+    view.w_tool.value = "detail selection"
+    near = np.argsort(np.linalg.norm(res.neutral - res.neutral[vtx], axis=1))
+    a, b = vtx, int(near[np.searchsorted(np.sort(np.linalg.norm(res.neutral - res.neutral[vtx], axis=1)), 0.01)])
+    for n, x in enumerate((a, b)):
+        view.viewer.picked = {"vertex": x, "frame": k, "position": res.neutral[x].tolist(), "count": 3 + n}
+    assert not view.details.apply() and "wrinkle target" in view.status
+    view.w_tool.value = "wrinkle target"
+    shift = np.array([0.0, 0.004, 0.0])
+    for n, x in enumerate((a, b)):
+        view.viewer.picked = {"vertex": x, "frame": k, "position": (res.neutral[x] + shift).tolist(), "count": 5 + n}
+    assert view.details.apply(), view.status
+    assert view.edits[-1].kind == "detail" and "reshape" in view.edits[-1].report
+    assert len(view.edits) == 2 and not np.array_equal(view.detail_states[-1], view.detail_states[-2])

@@ -338,6 +338,26 @@ class DetailEditor:
         return cls(result.faces, result.neutral, det, result.deltas if deltas is None else deltas,
                    result.weights if weights is None else weights, s.detail_screening, s.laplacian)
 
+    def rebase(self, details=None, deltas=None, weights=None) -> "DetailEditor":
+        """The same editor (factorisation shared, nothing recomputed) on other details and/or
+        another large-scale state — after an edit of either."""
+        import copy
+
+        new = copy.copy(self)
+        if details is not None:
+            d = np.asarray(details)
+            if d.shape != self.details.shape:
+                raise ValueError(f"details: expected {self.details.shape}, got {d.shape}")
+            new.details = d
+        if deltas is not None or weights is not None:
+            D = self.deltas if deltas is None else np.asarray(deltas, dtype=np.float64)
+            W = self.weights if weights is None else np.asarray(weights, dtype=np.float64)
+            if D.shape[1:] != self.deltas.shape[1:] or W.shape != (self.n_frames, len(D)):
+                raise ValueError(f"deltas, weights: expected (K, {len(self.neutral)}, 3) and ({self.n_frames}, K), got "
+                                 f"{D.shape}, {W.shape}")
+            new.deltas, new.weights = D, W
+        return new
+
     # -- ids and geometry ---------------------------------------------------------------------
     @property
     def n_frames(self) -> int:
@@ -397,7 +417,8 @@ class DetailEditor:
         """``[t_s, t_e]`` by the coating ratio μ on ``vertices`` (:func:`detail_window`)."""
         return detail_window(self.activity(vertices)[:, None], [0], self._frame(key_frame), mu)
 
-    def _mean_edge(self, vertices=None, positions=None) -> float:
+    def mean_edge(self, vertices=None, positions=None) -> float:
+        """Mean edge length (m) of the surface at frame 0, or among ``vertices`` of ``positions``."""
         X = self.surface(0) if positions is None else positions
         e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
         if vertices is not None:
@@ -466,7 +487,7 @@ class DetailEditor:
         n_s = _unit(N[S].sum(0))
         R = _axis_angle(N[a], angle) @ _rotate_between(n_s[None], N[a][None], np.eye(3)).T
         Y = X[a] + scale * (X[S] - X[c_idx]) @ R.T
-        h = float(spacing) if spacing is not None else 0.75 * scale * self._mean_edge(S, X)
+        h = float(spacing) if spacing is not None else 0.75 * scale * self.mean_edge(S, X)
         reach = float(np.linalg.norm(Y - X[a], axis=1).max()) + h
         cand = np.asarray(cKDTree(X).query_ball_point(X[a], r=reach), dtype=np.int64)
         dist, j = cKDTree(Y).query(X[cand])
@@ -508,7 +529,7 @@ class DetailEditor:
 
         N = vertex_normals_batch(X, self.faces)
         xi = self.coating(f)
-        h = float(spacing) if spacing is not None else 0.75 * self._mean_edge(P, X)
+        h = float(spacing) if spacing is not None else 0.75 * self.mean_edge(P, X)
         hits = cKDTree(X).query_ball_point(x, r=h)
         cand = np.unique(np.concatenate([np.asarray(t, dtype=np.int64) for t in hits] + [P]))
         dist, j = cKDTree(x).query(X[cand])

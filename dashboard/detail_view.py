@@ -1,0 +1,239 @@
+"""Fine-scale detail editing in the dense-transfer tab (Xu et al. 2014 §5.2, eq. 17-21).
+
+The card drives :class:`core.transfer.detail_edit.DetailEditor` from clicks on the transfer's
+3D view (the tab's "Click does" selector routes the viewer's ``picked`` events here):
+
+* **select** — *paint*: every vertex within the radius of a clicked vertex; *curve*: click along
+  a wrinkle, every vertex within the radius (the distance threshold) of the polyline. The key
+  frame is the frame of the first click; the selection is coloured on the mesh.
+* **operation** — *scale* (0 removes, < 1 weakens, > 1 enhances), *copy-paste* (click the
+  anchor vertex where the selection's details go; rotation about the normal, scale, replace or
+  add), *reshape wrinkle* (a curve selection is the wrinkle; click the new curve's points).
+* **apply** — the key-frame edit propagated over the frames where the selection's details are
+  active (coating ratio μ) with λ_e, λ_t, λ_s; the result joins the tab's edit list (undo).
+
+Details are shown on the paused frame as the viewer's ``offsets`` (``TransferResult.details``
+is a per-frame displacement the blendshape rig does not hold); while playing, the viewer shows
+the large-scale rig only (one (V, 3) array per frame would be 175 KB per frame on ICT).
+No numerics here: the view only maps rig ids, frames and widget values to core calls.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Optional
+
+import numpy as np
+import panel as pn
+
+from core.transfer.detail_edit import DetailEditor
+
+SELECTION_RGB = (1.0, 0.78, 0.1)
+MESH_RGB = (0.847, 0.706, 0.612)  # MeshViewer's default mesh_color #d8b49c
+TOOLS = ["large-scale constraint", "detail selection", "paste anchor", "wrinkle target"]
+
+
+class DetailPanel:
+    """The fine-scale card of :class:`dashboard.transfer_view.TransferView` (its ``host``).
+
+    The host owns the viewer, the state stack and the edit list; it calls :meth:`reset` when a
+    new transfer is shown, :meth:`on_pick` for clicks while a detail tool is active and
+    :meth:`show_frame` when the frame or play state changes.
+    """
+
+    def __init__(self, host):
+        self.host = host
+        self.editor: Optional[DetailEditor] = None
+        self.picks: list[int] = []        # rig vertex ids (selection clicks, in order)
+        self.key_frame: Optional[int] = None
+        self.anchor: Optional[int] = None  # rig vertex id
+        self.targets: list[list] = []     # wrinkle target points (metres)
+        self._build()
+
+    # -- layout --------------------------------------------------------------------------------
+    def _build(self):
+        self.w_show = pn.widgets.Checkbox(name="Show fine details (paused frame)", value=True)
+        self.w_show.param.watch(lambda e: self.show_frame(), "value")
+        self.w_select = pn.widgets.RadioButtonGroup(name="Selection", options=["paint", "curve"], value="paint",
+                                                    button_type="light")
+        self.w_select.param.watch(lambda e: self.draw(), "value")
+        self.w_radius = pn.widgets.FloatInput(name="Radius / distance threshold (mm)", value=4.0, start=0.0, step=0.5,
+                                              width=170)
+        self.w_radius.param.watch(lambda e: self.draw(), "value")
+        self.w_op = pn.widgets.Select(name="Operation", options=["scale", "copy-paste", "reshape wrinkle"], value="scale",
+                                      width=170)
+        self.w_factor = pn.widgets.FloatSlider(name="Scale factor (0 removes)", start=0.0, end=3.0, step=0.05, value=0.0,
+                                               sizing_mode="stretch_width")
+        self.w_angle = pn.widgets.FloatInput(name="Paste rotation (deg)", value=0.0, step=15.0, width=110)
+        self.w_pscale = pn.widgets.FloatInput(name="Paste scale", value=1.0, start=0.1, step=0.1, width=90)
+        self.w_pmode = pn.widgets.Select(name="Paste mode", options=["replace", "add"], value="replace", width=100)
+        self.w_lam_l = pn.widgets.FloatInput(name="λ_l (eq. 17)", value=0.2, start=0.0, step=0.05, width=90)
+        self.w_mu = pn.widgets.FloatInput(name="μ (window)", value=0.23, start=0.0, end=1.0, step=0.01, width=80)
+        self.w_lam_e = pn.widgets.FloatInput(name="λ_e", value=1.0, start=0.0, step=0.5, width=70)
+        self.w_lam_t = pn.widgets.FloatInput(name="λ_t", value=0.1, start=0.0, step=0.05, width=70)
+        self.w_lam_s = pn.widgets.FloatInput(name="λ_s", value=1.0, start=0.0, step=0.5, width=70)
+        self.w_apply = pn.widgets.Button(name="Apply detail edit", button_type="success", width=150)
+        self.w_apply.on_click(lambda e: self.apply())
+        self.w_clear = pn.widgets.Button(name="Clear selection", width=130)
+        self.w_clear.on_click(lambda e: self.clear())
+        self.w_info = pn.pane.Markdown("", sizing_mode="stretch_width")
+        help_ = pn.pane.Markdown(
+            "Set **Click does** to *detail selection* and click on the mesh: *paint* takes every vertex within the "
+            "radius of a click, *curve* every vertex within it of the line through your clicks (draw along a "
+            "wrinkle). *copy-paste*: switch to *paste anchor* and click where the details go. *reshape wrinkle*: "
+            "select the wrinkle as a curve, switch to *wrinkle target* and click the new curve. The edit is made at "
+            "the key frame (the first click's) and spread over the frames where the selection's details are "
+            "active (μ).", css_classes=["fr-muted"], sizing_mode="stretch_width")
+        self.card = pn.Card(
+            help_, self.w_show, pn.Row(self.w_select, self.w_radius), self.w_op, self.w_factor,
+            pn.Row(self.w_angle, self.w_pscale, self.w_pmode), self.w_lam_l,
+            pn.Row(self.w_mu, self.w_lam_e, self.w_lam_t, self.w_lam_s), pn.Row(self.w_apply, self.w_clear), self.w_info,
+            title="Fine-scale details (Xu 2014 §5.2)", sizing_mode="stretch_width", collapsed=False)
+
+    # -- state ---------------------------------------------------------------------------------
+    def reset(self, result, settings) -> None:
+        """A new transfer: an editor on its details (factorises the detail Poisson operator)."""
+        self.editor = DetailEditor.from_result(result, settings) if result.details is not None else None
+        if self.editor is not None:  # a brush of ~3 edges whatever the mesh's size
+            self.w_radius.value = round(3000 * self.editor.mean_edge(), 1)
+        self.clear(draw=False)
+        self.w_info.object = ("" if self.editor is not None else
+                              "*this transfer has no fine-scale details (details off)*")
+
+    def current(self) -> Optional[DetailEditor]:
+        """The editor on the host's current state (bases, weights, details)."""
+        if self.editor is None or not self.host.states:
+            return None
+        D, W = self.host.states[-1]
+        return self.editor.rebase(details=self.host.detail_states[-1], deltas=D, weights=W)
+
+    def clear(self, draw: bool = True) -> None:
+        self.picks, self.key_frame, self.anchor, self.targets = [], None, None, []
+        if draw:
+            self.draw()
+
+    def on_pick(self, tool: str, vertex: int, frame: int, position) -> None:
+        """A click on the mesh while ``tool`` (one of :data:`TOOLS` but the first) is active."""
+        if self.editor is None:
+            self.host.status = "⚠ this transfer has no fine-scale details to edit"
+            return
+        if tool == "detail selection":
+            if self.key_frame is None:
+                self.key_frame = int(frame)
+            self.picks.append(int(vertex))
+            self.host.status = (f"selection: {len(self.picks)} click(s) at key frame {self.key_frame}"
+                                + (f" (this click was on frame {frame}; the key frame stays)" if frame != self.key_frame else ""))
+        elif tool == "paste anchor":
+            self.anchor = int(vertex)
+            self.host.status = f"paste anchor: vertex {vertex}"
+        elif tool == "wrinkle target":
+            self.targets.append([float(x) for x in position])
+            self.host.status = f"wrinkle target: {len(self.targets)} point(s)"
+        self.draw()
+
+    def region(self, ed: DetailEditor) -> np.ndarray:
+        """Editor ids of the current selection (empty when nothing is picked)."""
+        if not self.picks:
+            return np.zeros(0, dtype=np.int64)
+        ids = ed.to_editor(self.picks)
+        r = float(self.w_radius.value) / 1000
+        if self.w_select.value == "curve":
+            return ed.select_curve(ids, r, self.key_frame)
+        return ed.select_paint(ids, r, self.key_frame)
+
+    # -- drawing -------------------------------------------------------------------------------
+    def highlight_ids(self) -> list:
+        """Rig ids the host draws as spheres: curve clicks and the paste anchor."""
+        ids = list(self.picks) if self.w_select.value == "curve" else []
+        return ids + ([self.anchor] if self.anchor is not None else [])
+
+    def draw(self) -> None:
+        v = self.host.viewer
+        ed = self.current()
+        n_sel = 0
+        if v is not None:
+            if ed is not None and self.picks:
+                sel = ed.to_rig(self.region(ed))
+                n_sel = len(sel)
+                colors = np.tile(np.asarray(MESH_RGB, dtype=np.float32), (v.neutral.shape[0], 1))
+                colors[sel] = SELECTION_RGB
+                v.set_colors(colors)
+            elif v.colors is not None:
+                v.set_colors(None)
+        parts = []
+        if self.picks:
+            parts.append(f"selection: {n_sel} vertices ({self.w_select.value}, {len(self.picks)} clicks), key frame "
+                         f"{self.key_frame}")
+        if self.anchor is not None:
+            parts.append(f"paste anchor: vertex {self.anchor}")
+        if self.targets:
+            parts.append(f"wrinkle target: {len(self.targets)} points")
+        if self.editor is not None:
+            self.w_info.object = " · ".join(parts) if parts else "*nothing selected*"
+        self.host._draw_lists()
+
+    def show_frame(self, *_) -> None:
+        """Offsets of the shown frame (or none while playing / when hidden)."""
+        v = self.host.viewer
+        if v is None:
+            return
+        if self.editor is None or not self.w_show.value or v.playing or not self.host.detail_states:
+            if v.offsets is not None:
+                v.set_offsets(None)
+            return
+        details = self.host.detail_states[-1]
+        f = min(int(v.frame), len(details) - 1)
+        v.set_offsets(details[f])
+
+    # -- editing -------------------------------------------------------------------------------
+    def apply(self) -> bool:
+        """Make the key-frame edit, propagate it and push the new details (False + status if not)."""
+        ed = self.current()
+        if ed is None:
+            self.host.status = "⚠ no transfer with fine-scale details to edit"
+            return False
+        if not self.picks:
+            self.host.status = "nothing selected: set Click does to detail selection and click on the mesh"
+            return False
+        op = self.w_op.value
+        k = int(self.key_frame)
+        t0 = time.perf_counter()
+        try:
+            region = self.region(ed)
+            if op == "scale":
+                edit = ed.scale(region, k, float(self.w_factor.value))
+                what = f"scale ×{self.w_factor.value:g}"
+            elif op == "copy-paste":
+                if self.anchor is None:
+                    self.host.status = "copy-paste: set Click does to paste anchor and click where the details go"
+                    return False
+                edit = ed.copy_paste(region, k, int(ed.to_editor([self.anchor])[0]), math.radians(float(self.w_angle.value)),
+                                     float(self.w_pscale.value), self.w_pmode.value)
+                what = f"copy-paste to vertex {self.anchor} ({edit.info['pasted_vertices']} vertices)"
+            else:
+                if self.w_select.value != "curve" or len(self.picks) < 2:
+                    self.host.status = "reshape: select the wrinkle as a curve (two or more clicks along it)"
+                    return False
+                if len(self.targets) < 2:
+                    self.host.status = "reshape: set Click does to wrinkle target and click two or more points"
+                    return False
+                edit = ed.reshape(ed.to_editor(self.picks), np.asarray(self.targets), k, float(self.w_radius.value) / 1000,
+                                  float(self.w_lam_l.value))
+                what = f"reshape wrinkle ({edit.info['region']} vertices, moved ≤ {edit.info['max_move_mm']:.1f} mm)"
+            if ed.activity(edit.selection)[k] <= 0:
+                self.host.status = f"⚠ the selection has no fine details at frame {k}: nothing to edit there"
+                return False
+            res = ed.apply(edit, mu=float(self.w_mu.value), lam_e=float(self.w_lam_e.value),
+                           lam_t=float(self.w_lam_t.value), lam_s=float(self.w_lam_s.value))
+        except (ValueError, RuntimeError) as e:
+            self.host.status = f"⚠ detail edit failed: {e}"
+            return False
+        ts, te = res.window
+        report = (f"{what} at frame {k}, frames {ts}–{te}, max change {res.max_change_mm:.2f} mm, "
+                  f"{time.perf_counter() - t0:.2f} s")
+        self.host.push_details(res.details, report)
+        self.clear()
+        self.show_frame()
+        self.host.status = f"detail edit {len(self.host.edits)}: {report}"
+        return True
