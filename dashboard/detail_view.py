@@ -29,8 +29,10 @@ import panel as pn
 
 from core.transfer.detail_edit import DetailEditor
 
-SELECTION_RGB = (1.0, 0.78, 0.1)
-MESH_RGB = (0.847, 0.706, 0.612)  # MeshViewer's default mesh_color #d8b49c
+# vertex colours are linear RGB in three.js (mesh_color is sRGB): MESH_RGB is #d8b49c, the
+# viewer's default mesh_color, in linear RGB, so the unselected skin keeps its colour
+SELECTION_RGB = (1.0, 0.6, 0.02)
+MESH_RGB = (0.6866, 0.4566, 0.3327)
 TOOLS = ["large-scale constraint", "detail selection", "paste anchor", "wrinkle target"]
 
 
@@ -122,7 +124,7 @@ class DetailPanel:
             if self.key_frame is None:
                 self.key_frame = int(frame)
             self.picks.append(int(vertex))
-            self.host.status = (f"selection: {len(self.picks)} click(s) at key frame {self.key_frame}"
+            self.host.status = (f"selection: vertex {vertex}, {len(self.picks)} click(s) at key frame {self.key_frame}"
                                 + (f" (this click was on frame {frame}; the key frame stays)" if frame != self.key_frame else ""))
         elif tool == "paste anchor":
             self.anchor = int(vertex)

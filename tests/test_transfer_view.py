@@ -244,7 +244,7 @@ def test_detail_scale_edit_from_clicks_then_undo(view, tiger_transfer):
     view.viewer.picked = {"vertex": vtx, "frame": k, "position": [0.0, 0.0, 0.0], "count": 1}
     assert view.pending == [] and view.details.picks == [vtx] and view.details.key_frame == k
     assert view.viewer.colors is not None  # the selection is coloured
-    n_sel = int((np.abs(view.viewer.colors - np.float32([1.0, 0.78, 0.1])).sum(1) < 1e-6).sum())
+    n_sel = int((np.abs(view.viewer.colors - np.float32([1.0, 0.6, 0.02])).sum(1) < 1e-6).sum())
     assert n_sel > 1
     view.details.w_factor.value = 0.0
     view.details.w_lam_e.value = 100.0
