@@ -9,8 +9,11 @@ The card drives :class:`core.transfer.detail_edit.DetailEditor` from clicks on t
 * **operation** — *scale* (0 removes, < 1 weakens, > 1 enhances), *copy-paste* (click the
   anchor vertex where the selection's details go; rotation about the normal, scale, replace or
   add), *reshape wrinkle* (a curve selection is the wrinkle; click the new curve's points).
-* **apply** — the key-frame edit propagated over the frames where the selection's details are
-  active (coating ratio μ) with λ_e, λ_t, λ_s; the result joins the tab's edit list (undo).
+* **apply** — the key-frame edit spread over the frames where the selection's details are
+  active (coating ratio μ): *per frame* (default) repeats the operation on every frame of that
+  window, so the edit follows the details' motion; *eq. 18-21* is the paper's propagation with
+  λ_e, λ_t, λ_s (it keeps fine-grained edits near the key frame, see docs/transfer.md). The
+  result joins the tab's edit list (undo).
 
 Details are shown on the paused frame as the viewer's ``offsets`` (``TransferResult.details``
 is a per-frame displacement the blendshape rig does not hold); while playing, the viewer shows
@@ -71,6 +74,9 @@ class DetailPanel:
         self.w_pscale = pn.widgets.FloatInput(name="Paste scale", value=1.0, start=0.1, step=0.1, width=90)
         self.w_pmode = pn.widgets.Select(name="Paste mode", options=["replace", "add"], value="replace", width=100)
         self.w_lam_l = pn.widgets.FloatInput(name="λ_l (eq. 17)", value=0.2, start=0.0, step=0.05, width=90)
+        self.w_prop = pn.widgets.RadioButtonGroup(
+            name="Propagation", options={"per frame (follows the details)": "per_frame", "eq. 18-21 (paper)": "eq18"},
+            value="per_frame", button_type="light")
         self.w_mu = pn.widgets.FloatInput(name="μ (window)", value=0.23, start=0.0, end=1.0, step=0.01, width=80)
         self.w_lam_e = pn.widgets.FloatInput(name="λ_e", value=1.0, start=0.0, step=0.5, width=70)
         self.w_lam_t = pn.widgets.FloatInput(name="λ_t", value=0.1, start=0.0, step=0.05, width=70)
@@ -90,7 +96,8 @@ class DetailPanel:
         self.card = pn.Card(
             help_, self.w_show, pn.Row(self.w_select, self.w_radius), self.w_op, self.w_factor,
             pn.Row(self.w_angle, self.w_pscale, self.w_pmode), self.w_lam_l,
-            pn.Row(self.w_mu, self.w_lam_e, self.w_lam_t, self.w_lam_s), pn.Row(self.w_apply, self.w_clear), self.w_info,
+            self.w_prop, pn.Row(self.w_mu, self.w_lam_e, self.w_lam_t, self.w_lam_s), pn.Row(self.w_apply, self.w_clear),
+            self.w_info,
             title="Fine-scale details (Xu 2014 §5.2)", sizing_mode="stretch_width", collapsed=False)
 
     # -- state ---------------------------------------------------------------------------------
@@ -227,7 +234,7 @@ class DetailPanel:
                 self.host.status = f"⚠ the selection has no fine details at frame {k}: nothing to edit there"
                 return False
             res = ed.apply(edit, mu=float(self.w_mu.value), lam_e=float(self.w_lam_e.value),
-                           lam_t=float(self.w_lam_t.value), lam_s=float(self.w_lam_s.value))
+                           lam_t=float(self.w_lam_t.value), lam_s=float(self.w_lam_s.value), propagation=self.w_prop.value)
         except (ValueError, RuntimeError) as e:
             self.host.status = f"⚠ detail edit failed: {e}"
             return False

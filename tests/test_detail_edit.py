@@ -83,28 +83,51 @@ def test_scale_edit_and_propagation_match_the_direct_solve(ridge):
     assert after.activity(region)[15] < 0.1 * ed.activity(region)[15]
     # default window: the μ rule on the selection
     assert ed.apply(e).window == ed.window(region, 15)
+    # per frame: the same scaling in every frame of the window (faded over 3 frames at its
+    # ends) — the details are gone in the whole window, not only near the key frame
+    pf = ed.apply(e, window=(6, 24), propagation="per_frame")
+    np.testing.assert_allclose(pf.details - D, ed.apply_reference(e, (6, 24), propagation="per_frame") - D,
+                               atol=1e-5 * np.abs(pf.details - D).max())
+    act = DetailEditor(F, P, pf.details).activity(region)
+    before = ed.activity(region)
+    assert np.all(act[10:21] < 0.1 * before[10:21]) and np.all(act[:6] == before[:6])
+    assert np.all(DetailEditor(F, P, res.details).activity(region)[[10, 20]] > 0.5 * before[[10, 20]])  # eq. 18 does not
+    with pytest.raises(ValueError, match="propagation"):
+        ed.apply(e, window=(6, 24), propagation="spline")
     # factor 1 changes nothing
     assert np.array_equal(ed.apply(ed.scale(region, 15, 1.0), window=(6, 24)).details, D.astype(np.float32))
 
 
-def test_copy_paste_on_a_grid_moves_and_rotates_the_coating(ridge):
+def test_copy_paste_on_a_grid_moves_and_rotates_the_details(ridge):
     P, F, idx, D, g = ridge
     ed = DetailEditor(F, P, D)
     src = np.array([vid(idx, i, j) for i in range(12, 17) for j in range(8, 13)])
-    xi = ed.coating(15)
-    # 90° about +z: (i, j) around (14, 10) -> (30 - (j - 10), 20 + (i - 14))
+    # 90° about +z: (i, j) around (14, 10) -> (30 - (j - 10), 20 + (i - 14)); the region and a
+    # 2-ring band (feathered) go over
     e = ed.copy_paste(src, 15, anchor=vid(idx, 30, 20), angle=np.pi / 2, mode="add")
-    want = {vid(idx, 30 - (j - 10), 20 + (i - 14)): vid(idx, i, j) for i in range(12, 17) for j in range(8, 13)}
-    assert sorted(e.vertices) == sorted(want)
-    for v, d in zip(e.vertices, e.delta):
-        s = xi[want[v]]
-        assert np.allclose(d, [-s[1], s[0], s[2]], atol=1e-15)
+    dy = e.info["displacement"]
+    ratios = []
+    for i in range(10, 19):
+        for j in range(6, 15):
+            d = D[15, vid(idx, i, j), 2]
+            if abs(d) > 1e-9 and not (12 <= i <= 16 and 8 <= j <= 12):
+                ratios.append(dy[vid(idx, 30 - (j - 10), 20 + (i - 14)), 2] / d)
+    # the band: feathered to 2/3 and 1/3 of the source's detail
+    # the band: feathered to 2/3 and 1/3 of the source's detail (0 beyond it: the corners of
+    # the 9x9 square that are 3 rings away across the triangulation's diagonals)
+    r = np.round(ratios, 12)
+    assert set(np.unique(r)) == {0.0, round(1 / 3, 12), round(2 / 3, 12)} and (r == 0).sum() <= 12
+    inner = [vid(idx, 30 - (j - 10), 20 + (i - 14)) for i in range(12, 17) for j in range(8, 13)]
+    np.testing.assert_allclose(dy[inner, 2], D[15, src, 2], atol=1e-15)
+    assert e.info["pasted_vertices"] >= 81 - 8  # region + band (the band's corners depend on the diagonals)
+    # the coating of the change is the edit, and reconstructing it gives the change back
+    np.testing.assert_allclose(ed.poisson.solve(np.asarray(ed.A @ dy)), dy, atol=1e-12)
     # pasting a region onto itself (replace) changes nothing
     same = ed.copy_paste(src, 15, anchor=vid(idx, 14, 10), mode="replace")
-    assert np.abs(same.delta).max() < 1e-12
+    assert np.abs(same.info["displacement"]).max() < 1e-15 and np.abs(same.delta).max() < 1e-15
     # scale 2: the footprint grows about 4x
-    big = ed.copy_paste(src, 15, anchor=vid(idx, 30, 15), scale=2.0, mode="add")
-    assert 3.0 < len(big.vertices) / len(e.vertices) < 5.0
+    big = ed.copy_paste(src, 15, anchor=vid(idx, 25, 15), scale=2.0, mode="add")
+    assert 3.0 < big.info["pasted_vertices"] / e.info["pasted_vertices"] < 5.0
     with pytest.raises(ValueError, match="mode"):
         ed.copy_paste(src, 15, anchor=0, mode="swap")
     with pytest.raises(ValueError, match="anchor"):
@@ -172,10 +195,10 @@ def test_real_transfer_detail_edit_matches_reference(tiger):
     busiest = int(np.argmax(np.linalg.norm(ed.coating(key), axis=1)))
     region = ed.select_paint([busiest], 0.012, key)
     assert 5 < len(region) < 300
-    for e in (ed.scale(region, key, 2.0),
-              ed.copy_paste(region, key, anchor=int(np.argmax(ed.surface(key)[:, 0])), angle=0.5)):
-        out = ed.apply(e, window=(4, 20))
-        ref = ed.apply_reference(e, (4, 20))
+    edits = (ed.scale(region, key, 2.0), ed.copy_paste(region, key, anchor=int(np.argmax(ed.surface(key)[:, 0])), angle=0.5))
+    for e, prop in [(e, p) for e in edits for p in ("eq18", "per_frame")]:
+        out = ed.apply(e, window=(4, 20), propagation=prop)
+        ref = ed.apply_reference(e, (4, 20), propagation=prop)
         ch = out.details - res.details
         chr_ = ref - res.details
         assert np.abs(ch - chr_).max() < 1e-4 * np.abs(chr_).max()

@@ -254,7 +254,7 @@ def test_detail_scale_edit_from_clicks_then_undo(view, tiger_transfer):
     # the same edit by core directly: identical details
     ed = view.details.editor
     region = ed.select_paint(ed.to_editor([vtx]), view.details.w_radius.value / 1000, k)
-    direct = ed.apply(ed.scale(region, k, 0.0), lam_e=100.0)
+    direct = ed.apply(ed.scale(region, k, 0.0), lam_e=100.0, propagation="per_frame")
     np.testing.assert_array_equal(new, direct.details)
     ts, te = direct.window
     assert ts <= k <= te

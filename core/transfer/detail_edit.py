@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import scipy.sparse as sp
@@ -221,6 +221,8 @@ class KeyEdit:
     selection : (s,) the selected vertices whose detail activity sets the window (§5.2 μ rule)
     kind : "scale" | "copy_paste" | "reshape"
     info : dict, what the edit did (for reports)
+    at_frame : the same spatial operation at another frame: ``t -> (m, 3)`` coating change on
+        ``vertices`` (used by ``apply(..., propagation="per_frame")``)
     """
 
     frame: int
@@ -229,6 +231,7 @@ class KeyEdit:
     selection: np.ndarray
     kind: str
     info: dict = field(default_factory=dict)
+    at_frame: Optional[Callable] = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -453,19 +456,64 @@ class DetailEditor:
             raise ValueError("region: select at least one vertex")
         ids, ring = falloff(self.faces, self.n_vertices, region, band)
         s = float(factor) + (1 - float(factor)) * ring / (band + 1)
-        xi = self.coating(f)[ids]
-        return KeyEdit(f, ids, (s - 1)[:, None] * xi, region, "scale", {"factor": float(factor), "band": band})
+        Ar = self.A[ids]
+
+        def at(t):
+            return (s - 1)[:, None] * np.asarray(Ar @ np.asarray(self.details[t], dtype=np.float64)[self.rep])
+
+        return KeyEdit(f, ids, at(f), region, "scale", {"factor": float(factor), "band": band}, at)
+
+    def _paste(self, X, N, Y, nY, h, R=None):
+        """Surface vertices within ``h`` of the moved points ``Y`` (facing like ``nY``) and the
+        nearest moved point of each: ``(dst (m,), j (m,), rot)`` with ``rot(vectors (m, 3))``
+        the rotation by ``R`` and then onto each destination's normal."""
+        from scipy.spatial import cKDTree
+
+        hits = cKDTree(X).query_ball_point(Y, r=h)
+        cand = np.unique(np.concatenate([np.asarray(t, dtype=np.int64) for t in hits]))
+        if cand.size == 0:
+            return cand, cand, None
+        dist, j = cKDTree(Y).query(X[cand])
+        keep = (dist <= h) & (np.einsum("ij,ij->i", N[cand], nY[j]) > 0.3)
+        dst, j = cand[keep], j[keep]
+        a, b = nY[j], N[dst]
+
+        def rot(vec):
+            return _rotate_between(a, b, vec if R is None else vec @ R.T)
+
+        return dst, j, rot
+
+    def _key_edit(self, frame, change, touched, selection, kind, info) -> KeyEdit:
+        """The coating change ``A Δy`` of the displacement change ``Δy = change(t)`` (n, 3), which
+        is zero outside the vertices ``touched``; the edit lives on their A-neighbourhood."""
+        ids = np.unique(self.A[np.asarray(touched, dtype=np.int64)].indices)
+        Ar = self.A[ids]
+
+        def at(t):
+            return np.asarray(Ar @ change(t))
+
+        dy = change(frame)
+        info = dict(info, displacement=dy)
+        return KeyEdit(frame, ids, at(frame), np.asarray(selection, dtype=np.int64), kind, info, at)
 
     def copy_paste(self, region, frame: int, anchor: int, angle: float = 0.0, scale: float = 1.0,
-                   mode: str = "replace", spacing: Optional[float] = None) -> KeyEdit:
+                   mode: str = "replace", spacing: Optional[float] = None, band: int = 2) -> KeyEdit:
         """Copy the details of ``region`` and paste them around the vertex ``anchor`` at ``frame``.
 
         The region is moved by a similarity: its central vertex onto ``anchor``, its mean normal
         onto the anchor's normal, then ``angle`` (radians) about that normal and ``scale`` about
         the anchor. Every surface vertex within ``spacing`` (default: 0.75 × the region's mean
-        edge length × ``scale``, about the farthest a vertex can be from a moved vertex inside the footprint) of a moved region vertex, facing the same way, takes the coating of
-        the closest one, rotated with the similarity and then onto its own normal (the coating
-        transfer of §5.1). ``mode="replace"`` swaps the details there, ``"add"`` adds them.
+        edge length × ``scale``, about the farthest a vertex can be from a moved vertex inside
+        the footprint), facing the same way, takes the detail of the closest moved vertex,
+        rotated with the similarity and then onto its own normal (the coating transfer of
+        §5.1). ``mode="replace"`` swaps the details there, ``"add"`` adds them.
+
+        What is pasted is the detail *displacement* of the region and of ``band`` edge rings
+        around it, feathered linearly to zero across the band; the key-frame edit is the
+        coating of that change (``A Δy``). Pasting the region's raw coating instead cuts a
+        wrinkle's coating at the brush's edge, and a cut coating is not the Laplacian of a
+        local bump: on ICT → Rocketbox a 16-vertex paste raised the whole cheek by 2.6 mm.
+        ``info["displacement"]`` holds ``Δy`` (editor ids).
         """
         f = self._frame(frame)
         if mode not in ("replace", "add"):
@@ -478,32 +526,33 @@ class DetailEditor:
         a = int(anchor)
         if not 0 <= a < self.n_vertices:
             raise ValueError(f"anchor: expected an editor vertex id in [0, {self.n_vertices})")
-        from scipy.spatial import cKDTree
-
         X = self.surface(f)
         N = vertex_normals_batch(X, self.faces)
-        xi = self.coating(f)
+        ext, ring = falloff(self.faces, self.n_vertices, S, band)
+        w = 1.0 - ring / (band + 1.0)
         c_idx = S[np.argmin(np.linalg.norm(X[S] - X[S].mean(0), axis=1))]
         n_s = _unit(N[S].sum(0))
         R = _axis_angle(N[a], angle) @ _rotate_between(n_s[None], N[a][None], np.eye(3)).T
-        Y = X[a] + scale * (X[S] - X[c_idx]) @ R.T
+        Y = X[a] + scale * (X[ext] - X[c_idx]) @ R.T
         h = float(spacing) if spacing is not None else 0.75 * scale * self.mean_edge(S, X)
-        reach = float(np.linalg.norm(Y - X[a], axis=1).max()) + h
-        cand = np.asarray(cKDTree(X).query_ball_point(X[a], r=reach), dtype=np.int64)
-        dist, j = cKDTree(Y).query(X[cand])
-        n_moved = N[S] @ R.T
-        keep = (dist <= h) & (np.einsum("ij,ij->i", N[cand], n_moved[j]) > 0.3)
-        dst, j = cand[keep], j[keep]
+        dst, j, rot = self._paste(X, N, Y, N[ext] @ R.T, h, R)
         if dst.size == 0:
             raise ValueError("copy_paste: no surface vertex under the moved region (anchor on another part?)")
-        pasted = _rotate_between(n_moved[j], N[dst], xi[S[j]] @ R.T)
-        delta = pasted - xi[dst] if mode == "replace" else pasted
-        return KeyEdit(f, dst, delta, S, "copy_paste",
-                       {"anchor": a, "angle": float(angle), "scale": float(scale), "mode": mode, "spacing": h,
-                        "pasted_vertices": int(dst.size)})
+        wd = w[j][:, None]
+
+        def change(t):
+            D = np.asarray(self.details[t], dtype=np.float64)[self.rep]
+            dy = np.zeros((self.n_vertices, 3))
+            vals = rot(D[ext[j]])
+            dy[dst] = wd * (vals - D[dst] if mode == "replace" else vals)
+            return dy
+
+        return self._key_edit(f, change, dst, S, "copy_paste",
+                              {"anchor": a, "angle": float(angle), "scale": float(scale), "mode": mode, "spacing": h,
+                               "pasted_vertices": int(dst.size)})
 
     def reshape(self, curve, target, frame: int, radius: float, lam_l: float = 0.2,
-                spacing: Optional[float] = None) -> KeyEdit:
+                spacing: Optional[float] = None, band: int = 2) -> KeyEdit:
         r"""Deform a wrinkle so its curve follows ``target`` (eq. 17), then move its details there.
 
         ``curve``: editor ids along the wrinkle (in order); ``target``: (p, 3) points of the
@@ -514,7 +563,8 @@ class DetailEditor:
         with ``v*_c`` the target curve at the arc-length fraction of curve vertex ``c`` and
         ``L_P`` the uniform Laplacian of ``P``'s own edges. Then, as in the paper, the details
         of ``P`` are removed and pasted on the deformed region (closest points within
-        ``spacing``, default 0.75 × the region's mean edge length).
+        ``spacing``, default 0.75 × the region's mean edge length), both feathered over ``band``
+        rings as in :meth:`copy_paste` (the band follows its nearest region vertex).
         """
         f = self._frame(frame)
         C = np.asarray(curve, dtype=np.int64)
@@ -522,26 +572,31 @@ class DetailEditor:
         if len(C) < 2 or Q.ndim != 2 or Q.shape[1] != 3 or len(Q) < 2:
             raise ValueError(f"reshape: need a curve of >= 2 vertices and a target of >= 2 points, got {len(C)} "
                              f"and {Q.shape}")
+        from scipy.spatial import cKDTree
+
         X = self.surface(f)
         P = self.select_curve(C, radius, f)
         x = self.deform_region(P, C, Q, X, lam_l)
-        from scipy.spatial import cKDTree
-
         N = vertex_normals_batch(X, self.faces)
-        xi = self.coating(f)
+        ext, ring = falloff(self.faces, self.n_vertices, P, band)
+        w = 1.0 - ring / (band + 1.0)
+        move = x - X[P]
+        _, near = cKDTree(X[P]).query(X[ext])
+        moved = X[ext] + move[near]
         h = float(spacing) if spacing is not None else 0.75 * self.mean_edge(P, X)
-        hits = cKDTree(X).query_ball_point(x, r=h)
-        cand = np.unique(np.concatenate([np.asarray(t, dtype=np.int64) for t in hits] + [P]))
-        dist, j = cKDTree(x).query(X[cand])
-        keep = (dist <= h) & (np.einsum("ij,ij->i", N[cand], N[P[j]]) > 0.3)
-        dst, j = cand[keep], j[keep]
-        ids = np.union1d(P, dst)
-        delta = np.zeros((len(ids), 3))
-        delta[np.searchsorted(ids, P)] -= xi[P]
-        delta[np.searchsorted(ids, dst)] += _rotate_between(N[P[j]], N[dst], xi[P[j]])
-        moved = float(np.linalg.norm(x - X[P], axis=1).max())
-        return KeyEdit(f, ids, delta, P, "reshape", {"region": int(P.size), "lam_l": float(lam_l),
-                                                     "max_move_mm": moved * 1000, "deformed": x})
+        dst, j, rot = self._paste(X, N, moved, N[ext], h)
+        wd = w[j][:, None]
+
+        def change(t):
+            D = np.asarray(self.details[t], dtype=np.float64)[self.rep]
+            dy = np.zeros((self.n_vertices, 3))
+            dy[ext] -= w[:, None] * D[ext]
+            dy[dst] += wd * rot(D[ext[j]])
+            return dy
+
+        return self._key_edit(f, change, np.union1d(ext, dst), P, "reshape", {"region": int(P.size), "lam_l": float(lam_l),
+                                                   "max_move_mm": float(np.linalg.norm(move, axis=1).max()) * 1000,
+                                                   "deformed": x})
 
     def deform_region(self, region, curve, target, positions, lam_l: float = 0.2) -> np.ndarray:
         """The eq. 17 least-squares deformation of ``region`` (editor ids) at ``positions``;
@@ -569,13 +624,28 @@ class DetailEditor:
         return spla.splu(M).solve(rhs)
 
     # -- propagation ----------------------------------------------------------------------------
-    def apply(self, edit: KeyEdit, window: Optional[tuple] = None, mu: float = 0.23, lam_e: float = 1.0,
-              lam_t: float = 0.1, lam_s: float = 1.0, rtol: float = 1e-10, chunk: int = 128) -> DetailEditResult:
-        """Propagate ``edit`` over ``window`` (default: the μ window of its selection, eq. 18-21)
-        and return the new details (float32, rig vertex order).
+    def _taper(self, window, taper: int) -> np.ndarray:
+        ts, te = window
+        t = np.arange(ts, te + 1)
+        return np.minimum(1.0, np.minimum(t - ts + 1, te - t + 1) / (taper + 1.0))
 
-        ``rtol``: temporal responses below ``rtol`` of the largest are dropped from the low-rank
-        reconstruction (module docstring); the result equals the per-frame solve to ~``rtol``.
+    def apply(self, edit: KeyEdit, window: Optional[tuple] = None, mu: float = 0.23, lam_e: float = 1.0,
+              lam_t: float = 0.1, lam_s: float = 1.0, propagation: str = "eq18", taper: int = 3,
+              rtol: float = 1e-10, chunk: int = 128) -> DetailEditResult:
+        """Propagate ``edit`` over ``window`` (default: the μ window of its selection) and return
+        the new details (float32, rig vertex order).
+
+        ``propagation="eq18"``: the paper's eq. 18-21 with λ_e, λ_t, λ_s. Its spatial term
+        penalises the *change* between neighbouring vertices in every frame, so a change with
+        fine spatial structure (a wrinkle's) decays within a few frames of ``t_k``
+        (docs/transfer.md, "Fine-scale editing"). ``propagation="per_frame"``: the same spatial
+        operation (scale, paste, reshape — ``edit.at_frame``) applied to every frame of the
+        window, faded in and out over ``taper`` frames at its ends: the edit follows the
+        details' own motion (a pasted wrinkle comes and goes with its source).
+
+        Both are reconstructed exactly through a low-rank factorisation of the per-frame
+        coating changes (``rtol``: singular values below ``rtol`` of the largest are dropped;
+        the result equals the per-frame solve of :meth:`apply_reference` to ~``rtol``).
         """
         t0 = time.perf_counter()
         k = edit.frame
@@ -583,19 +653,30 @@ class DetailEditor:
         ts, te = int(ts), int(te)
         if not 0 <= ts <= k <= te < self.n_frames:
             raise ValueError(f"window ({ts}, {te}): expected 0 <= t_s <= key frame {k} <= t_e < {self.n_frames}")
-        Phi, H = _modal_response(self.faces, self.n_vertices, edit.vertices, (ts, te), k, lam_e, lam_t, lam_s)
-        coef = Phi.T @ edit.delta  # (m, 3)
-        U, S, Vt = np.linalg.svd(H.T, full_matrices=False)  # H^T = U S Vt: (n, r)(r)(r, m)
+        m = len(edit.vertices)
+        if propagation == "eq18":
+            Phi, H = _modal_response(self.faces, self.n_vertices, edit.vertices, (ts, te), k, lam_e, lam_t, lam_s)
+            coef = Phi.T @ edit.delta  # (m, 3)
+            U, S, Vt = np.linalg.svd(H.T, full_matrices=False)  # H^T = U S Vt: (n, r)(r)(r, m)
+            fields = lambda r: np.einsum("vi,ji,ic->jvc", Phi, S[:r, None] * Vt[:r], coef)  # noqa: E731
+        elif propagation == "per_frame":
+            if edit.at_frame is None:
+                raise ValueError("propagation='per_frame' needs an edit made by this editor (edit.at_frame)")
+            tau = self._taper((ts, te), taper)
+            G = np.stack([tau[i] * edit.at_frame(t).ravel() for i, t in enumerate(range(ts, te + 1))])  # (n, 3m)
+            U, S, Vt = np.linalg.svd(G, full_matrices=False)
+            fields = lambda r: (S[:r, None] * Vt[:r]).reshape(r, m, 3)  # noqa: E731
+        else:
+            raise ValueError(f"propagation: expected 'eq18' or 'per_frame', got {propagation!r}")
         r = max(1, int((S > rtol * S[0]).sum())) if S.size and S[0] > 0 else 0
         t1 = time.perf_counter()
         n = self.n_vertices
         out = np.array(self.details, dtype=np.float32, copy=True)
         biggest = 0.0
         if r:
-            # spatial fields: Z_j = Φ (S_j Vt_j ∘ coef), scattered onto the mesh, one Poisson solve each
-            Z = np.einsum("vi,ji,ic->jvc", Phi, S[:r, None] * Vt[:r], coef)  # (r, m, 3)
+            # spatial fields Z_j scattered onto the mesh, one Poisson solve each
             B = np.zeros((n, r, 3))
-            B[edit.vertices] = Z.transpose(1, 0, 2)
+            B[edit.vertices] = fields(r).transpose(1, 0, 2)
             Y = self.poisson.solve(B.reshape(n, 3 * r)).reshape(n, r, 3)[self.wi]  # rig order
             Yf = Y.transpose(1, 0, 2).reshape(r, -1)
             for a in range(ts, te + 1, chunk):
@@ -608,12 +689,17 @@ class DetailEditor:
                                 {"propagation": t1 - t0, "reconstruction": t2 - t1, "total": t2 - t0})
 
     def apply_reference(self, edit: KeyEdit, window: tuple, lam_e: float = 1.0, lam_t: float = 0.1,
-                        lam_s: float = 1.0) -> np.ndarray:
+                        lam_s: float = 1.0, propagation: str = "eq18", taper: int = 3) -> np.ndarray:
         """Slow, obviously-correct :meth:`apply`: eq. 18-21 assembled as one sparse space-time
-        system and solved directly, then one direct Poisson solve per frame (float64)."""
+        system and solved directly (or the per-frame changes formed one by one), then one
+        direct Poisson solve per frame (float64)."""
         ts, te = window
-        E = _reference_propagation(edit.delta, self.faces, self.n_vertices, edit.vertices, (ts, te), edit.frame,
-                                   lam_e, lam_t, lam_s)
+        if propagation == "eq18":
+            E = _reference_propagation(edit.delta, self.faces, self.n_vertices, edit.vertices, (ts, te), edit.frame,
+                                       lam_e, lam_t, lam_s)
+        else:
+            tau = self._taper((ts, te), taper)
+            E = [tau[i] * edit.at_frame(t) for i, t in enumerate(range(ts, te + 1))]
         out = np.array(self.details, dtype=np.float64, copy=True)
         lu = spla.splu(self.A.tocsc()) if self.poisson.screening > 0 else None
         for t in range(ts, te + 1):
@@ -622,6 +708,7 @@ class DetailEditor:
             y = lu.solve(b) if lu is not None else self.poisson.solve(b)
             out[t] += y[self.wi]
         return out
+
 
 
 def _reference_propagation(edit, faces, n_vertices, region, window, key_frame, lam_e=1.0, lam_t=0.1, lam_s=1.0):

@@ -2,7 +2,7 @@
 
 The page (tests/browser/detail_app.py) shows a transfer of the tiger on frame 20 with its
 details as the viewer's offsets. The test clicks a vertex on the canvas (detail selection),
-checks the selection is coloured, presses "Apply detail edit" (scale ×3 over the μ window)
+checks the selection is coloured, presses "Apply detail edit" (scale ×3 on every frame of the μ window)
 and compares what the browser draws with core's result computed here: the vertex positions
 the browser shows must be neutral + w Δ + the edited details; "Undo last edit" restores the
 picture.
@@ -102,7 +102,7 @@ def test_click_select_apply_and_undo_a_detail_edit(page, detail_url, detail_app,
     expect(page.get_by_text(re.compile(r"^detail edit 1:"))).to_be_visible(timeout=30_000)
     radius = round(3000 * ed.mean_edge(), 1) / 1000
     region = ed.select_paint(ed.to_editor([picked]), radius, k)
-    want = ed.apply(ed.scale(region, k, detail_app.FACTOR), lam_e=detail_app.LAM_E)
+    want = ed.apply(ed.scale(region, k, detail_app.FACTOR), lam_e=detail_app.LAM_E, propagation="per_frame")
     new_mesh = shown(res, want.details, k)
     page.wait_for_function(
         "([label, v, z]) => Math.abs(window.__faceRetarget.viewers[label].vertexPositions([v])[0][2] - z) < 1e-6",
