@@ -8,7 +8,7 @@ The card drives :class:`core.transfer.detail_edit.DetailEditor` from clicks on t
   frame is the frame of the first click; the selection is coloured on the mesh.
 * **operation** — *scale* (0 removes, < 1 weakens, > 1 enhances), *copy-paste* (click the
   anchor vertex where the selection's details go; rotation about the normal, scale, replace or
-  add), *reshape wrinkle* (a curve selection is the wrinkle; click the new curve's points).
+  add, mirror), *reshape wrinkle* (a curve selection is the wrinkle; click the new curve's points).
 * **apply** — the key-frame edit spread over the frames where the selection's details are
   active (coating ratio μ): *per frame* (default) repeats the operation on every frame of that
   window, so the edit follows the details' motion; *eq. 18-21* is the paper's propagation with
@@ -73,6 +73,7 @@ class DetailPanel:
         self.w_angle = pn.widgets.FloatInput(name="Paste rotation (deg)", value=0.0, step=15.0, width=110)
         self.w_pscale = pn.widgets.FloatInput(name="Paste scale", value=1.0, start=0.1, step=0.1, width=90)
         self.w_pmode = pn.widgets.Select(name="Paste mode", options=["replace", "add"], value="replace", width=100)
+        self.w_mirror = pn.widgets.Checkbox(name="mirror (paste on the other side of the face)", value=False)
         self.w_lam_l = pn.widgets.FloatInput(name="λ_l (eq. 17)", value=0.2, start=0.0, step=0.05, width=90)
         self.w_prop = pn.widgets.RadioButtonGroup(
             name="Propagation", options={"per frame (follows the details)": "per_frame", "eq. 18-21 (paper)": "eq18"},
@@ -95,7 +96,7 @@ class DetailPanel:
             "active (μ).", css_classes=["fr-muted"], sizing_mode="stretch_width")
         self.card = pn.Card(
             help_, self.w_show, pn.Row(self.w_select, self.w_radius), self.w_op, self.w_factor,
-            pn.Row(self.w_angle, self.w_pscale, self.w_pmode), self.w_lam_l,
+            pn.Row(self.w_angle, self.w_pscale, self.w_pmode), self.w_mirror, self.w_lam_l,
             self.w_prop, pn.Row(self.w_mu, self.w_lam_e, self.w_lam_t, self.w_lam_s), pn.Row(self.w_apply, self.w_clear),
             self.w_info,
             title="Fine-scale details (Xu 2014 §5.2)", sizing_mode="stretch_width", collapsed=False)
@@ -218,7 +219,7 @@ class DetailPanel:
                     self.host.status = "copy-paste: set Click does to paste anchor and click where the details go"
                     return False
                 edit = ed.copy_paste(region, k, int(ed.to_editor([self.anchor])[0]), math.radians(float(self.w_angle.value)),
-                                     float(self.w_pscale.value), self.w_pmode.value)
+                                     float(self.w_pscale.value), self.w_pmode.value, mirror=bool(self.w_mirror.value))
                 what = f"copy-paste to vertex {self.anchor} ({edit.info['pasted_vertices']} vertices)"
             else:
                 if self.w_select.value != "curve" or len(self.picks) < 2:

@@ -92,7 +92,7 @@ def main(fast: bool = False):
     edits = {
         "remove (×0)": ed.scale(region, k, 0.0),
         "enhance (×2.5)": ed.scale(region, k, 2.5),
-        "copy-paste to the mirror place": ed.copy_paste(region, k, anchor, mode="replace"),
+        "copy-paste, mirrored, to the other cheek": ed.copy_paste(region, k, anchor, mode="replace", mirror=True),
         "reshape: wrinkle 4 mm up (eq. 17)": ed.reshape(curve, target, k, 0.004),
     }
     base_act = ed.activity(region)

@@ -128,6 +128,19 @@ def test_copy_paste_on_a_grid_moves_and_rotates_the_details(ridge):
     # scale 2: the footprint grows about 4x
     big = ed.copy_paste(src, 15, anchor=vid(idx, 25, 15), scale=2.0, mode="add")
     assert 3.0 < big.info["pasted_vertices"] / e.info["pasted_vertices"] < 5.0
+    # mirror: reflected across the plane through the anchor spanned by its normal (+z) and +y,
+    # i.e. x -> -x about the anchor column: an asymmetric block lands reversed in x
+    # (details with an x component that changes along x: a reflection must reverse both)
+    D2 = D.copy()
+    D2[:, :, 0] = D[:, :, 2] * (P[:, 0] / H - 8) / 10
+    ed2 = DetailEditor(F, P, D2)
+    blk = np.array([vid(idx, i, j) for i in range(7, 10) for j in range(8, 13)])  # the ridge's start, centre column 8
+    mir = ed2.copy_paste(blk, 15, anchor=vid(idx, 30, 20), mode="add", mirror=True).info["displacement"]
+    for i in range(7, 10):
+        for j in range(8, 13):
+            d = D2[15, vid(idx, i, j)]
+            np.testing.assert_allclose(mir[vid(idx, 30 - (i - 8), 20 + (j - 10))], [-d[0], d[1], d[2]], atol=1e-15)
+    assert np.abs(D2[15, blk, 2] - D2[15, blk[::-1], 2]).max() > 1e-5  # the block is not symmetric in x
     with pytest.raises(ValueError, match="mode"):
         ed.copy_paste(src, 15, anchor=0, mode="swap")
     with pytest.raises(ValueError, match="anchor"):

@@ -497,7 +497,8 @@ class DetailEditor:
         return KeyEdit(frame, ids, at(frame), np.asarray(selection, dtype=np.int64), kind, info, at)
 
     def copy_paste(self, region, frame: int, anchor: int, angle: float = 0.0, scale: float = 1.0,
-                   mode: str = "replace", spacing: Optional[float] = None, band: int = 2) -> KeyEdit:
+                   mode: str = "replace", spacing: Optional[float] = None, band: int = 2,
+                   mirror: bool = False) -> KeyEdit:
         """Copy the details of ``region`` and paste them around the vertex ``anchor`` at ``frame``.
 
         The region is moved by a similarity: its central vertex onto ``anchor``, its mean normal
@@ -514,6 +515,10 @@ class DetailEditor:
         wrinkle's coating at the brush's edge, and a cut coating is not the Laplacian of a
         local bump: on ICT → Rocketbox a 16-vertex paste raised the whole cheek by 2.6 mm.
         ``info["displacement"]`` holds ``Δy`` (editor ids).
+
+        ``mirror``: reflect the region (positions and detail vectors) across the plane through
+        the anchor spanned by its normal and the mesh's up axis (+y) before pasting — a
+        wrinkle copied to the other side of the face keeps its mirror-image slant.
         """
         f = self._frame(frame)
         if mode not in ("replace", "add"):
@@ -533,6 +538,12 @@ class DetailEditor:
         c_idx = S[np.argmin(np.linalg.norm(X[S] - X[S].mean(0), axis=1))]
         n_s = _unit(N[S].sum(0))
         R = _axis_angle(N[a], angle) @ _rotate_between(n_s[None], N[a][None], np.eye(3)).T
+        if mirror:
+            side = np.cross(N[a], [0.0, 1.0, 0.0])
+            if np.linalg.norm(side) < 1e-6:  # the anchor faces up: mirror across x instead
+                side = np.array([1.0, 0.0, 0.0])
+            side = _unit(side)
+            R = (np.eye(3) - 2 * np.outer(side, side)) @ R
         Y = X[a] + scale * (X[ext] - X[c_idx]) @ R.T
         h = float(spacing) if spacing is not None else 0.75 * scale * self.mean_edge(S, X)
         dst, j, rot = self._paste(X, N, Y, N[ext] @ R.T, h, R)
@@ -549,7 +560,7 @@ class DetailEditor:
 
         return self._key_edit(f, change, dst, S, "copy_paste",
                               {"anchor": a, "angle": float(angle), "scale": float(scale), "mode": mode, "spacing": h,
-                               "pasted_vertices": int(dst.size)})
+                               "pasted_vertices": int(dst.size), "mirror": bool(mirror)})
 
     def reshape(self, curve, target, frame: int, radius: float, lam_l: float = 0.2,
                 spacing: Optional[float] = None, band: int = 2) -> KeyEdit:
