@@ -63,6 +63,10 @@ class TransferSettings:
     landmarks : (source vertex ids (M,), target points (M, 3)) for a target with its own topology
     icp_steps, max_distance, icp : registration settings (see :func:`.correspond.register`);
         ``icp=False`` stops at the landmark similarity + closest-point resampling
+    crop : which source vertices the registration fits to the target (:func:`.correspond.register`):
+        "auto" (default: the face crop when the target lacks the rest of the source head, as the
+        Jeeliz animals do; the whole head for a human target), "face", "none", or a (V,) bool
+        mask / vertex ids of ``source_ref``
     """
 
     iterations: int = 40
@@ -85,6 +89,7 @@ class TransferSettings:
     icp_steps: Optional[list] = None
     max_distance: Optional[float] = None
     icp: bool = True
+    crop: Union[str, None, np.ndarray, Sequence[int]] = "auto"
 
     def __post_init__(self):
         if self.laplacian not in ("uniform", "cotangent"):
@@ -95,6 +100,8 @@ class TransferSettings:
                 raise ValueError(f"{name}: expected a non-negative integer, got {v!r}")
         if self.eps < 0 or self.alpha < 0 or self.rank_rtol <= 0:
             raise ValueError(f"eps >= 0, alpha >= 0, rank_rtol > 0 expected; got {self.eps}, {self.alpha}, {self.rank_rtol}")
+        if isinstance(self.crop, str) and self.crop not in ("auto", "face", "none"):
+            raise ValueError(f"crop: expected 'auto', 'face', 'none', a bool mask or vertex ids; got {self.crop!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,7 +235,7 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         if src_lm.size and (src_lm.min() < 0 or src_lm.max() >= Vs):
             raise ValueError(f"settings.landmarks: source vertex ids must lie in [0, {Vs})")
         registration = register(Sw0, Fw, T0in, Ft_in, wi[src_lm], tgt_pts, settings.icp_steps,
-                                settings.max_distance, settings.icp)
+                                settings.max_distance, settings.icp, crop=settings.crop, crop_index=wi)
         Tw0 = registration.resampled
     timings["preprocessing"] = time.perf_counter() - t0
 

@@ -30,24 +30,47 @@ def dense_source(source: Performance, rig: Optional[Rig], name_map=None) -> np.n
                      f"{source.name!r} is {source.kind}: use a marker-based method (lsq, bounded, spacetime, local, geometric)")
 
 
+def shared_landmarks(source_layout: MarkerLayout, target_layout: MarkerLayout, target_positions,
+                     min_shared: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Registration landmarks from the markers two layouts share (by name).
+
+    Each shared marker gives the source vertex of its largest barycentric weight and the
+    marker's point on ``target_positions`` (the target neutral, (V', 3)): the hand-placed
+    correspondences of Xu et al. 2014 §3 ("semi-automatic"). The bundled layouts of ICT,
+    Rocketbox and the Jeeliz tiger/triceratops share 41 names.
+
+    Returns
+    -------
+    source vertex ids (M,) int, target points (M, 3)
+
+    Raises
+    ------
+    ValueError
+        Fewer than ``min_shared`` shared markers.
+    """
+    common = [n for n in source_layout.names if n in set(target_layout.names)]
+    if len(common) < min_shared:
+        raise ValueError(f"transfer: the layouts share only {len(common)} markers; need >= {min_shared} landmarks")
+    src = source_layout.select(common)
+    ids = src.vertices[np.arange(len(common)), np.argmax(src.weights, axis=1)]
+    return ids.astype(np.int64), target_layout.select(common).points(np.asarray(target_positions))
+
+
 def transfer_performance(source: Performance, source_rig: Rig, source_layout: MarkerLayout, target_rig: Rig,
                          target_layout: MarkerLayout, name_map=None, progress: Optional[ProgressFn] = None, **settings):
     """Transfer ``source`` onto ``target_rig``'s face; returns the :class:`TransferResult`.
 
-    Landmarks are the markers both layouts share (source vertex of each marker's largest
-    barycentric weight -> the marker's point on the target neutral). The result's meshes have
-    the source's topology fitted to the target surface, as in the paper.
+    Landmarks are the markers both layouts share (:func:`shared_landmarks`). The result's
+    meshes have the source's topology fitted to the target surface, as in the paper.
+    ``settings`` are :class:`~core.transfer.TransferSettings` fields; the registration crops
+    the source to its face for a target without the rest of the head (``crop="auto"``,
+    e.g. ICT -> the Jeeliz tiger), ``crop="face"`` / ``"none"`` force either way.
     """
     from . import TransferSettings, transfer_sequence
 
     report(progress, 0.02, "dense source")
     seq = dense_source(source, source_rig, name_map)
-    common = [n for n in source_layout.names if n in set(target_layout.names)]
-    if len(common) < 4:
-        raise ValueError(f"transfer: the layouts share only {len(common)} markers; need >= 4 landmarks")
-    src = source_layout.select(common)
-    ids = src.vertices[np.arange(len(common)), np.argmax(src.weights, axis=1)]
-    pts = target_layout.select(common).points(target_rig.neutral)
+    ids, pts = shared_landmarks(source_layout, target_layout, target_rig.neutral)
     report(progress, 0.1, f"transferring {len(seq)} frames")
     cfg = TransferSettings(**{**settings, "landmarks": (ids, pts)})
     result = transfer_sequence(source_rig.neutral, source_rig.faces, seq, target_rig.neutral, target_rig.faces, cfg)
