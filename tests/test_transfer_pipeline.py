@@ -146,7 +146,11 @@ def test_nonrigid_icp_registration_residual(ict, rocketbox, ict_rocketbox):
     assert reg.report["surface_distance_mm_median"] < 0.5 * coarse.report["surface_distance_mm_median"]
     assert reg.report["surface_distance_mm_median"] < 1.0
     assert reg.report["landmark_residual_mm_mean"] < coarse.report["landmark_residual_mm_mean"]
-    assert reg.report["projected_fraction"] > 0.95
+    # the snap onto the surface skips vertices whose move would fold a triangle (95.9 % projected
+    # when measured); 227 of 28,068 triangles stay folded (474 before that rule), mostly inside the
+    # mouth bag and eye sockets
+    assert reg.report["projected_fraction"] > 0.93
+    assert reg.report["flipped_triangles"] < 0.015 * len(Fw)
 
 
 # -- detail stage (eq. 16, 5): the batched implementation against the formulas frame by frame --
