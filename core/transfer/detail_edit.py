@@ -204,7 +204,10 @@ def propagate_details(edit, faces, n_vertices: int, region, window, key_frame: i
         raise ValueError(f"edit: expected ({m}, 3), got {e.shape}")
     Phi, H = _modal_response(faces, n_vertices, region, window, key_frame, lam_e, lam_t, lam_s)
     coef = Phi.T @ e  # (m, 3)
-    return np.einsum("vi,it,ic->tvc", Phi, H, coef)
+    out = np.empty((H.shape[1], m, 3))
+    for c in range(3):  # one (m, m) x (m, n) product per coordinate
+        out[:, :, c] = (Phi @ (coef[:, c, None] * H)).T
+    return out
 
 
 # -- the editor ---------------------------------------------------------------------------
@@ -669,7 +672,7 @@ class DetailEditor:
             Phi, H = _modal_response(self.faces, self.n_vertices, edit.vertices, (ts, te), k, lam_e, lam_t, lam_s)
             coef = Phi.T @ edit.delta  # (m, 3)
             U, S, Vt = np.linalg.svd(H.T, full_matrices=False)  # H^T = U S Vt: (n, r)(r)(r, m)
-            fields = lambda r: np.einsum("vi,ji,ic->jvc", Phi, S[:r, None] * Vt[:r], coef)  # noqa: E731
+            fields = lambda r: np.einsum("vi,ji,ic->jvc", Phi, S[:r, None] * Vt[:r], coef, optimize=True)  # noqa: E731
         elif propagation == "per_frame":
             if edit.at_frame is None:
                 raise ValueError("propagation='per_frame' needs an edit made by this editor (edit.at_frame)")
