@@ -269,7 +269,7 @@ class TransferView(param.Parameterized):
                    first=a, key=self._selection())
         self.busy = True
         self.w_run.disabled = True
-        self.w_progress.value = -1  # indeterminate: core reports only the start and the end
+        self.w_progress.value = 0
         self.status = f"transferring frames {a}–{b} ({b - a + 1} frames): registration (non-rigid ICP), bases, details…"
         if block:
             self._job(job)
@@ -302,10 +302,7 @@ class TransferView(param.Parameterized):
             self.w_progress.value = 100 if self.editable is not None else 0
 
     def _progress(self, fraction: float, message: str, t0: float) -> None:
-        if fraction >= 1.0 or fraction < 0.1:
-            self.w_progress.value = int(100 * fraction)
-        else:
-            self.w_progress.value = -1
+        self.w_progress.value = int(100 * min(max(fraction, 0.0), 1.0))
         self.status = f"{message} ({time.perf_counter() - t0:.0f} s)"
 
     def show(self, editable: EditableTransfer, first_frame: int = 0, target_name: str = "target", key=None,

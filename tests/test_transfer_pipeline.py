@@ -317,3 +317,17 @@ def test_static_source_transfers_no_motion(tiger):
                             tiger.neutral * [1.1, 0.9, 1.0], tiger.faces)
     assert res.n_bases == 0 and res.weights.shape == (3, 0)
     assert res.details.shape == (3, tiger.n_vertices, 3) and np.abs(res.details).max() < 1e-12 * tiger.size
+
+
+def test_progress_is_reported_per_stage_and_per_detail_chunk(tiger):
+    t = np.arange(30)
+    K = tiger.n_shapes
+    W = np.clip(0.5 + 0.5 * np.sin(t[:, None] / (4 + np.arange(K))), 0, 1)
+    calls = []
+    transfer_sequence(tiger.neutral, tiger.faces, tiger.evaluate(W), tiger.neutral * 1.1, tiger.faces, max_bases=4,
+                      chunk=8, progress=lambda f, m: calls.append((f, m)))
+    fr = [f for f, _ in calls]
+    assert fr == sorted(fr) and fr[-1] == 1.0 and 0 <= fr[0] < 0.5
+    details = [m for _, m in calls if m.startswith("fine details")]
+    assert details == [f"fine details: {n}/30 frames" for n in (8, 16, 24, 30)]
+    assert any("basis selection" in m for _, m in calls) and any("deformation transfer" in m for _, m in calls)

@@ -20,6 +20,8 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
+from ..progress import ProgressFn, report
+
 from ._mesh import bbox_size, check_faces, check_positions, weld
 from .bases import BasisSelection, gram_from_factored, nnls_gram, select_bases
 from .correspond import Registration, landmarks_from_shapes, register, similarity_align
@@ -180,7 +182,8 @@ def _feature_edges(settings, welded_index, n):
 
 
 def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_faces,
-                      settings: Optional[TransferSettings] = None, **overrides) -> TransferResult:
+                      settings: Optional[TransferSettings] = None, progress: Optional[ProgressFn] = None,
+                      **overrides) -> TransferResult:
     """Transfer a dense source sequence onto a target face (Xu et al. 2014 §3-5).
 
     Parameters
@@ -192,6 +195,9 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     target_faces : (F', 3) int; when the target topology differs from the source's,
                                ``settings.landmarks`` is required and §3 preprocessing runs
     settings : TransferSettings; keyword ``overrides`` replace single fields
+    progress : ``(fraction, message) -> None``, optional: called at each stage and after every
+        chunk of the detail stage (the registration's non-rigid ICP reports only its start
+        and end: trimesh's ``nricp_amberg`` has no callback)
 
     Returns
     -------
@@ -234,12 +240,14 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         src_lm = np.asarray(src_lm, dtype=np.int64)
         if src_lm.size and (src_lm.min() < 0 or src_lm.max() >= Vs):
             raise ValueError(f"settings.landmarks: source vertex ids must lie in [0, {Vs})")
+        report(progress, 0.0, "registration (landmarks + non-rigid ICP)")
         registration = register(Sw0, Fw, T0in, Ft_in, wi[src_lm], tgt_pts, settings.icp_steps,
                                 settings.max_distance, settings.icp, crop=settings.crop, crop_index=wi)
         Tw0 = registration.resampled
     timings["preprocessing"] = time.perf_counter() - t0
 
     # -- decomposition (eq. 1-4) ----------------------------------------------------------
+    report(progress, 0.4, "decomposition (smoothing + Laplacian coating)")
     t = time.perf_counter()
     # factor the frames as given and weld the (linear) basis: no welded copy of the sequence
     fac = factor_sequence(seq, settings.rank_rtol, base=S0)
@@ -263,6 +271,7 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     timings["decomposition"] = time.perf_counter() - t
 
     # -- basis selection (eq. 6-7) --------------------------------------------------------
+    report(progress, 0.45, "basis selection")
     t = time.perf_counter()
     Qb = smooth.basis.reshape(smooth.rank, 3 * V)
     gram = gram_from_factored(fac.coeffs, Qb @ Qb.T)
@@ -271,6 +280,7 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     timings["basis_selection"] = time.perf_counter() - t
 
     # -- feature-preserving deformation transfer (eq. 9-11) -------------------------------
+    report(progress, 0.5, f"deformation transfer of {sel.n_bases} bases")
     t = time.perf_counter()
     edges = _feature_edges(settings, wi, V)
     dt = DeformationTransfer(Sb0, Tb0, Fw, edges, settings.alpha)
@@ -288,9 +298,12 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         # T̄_t = T̄_0 + W_t Δ (eq. 8) as a factored sequence; details relative to the neutral
         # T_0, written straight in the unwelded vertex order
         target_smooth = FactoredSequence(Tb0, sel.weights, deltas, 0.0)
-        details = det.displacements(smooth, coat, target_smooth, n_frames, settings.chunk, relative=True, vertices=wi)
+        details = det.displacements(smooth, coat, target_smooth, n_frames, settings.chunk, relative=True, vertices=wi,
+                                    progress=None if progress is None else
+                                    (lambda f, m: progress(0.55 + 0.45 * f, m)))
     timings["details"] = time.perf_counter() - t
 
+    report(progress, 1.0, f"{n_frames} frames, {sel.n_bases} bases")
     unw = lambda a: np.ascontiguousarray(a[..., wi, :])
     return TransferResult(
         faces=Fs, neutral=unw(Tw0), deltas=unw(deltas), weights=sel.weights, details=details,

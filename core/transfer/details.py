@@ -242,7 +242,7 @@ class DetailTransfer:
 
     def displacements(self, source_smooth: FactoredSequence, source_coating: FactoredSequence,
                       target_smooth_frames, n_frames: int, chunk: int = 32, dtype=np.float32,
-                      relative: bool = False, vertices=None) -> np.ndarray:
+                      relative: bool = False, vertices=None, progress=None) -> np.ndarray:
         """Detail displacements ``y_t = T_t - T̄_t`` for all frames, (T, V, 3) ``dtype``.
 
         Parameters
@@ -260,6 +260,7 @@ class DetailTransfer:
             ``y_t`` first.
         vertices : (V',) int, optional
             Output rows (e.g. the unwelded vertex order): the result is (T, V', 3).
+        progress : ``(fraction, message) -> None``, optional, called after every chunk
         """
         V = self.poisson.n
         rows = np.arange(V) if vertices is None else np.asarray(vertices, dtype=np.int64)
@@ -285,4 +286,6 @@ class DetailTransfer:
             y = self.poisson.solve(B.reshape(3 * t, V).T).T.reshape(3, t, V)
             for p in range(3):  # per coordinate: contiguous gathers, one strided write
                 out[idx, :, p] = y[p][:, rows] if y0 is None else y[p][:, rows] + y0[:, p]
+            if progress is not None:
+                progress(idx.stop / n_frames, f"fine details: {idx.stop}/{n_frames} frames")
         return out

@@ -73,6 +73,8 @@ def transfer_performance(source: Performance, source_rig: Rig, source_layout: Ma
     ids, pts = shared_landmarks(source_layout, target_layout, target_rig.neutral)
     report(progress, 0.1, f"transferring {len(seq)} frames")
     cfg = TransferSettings(**{**settings, "landmarks": (ids, pts)})
-    result = transfer_sequence(source_rig.neutral, source_rig.faces, seq, target_rig.neutral, target_rig.faces, cfg)
+    stage = None if progress is None else (lambda f, m: progress(0.1 + 0.9 * min(f, 0.999), m))
+    result = transfer_sequence(source_rig.neutral, source_rig.faces, seq, target_rig.neutral, target_rig.faces, cfg,
+                               progress=stage)
     report(progress, 1.0, "done")
     return result
