@@ -3,7 +3,8 @@
 The card drives :class:`core.transfer.detail_edit.DetailEditor` from clicks on the transfer's
 3D view (the tab's "Click does" selector routes the viewer's ``picked`` events here):
 
-* **select** — *paint*: every vertex within the radius of a clicked vertex; *curve*: click along
+* **select** — *paint*: every vertex within the radius of a clicked vertex or of a stroke (a
+  drag across the mesh, from its start vertex to the vertex nearest its end); *curve*: click along
   a wrinkle, every vertex within the radius (the distance threshold) of the polyline. The key
   frame is the frame of the first click; the selection is coloured on the mesh.
 * **operation** — *scale* (0 removes, < 1 weakens, > 1 enhances), *copy-paste* (click the
@@ -51,6 +52,7 @@ class DetailPanel:
         self.host = host
         self.editor: Optional[DetailEditor] = None
         self.picks: list[int] = []        # rig vertex ids (selection clicks, in order)
+        self.strokes: list[tuple] = []    # (rig id, rig id): drags across the mesh (paint)
         self.key_frame: Optional[int] = None
         self.anchor: Optional[int] = None  # rig vertex id
         self.targets: list[list] = []     # wrinkle target points (metres)
@@ -88,8 +90,8 @@ class DetailPanel:
         self.w_clear.on_click(lambda e: self.clear())
         self.w_info = pn.pane.Markdown("", sizing_mode="stretch_width")
         help_ = pn.pane.Markdown(
-            "Set **Click does** to *detail selection* and click on the mesh: *paint* takes every vertex within the "
-            "radius of a click, *curve* every vertex within it of the line through your clicks (draw along a "
+            "Set **Click does** to *detail selection* and click on the mesh (or drag across it: a stroke): *paint* "
+            "takes every vertex within the radius of a click or a stroke, *curve* every vertex within it of the line through your clicks (draw along a "
             "wrinkle). *copy-paste*: switch to *paste anchor* and click where the details go. *reshape wrinkle*: "
             "select the wrinkle as a curve, switch to *wrinkle target* and click the new curve. The edit is made at "
             "the key frame (the first click's) and spread over the frames where the selection's details are "
@@ -119,7 +121,7 @@ class DetailPanel:
         return self.editor.rebase(details=self.host.detail_states[-1], deltas=D, weights=W)
 
     def clear(self, draw: bool = True) -> None:
-        self.picks, self.key_frame, self.anchor, self.targets = [], None, None, []
+        self.picks, self.strokes, self.key_frame, self.anchor, self.targets = [], [], None, None, []
         if draw:
             self.draw()
 
@@ -142,6 +144,25 @@ class DetailPanel:
             self.host.status = f"wrinkle target: {len(self.targets)} point(s)"
         self.draw()
 
+    def on_stroke(self, vertex: int, frame: int, end) -> None:
+        """A drag that started on the mesh while selecting: paint a stroke from ``vertex`` to the
+        surface vertex nearest the drag's end (the viewer reports the end in the view plane
+        through the start vertex); in curve mode both ends join the wrinkle chain."""
+        if self.editor is None:
+            self.host.status = "⚠ this transfer has no fine-scale details to edit"
+            return
+        if self.key_frame is None:
+            self.key_frame = int(frame)
+        ed = self.current()
+        X = ed.surface(self.key_frame)[ed.wi]
+        last = int(np.argmin(np.linalg.norm(X - np.asarray(end, dtype=float), axis=1)))
+        self.picks += [int(vertex), last]
+        if self.w_select.value == "paint":
+            self.strokes.append((int(vertex), last))
+        self.host.status = (f"selection: stroke from vertex {vertex} to {last}, {len(self.picks)} points at key frame "
+                            f"{self.key_frame}")
+        self.draw()
+
     def region(self, ed: DetailEditor) -> np.ndarray:
         """Editor ids of the current selection (empty when nothing is picked)."""
         if not self.picks:
@@ -150,7 +171,9 @@ class DetailPanel:
         r = float(self.w_radius.value) / 1000
         if self.w_select.value == "curve":
             return ed.select_curve(ids, r, self.key_frame)
-        return ed.select_paint(ids, r, self.key_frame)
+        parts = [ed.select_paint(ids, r, self.key_frame)]
+        parts += [ed.select_curve(ed.to_editor([a, b]), r, self.key_frame) for a, b in self.strokes if a != b]
+        return np.unique(np.concatenate(parts))
 
     # -- drawing -------------------------------------------------------------------------------
     def highlight_ids(self) -> list:

@@ -371,6 +371,9 @@ class TransferView(param.Parameterized):
 
     def _on_dragged(self, event):
         d = event.new
+        if d and self.editable is not None and self.w_tool.value == "detail selection":
+            self.details.on_stroke(int(d["vertex"]), int(d["frame"]), d["end"])
+            return
         if not d or self.editable is None or self.w_mode.value != "point" or self.w_tool.value != TOOLS[0]:
             return
         start, end = np.asarray(d["start"], dtype=float), np.asarray(d["end"], dtype=float)

@@ -307,3 +307,26 @@ def test_detail_copy_paste_and_reshape_from_clicks(view, tiger_transfer):
     assert view.details.apply(), view.status
     assert view.edits[-1].kind == "detail" and "reshape" in view.edits[-1].report
     assert len(view.edits) == 2 and not np.array_equal(view.detail_states[-1], view.detail_states[-2])
+
+
+def test_detail_paint_stroke_from_a_drag(view, tiger_transfer):
+    res = tiger_transfer
+    k = 20
+    a = busiest_vertex(view, k)
+    ed = view.details.current()
+    X = ed.surface(k)[ed.wi]
+    dist = np.linalg.norm(res.neutral - res.neutral[a], axis=1)
+    b = int(np.flatnonzero((dist > 0.02) & (dist < 0.03))[0])
+    view.w_tool.value = "detail selection"
+    # the browser reports the drag's end in the view plane: a little off the surface
+    view.viewer.dragged = {"vertex": a, "frame": k, "start": X[a].tolist(), "end": (X[b] + [0, 0, 0.001]).tolist(),
+                           "count": 1}
+    assert view.pending == [] and view.details.picks == [a, b] and view.details.strokes == [(a, b)]
+    region = view.details.region(ed)
+    r = view.details.w_radius.value / 1000
+    along = ed.select_curve(ed.to_editor([a, b]), r, k)
+    assert set(along) <= set(region) and len(region) > len(ed.select_paint(ed.to_editor([a, b]), r, k))
+    # the large-scale tool still turns drags into point constraints
+    view.w_tool.value = "large-scale constraint"
+    view.viewer.dragged = {"vertex": a, "frame": k, "start": X[a].tolist(), "end": X[b].tolist(), "count": 2}
+    assert len(view.pending) == 1 and view.pending[0]["kind"] == "point"
