@@ -18,7 +18,10 @@ The card drives :class:`core.transfer.detail_edit.DetailEditor` from clicks on t
 
 Details are shown on the paused frame as the viewer's ``offsets`` (``TransferResult.details``
 is a per-frame displacement the blendshape rig does not hold); while playing, the viewer shows
-the large-scale rig only (one (V, 3) array per frame would be 175 KB per frame on ICT).
+the large-scale rig only (one (V, 3) array per frame would be 175 KB per frame on ICT) unless
+*Details while playing* is ticked: the details then travel once as a few dozen extra morph
+targets (:func:`core.transfer.details.detail_morph_targets`, error ≤ 5 % of the largest
+detail, measured and shown) played with the bases.
 No numerics here: the view only maps rig ids, frames and widget values to core calls.
 """
 
@@ -32,6 +35,7 @@ import numpy as np
 import panel as pn
 
 from core.transfer.detail_edit import DetailEditor
+from core.transfer.details import detail_morph_targets
 
 # vertex colours are linear RGB in three.js (mesh_color is sRGB): MESH_RGB is #d8b49c, the
 # viewer's default mesh_color, in linear RGB, so the unselected skin keeps its colour
@@ -62,6 +66,9 @@ class DetailPanel:
     def _build(self):
         self.w_show = pn.widgets.Checkbox(name="Show fine details (paused frame)", value=True)
         self.w_show.param.watch(lambda e: self.show_frame(), "value")
+        self.w_play = pn.widgets.Checkbox(name="Details while playing (extra morph targets)", value=False)
+        self.w_play.param.watch(lambda e: self._on_play_details(), "value")
+        self._morphs = (None, None)  # (details array, (coeffs, basis, max error)) of the last factorisation
         self.w_select = pn.widgets.RadioButtonGroup(name="Selection", options=["paint", "curve"], value="paint",
                                                     button_type="light")
         self.w_select.param.watch(lambda e: self.draw(), "value")
@@ -97,7 +104,7 @@ class DetailPanel:
             "the key frame (the first click's) and spread over the frames where the selection's details are "
             "active (μ).", css_classes=["fr-muted"], sizing_mode="stretch_width")
         self.card = pn.Card(
-            help_, self.w_show, pn.Row(self.w_select, self.w_radius), self.w_op, self.w_factor,
+            help_, self.w_show, self.w_play, pn.Row(self.w_select, self.w_radius), self.w_op, self.w_factor,
             pn.Row(self.w_angle, self.w_pscale, self.w_pmode), self.w_mirror, self.w_lam_l,
             self.w_prop, pn.Row(self.w_mu, self.w_lam_e, self.w_lam_t, self.w_lam_s), pn.Row(self.w_apply, self.w_clear),
             self.w_info,
@@ -119,6 +126,25 @@ class DetailPanel:
             return None
         D, W = self.host.states[-1]
         return self.editor.rebase(details=self.host.detail_states[-1], deltas=D, weights=W)
+
+    def morphs(self):
+        """The current details as low-rank morph targets ``(coeffs (T, r), basis (r, V, 3),
+        max error m)`` (:func:`core.transfer.details.detail_morph_targets`), computed once per
+        details array; None without details."""
+        details = self.host.detail_states[-1] if self.host.detail_states else None
+        if details is None:
+            return None
+        if self._morphs[0] is not details:
+            self._morphs = (details, detail_morph_targets(details))
+        return self._morphs[1]
+
+    def _on_play_details(self) -> None:
+        self.host._show_state()
+        self.show_frame()
+        m = self.morphs() if self.w_play.value else None
+        if m is not None:
+            self.host.status = (f"details play as {m[1].shape[0]} extra morph targets (largest error "
+                                f"{m[2] * 1000:.3f} mm)")
 
     def clear(self, draw: bool = True) -> None:
         self.picks, self.strokes, self.key_frame, self.anchor, self.targets = [], [], None, None, []
@@ -211,7 +237,8 @@ class DetailPanel:
         v = self.host.viewer
         if v is None:
             return
-        if self.editor is None or not self.w_show.value or v.playing or not self.host.detail_states:
+        if (self.editor is None or not self.w_show.value or v.playing or not self.host.detail_states
+                or self.w_play.value):  # playing along as morph targets: no offsets on top
             if v.offsets is not None:
                 v.set_offsets(None)
             return
@@ -267,6 +294,8 @@ class DetailPanel:
                   f"{time.perf_counter() - t0:.2f} s")
         self.host.push_details(res.details, report)
         self.clear()
+        if self.w_play.value:
+            self.host._show_state()
         self.show_frame()
         self.host.status = f"detail edit {len(self.host.edits)}: {report}"
         return True

@@ -188,11 +188,11 @@ class TransferView(param.Parameterized):
         self.w_add_distance = pn.widgets.Button(name="Add distance constraint", disabled=True)
         self.w_add_distance.on_click(lambda e: self.add_distance())
         self.w_pending = pn.pane.Markdown("", sizing_mode="stretch_width")
-        self.w_clear = pn.widgets.Button(name="Clear constraints", width=140)
+        self.w_clear = pn.widgets.Button(name="Clear constraints", width=125)
         self.w_clear.on_click(lambda e: self.clear_pending())
-        self.w_apply = pn.widgets.Button(name="Apply edit", button_type="success", width=120)
+        self.w_apply = pn.widgets.Button(name="Apply edit", button_type="success", width=105)
         self.w_apply.on_click(lambda e: self.apply_edit())
-        self.w_undo = pn.widgets.Button(name="Undo last edit", width=120)
+        self.w_undo = pn.widgets.Button(name="Undo last edit", width=110)
         self.w_undo.on_click(lambda e: self.undo())
         self.w_edits = pn.pane.Markdown("", sizing_mode="stretch_width")
         self.param.watch(self._on_status, ["status", "busy"])
@@ -322,6 +322,8 @@ class TransferView(param.Parameterized):
         self.viewer.param.watch(self._on_dragged, "dragged")
         self.viewer.param.watch(self.details.show_frame, ["frame", "playing"])
         self.details.reset(r, editable.settings)
+        if self.details.w_play.value:
+            self._show_state()
         for widget, link in self._links:  # the old viewer's reverse links go with it
             widget.param.unwatch(link)
         self.w_frame.param.update(end=max(len(r.weights) - 1, 1), value=0)
@@ -463,14 +465,26 @@ class TransferView(param.Parameterized):
         self.status = f"undone; {len(self.edits)} edit(s) left"
         return True
 
-    def _show_state(self):
+    def shapes(self) -> tuple:
+        """What the viewer plays: ``(deltas (K', V, 3), track (T, K'), names)`` — the current
+        bases and weights, plus the details as low-rank morph targets when they play along."""
         D, W = self.states[-1]
+        names = [f"xu_basis_{k:02d}" for k in range(len(D))]
+        morphs = self.details.morphs() if self.details.w_play.value else None
+        if morphs is None:
+            return D, W, names
+        C, B, _ = morphs
+        return (np.concatenate([D, B]), np.hstack([W, C]), names + [f"detail_{j:02d}" for j in range(len(B))])
+
+    def _show_state(self):
         v = self.viewer
         if v is None:
             return
-        if not np.array_equal(D.astype(np.float32), v.deltas):
-            v.set_deltas(D)
-        v.set_track(W)
+        deltas, track, names = self.shapes()
+        if v.n_shapes == len(deltas) and np.array_equal(deltas.astype(np.float32), v.deltas):
+            v.set_track(track)
+        else:
+            v.set_shapes(deltas, track, names)
         self._draw_lists()
 
     # -- drawing -----------------------------------------------------------------------------

@@ -321,6 +321,26 @@ class MeshViewer(pn.custom.JSComponent):
         V = 0 if self.neutral is None else len(self.neutral)
         self.deltas = _f32(deltas, "deltas", (K, V, 3))
 
+    def set_shapes(self, deltas, track, shape_names=None) -> None:
+        """Replace the shapes and their track together; unlike :meth:`set_deltas` the shape count
+        K may change (e.g. detail morph targets appended to a rig). The browser rebuilds the
+        geometry once (normals of every shape). Raises ValueError for another V, a track that
+        is not (T, K) for the new K, names of another length, or NaN."""
+        V = 0 if self.neutral is None else len(self.neutral)
+        d = np.asarray(deltas)
+        if d.ndim != 3:
+            raise ValueError(f"deltas: expected (K, {V}, 3), got {d.shape}")
+        K = len(d)
+        values = {"deltas": _f32(d, "deltas", (K, V, 3))}
+        names = [f"shape_{k:02d}" for k in range(K)] if shape_names is None else [str(n) for n in shape_names]
+        if len(names) != K:
+            raise ValueError(f"shape_names: expected {K} names, got {len(names)}")
+        values["shape_names"] = names
+        values.update(self._track_values(track, K, "track"))
+        T = 1 if values["track"] is None else len(values["track"])
+        values["frame"] = min(self.frame, T - 1)
+        self.param.update(**values)
+
     def set_highlight(self, vertices) -> None:
         """Mark ``vertices`` (ids of this rig) with spheres; raises ValueError for ids outside [0, V)."""
         V = 0 if self.neutral is None else len(self.neutral)

@@ -218,3 +218,25 @@ def test_real_transfer_detail_edit_matches_reference(tiger):
         assert np.abs(ch[:4]).max() == 0 and np.abs(ch[21:]).max() == 0
         # the seam duplicates move together
         assert np.abs(out.details[:, np.arange(len(ed.wi))] - out.details[:, ed.rep[ed.wi]]).max() == 0
+
+
+def test_detail_morph_targets_rank_and_measured_error():
+    from core.transfer.details import detail_morph_targets
+
+    rng = np.random.default_rng(1)
+    T, V = 50, 300
+    B = rng.standard_normal((5, V, 3)) * 1e-4
+    C = rng.standard_normal((T, 5))
+    D = np.einsum("tk,kvc->tvc", C, B)
+    c, b, err = detail_morph_targets(D, ranks=(3, 5, 8))
+    assert b.shape == (5, V, 3) and err < 1e-15  # rank 3 misses, rank 5 is exact
+    np.testing.assert_allclose(np.einsum("tk,kvc->tvc", c, b), D, atol=1e-15)
+    # noise on top: the measured error is the true largest vertex error, and within the bound
+    Dn = D + rng.standard_normal(D.shape) * 1e-7
+    c, b, err = detail_morph_targets(Dn, rtol=0.05)
+    true = np.linalg.norm(np.einsum("tk,kvc->tvc", c, b) - Dn, axis=2).max()
+    assert abs(err - true) < 1e-15 and err <= 0.05 * np.linalg.norm(Dn, axis=2).max()
+    c, b, err = detail_morph_targets(np.zeros((4, 10, 3)))
+    assert b.shape == (0, 10, 3) and err == 0.0
+    with pytest.raises(ValueError, match="details"):
+        detail_morph_targets(np.zeros((4, 10)))

@@ -330,3 +330,32 @@ def test_detail_paint_stroke_from_a_drag(view, tiger_transfer):
     view.w_tool.value = "large-scale constraint"
     view.viewer.dragged = {"vertex": a, "frame": k, "start": X[a].tolist(), "end": X[b].tolist(), "count": 2}
     assert len(view.pending) == 1 and view.pending[0]["kind"] == "point"
+
+
+def test_details_play_along_as_morph_targets(view, tiger_transfer):
+    res = tiger_transfer
+    v = view.viewer
+    K, T = res.n_bases, len(res.weights)
+    view.details.w_play.value = True
+    C, B, err = view.details.morphs()
+    assert v.n_shapes == K + len(B) and v.track.shape == (T, K + len(B)) and v.offsets is None
+    assert v.shape_names[K:] == [f"detail_{j:02d}" for j in range(len(B))]
+    # what the browser blends, frame by frame, is the transfer with its details (to the stated error)
+    shown = v.neutral[None] + np.einsum("tk,kvc->tvc", v.track, v.deltas)
+    want = res.neutral[None] + np.einsum("tk,kvc->tvc", res.weights, res.deltas) + res.details
+    miss = np.linalg.norm(shown - want, axis=2).max()
+    top = np.linalg.norm(res.details, axis=2).max()
+    assert 0 < err <= 0.05 * top and miss <= err + 1e-6
+    assert "extra morph targets" in view.status
+    # a detail edit re-factors; undo goes back; unticking restores the plain rig and offsets
+    k = 20
+    view.w_tool.value = "detail selection"
+    view.viewer.picked = {"vertex": busiest_vertex(view, k), "frame": k, "position": [0.0, 0.0, 0.0], "count": 1}
+    assert view.details.apply(), view.status
+    shown = v.neutral[None] + np.einsum("tk,kvc->tvc", v.track, v.deltas)
+    want = res.neutral[None] + np.einsum("tk,kvc->tvc", res.weights, res.deltas) + view.detail_states[-1]
+    assert np.linalg.norm(shown - want, axis=2).max() <= view.details.morphs()[2] + 1e-6
+    view.details.w_play.value = False
+    assert v.n_shapes == K and np.array_equal(v.track, res.weights.astype(np.float32))
+    v.frame = k
+    np.testing.assert_array_equal(v.offsets, view.detail_states[-1][k])

@@ -52,9 +52,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._mesh import first_neighbour, frame_vectors, incidence, to_local
-from .decompose import FactoredSequence, PoissonReconstructor
+from .decompose import FactoredSequence, PoissonReconstructor, factor_sequence
 
-__all__ = ["local_coating", "DetailTransfer"]
+__all__ = ["local_coating", "DetailTransfer", "detail_morph_targets"]
 
 
 def local_coating(frames, coating: np.ndarray) -> np.ndarray:
@@ -289,3 +289,45 @@ class DetailTransfer:
             if progress is not None:
                 progress(idx.stop / n_frames, f"fine details: {idx.stop}/{n_frames} frames")
         return out
+
+
+def detail_morph_targets(details, rtol: float = 0.05, max_rank: int = 64, ranks=(8, 16, 24, 32, 48, 64)):
+    """Per-frame details ``D_t`` (T, V, 3) as ``r`` extra morph targets: ``D_t ≈ C_t B``.
+
+    For playback: a viewer plays ``C`` (T, r) as weights of the shapes ``B`` (r, V, 3) like any
+    blendshape, so the details move at full frame rate with nothing sent per frame.
+
+    The truncated SVD of ``[D_t]`` (T, 3V), from the eigenvectors of its (T, T) Gram matrix;
+    ``r`` is the first of ``ranks`` (capped at ``max_rank`` and T) whose largest vertex error in
+    any frame is at most ``rtol`` × the largest detail (0.05: on ICT → Rocketbox, 300 frames,
+    r = 24 and 0.044 mm for details up to 1.15 mm). The error is measured, not estimated:
+    details live on a small part of the head, so an RMS over all vertices would hide them
+    (on ICT → Rocketbox a rank with 0.014 mm RMS still missed a wrinkle by 0.9 mm).
+
+    Returns
+    -------
+    coeffs (T, r), basis (r, V, 3), max_m (largest residual of any vertex in any frame, metres)
+    """
+    D = np.asarray(details)
+    if D.ndim != 3 or D.shape[2] != 3 or len(D) == 0:
+        raise ValueError(f"details: expected (T, V, 3), got {D.shape}")
+    T, V, _ = D.shape
+    X = D.reshape(T, 3 * V).astype(np.float64)
+    top = float(np.sqrt((D.astype(np.float64) ** 2).sum(-1)).max())
+    if top == 0:
+        return np.zeros((T, 0)), np.zeros((0, V, 3)), 0.0
+    ev, U = np.linalg.eigh(X @ X.T)
+    order = np.argsort(ev)[::-1]
+    ev, U = np.clip(ev[order], 0, None), U[:, order]
+    cap = min(max_rank, T, int((ev > 1e-24 * ev[0]).sum()))
+    worst = top
+    for r in sorted({min(int(x), cap) for x in ranks} | {cap}):
+        Q = U[:, :r].T @ X / np.sqrt(ev[:r])[:, None]  # orthonormal rows (r, 3V)
+        C = X @ Q.T
+        worst = 0.0
+        for s in range(0, T, 64):
+            res = (C[s:s + 64] @ Q - X[s:s + 64]).reshape(-1, V, 3)
+            worst = max(worst, float(np.sqrt((res ** 2).sum(-1)).max()))
+        if worst <= rtol * top:
+            break
+    return C, Q.reshape(r, V, 3), worst

@@ -51,6 +51,17 @@ def shown(res, details, frame):
     return res.neutral + np.einsum("k,kvc->vc", res.weights[frame], res.deltas) + details[frame]
 
 
+def checkbox(page, text):
+    """The checkbox whose label starts with ``text`` (Bokeh draws ``<input><div>label</div>`` in
+    a shadow root: no <label>, so the accessible name is empty and a click on the text is inert)."""
+    boxes = page.get_by_role("checkbox")
+    for i in range(boxes.count()):
+        label = boxes.nth(i).evaluate("e => e.nextElementSibling ? e.nextElementSibling.textContent : ''")
+        if label.startswith(text):
+            return boxes.nth(i)
+    raise AssertionError(f"no checkbox labelled {text!r}")
+
+
 def status(page):
     return page.get_by_text(re.compile(r"^(selection:|detail edit|undone|⚠|\d+ frames)")).first.inner_text()
 
@@ -127,3 +138,37 @@ def test_click_select_apply_and_undo_a_detail_edit(page, detail_url, detail_app,
     page.wait_for_timeout(500)
     undone = shot(page, label, artifacts / "detail_undone.png")
     assert (np.abs(undone.astype(int) - before.astype(int)).sum(2) > 30).sum() <= 5
+
+
+@pytest.mark.browser
+def test_details_play_along_as_morph_targets_in_the_browser(page, detail_url, detail_app, case, artifacts):
+    """Tick "Details while playing": the viewer gets K + r shapes in one rebuild and, on any
+    frame it plays to, draws the transfer with its details (to the factorisation's error)."""
+    from playwright.sync_api import expect
+
+    from core.transfer.details import detail_morph_targets
+
+    rig, res, ed = case
+    label, k = detail_app.LABEL, detail_app.KEY
+    page.goto(detail_url + APP)
+    page.wait_for_function(
+        "(label) => { const v = window.__faceRetarget && window.__faceRetarget.viewers[label]; "
+        "return v && v.self.width > 0 && v.self.stats.renders > 0 && v.info().offsets; }", arg=label, timeout=90_000)
+    C, B, err = detail_morph_targets(res.details)
+    K = res.n_bases
+    checkbox(page, "Details while playing").check()
+    expect(page.get_by_text(re.compile(r"^details play as \d+ extra morph targets"))).to_be_visible(timeout=30_000)
+    page.wait_for_function("([label, K]) => window.__faceRetarget.viewers[label].self.K === K && "
+                           "!window.__faceRetarget.viewers[label].info().offsets", arg=[label, K + len(B)], timeout=30_000)
+    page.get_by_role("button", name=re.compile("Play")).click()
+    page.wait_for_timeout(1200)
+    page.get_by_role("button", name=re.compile("Play")).click()
+    page.wait_for_function("(label) => !window.__faceRetarget.viewers[label].self.clock.playing", arg=label,
+                           timeout=10_000)
+    f = js(page, label, "v.self.clock.frame")
+    assert f != k, "playback did not advance"
+    ids = list(range(0, rig.n_vertices, 53))
+    got = np.array(js(page, label, "v.vertexPositions(arg)", ids))
+    want = shown(res, res.details, f)
+    assert np.linalg.norm(got - want[ids], axis=1).max() <= err + 2e-6
+    shot(page, label, artifacts / "detail_playing.png")

@@ -757,3 +757,19 @@ def test_error_colors_ramp_and_missing_values():
     np.testing.assert_allclose(error_colors([2.0], vmax=1.0), error_colors([1.0]))
     with pytest.raises(ValueError, match=r"values: expected shape \(V,\)"):
         error_colors(np.zeros((2, 2)))
+
+
+def test_set_shapes_changes_the_shape_count_with_its_track(ict):
+    from dashboard.viewer import MeshViewer
+
+    v = MeshViewer.from_rig(ict, np.zeros((5, ict.n_shapes)))
+    extra = np.zeros((2, ict.n_vertices, 3))
+    v.set_shapes(np.concatenate([ict.deltas, extra]), np.zeros((7, ict.n_shapes + 2)), list(ict.names) + ["a", "b"])
+    assert v.n_shapes == ict.n_shapes + 2 and v.track.shape == (7, ict.n_shapes + 2) and v.shape_names[-1] == "b"
+    with pytest.raises(ValueError, match="track"):
+        v.set_shapes(ict.deltas, np.zeros((7, ict.n_shapes + 2)))
+    with pytest.raises(ValueError, match="shape_names"):
+        v.set_shapes(ict.deltas, None, ["x"])
+    with pytest.raises(ValueError, match="deltas"):
+        v.set_shapes(ict.deltas[:, :10], None)
+    assert v.n_shapes == ict.n_shapes + 2  # a refused update changes nothing
