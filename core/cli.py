@@ -51,14 +51,28 @@ def _transfer(args) -> int:
     res = transfer_performance(source, source_rig, src_layout, target, tgt_layout,
                                progress=None if args.quiet else StderrBar("transfer"))
     rig = res.to_rig(name=f"{target.name}_transfer")
+    weights = res.weights
+    detail_note = ""
+    if getattr(args, "transfer_details", "morphs") == "morphs" and res.details is not None:
+        # the per-frame details as extra morph targets: a GLB then plays the whole transfer
+        import numpy as np
+
+        from .model import Rig
+        from .transfer.details import detail_morph_targets
+
+        C, B, err = detail_morph_targets(res.details, rtol=getattr(args, "detail_tolerance", 0.05))
+        rig = Rig(rig.neutral, rig.faces, np.concatenate([rig.deltas, B]),
+                  list(rig.names) + [f"xu_detail_{j:02d}" for j in range(len(B))], None, "m", rig.name)
+        weights = np.hstack([weights, C])
+        detail_note = f"; details as {len(B)} morph targets (largest error {err * 1000:.3f} mm)"
     times = source.times - source.times[0]
     if args.out:
-        write_rig(args.out, rig, weights=res.weights, times=times)
+        write_rig(args.out, rig, weights=weights, times=times)
     if args.weights_csv:
-        write_curves_csv(args.weights_csv, times, res.weights, rig.names)
+        write_curves_csv(args.weights_csv, times, weights, rig.names)
     stages = " ".join(f"{k}={v:.1f}s" for k, v in res.timings.items() if isinstance(v, (int, float)))
-    print(f"transferred {len(res.weights)} frames to {target.name}: {rig.n_shapes} bases on {rig.n_vertices} vertices "
-          f"(source topology fitted to the target) in {time.perf_counter() - t0:.1f}s; stages: {stages}"
+    print(f"transferred {len(res.weights)} frames to {target.name}: {res.n_bases} bases on {rig.n_vertices} vertices "
+          f"(source topology fitted to the target){detail_note} in {time.perf_counter() - t0:.1f}s; stages: {stages}"
           + (f"\nwrote {args.out}" if args.out else "") + (f"\nwrote {args.weights_csv}" if args.weights_csv else ""))
     return 0
 
@@ -181,6 +195,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="output GLB: the target rig with a morph-weight animation")
     r.add_argument("--weights-csv", help="output CSV: time_s then one column per target shape")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--transfer-details", choices=["morphs", "none"], default="morphs",
+                   help="[transfer] fine-scale details in the output: 'morphs' adds them as low-rank morph targets "
+                        "(xu_detail_NN, weights in the same animation), 'none' writes the large-scale bases only "
+                        "(default: morphs)")
+    r.add_argument("--detail-tolerance", type=float, default=0.05,
+                   help="[transfer] largest allowed error of the detail morph targets, relative to the largest "
+                        "detail (default: 0.05)")
     r.set_defaults(func=_retarget)
 
     lay = sub.add_parser("layout", help="transfer a marker layout to a rig of any topology (non-rigid ICP)")

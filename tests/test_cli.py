@@ -91,6 +91,15 @@ def test_dense_transfer_method_writes_a_rig_of_transferred_bases(tmp_path, capsy
     assert anim.n_frames == 40 and anim.names == rig.names and rig.n_shapes >= 1
     # the fitted neutral lies on the Rocketbox head, not on ICT (which sits ~1.5 m lower)
     assert 1.3 < np.median(rig.neutral[:, 1]) < 1.8
+    # the details ride along as morph targets after the bases; --transfer-details none drops them
+    n_detail = sum(n.startswith("xu_detail_") for n in rig.names)
+    assert n_detail >= 1 and all(n.startswith("xu_basis_") for n in rig.names[:rig.n_shapes - n_detail])
+    assert "morph targets (largest error" in capsys.readouterr().out
+    bare = tmp_path / "bare.glb"
+    assert main(["retarget", "--method", "transfer", "--source", str(PERFORMANCES / "livelinkface_take_s07.csv"),
+                 "--source-rig", str(RIGS / "ict_facekit.glb"), "--target-rig", str(RIGS / "rocketbox_female_adult_02.glb"),
+                 "--last-frame", "39", "--out", str(bare), "--quiet", "--transfer-details", "none"]) == 0
+    assert read_rig(bare).n_shapes == rig.n_shapes - n_detail
 
 
 def test_transfer_refuses_marker_sources(capsys):
