@@ -4,8 +4,11 @@ editing its fine-scale details (§5.2).
 
 * **Run**: :func:`core.transfer.performance.transfer_performance` on a frame range of the
   session's source (its weight curves drive the source rig into a dense sequence; the marker
-  layouts give the landmarks of the §3 registration). Runs on a worker thread; about 30-90 s
-  on this machine for a few hundred ICT frames, most of it the non-rigid ICP.
+  layouts give the landmarks of the §3 registration) with the settings card's Taubin
+  iterations, ε, max bases, α, feature lines (eye and mouth rims near the layout's markers,
+  :func:`~core.transfer.performance.default_feature_lines`) and details. Runs on a worker
+  thread with per-stage progress; about 30-90 s on this machine for a few hundred ICT frames,
+  most of it the non-rigid ICP.
 * **Show**: the transferred rig (``result.to_rig()``: target neutral in the source topology +
   K bases) playing ``result.weights`` in a :class:`~dashboard.viewer.MeshViewer` with
   ``pick_mode="vertex"``. Fine-scale details are not part of the rig: the paused frame shows
@@ -39,7 +42,7 @@ import param
 from core.transfer import DeformationTransfer, TaubinFilter, TransferSettings, line_edges
 from core.transfer._mesh import weld
 from core.transfer.edit import DistanceConstraint, EditResult, LargeScaleEditor, PointConstraint
-from core.transfer.performance import transfer_performance
+from core.transfer.performance import default_feature_lines, transfer_performance
 
 from .detail_view import TOOLS, DetailPanel
 from .viewer import MeshViewer
@@ -171,6 +174,15 @@ class TransferView(param.Parameterized):
                                                  value=(0, DEFAULT_FRAMES - 1), step=1, sizing_mode="stretch_width")
         self.w_run = pn.widgets.Button(name="Run dense transfer (Xu 2014)", button_type="primary", sizing_mode="stretch_width")
         self.w_run.on_click(lambda e: self.run())
+        self.w_iter = pn.widgets.IntInput(name="Taubin iterations", value=40, start=0, step=5, width=110)
+        self.w_eps = pn.widgets.FloatInput(name="ε (basis selection)", value=1e-3, start=0.0, step=5e-4, width=120)
+        self.w_maxk = pn.widgets.IntInput(name="max bases", value=30, start=1, step=1, width=90)
+        self.w_alpha = pn.widgets.FloatInput(name="α (feature lines)", value=100.0, start=0.0, step=10.0, width=110)
+        self.w_lines = pn.widgets.Checkbox(name="feature lines (eye and mouth rims)", value=True)
+        self.w_details = pn.widgets.Checkbox(name="fine details (eq. 16)", value=True)
+        settings_card = pn.Card(
+            pn.Row(self.w_iter, self.w_eps, self.w_maxk), pn.Row(self.w_alpha, pn.Column(self.w_lines, self.w_details)),
+            title="Transfer settings", sizing_mode="stretch_width", collapsed=True)
         self.w_progress = pn.indicators.Progress(value=0, max=100, height=12, sizing_mode="stretch_width", bar_color="primary")
         self.w_status = pn.pane.Markdown("Transfers the take's dense motion onto the target's face (Xu et al. 2014). "
                                          "2,000 ICT frames take minutes; start with a few hundred.", sizing_mode="stretch_width")
@@ -209,8 +221,8 @@ class TransferView(param.Parameterized):
             pn.Row(self.w_distance, self.w_add_distance), self.w_pending, pn.Row(self.w_apply, self.w_clear, self.w_undo),
             self.w_edits, title="Edit (Xu 2014 §4.3)", sizing_mode="stretch_width")
         self.layout = pn.Row(
-            pn.Column(self.w_range, self.w_run, self.w_progress, self.w_status, self.w_tool, edit_card, self.details.card,
-                      width=380),
+            pn.Column(self.w_range, settings_card, self.w_run, self.w_progress, self.w_status, self.w_tool, edit_card,
+                      self.details.card, width=380),
             pn.Column(self.viewer_box, pn.Row(self.w_play, self.w_frame, sizing_mode="stretch_width"), sizing_mode="stretch_width"),
             sizing_mode="stretch_width")
         self._draw_lists()
@@ -264,7 +276,10 @@ class TransferView(param.Parameterized):
         if ld["source_rig"] is None or ld["source_layout"] is None:
             self.status = "⚠ dense transfer needs weight curves and the rig they drive (choose a source rig)"
             return False
+        settings = dict(iterations=int(self.w_iter.value), eps=float(self.w_eps.value), max_bases=int(self.w_maxk.value),
+                        alpha=float(self.w_alpha.value), details=bool(self.w_details.value))
         job = dict(source=ld["source"].frames(a, b + 1), source_rig=ld["source_rig"], source_layout=ld["source_layout"],
+                   settings=settings, lines=bool(self.w_lines.value),
                    target_rig=ld["target_rig"], target_layout=ld["target_layout"], name_map=ld.get("name_map"),
                    first=a, key=self._selection())
         self.busy = True
@@ -286,10 +301,12 @@ class TransferView(param.Parameterized):
     def _job(self, job: dict) -> None:
         t0 = time.perf_counter()
         try:
-            settings = TransferSettings()
+            lines = default_feature_lines(job["source_rig"], job["source_layout"]) if job["lines"] else None
+            settings = TransferSettings(**job["settings"], feature_lines=lines)
             result = transfer_performance(job["source"], job["source_rig"], job["source_layout"], job["target_rig"],
                                           job["target_layout"], name_map=job["name_map"],
-                                          progress=lambda f, m: self._progress(f, m, t0))
+                                          progress=lambda f, m: self._progress(f, m, t0),
+                                          **job["settings"], feature_lines=lines)
             self.status = "preparing the editor (factorising eq. 9)…"
             editable = EditableTransfer(result, job["source_rig"], settings)
             self.show(editable, job["first"], job["target_rig"].name, job["key"], time.perf_counter() - t0)

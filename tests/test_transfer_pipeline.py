@@ -331,3 +331,18 @@ def test_progress_is_reported_per_stage_and_per_detail_chunk(tiger):
     details = [m for _, m in calls if m.startswith("fine details")]
     assert details == [f"fine details: {n}/30 frames" for n in (8, 16, 24, 30)]
     assert any("basis selection" in m for _, m in calls) and any("deformation transfer" in m for _, m in calls)
+
+
+def test_default_feature_lines_are_the_eye_and_mouth_rims(ict, tiger):
+    from core.io.layout import read_layout
+    from core.transfer.performance import default_feature_lines
+
+    lay = read_layout(LAYOUTS / "ict_facekit.json", ict)
+    lines = default_feature_lines(ict, lay)
+    assert len(lines) == 3  # both eyes and the mouth, nothing else
+    centres = np.array([ict.neutral[ln].mean(0) for ln in lines])
+    marks = {n: lay.select([n]).points(ict.neutral)[0] for n in ("Leye_Up", "Reye_Up", "Mouth_Up")}
+    for p in marks.values():
+        assert np.linalg.norm(centres - p, axis=1).min() < 0.02
+    assert default_feature_lines(ict, None) is None
+    assert default_feature_lines(ict, lay.select(["ForeHead_M", "Chin", "NoseTop"])) is None

@@ -183,12 +183,15 @@ def test_ict_to_rocketbox_run_then_drag_edit():
     view.update(session.snapshot)
     assert view.w_range.value == (0, 299) and not view.w_run.disabled
     view.w_range.value = (600, 629)
+    view.w_iter.value = 30  # the settings card reaches the transfer and the editor
     assert view.run(block=True), view.status
     assert view.editable is not None, view.status
     res = view.editable.result
     assert res.weights.shape[0] == 30 and res.n_bases >= 1
     assert res.registration is not None and res.registration.report["landmark_residual_mm_mean"] < 5
     assert view.editable.consistency() < 1e-8
+    st = view.editable.settings
+    assert st.iterations == 30 and st.feature_lines is not None and len(st.feature_lines) == 3  # 2 eyes + mouth
     assert view.viewer.n_shapes == res.n_bases and view.viewer.pick_mode == "vertex"
     assert view.first_frame == 600 and "30 frames" in view.status
 

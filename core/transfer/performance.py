@@ -56,11 +56,37 @@ def shared_landmarks(source_layout: MarkerLayout, target_layout: MarkerLayout, t
     return ids.astype(np.int64), target_layout.select(common).points(np.asarray(target_positions))
 
 
+EYE_MOUTH_MARKERS = ("Leye_Up", "Leye_Down", "Leye_Inside", "Leye_Outside", "Reye_Up", "Reye_Down", "Reye_Inside",
+                     "Reye_Outside", "Mouth_Up", "Mouth_Down", "Mouth_Lend", "Mouth_Rend")
+
+
+def default_feature_lines(rig: Rig, layout: Optional[MarkerLayout], radius: Optional[float] = None) -> Optional[list]:
+    """The eye and mouth feature lines of ``rig`` for eq. 9 (Xu et al. 2014 Fig. 2d): hole and
+    UV-seam rims passing within ``radius`` (default 5 % of the layout's marker spread: 12 mm on
+    ICT) of the layout's eye and mouth markers. None when the layout has none of those
+    markers or no rim passes near them (eq. 9 then has no line term)."""
+    from .features import feature_lines_near
+
+    if layout is None:
+        return None
+    names = [n for n in EYE_MOUTH_MARKERS if n in layout.names]
+    if not names:
+        return None
+    pts = layout.select(names).points(rig.neutral)
+    if radius is None:
+        allp = layout.points(rig.neutral)
+        radius = 0.05 * float(np.linalg.norm(np.ptp(allp, axis=0)))
+    lines = feature_lines_near(rig.neutral, rig.faces, pts, radius)
+    return lines or None
+
+
 def transfer_performance(source: Performance, source_rig: Rig, source_layout: MarkerLayout, target_rig: Rig,
                          target_layout: MarkerLayout, name_map=None, progress: Optional[ProgressFn] = None, **settings):
     """Transfer ``source`` onto ``target_rig``'s face; returns the :class:`TransferResult`.
 
-    Landmarks are the markers both layouts share (:func:`shared_landmarks`). The result's
+    Landmarks are the markers both layouts share (:func:`shared_landmarks`); unless
+    ``settings`` has ``feature_lines``, eq. 9's feature lines are :func:`default_feature_lines`
+    of the source rig and layout (pass ``feature_lines=None`` to leave them out). The result's
     meshes have the source's topology fitted to the target surface, as in the paper.
     ``settings`` are :class:`~core.transfer.TransferSettings` fields; the registration crops
     the source to its face for a target without the rest of the head (``crop="auto"``,
@@ -72,6 +98,9 @@ def transfer_performance(source: Performance, source_rig: Rig, source_layout: Ma
     seq = dense_source(source, source_rig, name_map)
     ids, pts = shared_landmarks(source_layout, target_layout, target_rig.neutral)
     report(progress, 0.1, f"transferring {len(seq)} frames")
+    if "feature_lines" not in settings:
+        report(progress, 0.05, "feature lines (eye and mouth rims)")
+        settings = {**settings, "feature_lines": default_feature_lines(source_rig, source_layout)}
     cfg = TransferSettings(**{**settings, "landmarks": (ids, pts)})
     stage = None if progress is None else (lambda f, m: progress(0.1 + 0.9 * min(f, 0.999), m))
     result = transfer_sequence(source_rig.neutral, source_rig.faces, seq, target_rig.neutral, target_rig.faces, cfg,
