@@ -26,6 +26,11 @@ ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+# options of --method transfer only (not pipeline settings)
+TRANSFER_ONLY = ("transfer_details", "detail_tolerance", "transfer_iterations", "transfer_eps", "transfer_max_bases",
+                 "transfer_alpha", "transfer_feature_lines")
+
+
 def _transfer(args) -> int:
     """``--method transfer``: dense transfer (Xu 2014) to a rig of new morph targets."""
     from .io.curves_csv import write_curves_csv
@@ -48,8 +53,12 @@ def _transfer(args) -> int:
     first = getattr(args, "first_frame", 0)
     last = getattr(args, "last_frame", -1)
     source = source.frames(first, None if last < 0 else last + 1)
+    settings = dict(iterations=args.transfer_iterations, eps=args.transfer_eps, max_bases=args.transfer_max_bases,
+                    alpha=args.transfer_alpha)
+    if not args.transfer_feature_lines:
+        settings["feature_lines"] = None
     res = transfer_performance(source, source_rig, src_layout, target, tgt_layout,
-                               progress=None if args.quiet else StderrBar("transfer"))
+                               progress=None if args.quiet else StderrBar("transfer"), **settings)
     rig = res.to_rig(name=f"{target.name}_transfer")
     weights = res.weights
     detail_note = ""
@@ -88,7 +97,8 @@ def _retarget(args) -> int:
     from .pipeline import Pipeline
     from .progress import StderrBar
 
-    settings = {k: v for k, v in vars(args).items() if k not in ("func", "out", "weights_csv", "quiet", "command")}
+    settings = {k: v for k, v in vars(args).items()
+                if k not in ("func", "out", "weights_csv", "quiet", "command") + TRANSFER_ONLY}
     pipe = Pipeline(**settings)
     bar = None if args.quiet else StderrBar("retarget")
     t0 = time.perf_counter()
@@ -199,6 +209,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="[transfer] fine-scale details in the output: 'morphs' adds them as low-rank morph targets "
                         "(xu_detail_NN, weights in the same animation), 'none' writes the large-scale bases only "
                         "(default: morphs)")
+    r.add_argument("--transfer-iterations", type=int, default=40,
+                   help="[transfer] Taubin smoothing iterations of the decomposition (default: 40, as in the paper)")
+    r.add_argument("--transfer-eps", type=float, default=1e-3,
+                   help="[transfer] basis selection stops below this relative residual energy ε (default: 0.001)")
+    r.add_argument("--transfer-max-bases", type=int, default=30, help="[transfer] at most this many bases (default: 30)")
+    r.add_argument("--transfer-alpha", type=float, default=100.0,
+                   help="[transfer] weight α of the eye and mouth feature lines in eq. 9 (default: 100)")
+    r.add_argument("--transfer-feature-lines", action=argparse.BooleanOptionalAction, default=True,
+                   help="[transfer] feature lines from the rims near the source layout's eye and mouth markers "
+                        "(default: on)")
     r.add_argument("--detail-tolerance", type=float, default=0.05,
                    help="[transfer] largest allowed error of the detail morph targets, relative to the largest "
                         "detail (default: 0.05)")

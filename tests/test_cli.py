@@ -98,8 +98,10 @@ def test_dense_transfer_method_writes_a_rig_of_transferred_bases(tmp_path, capsy
     bare = tmp_path / "bare.glb"
     assert main(["retarget", "--method", "transfer", "--source", str(PERFORMANCES / "livelinkface_take_s07.csv"),
                  "--source-rig", str(RIGS / "ict_facekit.glb"), "--target-rig", str(RIGS / "rocketbox_female_adult_02.glb"),
-                 "--last-frame", "39", "--out", str(bare), "--quiet", "--transfer-details", "none"]) == 0
-    assert read_rig(bare).n_shapes == rig.n_shapes - n_detail
+                 "--last-frame", "39", "--out", str(bare), "--quiet", "--transfer-details", "none",
+                 "--transfer-max-bases", "3", "--no-transfer-feature-lines"]) == 0
+    names = read_rig(bare).names
+    assert len(names) == min(3, rig.n_shapes - n_detail) and all(n.startswith("xu_basis_") for n in names)
 
 
 def test_transfer_refuses_marker_sources(capsys):
