@@ -36,20 +36,19 @@ def transfer(fast: bool):
     from core.names import NameMap
     from core.transfer import register, transfer_sequence
     from core.transfer._mesh import weld
+    from core.transfer.performance import shared_landmarks
 
     ict = read_rig(DATA / "rigs" / "ict_facekit.glb")
     rb = read_rig(DATA / "rigs" / "rocketbox_female_adult_02.glb")
     li = read_layout(DATA / "layouts" / "ict_facekit.json", ict)
     lr = read_layout(DATA / "layouts" / "rocketbox_female_adult_02.json", rb)
-    names = [n for n in li.names if n in lr.names]
-    src_lm = li.vertices[[li.names.index(n) for n in names], 0]
+    src_lm, tgt_pts = shared_landmarks(li, lr, rb.neutral)
     perf = read_livelink(DATA / "performances" / "livelinkface_take_s07.csv")
     G = NameMap.automatic(perf.names, ict.names).matrix(perf.names, ict.names)
     seq = ict.evaluate(np.nan_to_num(perf.data[:600:2]) @ G.T)
     wi, rep, Fw = weld(ict.neutral, ict.faces)
     t = time.time()
-    reg = register(ict.neutral[rep], Fw, rb.neutral, rb.faces, wi[src_lm], lr.select(names).points(rb.neutral),
-                   icp=not fast)
+    reg = register(ict.neutral[rep], Fw, rb.neutral, rb.faces, wi[src_lm], tgt_pts, icp=not fast)
     print(f"registration {time.time() - t:.1f} s")
     t = time.time()
     res = transfer_sequence(ict.neutral, ict.faces, seq, reg.resampled[wi], ict.faces, max_bases=20)
