@@ -160,6 +160,7 @@ class TransferView(param.Parameterized):
         self.fps = 30.0
         self.states: list = []  # (deltas (K, V, 3), weights (T, K)); [0] is the transfer
         self.detail_states: list = []  # details (T, V, 3) or None, one per state
+        self._basis_names: list = []
         self.edits: list[_Edit] = []
         self.pending: list[dict] = []
         self._pair: list = []
@@ -333,6 +334,7 @@ class TransferView(param.Parameterized):
         self.detail_states = [r.details]
         self.edits, self.pending, self._pair = [], [], []
         rig = r.to_rig(name=f"{target_name}_transfer")
+        self._basis_names = list(rig.names)  # the viewer's shape names; detail morphs are appended after them
         self.viewer = MeshViewer.from_rig(rig, r.weights, fps=self.fps, pick_mode="vertex", label=f"{target_name} (dense transfer)",
                                           height=VIEW_HEIGHT, sizing_mode="stretch_width")
         self.viewer.param.watch(self._on_picked, "picked")
@@ -486,7 +488,7 @@ class TransferView(param.Parameterized):
         """What the viewer plays: ``(deltas (K', V, 3), track (T, K'), names)`` — the current
         bases and weights, plus the details as low-rank morph targets when they play along."""
         D, W = self.states[-1]
-        names = [f"xu_basis_{k:02d}" for k in range(len(D))]
+        names = list(self._basis_names)
         morphs = self.details.morphs() if self.details.w_play.value else None
         if morphs is None:
             return D, W, names

@@ -343,6 +343,7 @@ def test_details_play_along_as_morph_targets(view, tiger_transfer):
     C, B, err = view.details.morphs()
     assert v.n_shapes == K + len(B) and v.track.shape == (T, K + len(B)) and v.offsets is None
     assert v.shape_names[K:] == [f"detail_{j:02d}" for j in range(len(B))]
+    assert v.shape_names[:K] == list(res.to_rig().names)  # the bases keep the names the viewer opened with
     # what the browser blends, frame by frame, is the transfer with its details (to the stated error)
     shown = v.neutral[None] + np.einsum("tk,kvc->tvc", v.track, v.deltas)
     want = res.neutral[None] + np.einsum("tk,kvc->tvc", res.weights, res.deltas) + res.details

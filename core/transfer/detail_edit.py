@@ -88,10 +88,11 @@ def detail_window(coating_norms, region, key_frame: int, mu: float = 0.23) -> tu
     return ts, te
 
 
-def falloff(faces, n_vertices: int, region, band: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def falloff(faces, n_vertices: int, region, band: int = 2, adjacency=None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices of ``region`` and of ``band`` edge rings around it, with the ring of each:
-    ``(ids (m,), ring (m,))``, ring 0 inside the region."""
-    A = vertex_adjacency(np.asarray(faces), n_vertices)
+    ``(ids (m,), ring (m,))``, ring 0 inside the region. ``adjacency``: the mesh's
+    :func:`~core.geometry.vertex_adjacency`, when the caller keeps one."""
+    A = vertex_adjacency(np.asarray(faces), n_vertices) if adjacency is None else adjacency
     ring = np.full(n_vertices, -1)
     cur = np.zeros(n_vertices, dtype=bool)
     cur[np.asarray(region, dtype=np.int64)] = True
@@ -321,6 +322,8 @@ class DetailEditor:
         self.poisson = PoissonReconstructor(self.faces, n, laplacian, self.neutral[self.rep] if laplacian == "cotangent" else None,
                                             screening)
         L = self.poisson.L
+        # vertex adjacency of the welded mesh: built once here, so editors made by rebase share it
+        self.adjacency = vertex_adjacency(self.faces, n)
         self.A = (L + self.poisson.eps * sp.identity(n)).tocsr() if screening > 0 else sp.csr_matrix(L)
         K = 0 if deltas is None else len(deltas)
         self.deltas = np.zeros((0, V, 3)) if deltas is None else np.asarray(deltas, dtype=np.float64)
@@ -328,7 +331,6 @@ class DetailEditor:
         if self.deltas.shape != (K, V, 3) or self.weights.shape != (len(d), K):
             raise ValueError(f"deltas, weights: expected ({K}, {V}, 3) and ({len(d)}, {K}), got {self.deltas.shape}, "
                              f"{self.weights.shape}")
-        self._adjacency = None
 
     @classmethod
     def from_result(cls, result, settings=None, deltas=None, weights=None, details=None) -> "DetailEditor":
@@ -457,7 +459,7 @@ class DetailEditor:
         region = np.unique(np.asarray(region, dtype=np.int64))
         if region.size == 0:
             raise ValueError("region: select at least one vertex")
-        ids, ring = falloff(self.faces, self.n_vertices, region, band)
+        ids, ring = falloff(self.faces, self.n_vertices, region, band, self.adjacency)
         s = float(factor) + (1 - float(factor)) * ring / (band + 1)
         Ar = self.A[ids]
 
@@ -536,7 +538,7 @@ class DetailEditor:
             raise ValueError(f"anchor: expected an editor vertex id in [0, {self.n_vertices})")
         X = self.surface(f)
         N = vertex_normals_batch(X, self.faces)
-        ext, ring = falloff(self.faces, self.n_vertices, S, band)
+        ext, ring = falloff(self.faces, self.n_vertices, S, band, self.adjacency)
         w = 1.0 - ring / (band + 1.0)
         c_idx = S[np.argmin(np.linalg.norm(X[S] - X[S].mean(0), axis=1))]
         n_s = _unit(N[S].sum(0))
@@ -592,7 +594,7 @@ class DetailEditor:
         P = self.select_curve(C, radius, f)
         x = self.deform_region(P, C, Q, X, lam_l)
         N = vertex_normals_batch(X, self.faces)
-        ext, ring = falloff(self.faces, self.n_vertices, P, band)
+        ext, ring = falloff(self.faces, self.n_vertices, P, band, self.adjacency)
         w = 1.0 - ring / (band + 1.0)
         move = x - X[P]
         _, near = cKDTree(X[P]).query(X[ext])
@@ -620,9 +622,7 @@ class DetailEditor:
         if not np.isin(C, P).all():
             raise ValueError("reshape: the curve's vertices must lie in the region")
         X = np.asarray(positions, dtype=np.float64)
-        if self._adjacency is None:
-            self._adjacency = vertex_adjacency(self.faces, self.n_vertices)
-        Ad = self._adjacency[P][:, P]
+        Ad = self.adjacency[P][:, P]
         LP = (sp.diags(np.asarray(Ad.sum(1)).ravel()) - Ad).tocsr()
         Q = np.asarray(target, dtype=np.float64)
         sc, sq = _arc_length(X[C]), _arc_length(Q)
