@@ -26,61 +26,62 @@ ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-# options of --method transfer only (not pipeline settings)
-TRANSFER_ONLY = ("transfer_details", "detail_tolerance", "transfer_iterations", "transfer_eps", "transfer_max_bases",
-                 "transfer_alpha", "transfer_feature_lines")
+#: one stage cache per process: several runs in one process (tests, scripts calling main())
+#: share the rigs they load and the segmentations they compute
+_CACHE = None
+#: CLI options that are not pipeline settings
+OUTPUT_OPTIONS = ("func", "out", "weights_csv", "quiet", "command", "shot", "save_shot", "csv_precision")
 
 
-def _transfer(args) -> int:
+def _pipeline(args):
+    """The pipeline of a ``retarget`` run: the shot (``--shot``) with the flags given on top."""
+    global _CACHE
+    from .pipeline import Pipeline, StageCache
+
+    if _CACHE is None:
+        _CACHE = StageCache(max_entries=64)
+    settings = {k: v for k, v in vars(args).items() if k not in OUTPUT_OPTIONS}
+    if getattr(args, "shot", None):
+        pipe = Pipeline.from_shot(args.shot, cache=_CACHE, **settings)
+    else:
+        pipe = Pipeline(cache=_CACHE, **settings)
+    if getattr(args, "save_shot", None):
+        pipe.shot().to_json(args.save_shot)
+    return pipe
+
+
+def _transfer(pipe, args) -> int:
     """``--method transfer``: dense transfer (Xu 2014) to a rig of new morph targets."""
+    import numpy as np
+
     from .io.curves_csv import write_curves_csv
     from .io.gltf import write_rig
-    from .io.performance import read_performance
-    from .io.rigs import load_rig, read_layout_for
+    from .model import Rig
     from .progress import StderrBar
-    from .transfer.performance import transfer_performance
 
-    if not getattr(args, "source", None) or not getattr(args, "target_rig", None):
-        raise ValueError("transfer needs --source and --target-rig")
     t0 = time.perf_counter()
-    source = read_performance(args.source)
-    source_rig = load_rig(args.source_rig) if getattr(args, "source_rig", "") else None
-    if source_rig is None:
-        raise ValueError("transfer needs the source rig (--source-rig): its topology carries the dense sequence")
-    target = load_rig(args.target_rig)
-    src_layout = read_layout_for(getattr(args, "source_layout", ""), args.source_rig, source_rig)
-    tgt_layout = read_layout_for(getattr(args, "target_layout", ""), args.target_rig, target)
-    first = getattr(args, "first_frame", 0)
-    last = getattr(args, "last_frame", -1)
-    source = source.frames(first, None if last < 0 else last + 1)
-    settings = dict(iterations=args.transfer_iterations, eps=args.transfer_eps, max_bases=args.transfer_max_bases,
-                    alpha=args.transfer_alpha)
-    if not args.transfer_feature_lines:
-        settings["feature_lines"] = None
-    res = transfer_performance(source, source_rig, src_layout, target, tgt_layout,
-                               progress=None if args.quiet else StderrBar("transfer"), **settings)
-    rig = res.to_rig(name=f"{target.name}_transfer")
-    weights = res.weights
+    res = pipe.results(["transfer", "transfer_edit", "detail_morphs"], progress=None if args.quiet else StderrBar("transfer"))
+    tr, te, dm = res["transfer"], res["transfer_edit"], res["detail_morphs"]
+    r = tr["result"]
+    target = pipe.results(["target_face"])["target_face"]["target_rig"]
+    rig = Rig(r.neutral, r.faces, te["deltas"], r.to_rig().names, None, "m", f"{target.name}_transfer")
+    weights = te["weights"]
     detail_note = ""
-    if getattr(args, "transfer_details", "morphs") == "morphs" and res.details is not None:
+    if dm["basis"] is not None:
         # the per-frame details as extra morph targets: a GLB then plays the whole transfer
-        import numpy as np
-
-        from .model import Rig
-        from .transfer.details import detail_morph_targets
-
-        C, B, err = detail_morph_targets(res.details, rtol=getattr(args, "detail_tolerance", 0.05))
+        B = dm["basis"]
         rig = Rig(rig.neutral, rig.faces, np.concatenate([rig.deltas, B]),
                   list(rig.names) + [f"xu_detail_{j:02d}" for j in range(len(B))], None, "m", rig.name)
-        weights = np.hstack([weights, C])
-        detail_note = f"; details as {len(B)} morph targets (largest error {err * 1000:.3f} mm)"
-    times = source.times - source.times[0]
+        weights = np.hstack([weights, dm["coeffs"]])
+        detail_note = f"; details as {len(B)} morph targets (largest error {dm['max_error'] * 1000:.3f} mm)"
+    times = tr["times"]
+    frames = tr["first"] + np.arange(len(times))
     if args.out:
         write_rig(args.out, rig, weights=weights, times=times)
     if args.weights_csv:
-        write_curves_csv(args.weights_csv, times, weights, rig.names)
-    stages = " ".join(f"{k}={v:.1f}s" for k, v in res.timings.items() if isinstance(v, (int, float)))
-    print(f"transferred {len(res.weights)} frames to {target.name}: {res.n_bases} bases on {rig.n_vertices} vertices "
+        write_curves_csv(args.weights_csv, times, weights, rig.names, args.csv_precision, valid=tr["valid"], frames=frames)
+    stages = " ".join(f"{k}={v:.1f}s" for k, v in pipe.timings.items() if v > 0.05)
+    print(f"transferred {len(weights)} frames to {target.name}: {r.n_bases} bases on {rig.n_vertices} vertices "
           f"(source topology fitted to the target){detail_note} in {time.perf_counter() - t0:.1f}s; stages: {stages}"
           + (f"\nwrote {args.out}" if args.out else "") + (f"\nwrote {args.weights_csv}" if args.weights_csv else ""))
     return 0
@@ -89,45 +90,52 @@ def _transfer(args) -> int:
 def _retarget(args) -> int:
     import numpy as np
 
-    if getattr(args, "method", None) == "transfer":
-        return _transfer(args)
-
     from .io.curves_csv import write_curves_csv
     from .io.gltf import write_rig
-    from .pipeline import Pipeline
     from .progress import StderrBar
+    from .stages.methods import METHODS as REGISTRY
 
-    settings = {k: v for k, v in vars(args).items()
-                if k not in ("func", "out", "weights_csv", "quiet", "command") + TRANSFER_ONLY}
-    pipe = Pipeline(**settings)
+    pipe = _pipeline(args)
+    if REGISTRY[pipe.solve.method].dense:
+        return _transfer(pipe, args)
     bar = None if args.quiet else StderrBar("retarget")
     t0 = time.perf_counter()
-    res = pipe.results(["load", "stabilize", "synthesize", "evaluate"], progress=bar)
-    ld, st, ev = res["load"], res["stabilize"]["source"], res["evaluate"]
-    W = res["synthesize"]["weights"]
+    res = pipe.results(["load", "frames", "calibrate", "solve", "synthesize", "evaluate"], progress=bar)
+    ld, st, ev = res["load"], pipe.results(["stabilize"])["stabilize"]["source"], res["evaluate"]
+    syn = res["synthesize"]
+    W, valid = syn["weights"], syn["valid"]
     rig = ld["target_rig"]
+    times = st.times - st.times[0]
+    frames = res["frames"]["first"] + np.arange(len(times))
     out = []
     if args.out:
-        write_rig(args.out, rig, weights=np.nan_to_num(W), times=st.times - st.times[0])
+        write_rig(args.out, rig, weights=W, times=times)
         out.append(f"wrote {args.out}")
     if args.weights_csv:
-        write_curves_csv(args.weights_csv, st.times - st.times[0], W, rig.names)
+        write_curves_csv(args.weights_csv, times, W, rig.names, args.csv_precision, valid=valid, frames=frames)
         out.append(f"wrote {args.weights_csv}")
-        U = pipe.results(["solve"])["solve"]["info"].get("region_weights")
+        U = res["solve"]["info"].get("region_weights")
         if U is not None:  # Liu 2011 §6.4: the regional curves an animator edits
+            from .gaps import fill_gaps
             from .solvers.local import region_curves
 
-            curves = region_curves(U, rig.names)
+            # U holds the shapes the solver used (--target-shapes, minus shapes no marker sees)
+            curves = region_curves(fill_gaps(U, valid), res["calibrate"]["rig"].names)
             path = Path(args.weights_csv).with_name(Path(args.weights_csv).stem + "_regions.csv")
-            write_curves_csv(path, st.times - st.times[0], np.column_stack(list(curves.values())), list(curves))
+            write_curves_csv(path, times, np.column_stack(list(curves.values())), list(curves), args.csv_precision,
+                             valid=valid, frames=frames)
             out.append(f"wrote {path} (per-region curves <shape>@r<k>; {args.weights_csv} holds their mask-area blend)")
+    if args.save_shot:
+        out.append(f"wrote {args.save_shot}")
+    gaps = int((~valid).sum())
     timings = " ".join(f"{k}={v * 1e3:.0f}ms" for k, v in pipe.timings.items() if v)
     print(
         f"retargeted {len(W)} frames at {st.fps:g} fps, {len(st.names)} markers -> {rig.name} ({rig.n_shapes} shapes) "
         f"with {pipe.solve.method} in {time.perf_counter() - t0:.1f}s\n"
         f"marker error: median {np.nanmedian(ev['marker_error_mm']):.2f} mm, max {np.nanmax(ev['marker_error_mm']):.2f} mm; "
-        f"weights in [{np.nanmin(W):.3f}, {np.nanmax(W):.3f}]\n"
-        f"stage timings: {timings}\n" + "\n".join(out)
+        f"weights in [{np.nanmin(W):.3f}, {np.nanmax(W):.3f}]"
+        + (f"; {gaps} frames without data (tracking loss) filled from their neighbours, flagged valid=0" if gaps else "")
+        + f"\nstage timings: {timings}\n" + "\n".join(out)
     )
     return 0
 
@@ -201,27 +209,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("retarget", help="retarget a performance onto a rig and write GLB/CSV")
-    add_cli_arguments(r, extra_methods=("transfer",))
+    add_cli_arguments(r)
+    r.add_argument("--shot", help="shot JSON to reproduce (from --save-shot or the dashboard's download); the other "
+                                  "flags given override it")
+    r.add_argument("--save-shot", help="write the shot of this run (files with content hashes, every setting) as JSON")
     r.add_argument("--out", help="output GLB: the target rig with a morph-weight animation")
-    r.add_argument("--weights-csv", help="output CSV: time_s then one column per target shape")
+    r.add_argument("--weights-csv", help="output CSV: time_s, frame, valid (0 = no data, filled), one column per target shape")
+    r.add_argument("--csv-precision", default=6, type=lambda v: v if v == "full" else int(v),
+                   help="decimals of the CSV weights, or 'full' for round-trip exact values (default: 6)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
-    r.add_argument("--transfer-details", choices=["morphs", "none"], default="morphs",
-                   help="[transfer] fine-scale details in the output: 'morphs' adds them as low-rank morph targets "
-                        "(xu_detail_NN, weights in the same animation), 'none' writes the large-scale bases only "
-                        "(default: morphs)")
-    r.add_argument("--transfer-iterations", type=int, default=40,
-                   help="[transfer] Taubin smoothing iterations of the decomposition (default: 40, as in the paper)")
-    r.add_argument("--transfer-eps", type=float, default=1e-3,
-                   help="[transfer] basis selection stops below this relative residual energy ε (default: 0.001)")
-    r.add_argument("--transfer-max-bases", type=int, default=30, help="[transfer] at most this many bases (default: 30)")
-    r.add_argument("--transfer-alpha", type=float, default=100.0,
-                   help="[transfer] weight α of the eye and mouth feature lines in eq. 9 (default: 100)")
-    r.add_argument("--transfer-feature-lines", action=argparse.BooleanOptionalAction, default=True,
-                   help="[transfer] feature lines from the rims near the source layout's eye and mouth markers "
-                        "(default: on)")
-    r.add_argument("--detail-tolerance", type=float, default=0.05,
-                   help="[transfer] largest allowed error of the detail morph targets, relative to the largest "
-                        "detail (default: 0.05)")
     r.set_defaults(func=_retarget)
 
     lay = sub.add_parser("layout", help="transfer a marker layout to a rig of any topology (non-rigid ICP)")

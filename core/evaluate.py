@@ -21,27 +21,46 @@ def jitter(W, step: int = 1) -> np.ndarray:
     return out
 
 
-def evaluate(B, W, S, valid=None, step: int = 1, predicted=None) -> dict:
+def evaluate(B, W, S, valid=None, step: int = 1, predicted=None, frame_valid=None) -> dict:
     """Diagnostics of weights ``W`` (T, K) for target marker deltas ``B`` (K, M, 3) against
     source marker deltas ``S`` (T, M, 3). ``predicted`` (T, M, 3) replaces ``B w_t`` as the
     prediction for methods that do not synthesise with one weight vector (Liu 2011 eq. 3).
 
+    Frames without data are excluded from every statistic, never scored as a neutral face: a
+    frame is used where ``frame_valid`` (T,) is True (default: every frame), its weights are
+    finite and it has at least one valid marker sample. Per-frame arrays are NaN there.
+
     Returns a dict: ``marker_error_mm`` (T,) RMS per frame, ``marker_error_per_marker_mm`` (M,),
     ``marker_distances_mm`` (T, M), ``velocity_error_mm2`` (T,) and its ``velocity_error_total``,
     ``velocity_error_mm`` (T,) = sqrt(per-frame velocity error / M) (an RMS per marker per frame),
-    ``weight_min``/``weight_max`` (K,), ``weight_low``/``weight_high``, ``outside_01``, ``jitter`` (T,).
+    ``weight_min``/``weight_max`` (K,), ``weight_low``/``weight_high``, ``outside_01``, ``jitter`` (T,),
+    ``frame_valid`` (T,) and ``n_valid_frames``.
     """
-    Wz = np.nan_to_num(np.asarray(W, dtype=np.float64))
-    me = marker_error_mm(B, Wz, S, valid, predicted)
-    ve = velocity_error(B, Wz, S, valid, predicted)
-    wr = weight_range(Wz)
-    M = np.asarray(S).shape[1]
+    W = np.asarray(W, dtype=np.float64)
+    S = np.asarray(S, dtype=np.float64)
+    T, M = S.shape[:2]
+    mask = np.isfinite(S).all(-1) if valid is None else np.asarray(valid, dtype=bool).copy()
+    fv = np.isfinite(W).all(1) & mask.any(1)
+    if frame_valid is not None:
+        fv &= np.asarray(frame_valid, dtype=bool)
+    mask &= fv[:, None]
+    Wz = np.where(fv[:, None], W, 0.0)  # excluded frames carry no sample: their value is never read
+    me = marker_error_mm(B, Wz, S, mask, predicted)
+    ve = velocity_error(B, Wz, S, mask, predicted)
+    wr = weight_range(W[fv]) if fv.any() else weight_range(np.zeros((1, W.shape[1])))
+    jit = jitter(Wz, step)
+    jit[~fv] = np.nan
+    if len(fv) > 2 * step:  # a difference across an excluded frame is no jitter of the result
+        near = np.zeros(T, dtype=bool)
+        near[step:-step] = ~fv[2 * step:] | ~fv[:-2 * step]
+        jit[near] = np.nan
+    vpf = np.where(fv, ve.per_frame, np.nan)
     return {
         "marker_error_mm": me.per_frame, "marker_error_per_marker_mm": me.per_marker, "marker_distances_mm": me.distances,
         "marker_rms_mm": me.rms, "marker_max_mm": me.max,
-        "velocity_error_mm2": ve.per_frame, "velocity_error_total": ve.total, "velocity_error_mm": np.sqrt(ve.per_frame / M),
+        "velocity_error_mm2": vpf, "velocity_error_total": ve.total, "velocity_error_mm": np.sqrt(vpf / M),
         "weight_min": wr.min, "weight_max": wr.max, "weight_low": wr.low, "weight_high": wr.high, "outside_01": wr.outside,
-        "jitter": jitter(Wz, step),
+        "jitter": jit, "frame_valid": fv, "n_valid_frames": int(fv.sum()),
     }
 
 

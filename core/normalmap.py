@@ -24,10 +24,16 @@ Pieces:
   deltas and masks sampled at each new vertex's closest point on the full mesh) -- the
   coarse geometry on which the blended maps restore detail.
 * :func:`sample` reads a map at UV points (bilinear), :func:`angle_deg` compares normals.
+* :func:`bake_rig` packs a rig's maps for per-frame blending (covered texels only, float16, the
+  nearest covered texel of every texel for filling), :func:`frame_blend_weights` chooses what
+  eq. 3 blends at a frame (regional weights and masks of the local method, else the global
+  weights as one region), :func:`frame_normal_map` blends one frame into an 8-bit image —
+  the pipeline's ``normalmap_*`` stages and the dashboard's normal-map view use these.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Optional
 
@@ -323,3 +329,144 @@ def decimate(rig: Rig, reduction: float = 0.9, masks: Optional[np.ndarray] = Non
         low_masks = np.einsum("nj,rnj->rn", bc, m[:, vid])
         low_masks = low_masks / low_masks.sum(0, keepdims=True)
     return low_rig, low_masks
+
+
+# -- packed maps for per-frame blending (the pipeline's normal-map stages) ----------------------
+@dataclass(frozen=True, eq=False)
+class Bake:
+    """Per-shape object-space normal maps of one rig at one resolution, packed for blending.
+
+    Attributes
+    ----------
+    raster : UVRaster
+    maps : (K+1, 1, n, 3) float16
+        N_0 (neutral) and N_i (``neutral + delta_i``) at the n covered texels, laid out as an
+        image of height 1 so :func:`blend_normal_maps` takes it as is.
+    fill : (H, W) int
+        For every texel, the index (into the n covered texels) of the nearest covered one: a
+        texel no triangle covers takes its nearest covered texel's normal, so bilinear filtering
+        and mipmaps at UV-island borders do not pull in undefined normals.
+    seconds : float
+        Time the bake took.
+    """
+
+    raster: UVRaster
+    maps: np.ndarray
+    fill: np.ndarray
+    seconds: float
+
+    @property
+    def shape(self) -> tuple:
+        return self.raster.shape
+
+    @property
+    def n_covered(self) -> int:
+        return int(self.maps.shape[2])
+
+
+def bake_rig(rig: Rig, resolution: int = 256) -> Bake:
+    """:func:`shape_normal_maps` of ``rig`` at ``resolution`` texels per UV unit, packed (see
+    :class:`Bake`). Raises ValueError for a rig without UVs."""
+    from scipy import ndimage
+
+    if rig.uvs is None:
+        raise ValueError(f"rig {rig.name!r} has no UVs; normal maps need texture coordinates")
+    t0 = time.perf_counter()
+    ras = uv_raster(rig.uvs, rig.faces, int(resolution))
+    cov = ras.covered
+    full = shape_normal_maps(rig, ras, dtype=np.float16)  # (K+1, H, W, 3)
+    maps = np.ascontiguousarray(full[:, cov][:, None])
+    del full
+    # nearest covered texel of every texel (distance transform to the covered set)
+    ii, jj = ndimage.distance_transform_edt(~cov, return_distances=False, return_indices=True)
+    lin = np.full(ras.shape, -1, dtype=np.int64)
+    lin[cov] = np.arange(int(cov.sum()))
+    return Bake(ras, maps, lin[ii, jj], time.perf_counter() - t0)
+
+
+def texture_coordinates(uvs, raster: UVRaster) -> np.ndarray:
+    """UVs as coordinates in [0, 1] of the baked image: ``(u − u0)/(u1 − u0)``,
+    ``(v − v0)/(v1 − v0)`` over the raster's extent (whole UDIM tiles; ICT's u spans [0, 2]).
+    Row 0 of the image is v = v0, glTF's convention. (V, 2) float32."""
+    u0, u1, v0, v1 = raster.extent
+    uv = np.asarray(uvs, dtype=np.float64)
+    return ((uv - [u0, v0]) / [u1 - u0, v1 - v0]).astype(np.float32)
+
+
+def mask_texels(b: Bake, faces, masks) -> np.ndarray:
+    """Region masks B_k (R, V) at the covered texels of ``b``: (R, 1, n) float32."""
+    m = mask_maps(b.raster, faces, np.asarray(masks, dtype=np.float64))
+    return np.ascontiguousarray(m[:, b.raster.covered][:, None], dtype=np.float32)
+
+
+def frame_blend_weights(weights, frame: int, shape_names, region_weights=None, masks=None, solver_names=None) -> tuple:
+    """What eq. 3 blends at ``frame``: ``(U (R, K), use_masks, note)``.
+
+    With regional weights ``region_weights`` (T, R, K_solver) and ``masks`` (R, V) (the local
+    method, Liu 2011), ``U`` holds them placed into the rig's K shapes (``solver_names``), as long
+    as the shown weights ``weights`` (T, K) are still their mask-area blend (an edit changes the
+    global curves only: then the global weights are used and ``note`` says so). Otherwise the
+    frame's global weights as one region (R = 1, ``use_masks`` False: the mask is 1 everywhere).
+    """
+    W = np.asarray(weights, dtype=np.float64)
+    f = int(np.clip(frame, 0, len(W) - 1))
+    w = np.nan_to_num(W[f])
+    if region_weights is None or masks is None:
+        return w[None], False, "global weights"
+    from .solvers.local import blend_weights
+
+    masks = np.asarray(masks, dtype=np.float64)
+    names = list(shape_names)
+    sub = list(solver_names or names)
+    U = np.asarray(region_weights, dtype=np.float64)
+    if U.shape[1:] != (len(masks), len(sub)) or len(U) != len(W):
+        return w[None], False, "global weights (regional data does not match the target rig)"
+    idx = [names.index(n) for n in sub]
+    u = np.nan_to_num(U[f])
+    shown = w[idx]
+    if not np.allclose(blend_weights(u[None], masks)[0], shown, rtol=1e-6, atol=1e-6 * max(1.0, np.abs(shown).max())):
+        return w[None], False, "global weights (edited: the regional weights no longer give the shown curves)"
+    full = np.zeros((len(masks), len(names)))
+    full[:, idx] = u
+    return full, True, f"{len(masks)} regions"
+
+
+def frame_normal_map(b: Bake, U, masks_texels=None) -> np.ndarray:
+    """Eq. 3 on normal maps for one frame, as an (H, W, 3) uint8 image (normals ``(n+1)/2``,
+    uncovered texels filled from the nearest covered one).
+
+    Parameters
+    ----------
+    b : Bake
+    U : (R, K) regional (or, R = 1, global) weights of the frame
+    masks_texels : (R, 1, n) masks at the covered texels (:func:`mask_texels`); None: R = 1, ones.
+
+    The blend runs on the shapes with a non-zero weight only (the other terms of the sum are zero).
+    """
+    U = np.asarray(U, dtype=np.float64)
+    K = b.maps.shape[0] - 1
+    if U.ndim != 2 or U.shape[1] != K:
+        raise ValueError(f"U: expected (R, {K}), got {U.shape}")
+    act = np.flatnonzero(np.any(U != 0, axis=0))
+    if masks_texels is None:
+        if len(U) != 1:
+            raise ValueError(f"U: {len(U)} regions need masks_texels")
+        masks_texels = np.ones((1, 1, b.n_covered))
+    N = blend_normal_maps(b.maps[np.r_[0, act + 1]], U[:, act], masks_texels)[0]  # (n, 3)
+    return encode_normal_map(N)[b.fill]
+
+
+def encode_normal_map(normals) -> np.ndarray:
+    """RGB bytes of unit normals: (..., 3) -> (..., 3) uint8.
+
+    ``rgb = round(255 (n + 1) / 2)``, the inverse of a shader's ``n = 2 rgb / 255 - 1`` (up
+    to 1/255). Components are clipped to [-1, 1]; zero vectors (texels no triangle covers)
+    come out as (128, 128, 128), i.e. no direction: fill them before display. Raises
+    ValueError for a last axis other than 3 or NaN.
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    if n.ndim < 1 or n.shape[-1] != 3:
+        raise ValueError(f"normals: expected shape (..., 3), got {n.shape}")
+    if not np.isfinite(n).all():
+        raise ValueError("normals: contain NaN/inf")
+    return np.rint((np.clip(n, -1, 1) + 1) * 127.5).astype(np.uint8)

@@ -1,150 +1,50 @@
-"""The retargeting pipeline: stages with param settings, one content-keyed cache, and the
-dependency graph that says which stages a setting invalidates.
+"""The pipeline: every stage of every method, one content-keyed cache, and the shot document.
 
-    load -> stabilize -> calibrate -> personalize -> solve -> edit -> synthesize -> evaluate
-       \\-> segment -----------------------------------/
-                         calibrate -> prior ------------/
-
-Each stage has a ``param.Parameterized`` settings object (bounds, docs, defaults from the
-papers) and a pure run function ``run(inputs, settings) -> dict``. A stage's cache key is a
-hash of its name, the settings that matter to it and its upstream stages' keys (the load
-stage hashes the input files' bytes), so:
+Stages are declared once in :mod:`core.stages` (each a ``param.Parameterized`` whose parameters
+are its settings, with its dependencies, the settings that matter now and a pure ``run``; see
+:mod:`core.stage`). The pipeline orders them by their dependencies and keys each result by a
+hash of its name, its relevant settings (files by their content), any extra content it declares
+and its dependencies' keys, so
 
 * changing alpha re-runs solve and what follows it, never calibrate or segment;
+* a setting of a disabled feature (``align_beta`` with personalisation off) re-runs nothing;
 * setting a value back is a cache hit (an LRU keeps recent results, not only the last);
 * cached arrays are read-only, so no consumer can corrupt a cached result.
 
-The same settings objects generate the dashboard's widgets and the CLI's flags
-(:func:`cli_flags`), so the two never drift. Nothing here imports panel.
+A run takes one snapshot of all settings under the pipeline's lock: keys and runs read that
+snapshot, so a widget moved during a long solve changes the next run, not this one.
+
+The same settings generate the dashboard's widgets, the CLI's flags (:func:`cli_flags`) and
+the shot's ``settings`` (:meth:`Pipeline.shot`, :meth:`Pipeline.from_shot`). The edit lists
+(spacetime poses, transfer constraints, detail edits) are stage settings too, with their redo
+stacks kept here. Nothing here imports panel.
 """
 
 from __future__ import annotations
 
+import copy
+import difflib
 import hashlib
 import json
 import threading
 import time
 from collections import Counter, OrderedDict
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Callable, Optional
 
 import numpy as np
 import param
 
+from . import stages as _stages  # noqa: F401  (registers every stage and method)
 from .progress import ProgressFn
+from .shot import EDITORS, EditHistory, FileRef, Shot, file_hash
+from .stage import STAGES
+from .stages.methods import METHODS as _METHODS
 
-# --------------------------------------------------------------------------------------
-# settings
-
-
-class LoadSettings(param.Parameterized):
-    """Which files to retarget: the source performance, its rig, the target rig, layouts."""
-
-    source = param.String(default="", doc="Source performance: Live Link Face CSV, marker CSV/TRC/C3D, or a GLB with a weight animation")
-    source_rig = param.String(default="", doc="Rig the source curves drive (GLB); needed for weight-curve sources")
-    source_layout = param.String(default="", doc="Marker layout JSON on the source rig (default: data/layouts/<rig stem>.json)")
-    target_rig = param.String(default="", doc="Target blendshape rig (GLB or OBJ folder)")
-    target_layout = param.String(default="", doc="Marker layout JSON on the target rig (default: data/layouts/<rig stem>.json)")
-    name_map = param.String(default="", doc="Name map JSON from source channels to source-rig shapes (default: automatic ARKit names)")
-
-
-class StabilizeSettings(param.Parameterized):
-    """Source markers: rigid head-motion removal (Seol 2012 §3.1) and the frame range."""
-
-    head_motion = param.Selector(default="auto", objects=["auto", "remove", "keep"], doc="Remove rigid head motion from captured markers (auto: captures only)")
-    neutral_frame = param.Integer(default=0, bounds=(0, None), doc="Frame of a captured take that shows the neutral face")
-    first_frame = param.Integer(default=0, bounds=(0, None), doc="First frame to retarget")
-    last_frame = param.Integer(default=-1, bounds=(-1, None), doc="Last frame to retarget (-1: the end)")
-
-
-class CalibrateSettings(param.Parameterized):
-    """Scale-proportion matching of the target's marker blendshapes (Seol 2012 §3.2)."""
-
-    calibrate = param.Boolean(default=True, doc="Warp the target's marker blendshapes into the actor's proportions with an RBF")
-    target_shapes = param.String(default="", doc=(
-        "Target shapes the solvers may use: empty = all; 'arkit' = the shapes with an ARKit name (all when the rig has "
-        "none); or comma-separated shape names. The others stay at zero"))
-    rbf_smoothing = param.Number(default=0.0, bounds=(0, 1), softbounds=(0, 0.1), doc="RBF ridge relative to the mean marker distance (0: exact interpolation)")
-
-
-class PersonalizeSettings(param.Parameterized):
-    """Actor-specific blendshapes by range-of-motion alignment (Ribera 2017 §4)."""
-
-    personalize = param.Boolean(default=False, doc="Align the target's marker blendshapes to the actor's range of motion")
-    rom = param.String(default="", doc="Range-of-motion take of the actor (default: the source itself)")
-    align_beta = param.Number(default=0.01, bounds=(0, None), softbounds=(0, 1), doc="E_Mesh weight beta (Ribera 2017 eq. 4)")
-    align_gamma = param.Number(default=0.1, bounds=(0, None), softbounds=(0, 1), doc="E_CEG weight gamma (Ribera 2017 eq. 4)")
-
-
-class SegmentSettings(param.Parameterized):
-    """Automatic segmentation of the target rig into regions (Liu 2011 §3.2.1)."""
-
-    regions = param.Integer(default=12, bounds=(1, 64), softbounds=(1, 24), doc="Number of regions R")
-    min_region_size = param.Number(default=0.01, bounds=(0, 0.5), doc="Smallest region as a fraction of the vertices; smaller clusters are merged")
-    mask_smoothing = param.Integer(default=10, bounds=(0, 200), doc="Laplacian smoothing iterations of the region masks (overlap for blending)")
-
-
-class PriorSettings(param.Parameterized):
-    """Model-specific PCA prior (Seol 2012 §5)."""
-
-    prior_shapes = param.String(default="", doc="Comma-separated shapes the prior is built from (default: all, Fig. 13 a)")
-
-
-METHODS = ("lsq", "bounded", "range_pf", "prior_pf", "spacetime", "local", "geometric")
-
-
-class SolveSettings(param.Parameterized):
-    """The retargeting solver and its term weights."""
-
-    method = param.Selector(default="bounded", objects=list(METHODS), doc=(
-        "lsq: per-frame least squares; bounded: per-frame with lower<=w<=upper; range_pf/prior_pf: Seol 2012 §7 baselines; "
-        "spacetime: Seol 2012 movement matching; local: Liu 2011 regions; geometric: Ribera 2017 prior + L1"))
-    lower = param.Number(default=0.0, softbounds=(-1, 0), doc="Lower weight bound (bounded)")
-    upper = param.Number(default=1.0, softbounds=(1, 2), doc="Upper weight bound (bounded)")
-    alpha = param.Number(default=0.01, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="PCA prior weight alpha (Seol 2012 eq. 4)")
-    beta = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="Sobolev position weight beta (Seol 2012 §7.1)")
-    boundary = param.Selector(default="perframe", objects=["perframe", "neutral", "none"], doc=(
-        "Spacetime boundary frames: perframe = first/last frame from the Prior PF solution (takes rarely start and end "
-        "neutral); neutral = zero weights at both ends as in Seol 2012 §3.1; none = free (needs beta > 0)"))
-    ridge = param.Number(default=1e-5, bounds=(0, 1), softbounds=(0, 1e-3), doc=(
-        "Relative Tikhonov weight rho / sigma_max(B)^2 on the weights (bounded, range_pf, prior_pf, spacetime): pulls "
-        "combinations of shapes the markers barely see (e.g. eye-wide vs look-up vs blink) to zero; 0 = the papers' methods"))
-    mu = param.Number(default=0.3, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="Geometric prior weight mu (Ribera 2017 eq. 16)")
-    lam = param.Number(default=0.6, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="L1 sparsity weight lambda (Ribera 2017 eq. 16)")
-    constraint = param.Selector(default="simplex", objects=["simplex", "box"], doc=(
-        "Local solve constraint: simplex = the paper's convex combination of poses (w >= 0, sum w <= 1 in delta form, "
-        "Liu 2011 eq. 2); box = 0 <= w <= 1"))
-    local_temporal = param.Selector(default="perframe", objects=["perframe", "spacetime"], doc=(
-        "Local method in time: perframe = Liu 2011's per-frame constrained QP (optionally Gaussian-filtered); spacetime = "
-        "Seol 2012 movement matching inside each region (uses alpha/beta; unconstrained between the end frames)"))
-    geometric_prior = param.Selector(default="geometric", objects=["geometric", "pca", "l2", "none"], doc=(
-        "Prior of the geometric method (Ribera 2017 Fig. 14): cotangent-Laplacian bending, Seol's PCA, plain L2, none"))
-    sigma = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 5), doc="Gaussian temporal filter of the weights in frames (Liu 2011; 0: off)")
-
-
-#: which solve settings matter to which method (a change elsewhere is a cache hit)
-METHOD_PARAMS = {
-    "lsq": (),
-    "bounded": ("lower", "upper", "ridge"),
-    "range_pf": ("ridge",),
-    "prior_pf": ("alpha", "ridge"),
-    "spacetime": ("alpha", "beta", "boundary", "ridge"),
-    "local": ("constraint", "local_temporal", "alpha", "beta", "sigma"),
-    "geometric": ("geometric_prior", "mu", "lam"),
-}
-
-
-class EditSettings(param.Parameterized):
-    """Spacetime edits (Seol 2012 §6): poses set at frames, propagated in a window."""
-
-    edits = param.List(default=[], item_type=dict, doc="Edits: {frame, weights: {shape: value}, window: [a, b] or null}")
-
-
-class EvaluateSettings(param.Parameterized):
-    """Diagnostics."""
-
-    jitter_window = param.Integer(default=1, bounds=(1, 10), doc="Frame step of the jitter measure")
-
+#: the registered solve methods, and the settings each reads (derived from the registrations)
+METHODS = tuple(_METHODS)
+METHOD_PARAMS = {n: m.params for n, m in _METHODS.items()}
 
 # --------------------------------------------------------------------------------------
 # cache
@@ -170,18 +70,18 @@ _FILE_HASHES: dict = {}
 
 
 def file_key(path: str) -> str:
-    """Hash of a file's bytes, memoised on (path, size, mtime)."""
+    """:func:`core.shot.file_hash` of a file (or folder), memoised on (path, size, mtime)."""
     if not path:
         return ""
     p = Path(path)
     if p.is_dir():
-        return content_key([file_key(str(c)) for c in sorted(p.iterdir()) if c.is_file()])
+        return file_hash(p)
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such file")
     st = p.stat()
     memo = (str(p.resolve()), st.st_size, st.st_mtime_ns)
     if memo not in _FILE_HASHES:
-        _FILE_HASHES[memo] = hashlib.blake2b(p.read_bytes(), digest_size=16).hexdigest()
+        _FILE_HASHES[memo] = file_hash(p)
     return _FILE_HASHES[memo]
 
 
@@ -224,31 +124,43 @@ class StageCache:
         with self._lock:
             self._data.clear()
 
+    def __len__(self):
+        return len(self._data)
+
 
 # --------------------------------------------------------------------------------------
-# stages
+# the stage graph
 
 
-class Stage:
-    """A named pure function of its upstream results and its settings."""
+def _stage_order() -> list:
+    """Registered stage names, dependencies first (registration order among equals)."""
+    order, seen = [], set()
 
-    def __init__(self, name: str, settings: param.Parameterized, deps: tuple, run: Callable,
-                 relevant: Optional[Callable] = None, active: Optional[Callable] = None):
-        self.name, self.settings, self.deps, self.run = name, settings, deps, run
-        self._relevant = relevant
-        self._active = active
+    def visit(n, path=()):
+        if n in seen:
+            return
+        if n in path:
+            raise ValueError(f"stage dependency cycle: {' -> '.join(path + (n,))}")
+        if n not in STAGES:
+            raise ValueError(f"stage {path[-1]!r} depends on unknown stage {n!r}")
+        for d in STAGES[n].deps:
+            visit(d, path + (n,))
+        seen.add(n)
+        order.append(n)
 
-    @property
-    def active(self) -> bool:
-        """An inactive stage (e.g. segment when the method is not local) yields None."""
-        return self._active is None or bool(self._active())
+    for n in STAGES:
+        visit(n)
+    return order
 
-    def settings_values(self) -> dict:
-        values = {k: v for k, v in self.settings.param.values().items() if k != "name"}
-        if self._relevant is not None:
-            keep = self._relevant(self.settings)
-            values = {k: v for k, v in values.items() if k in keep}
-        return values
+
+def setting_owners() -> dict:
+    """setting name -> (stage name, is a file setting), for every registered stage."""
+    out = {}
+    for n, cls in STAGES.items():
+        for p in cls.param:
+            if p != "name":
+                out[p] = (n, p in cls.files)
+    return out
 
 
 class Pipeline:
@@ -257,113 +169,216 @@ class Pipeline:
     Parameters
     ----------
     cache : StageCache, optional — share one between sessions to share work.
+    **settings : any stage's settings by name (``alpha=0.1``, ``source="take.csv"``).
 
     Attributes
     ----------
+    stages : OrderedDict name -> stage object (its parameters are the settings); a stage is also
+        an attribute: ``pipe.solve.method``.
     runs : Counter of stage executions (cache misses), for tests and the timings panel.
     timings : dict stage -> seconds of its last execution (0 for a hit).
     keys : dict stage -> key of the result last returned.
+    redo : dict editor -> redo stack of that editor's edit list (see :data:`core.shot.EDITORS`).
+    frame, notes : the review state a shot carries (current frame, frame-anchored notes).
     """
 
     def __init__(self, cache: Optional[StageCache] = None, **settings):
-        from . import stages as S
-
         self.cache = cache or StageCache()
-        self.load = LoadSettings()
-        self.stabilize = StabilizeSettings()
-        self.calibrate = CalibrateSettings()
-        self.personalize = PersonalizeSettings()
-        self.segment = SegmentSettings()
-        self.prior = PriorSettings()
-        self.solve = SolveSettings()
-        self.edit = EditSettings()
-        self.evaluate = EvaluateSettings()
-        method = lambda: self.solve.method  # noqa: E731
-        self.stages = OrderedDict((s.name, s) for s in [
-            Stage("load", self.load, (), S.run_load),
-            Stage("stabilize", self.stabilize, ("load",), S.run_stabilize),
-            Stage("calibrate", self.calibrate, ("load", "stabilize"), S.run_calibrate),
-            Stage("personalize", self.personalize, ("stabilize", "calibrate"), S.run_personalize),
-            Stage("segment", self.segment, ("load", "calibrate"), S.run_segment,
-                  active=lambda: method() == "local"),
-            Stage("prior", self.prior, ("personalize",), S.run_prior,
-                  active=lambda: method() in S.PRIOR_METHODS),
-            Stage("solve", self.solve, ("load", "stabilize", "calibrate", "personalize", "segment", "prior"), S.run_solve,
-                  relevant=lambda s: ("method",) + METHOD_PARAMS[s.method]),
-            Stage("edit", self.edit, ("solve", "personalize", "stabilize", "prior", "calibrate"), S.run_edit),
-            Stage("synthesize", param.Parameterized(), ("load", "edit", "calibrate"), S.run_synthesize),
-            Stage("evaluate", self.evaluate, ("stabilize", "personalize", "solve", "edit", "load"), S.run_evaluate),
-        ])
+        self.stages = OrderedDict((n, STAGES[n](name=n)) for n in _stage_order())
         self.runs: Counter = Counter()
         self.timings: dict = {}
         self.keys: dict = {}
+        self.redo: dict = {e: [] for e in EDITORS}
+        self.frame = 0
+        self.notes: list = []
         self._lock = threading.RLock()
+        self._owners = {p: st for st in self.stages.values() for p in st.setting_names()}
         self.configure(**settings)
+
+    def __getattr__(self, name):
+        stages = self.__dict__.get("stages")
+        if stages is not None and name in stages:
+            return stages[name]
+        raise AttributeError(f"{type(self).__name__!r} has no attribute or stage {name!r}")
 
     # settings -------------------------------------------------------------------------
     @property
     def settings_objects(self) -> dict:
-        """stage name -> settings object (the widgets and CLI flags come from these)."""
-        return {n: s.settings for n, s in self.stages.items() if len(list(s.settings.param)) > 1}
+        """stage name -> stage object, for the stages that have settings (widgets, CLI flags)."""
+        return {n: s for n, s in self.stages.items() if s.setting_names()}
 
     def configure(self, **values) -> None:
-        """Set settings by parameter name, whichever stage owns it (``alpha=0.1``)."""
-        owners = {}
-        for obj in self.settings_objects.values():
-            for p in obj.param:
-                if p != "name":
-                    owners[p] = obj
-        unknown = [k for k in values if k not in owners]
+        """Set settings by name, whichever stage owns it (``alpha=0.1``); KeyError with a
+        "did you mean" for an unknown name."""
+        unknown = [k for k in values if k not in self._owners]
         if unknown:
-            import difflib
-
-            hints = {k: difflib.get_close_matches(k, owners, n=2) for k in unknown}
+            hints = {k: difflib.get_close_matches(k, self._owners, n=2) for k in unknown}
             raise KeyError(f"unknown settings {unknown}; did you mean {hints}?")
-        by_obj: dict = {}
+        by_stage: dict = {}
         for k, v in values.items():
-            by_obj.setdefault(id(owners[k]), (owners[k], {}))[1][k] = v
-        for obj, vals in by_obj.values():
-            obj.param.update(**vals)
+            by_stage.setdefault(self._owners[k].stage_name, {})[k] = v
+        with self._lock:
+            for n, vals in by_stage.items():
+                for editor, setting in EDITORS.items():  # an edit list set from outside starts a new history
+                    if setting in vals and list(vals[setting]) != list(getattr(self.stages[n], setting)):
+                        self.redo[editor] = []
+                self.stages[n].param.update(**vals)
+
+    def config(self) -> SimpleNamespace:
+        """A frozen snapshot of every stage's settings: ``cfg.solve.method``."""
+        with self._lock:
+            return SimpleNamespace(**{n: SimpleNamespace(**s.settings()) for n, s in self.stages.items()})
+
+    # edits (their undo/redo history) --------------------------------------------------
+    def _edit_stage(self, editor: str):
+        if editor not in EDITORS:
+            raise KeyError(f"unknown editor {editor!r}; editors are {sorted(EDITORS)}")
+        setting = EDITORS[editor]
+        return self._owners[setting], setting
+
+    def edits(self, editor: str) -> EditHistory:
+        """The edit list of ``editor`` ("spacetime", "transfer", "detail") with its redo stack (a copy)."""
+        st, setting = self._edit_stage(editor)
+        with self._lock:
+            return EditHistory(copy.deepcopy(list(getattr(st, setting))), copy.deepcopy(self.redo[editor]))
+
+    def _set_edits(self, editor: str, history: EditHistory) -> None:
+        st, setting = self._edit_stage(editor)
+        with self._lock:
+            st.param.update(**{setting: history.done})
+            self.redo[editor] = history.undone
+
+    def add_edit(self, editor: str, edit: dict) -> None:
+        """Append an edit (clears that editor's redo stack)."""
+        h = self.edits(editor)
+        h.add(edit)
+        self._set_edits(editor, h)
+
+    def undo(self, editor: str) -> bool:
+        h = self.edits(editor)
+        ok = h.undo()
+        if ok:
+            self._set_edits(editor, h)
+        return ok
+
+    def redo_edit(self, editor: str) -> bool:
+        h = self.edits(editor)
+        ok = h.redo()
+        if ok:
+            self._set_edits(editor, h)
+        return ok
+
+    def remove_edit(self, editor: str, index: int) -> dict:
+        h = self.edits(editor)
+        e = h.remove(index)
+        self._set_edits(editor, h)
+        return e
+
+    # the shot -------------------------------------------------------------------------
+    def shot(self) -> Shot:
+        """The shot document of this pipeline: files (path + content hash; a rig's default
+        layout recorded as the file it is), every stage's settings, every edit list with its
+        redo stack, the frame and the notes."""
+        from .io.layout import default_layout_path
+
+        with self._lock:
+            cfg = self.config()
+            files, settings = {}, {}
+            for n, st in self.stages.items():
+                vals = vars(getattr(cfg, n))
+                for k, v in vals.items():
+                    if k in st.files:
+                        if v:
+                            files[k] = FileRef(str(v), file_key(str(v)))
+                    elif k not in EDITORS.values():
+                        settings.setdefault(n, {})[k] = v
+            for rig, layout in (("source_rig", "source_layout"), ("target_rig", "target_layout")):
+                if rig in files and layout not in files:
+                    default = default_layout_path(files[rig].path)
+                    if default is not None:
+                        files[layout] = FileRef(str(default), file_key(str(default)))
+            edits = {e: self.edits(e) for e in EDITORS}
+            return Shot(files, settings, edits, int(self.frame), copy.deepcopy(self.notes))
+
+    @classmethod
+    def from_shot(cls, shot, cache: Optional[StageCache] = None, base=None, locate: Optional[Callable] = None,
+                  **overrides) -> "Pipeline":
+        """A pipeline that computes exactly what ``shot`` describes.
+
+        Parameters
+        ----------
+        shot : Shot, or a path / JSON text of one (:meth:`Shot.from_json`)
+        base : folder relative file paths are also looked for in (default: the shot file's folder)
+        locate : ``(role, FileRef) -> path or None``, e.g. a review store's files by hash
+        **overrides : settings that replace the shot's (like CLI flags); an overridden file is
+            not checked against the shot's hash.
+
+        Raises
+        ------
+        FileNotFoundError / ValueError
+            A file of the shot is missing or its content changed (see :meth:`Shot.resolve`);
+            unknown settings in the shot.
+        """
+        if not isinstance(shot, Shot):
+            if base is None and isinstance(shot, (str, Path)) and not str(shot).lstrip().startswith("{"):
+                base = Path(shot).resolve().parent
+            shot = Shot.from_json(shot)
+        owners = setting_owners()
+        values = {}
+        for stage, vals in shot.settings.items():
+            for k, v in vals.items():
+                if k not in owners or owners[k][0] != stage:
+                    where = f"stage {owners[k][0]!r}" if k in owners else "no stage"
+                    raise ValueError(f"shot: settings.{stage}.{k}: unknown setting ({k!r} belongs to {where})")
+                values[k] = v
+        for role in shot.files:
+            if role not in owners or not owners[role][1]:
+                raise ValueError(f"shot: files.{role}: not a file setting")
+            if role not in overrides:
+                values[role] = shot.resolve(role, base, locate)
+        pipe = cls(cache=cache, **values)
+        for editor in EDITORS:
+            pipe._set_edits(editor, copy.deepcopy(shot.edits.get(editor, EditHistory())))
+        pipe.frame, pipe.notes = int(shot.frame), copy.deepcopy(shot.notes)
+        if overrides:
+            pipe.configure(**overrides)
+        return pipe
 
     # running ------------------------------------------------------------------------
-    def key(self, name: str, _memo=None) -> str:
+    def key(self, name: str, _memo=None, _cfg=None) -> str:
         """The cache key stage ``name`` would have now (no computation)."""
         memo = {} if _memo is None else _memo
+        cfg = _cfg if _cfg is not None else self.config()
         if name in memo:
             return memo[name]
         stage = self.stages[name]
-        if not stage.active:
+        if not stage.active(cfg):
             memo[name] = content_key(name, "inactive")
             return memo[name]
-        values = stage.settings_values()
-        if name == "load":
-            values = {k: file_key(v) if v else "" for k, v in values.items()}
-        if name == "personalize" and values.get("rom"):
-            values["rom"] = file_key(values["rom"])
-        memo[name] = content_key(name, values, [self.key(d, memo) for d in stage.deps])
+        values = dict(vars(getattr(cfg, name)))
+        keep = stage.relevant(cfg)
+        if keep is not None:
+            values = {k: v for k, v in values.items() if k in set(keep)}
+        for f in stage.files:
+            if f in values:
+                values[f] = file_key(values[f]) if values[f] else ""
+        memo[name] = content_key(name, values, stage.key_extra(cfg), [self.key(d, memo, cfg) for d in stage.deps])
         return memo[name]
 
-    def run(self, upto: Optional[str] = None, progress: Optional[ProgressFn] = None) -> dict:
-        """Run every stage ``upto`` needs (default: all stages) whose key is not cached;
-        return the result of ``upto`` (default: the last stage).
-
-        ``progress(fraction, message)`` hears about stage starts and long stages' progress.
-        """
+    def _run(self, targets: list, progress: Optional[ProgressFn] = None) -> dict:
         with self._lock:
-            if upto is None:
-                order, upto = list(self.stages), list(self.stages)[-1]
-            elif isinstance(upto, (list, tuple)):
-                order, upto = self._order(*upto), upto[-1]
-            else:
-                order = self._order(upto)
+            cfg = self.config()
+            order = self._order(*targets)
             memo: dict = {}
             results: dict = {}
+            self.timings = {}
             for i, name in enumerate(order):
                 stage = self.stages[name]
-                k = self.key(name, memo)
+                k = self.key(name, memo, cfg)
+                if not stage.active(cfg):
+                    results[name], self.keys[name], self.timings[name] = None, k, 0.0
+                    continue
                 hit, value = self.cache.get((name, k))
-                if not stage.active:
-                    hit, value = True, None
                 if not hit:
                     if progress:
                         progress(i / len(order), f"{name}…")
@@ -372,7 +387,7 @@ class Pipeline:
                         lo, hi = i / len(order), (i + 1) / len(order)
                         inner = lambda f, m, lo=lo, hi=hi, name=name: progress(lo + f * (hi - lo), f"{name}: {m}")  # noqa: E731
                     t0 = time.perf_counter()
-                    value = stage.run({d: results[d] for d in stage.deps}, stage.settings, inner)
+                    value = stage.run({d: results[d] for d in stage.deps}, getattr(cfg, name), inner)
                     self.timings[name] = time.perf_counter() - t0
                     _freeze(value)
                     self.cache.put((name, k), value)
@@ -383,13 +398,22 @@ class Pipeline:
                 self.keys[name] = k
             if progress:
                 progress(1.0, "done")
-            return results[upto]
+            return results
+
+    def run(self, upto=None, progress: Optional[ProgressFn] = None):
+        """Run every stage ``upto`` needs (default: the retargeting result, ``evaluate``) whose
+        key is not cached; return the result of ``upto`` (the last, for a list).
+
+        ``progress(fraction, message)`` hears about stage starts and long stages' progress.
+        """
+        targets = [upto] if isinstance(upto, str) else list(upto or ["evaluate"])
+        return self._run(targets, progress)[targets[-1]]
 
     def results(self, names=None, progress: Optional[ProgressFn] = None) -> dict:
-        """Results of several stages (running what is stale)."""
-        names = list(names or self.stages)
-        self.run(names, progress)
-        return {n: self.cache.get((n, self.keys[n]))[1] for n in names}
+        """Results of several stages (running what is stale); default: the retargeting stages."""
+        names = list(names or self._order("evaluate"))
+        res = self._run(names, progress)
+        return {n: res[n] for n in names}
 
     def _order(self, *targets: str) -> list:
         for t in targets:
@@ -410,7 +434,8 @@ class Pipeline:
 
 def cli_flags(pipeline_or_cls=None):
     """(flag, param name, parameter object, owner) for every tunable setting, e.g.
-    ``--alpha`` -> ("alpha", Number). One definition serves the dashboard and the CLI."""
+    ``--alpha`` -> ("alpha", Number). One definition serves the dashboard and the CLI.
+    Edit lists are not flags (they come from a shot)."""
     objs = pipeline_or_cls.settings_objects if pipeline_or_cls is not None else Pipeline().settings_objects
     out = []
     for stage, obj in objs.items():
@@ -421,12 +446,8 @@ def cli_flags(pipeline_or_cls=None):
     return out
 
 
-def add_cli_arguments(parser, skip=(), extra_methods=()) -> None:
-    """Add one argparse option per setting (types, choices, defaults and help from param).
-
-    ``extra_methods`` are accepted by ``--method`` without being pipeline stages (the CLI's
-    dense ``transfer``, which produces a new rig rather than weights for the target's shapes).
-    """
+def add_cli_arguments(parser, skip=()) -> None:
+    """Add one argparse option per setting (types, choices, defaults and help from param)."""
     import argparse
 
     for flag, pname, p, stage in cli_flags():
@@ -438,7 +459,9 @@ def add_cli_arguments(parser, skip=(), extra_methods=()) -> None:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, **kw)
             continue
         if isinstance(p, param.Selector):
-            kw["choices"] = list(p.objects) + (list(extra_methods) if pname == "method" else [])
+            kw["choices"] = list(p.objects)
+            if all(isinstance(o, int) and not isinstance(o, bool) for o in p.objects):
+                kw["type"] = int
         elif isinstance(p, param.Integer):
             kw["type"] = int
         elif isinstance(p, param.Number):

@@ -129,6 +129,18 @@ def source_markers(source: Performance, rig: Optional[Rig] = None, layout: Optio
     return SourceMarkers(pos - neutral, source.valid, neutral, source.names, source.fps, source.times, R, t, info=info)
 
 
+def source_marker_names(source: Performance, layout: Optional[MarkerLayout] = None) -> tuple:
+    """The marker names :func:`source_markers` will give ``source``, without computing them:
+    a capture's own names, else the names of the layout on the source rig or mesh."""
+    if source.kind == "markers":
+        return tuple(source.names)
+    if layout is None:
+        what = "weight curves: give a source rig and its marker layout (--source-rig, --source-layout)" \
+            if source.kind == "curves" else "a mesh sequence: give the marker layout of its topology"
+        raise ValueError(f"source {source.name!r} is {what}")
+    return tuple(layout.names)
+
+
 def _first_complete_frame(perf: Performance, start: int) -> int:
     if not 0 <= start < perf.n_frames:
         raise ValueError(f"neutral_frame {start} outside 0..{perf.n_frames - 1}")

@@ -38,6 +38,8 @@ import panel as pn
 import param
 from panel.io.state import state
 
+from core.normalmap import encode_normal_map  # noqa: F401  (re-exported for views and tests)
+
 from . import assets
 
 _STATIC = Path(__file__).parent / "static"
@@ -392,22 +394,6 @@ class MeshViewer(pn.custom.JSComponent):
             out[k] = 0 if v is None else int(v.nbytes)
         out["total"] = sum(out.values())
         return out
-
-
-def encode_normal_map(normals) -> np.ndarray:
-    """RGB bytes of unit normals for :attr:`MeshViewer.normal_map`: (..., 3) -> (..., 3) uint8.
-
-    ``rgb = round(255 (n + 1) / 2)``, the inverse of the shader's ``n = 2 rgb / 255 - 1`` (up
-    to 1/255). Components are clipped to [-1, 1]; zero vectors (texels no triangle covers)
-    come out as (128, 128, 128), i.e. no direction: fill them before display. Raises
-    ValueError for a last axis other than 3 or NaN.
-    """
-    n = np.asarray(normals, dtype=np.float64)
-    if n.ndim < 1 or n.shape[-1] != 3:
-        raise ValueError(f"normals: expected shape (..., 3), got {n.shape}")
-    if not np.isfinite(n).all():
-        raise ValueError("normals: contain NaN/inf")
-    return np.rint((np.clip(n, -1, 1) + 1) * 127.5).astype(np.uint8)
 
 
 def error_colors(values, vmax: float | None = None) -> np.ndarray:

@@ -23,8 +23,10 @@ def test_retarget_curves_through_source_rig_writes_glb_and_csv(tmp_path, capsys)
     assert anim.names == rig.names
     assert anim.data.min() >= -1e-6 and anim.data.max() <= 1 + 1e-6  # bounded
     rows = list(csv.reader(open(wcsv)))
-    assert rows[0][0] == "time_s" and rows[0][1:] == list(rig.names) and len(rows) == 61
-    np.testing.assert_allclose(np.array(rows[1:], float)[:, 1:], anim.data, atol=2e-6)
+    assert rows[0][:3] == ["time_s", "frame", "valid"] and rows[0][3:] == list(rig.names) and len(rows) == 61
+    body = np.array(rows[1:], float)
+    assert np.array_equal(body[:, 1], np.arange(60)) and np.all(body[:, 2] == 1)  # every frame of this take has data
+    np.testing.assert_allclose(body[:, 3:], anim.data, atol=2e-6)
 
 
 @pytest.mark.parametrize("rig", ["ict_facekit", "jeeliz_tiger"])

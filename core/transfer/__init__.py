@@ -33,6 +33,8 @@ from .features import feature_lines_near, hole_loops, line_edges, loops_near, ma
 
 __all__ = [
     "TransferSettings", "TransferResult", "transfer_sequence", "naive_transfer",
+    "WeldedSource", "weld_source", "register_target", "Decomposition", "decompose_sequence", "select_sequence_bases",
+    "BasisTransfer", "transfer_bases", "transfer_details", "assemble_result",
     "TaubinFilter", "taubin_smooth", "laplacian_operator", "laplacian_coating", "PoissonReconstructor",
     "FactoredSequence", "factor_sequence", "nnls_gram", "select_bases", "BasisSelection",
     "DeformationTransfer", "deformation_transfer", "deformation_gradients", "line_gradients",
@@ -127,6 +129,8 @@ class TransferResult:
     registration : Registration or None
     factor_residual_mm : RMS error of the sequence factorisation
     timings : dict stage -> seconds
+    welded : WeldedSource or None   the seam welding the eq. 9 system was solved on
+    system : DeformationTransfer or None   the factorised eq. 9 system (welded ids), for editing
     """
 
     faces: np.ndarray
@@ -141,6 +145,8 @@ class TransferResult:
     registration: Optional[Registration] = None
     factor_residual_mm: float = 0.0
     timings: dict = field(default_factory=dict)
+    welded: Optional["WeldedSource"] = None
+    system: Optional[DeformationTransfer] = None
 
     @property
     def n_bases(self) -> int:
@@ -169,6 +175,169 @@ class TransferResult:
         names = [f"{prefix}{k:02d}_f{int(f)}" for k, f in enumerate(self.frames)]
         return Rig(self.neutral, self.faces, self.deltas, names, None, "m", name)
 
+    def editor(self, source_rig=None, settings: Optional[TransferSettings] = None):
+        """A :class:`~core.transfer.edit.TransferEditor` for large-scale edits (eq. 12-15) of this
+        result: the factorised eq. 9 system it was solved with (rebuilt from ``source_rig`` and
+        ``settings`` for a result that does not carry it)."""
+        from .edit import TransferEditor
+
+        return TransferEditor(self, source_rig, settings)
+
+
+# -- the steps of transfer_sequence (each a pure function; the pipeline caches each one) ----------
+@dataclass(frozen=True, eq=False)
+class WeldedSource:
+    """The source reference welded at UV-seam duplicates: Laplacians and gradients must see one
+    connected surface. ``index`` (V,) maps every source vertex to its welded vertex, ``rep``
+    (V_w,) each welded vertex to one source vertex; ``faces`` (F, 3) are the welded triangles."""
+
+    neutral: np.ndarray
+    source_faces: np.ndarray
+    index: np.ndarray
+    rep: np.ndarray
+    faces: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return len(self.rep)
+
+    @property
+    def welded(self) -> np.ndarray:
+        return self.neutral[self.rep]
+
+    def unweld(self, a: np.ndarray) -> np.ndarray:
+        """Welded (..., V_w, 3) -> source vertex order (..., V, 3)."""
+        return np.ascontiguousarray(a[..., self.index, :])
+
+
+def weld_source(source_ref, source_faces) -> WeldedSource:
+    """Check and weld the source reference (see :class:`WeldedSource`)."""
+    S0 = check_positions(source_ref, "source_ref")
+    Fs = check_faces(source_faces, len(S0), "source_faces")
+    wi, rep, Fw = weld(S0, Fs)
+    return WeldedSource(S0, Fs, wi, rep, Fw)
+
+
+def register_target(src: WeldedSource, target_ref, target_faces, settings: TransferSettings,
+                    progress: Optional[ProgressFn] = None) -> tuple:
+    """§3 preprocessing: the target reference in the welded source topology, ``(T_w0 (V_w, 3),
+    Registration or None)``. Same topology: the target as is; else landmarks + non-rigid ICP
+    (:func:`.correspond.register`), which needs ``settings.landmarks``."""
+    T0in = check_positions(target_ref, "target_ref")
+    Ft_in = check_faces(target_faces, len(T0in), "target_faces")
+    Vs = len(src.neutral)
+    if len(T0in) == Vs and Ft_in.shape == src.source_faces.shape and np.array_equal(Ft_in, src.source_faces):
+        return T0in[src.rep], None
+    if settings.landmarks is None:
+        raise ValueError("target_ref has another topology than source_ref: settings.landmarks = "
+                         "(source vertex ids, target points) is required for the registration (§3)")
+    src_lm, tgt_pts = settings.landmarks
+    src_lm = np.asarray(src_lm, dtype=np.int64)
+    if src_lm.size and (src_lm.min() < 0 or src_lm.max() >= Vs):
+        raise ValueError(f"settings.landmarks: source vertex ids must lie in [0, {Vs})")
+    report(progress, 0.0, "registration (landmarks + non-rigid ICP)")
+    reg = register(src.welded, src.faces, T0in, Ft_in, src.index[src_lm], tgt_pts, settings.icp_steps,
+                   settings.max_distance, settings.icp, crop=settings.crop, crop_index=src.index)
+    return reg.resampled, reg
+
+
+@dataclass(frozen=True, eq=False)
+class Decomposition:
+    """Eq. 1-4 of the source sequence, factored: ``frames`` S_t, ``smooth`` S̄_t = P S_t (Taubin)
+    and ``coating`` ξ_t = L (S_t - S̄_t), all in the welded topology, with the ``filter`` P and
+    the Poisson ``reconstructor`` of L the details are rebuilt with."""
+
+    frames: FactoredSequence
+    smooth: FactoredSequence
+    coating: FactoredSequence
+    filter: TaubinFilter
+    reconstructor: PoissonReconstructor
+
+
+def decompose_sequence(src: WeldedSource, source_seq, settings: TransferSettings) -> Decomposition:
+    """Multi-scale decomposition (eq. 1-4) of a (T, V, 3) source sequence in the topology of
+    ``src``: one low-rank factorisation, the (linear) filter and coating applied to its basis."""
+    V = src.n
+    seq = np.asarray(source_seq)
+    if seq.ndim != 3 or seq.shape[1:] != (len(src.neutral), 3) or len(seq) == 0:
+        raise ValueError(f"source_seq: expected (T, {len(src.neutral)}, 3) frames in the topology of source_ref, got {seq.shape}")
+    # factor the frames as given and weld the (linear) basis: no welded copy of the sequence
+    fac = factor_sequence(seq, settings.rank_rtol, base=src.neutral)
+    fac = FactoredSequence(fac.base[src.rep], fac.coeffs, fac.basis[:, src.rep], fac.residual_rms)
+    filt = TaubinFilter(src.faces, V, settings.iterations, settings.lam, settings.mu)
+    # S̄_t = P S_t with P linear: one filter pass over base and basis together
+    r = fac.rank
+    block = np.concatenate([fac.base[:, :, None], fac.basis.transpose(1, 2, 0)], axis=2)
+    block = filt.apply(block.reshape(V, 3 * (r + 1))).reshape(V, 3, r + 1)
+    smooth = FactoredSequence(block[:, :, 0].copy(), fac.coeffs, block[:, :, 1:].transpose(2, 0, 1).copy(), fac.residual_rms)
+    poisson = PoissonReconstructor(src.faces, V, settings.laplacian, src.welded if settings.laplacian == "cotangent" else None,
+                                   settings.detail_screening)
+    # eq. 1 on base and basis: ξ = L (S - S̄), linear, one sparse product for the whole block
+    detail = np.concatenate([(fac.base - smooth.base)[None], fac.basis - smooth.basis])  # (r+1, V, 3)
+    lap = np.asarray(poisson.L @ detail.transpose(1, 2, 0).reshape(V, 3 * (r + 1))).reshape(V, 3, r + 1)
+    coat = FactoredSequence(np.ascontiguousarray(lap[:, :, 0]), fac.coeffs,
+                            np.ascontiguousarray(lap[:, :, 1:].transpose(2, 0, 1)), fac.residual_rms)
+    return Decomposition(fac, smooth, coat, filt, poisson)
+
+
+def select_sequence_bases(dec: Decomposition, settings: TransferSettings) -> tuple:
+    """Greedy basis selection with non-negative weights (eq. 6-7) on the smoothed frames:
+    ``(BasisSelection, source bases b_k (K, V_w, 3))``."""
+    sm = dec.smooth
+    V = sm.base.shape[0]
+    Qb = sm.basis.reshape(sm.rank, 3 * V)
+    gram = gram_from_factored(dec.frames.coeffs, Qb @ Qb.T)
+    sel = select_bases(gram, settings.eps, settings.max_bases, settings.candidates, settings.min_bases)
+    return sel, (sm.frames(sel.frames) if sel.n_bases else np.zeros((0, V, 3)))
+
+
+@dataclass(frozen=True, eq=False)
+class BasisTransfer:
+    """Eq. 9-11: the smoothed target reference ``T̄_0`` (V_w, 3), the factorised ``system``, and
+    the transferred bases as ``deltas`` b'_k - T̄_0 (K, V_w, 3)."""
+
+    target_smooth_ref: np.ndarray
+    system: DeformationTransfer
+    deltas: np.ndarray
+
+
+def transfer_bases(src: WeldedSource, dec: Decomposition, source_bases, target_welded, settings: TransferSettings) -> BasisTransfer:
+    """Feature-preserving deformation transfer of the source bases (eq. 9-11)."""
+    Tb0 = dec.filter.apply(np.asarray(target_welded, dtype=np.float64))
+    edges = _feature_edges(settings, src.index, src.n)
+    dt = DeformationTransfer(dec.smooth.base, Tb0, src.faces, edges, settings.alpha)
+    K = len(source_bases)
+    deltas = (dt.transfer(source_bases) - Tb0) if K else np.zeros((0, src.n, 3))
+    return BasisTransfer(Tb0, dt, deltas)
+
+
+def transfer_details(src: WeldedSource, dec: Decomposition, sel: BasisSelection, target_welded, bt: BasisTransfer,
+                     settings: TransferSettings, progress: Optional[ProgressFn] = None) -> Optional[np.ndarray]:
+    """Fine-scale detail transfer (eq. 16, 5): (T, V, 3) float32 displacements relative to the
+    target neutral, in the source vertex order; None when ``settings.details`` is off."""
+    if not settings.details:
+        return None
+    Tw0 = np.asarray(target_welded, dtype=np.float64)
+    gain = settings.detail_gain if settings.detail_gain is not None else bbox_size(Tw0) / max(bbox_size(src.welded), 1e-300)
+    det = DetailTransfer(src.faces, dec.reconstructor, dec.smooth.base, dec.coating.base, Tw0, bt.target_smooth_ref, gain,
+                         settings.rotate_reference_details)
+    # T̄_t = T̄_0 + W_t Δ (eq. 8) as a factored sequence; details relative to the neutral
+    # T_0, written straight in the unwelded vertex order
+    target_smooth = FactoredSequence(bt.target_smooth_ref, sel.weights, bt.deltas, 0.0)
+    return det.displacements(dec.smooth, dec.coating, target_smooth, dec.frames.n_frames, settings.chunk, relative=True,
+                             vertices=src.index, progress=progress)
+
+
+def assemble_result(src: WeldedSource, target_welded, dec: Decomposition, sel: BasisSelection, source_bases,
+                    bt: BasisTransfer, details, registration=None, timings=None) -> TransferResult:
+    """The :class:`TransferResult` of the steps, in the source vertex order."""
+    return TransferResult(
+        faces=src.source_faces, neutral=src.unweld(np.asarray(target_welded)), deltas=src.unweld(bt.deltas),
+        weights=sel.weights, details=details, frames=sel.frames, selection_errors=sel.errors,
+        source_bases=src.unweld(source_bases), target_smooth_ref=src.unweld(bt.target_smooth_ref),
+        registration=registration, factor_residual_mm=dec.frames.residual_rms * 1000.0, timings=dict(timings or {}),
+        welded=src, system=bt.system)
+
 
 def _feature_edges(settings, welded_index, n):
     if settings.feature_lines is None:
@@ -185,6 +354,11 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
                       settings: Optional[TransferSettings] = None, progress: Optional[ProgressFn] = None,
                       **overrides) -> TransferResult:
     """Transfer a dense source sequence onto a target face (Xu et al. 2014 §3-5).
+
+    The composition of the steps :func:`weld_source`, :func:`register_target`,
+    :func:`decompose_sequence`, :func:`select_sequence_bases`, :func:`transfer_bases`,
+    :func:`transfer_details` and :func:`assemble_result` (the pipeline's dense stages run the
+    same steps, each cached on its own).
 
     Parameters
     ----------
@@ -215,101 +389,35 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         settings = dataclasses.replace(settings, **overrides)
     timings = {}
     t0 = time.perf_counter()
-    S0 = check_positions(source_ref, "source_ref")
-    Vs = len(S0)
-    Fs = check_faces(source_faces, Vs, "source_faces")
+    src = weld_source(source_ref, source_faces)
     seq = np.asarray(source_seq)
-    if seq.ndim != 3 or seq.shape[1:] != (Vs, 3) or len(seq) == 0:
-        raise ValueError(f"source_seq: expected (T, {Vs}, 3) frames in the topology of source_ref, got {seq.shape}")
-    T0in = check_positions(target_ref, "target_ref")
-    Ft_in = check_faces(target_faces, len(T0in), "target_faces")
-
-    # weld UV-seam duplicates: Laplacians and gradients must see one connected surface
-    wi, rep, Fw = weld(S0, Fs)
-    V = len(rep)
-    Sw0 = S0[rep]
-    same_topology = len(T0in) == Vs and Ft_in.shape == Fs.shape and np.array_equal(Ft_in, Fs)
-    registration = None
-    if same_topology:
-        Tw0 = T0in[rep]
-    else:
-        if settings.landmarks is None:
-            raise ValueError("target_ref has another topology than source_ref: settings.landmarks = "
-                             "(source vertex ids, target points) is required for the registration (§3)")
-        src_lm, tgt_pts = settings.landmarks
-        src_lm = np.asarray(src_lm, dtype=np.int64)
-        if src_lm.size and (src_lm.min() < 0 or src_lm.max() >= Vs):
-            raise ValueError(f"settings.landmarks: source vertex ids must lie in [0, {Vs})")
-        report(progress, 0.0, "registration (landmarks + non-rigid ICP)")
-        registration = register(Sw0, Fw, T0in, Ft_in, wi[src_lm], tgt_pts, settings.icp_steps,
-                                settings.max_distance, settings.icp, crop=settings.crop, crop_index=wi)
-        Tw0 = registration.resampled
+    if seq.ndim != 3 or seq.shape[1:] != (len(src.neutral), 3) or len(seq) == 0:
+        raise ValueError(f"source_seq: expected (T, {len(src.neutral)}, 3) frames in the topology of source_ref, got {seq.shape}")
+    Tw0, registration = register_target(src, target_ref, target_faces, settings, progress)
     timings["preprocessing"] = time.perf_counter() - t0
 
-    # -- decomposition (eq. 1-4) ----------------------------------------------------------
     report(progress, 0.4, "decomposition (smoothing + Laplacian coating)")
     t = time.perf_counter()
-    # factor the frames as given and weld the (linear) basis: no welded copy of the sequence
-    fac = factor_sequence(seq, settings.rank_rtol, base=S0)
-    fac = FactoredSequence(fac.base[rep], fac.coeffs, fac.basis[:, rep], fac.residual_rms)
-    filt = TaubinFilter(Fw, V, settings.iterations, settings.lam, settings.mu)
-    # S̄_t = P S_t with P linear: one filter pass over base, basis and T_0 together
-    r = fac.rank
-    block = np.concatenate([fac.base[:, :, None], fac.basis.transpose(1, 2, 0), Tw0[:, :, None]], axis=2)
-    block = filt.apply(block.reshape(V, 3 * (r + 2))).reshape(V, 3, r + 2)
-    smooth = FactoredSequence(block[:, :, 0].copy(), fac.coeffs, block[:, :, 1:r + 1].transpose(2, 0, 1).copy(),
-                              fac.residual_rms)
-    Sb0 = smooth.base
-    Tb0 = block[:, :, r + 1].copy()
-    poisson = PoissonReconstructor(Fw, V, settings.laplacian, Sw0 if settings.laplacian == "cotangent" else None,
-                                   settings.detail_screening)
-    # eq. 1 on base and basis: ξ = L (S - S̄), linear, one sparse product for the whole block
-    detail = np.concatenate([(fac.base - smooth.base)[None], fac.basis - smooth.basis])  # (r+1, V, 3)
-    lap = np.asarray(poisson.L @ detail.transpose(1, 2, 0).reshape(V, 3 * (r + 1))).reshape(V, 3, r + 1)
-    coat = FactoredSequence(np.ascontiguousarray(lap[:, :, 0]), fac.coeffs,
-                            np.ascontiguousarray(lap[:, :, 1:].transpose(2, 0, 1)), fac.residual_rms)
+    dec = decompose_sequence(src, seq, settings)
     timings["decomposition"] = time.perf_counter() - t
 
-    # -- basis selection (eq. 6-7) --------------------------------------------------------
     report(progress, 0.45, "basis selection")
     t = time.perf_counter()
-    Qb = smooth.basis.reshape(smooth.rank, 3 * V)
-    gram = gram_from_factored(fac.coeffs, Qb @ Qb.T)
-    sel = select_bases(gram, settings.eps, settings.max_bases, settings.candidates, settings.min_bases)
-    src_bases = smooth.frames(sel.frames) if sel.n_bases else np.zeros((0, V, 3))
+    sel, src_bases = select_sequence_bases(dec, settings)
     timings["basis_selection"] = time.perf_counter() - t
 
-    # -- feature-preserving deformation transfer (eq. 9-11) -------------------------------
     report(progress, 0.5, f"deformation transfer of {sel.n_bases} bases")
     t = time.perf_counter()
-    edges = _feature_edges(settings, wi, V)
-    dt = DeformationTransfer(Sb0, Tb0, Fw, edges, settings.alpha)
-    tgt_bases = dt.transfer(src_bases) if sel.n_bases else np.zeros((0, V, 3))
-    deltas = tgt_bases - Tb0
+    bt = transfer_bases(src, dec, src_bases, Tw0, settings)
     timings["transfer"] = time.perf_counter() - t
 
-    # -- fine-scale details (eq. 16, 5) ---------------------------------------------------
     t = time.perf_counter()
-    details = None
-    n_frames = len(seq)
-    if settings.details:
-        gain = settings.detail_gain if settings.detail_gain is not None else bbox_size(Tw0) / max(bbox_size(Sw0), 1e-300)
-        det = DetailTransfer(Fw, poisson, Sb0, coat.base, Tw0, Tb0, gain, settings.rotate_reference_details)
-        # T̄_t = T̄_0 + W_t Δ (eq. 8) as a factored sequence; details relative to the neutral
-        # T_0, written straight in the unwelded vertex order
-        target_smooth = FactoredSequence(Tb0, sel.weights, deltas, 0.0)
-        details = det.displacements(smooth, coat, target_smooth, n_frames, settings.chunk, relative=True, vertices=wi,
-                                    progress=None if progress is None else
-                                    (lambda f, m: progress(0.55 + 0.45 * f, m)))
+    details = transfer_details(src, dec, sel, Tw0, bt, settings,
+                               None if progress is None else (lambda f, m: progress(0.55 + 0.45 * f, m)))
     timings["details"] = time.perf_counter() - t
 
-    report(progress, 1.0, f"{n_frames} frames, {sel.n_bases} bases")
-    unw = lambda a: np.ascontiguousarray(a[..., wi, :])
-    return TransferResult(
-        faces=Fs, neutral=unw(Tw0), deltas=unw(deltas), weights=sel.weights, details=details,
-        frames=sel.frames, selection_errors=sel.errors, source_bases=unw(src_bases),
-        target_smooth_ref=unw(Tb0), registration=registration,
-        factor_residual_mm=fac.residual_rms * 1000.0, timings=timings)
+    report(progress, 1.0, f"{len(seq)} frames, {sel.n_bases} bases")
+    return assemble_result(src, Tw0, dec, sel, src_bases, bt, details, registration, timings)
 
 
 def naive_transfer(source_ref, target_ref, faces, frames, feature_edges=None, alpha: float = 100.0,

@@ -31,6 +31,7 @@ edit of the coating maps back to the displacements exactly: ``ΔD_t = A^{-1} Δ�
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
@@ -702,6 +703,76 @@ class DetailEditor:
         return DetailEditResult(out, (ts, te), edit, r, biggest * 1000,
                                 {"propagation": t1 - t0, "reconstruction": t2 - t1, "total": t2 - t0})
 
+    # -- plain-data edits (what a shot stores) ---------------------------------------------------
+    def select(self, selection: dict, frame: int) -> np.ndarray:
+        """Editor ids of a selection spec ``{"mode": "paint"|"curve", "picks": [rig ids],
+        "strokes": [[rig id, rig id], ...], "radius": metres}`` at ``frame``: *paint* takes every
+        vertex within the radius of a pick or of a stroke's path, *curve* every vertex within it
+        of the polyline through the picks (empty when nothing is picked)."""
+        picks = [int(v) for v in selection.get("picks", [])]
+        if not picks:
+            return np.zeros(0, dtype=np.int64)
+        ids = self.to_editor(picks)
+        r = float(selection.get("radius", 0.0))
+        if selection.get("mode", "paint") == "curve":
+            return self.select_curve(ids, r, frame)
+        parts = [self.select_paint(ids, r, frame)]
+        parts += [self.select_curve(self.to_editor([a, b]), r, frame) for a, b in selection.get("strokes", []) if a != b]
+        return np.unique(np.concatenate(parts))
+
+    def key_edit(self, spec: dict) -> tuple:
+        """The key-frame edit of a spec: ``(KeyEdit, description)``.
+
+        ``spec``: ``{"op": "scale"|"copy_paste"|"reshape", "frame", "selection"}`` (see
+        :meth:`select`) and per operation ``factor``; ``anchor`` (rig id), ``angle_deg``,
+        ``scale``, ``mode`` ("replace"|"add"), ``mirror``; ``targets`` ((n, 3) metres), ``lam_l``.
+
+        Raises
+        ------
+        ValueError
+            Nothing selected, a missing anchor or target curve, or a selection without details
+            at the key frame — each said in words a user can act on.
+        """
+        op, k = spec.get("op", "scale"), int(spec["frame"])
+        sel = spec.get("selection", {})
+        if not sel.get("picks"):
+            raise ValueError("nothing selected: click on the mesh to select the details to edit")
+        if op == "scale":
+            edit = self.scale(self.select(sel, k), k, float(spec.get("factor", 0.0)))
+            what = f"scale ×{float(spec.get('factor', 0.0)):g}"
+        elif op == "copy_paste":
+            if spec.get("anchor") is None:
+                raise ValueError("copy-paste: choose where the details go (the paste anchor)")
+            edit = self.copy_paste(self.select(sel, k), k, int(self.to_editor([int(spec["anchor"])])[0]),
+                                   math.radians(float(spec.get("angle_deg", 0.0))), float(spec.get("scale", 1.0)),
+                                   spec.get("mode", "replace"), mirror=bool(spec.get("mirror", False)))
+            what = f"copy-paste to vertex {spec['anchor']} ({edit.info['pasted_vertices']} vertices)"
+        elif op == "reshape":
+            if sel.get("mode") != "curve" or len(sel.get("picks", [])) < 2:
+                raise ValueError("reshape: select the wrinkle as a curve (two or more clicks along it)")
+            targets = np.asarray(spec.get("targets", []), dtype=np.float64).reshape(-1, 3)
+            if len(targets) < 2:
+                raise ValueError("reshape: give the new curve (two or more wrinkle target points)")
+            edit = self.reshape(self.to_editor(sel["picks"]), targets, k, float(sel.get("radius", 0.0)),
+                                float(spec.get("lam_l", 0.2)))
+            what = f"reshape wrinkle ({edit.info['region']} vertices, moved ≤ {edit.info['max_move_mm']:.1f} mm)"
+        else:
+            raise ValueError(f"detail edit op: expected 'scale', 'copy_paste' or 'reshape', got {op!r}")
+        if self.activity(edit.selection)[k] <= 0:
+            raise ValueError(f"the selection has no fine details at frame {k}: nothing to edit there")
+        return edit, what
+
+    def apply_spec(self, spec: dict) -> tuple:
+        """Make and propagate a spec's edit: ``(DetailEditResult, report dict)``; the spec's
+        ``mu``, ``lam_e``, ``lam_t``, ``lam_s`` and ``propagation`` ("per_frame" | "eq18")."""
+        edit, what = self.key_edit(spec)
+        res = self.apply(edit, mu=float(spec.get("mu", 0.23)), lam_e=float(spec.get("lam_e", 1.0)),
+                         lam_t=float(spec.get("lam_t", 0.1)), lam_s=float(spec.get("lam_s", 1.0)),
+                         propagation=spec.get("propagation", "per_frame"))
+        ts, te = res.window
+        return res, {"what": what, "frame": int(spec["frame"]), "window": [int(ts), int(te)],
+                     "max_change_mm": float(res.max_change_mm), "seconds": float(res.timings["total"])}
+
     def apply_reference(self, edit: KeyEdit, window: tuple, lam_e: float = 1.0, lam_t: float = 0.1,
                         lam_s: float = 1.0, propagation: str = "eq18", taper: int = 3) -> np.ndarray:
         """Slow, obviously-correct :meth:`apply`: eq. 18-21 assembled as one sparse space-time
@@ -784,3 +855,15 @@ def benchmark(n_frames: int = 1300):
           f"reconstruction_s={res.seconds['reconstruction']:.3f} window={res.window[0]}-{res.window[1]} "
           f"max_change_mm={res.max_change_mm:.3f} ref=sparse_spacetime+per_frame_poisson rel_maxdiff={err:.1e}",
           flush=True)
+
+
+def apply_detail_edits(editor: DetailEditor, specs) -> dict:
+    """Every detail edit spec in order (:meth:`DetailEditor.apply_spec`), each on the details the
+    previous one left: ``{"details": (T, V, 3) float32, "reports": [...]}`` (the dense
+    ``detail_edit`` stage)."""
+    ed, reports = editor, []
+    for spec in specs:
+        res, rep = ed.apply_spec(spec)
+        reports.append(rep)
+        ed = ed.rebase(details=res.details)
+    return {"details": ed.details, "reports": reports}

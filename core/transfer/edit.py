@@ -34,7 +34,7 @@ import scipy.sparse.linalg as spla
 
 from .deformation import DeformationTransfer
 
-__all__ = ["PointConstraint", "DistanceConstraint", "LargeScaleEditor", "benchmark"]
+__all__ = ["PointConstraint", "DistanceConstraint", "LargeScaleEditor", "TransferEditor", "apply_transfer_edits", "benchmark"]
 
 
 @dataclass(frozen=True)
@@ -274,6 +274,132 @@ class LargeScaleEditor:
             if E[-2] - E[-1] <= tol * E[-2] or E[-1] <= 1e-9 * E[0] or lam_b == 0 or lam_w == 0:
                 break
         return EditResult(D, W, E, it)
+
+
+class TransferEditor:
+    """Large-scale edits (eq. 12-15) of a :class:`~core.transfer.TransferResult`, in the
+    result's own vertex ids, from plain-data edit specs (what a shot stores).
+
+    The eq. 9 system is the one the transfer was solved with: the result carries it
+    (``result.system``, ``result.welded``). A result that does not (e.g. made by an older
+    version) is rebuilt exactly as :func:`core.transfer.transfer_sequence` builds it — ``weld``
+    of ``source_rig``, ``S̄_0`` = Taubin filter (``settings``) of the welded source neutral,
+    ``T̄_0`` = the result's ``target_smooth_ref``, feature lines from ``settings`` —
+    and :meth:`consistency` checks the rebuild (~1e-12 when it is the same system).
+
+    The editor's mesh is ``reference + w Δ`` with the result's (shown) neutral as reference: it
+    differs from the smoothed ``T̄_0 + w Δ`` by the reference details ``neutral - T̄_0``, a
+    constant per vertex; E_b and E_w (eq. 9, 13) do not involve the reference, so point and
+    distance constraints act on what the user sees.
+
+    An edit spec is ``{"constraints": [...], "window": [a, b] or None, "lam_b", "lam_w",
+    "lam_e"}`` with constraints ``{"kind": "point"|"fixed", "frame", "vertex", "target": [x, y,
+    z]}`` or ``{"kind": "distance", "frame", "i", "j", "distance"}`` (metres, result vertex ids).
+
+    Raises
+    ------
+    ValueError
+        A result without its system and no ``source_rig`` of its topology to rebuild it from.
+    """
+
+    def __init__(self, result, source_rig=None, settings=None):
+        from . import TransferSettings, weld_source
+        from .decompose import TaubinFilter
+        from .features import line_edges
+
+        self.result = result
+        V = len(result.neutral)
+        if result.system is not None and result.welded is not None:
+            self.welded, self.rep = result.welded.index, result.welded.rep
+            self.transfer = result.system
+        else:
+            if source_rig is None:
+                raise ValueError("this transfer result does not carry its eq. 9 system: give the source rig to rebuild it")
+            if source_rig.n_vertices != V or not np.array_equal(np.asarray(source_rig.faces), np.asarray(result.faces)):
+                raise ValueError(f"source_rig {source_rig.name!r}: expected the topology of the transfer result "
+                                 f"({V} vertices, {len(result.faces)} faces), got {source_rig.n_vertices} vertices")
+            s = settings or TransferSettings()
+            src = weld_source(source_rig.neutral, source_rig.faces)
+            self.welded, self.rep = src.index, src.rep
+            smooth_src = TaubinFilter(src.faces, src.n, s.iterations, s.lam, s.mu).apply(src.welded)
+            edges = (line_edges([self.welded[np.asarray(ln, dtype=np.int64)] for ln in s.feature_lines], closed=True)
+                     if s.feature_lines is not None else None)
+            self.transfer = DeformationTransfer(smooth_src, np.asarray(result.target_smooth_ref)[self.rep], src.faces, edges,
+                                                s.alpha)
+        self.reference = np.asarray(result.neutral, dtype=np.float64)[self.rep]
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.result.weights)
+
+    def consistency(self) -> float:
+        """max |Δ_rebuilt - Δ_result| / max |Δ_result|: the system re-transfers the result's
+        source bases; ~1e-12 when it is the one the transfer used."""
+        r = self.result
+        if not r.n_bases:
+            return 0.0
+        again = self.transfer.transfer(np.asarray(r.source_bases)[:, self.rep]) - np.asarray(r.target_smooth_ref)[self.rep]
+        want = np.asarray(r.deltas)[:, self.rep]
+        return float(np.abs(again - want).max() / max(np.abs(want).max(), 1e-300))
+
+    def constraint(self, spec: dict):
+        """A core constraint (welded ids) from a spec in result vertex ids (see the class docstring)."""
+        w = self.welded
+        kind = spec.get("kind")
+        if kind in ("point", "fixed"):
+            return PointConstraint(int(spec["frame"]), int(w[spec["vertex"]]), tuple(float(x) for x in spec["target"]))
+        if kind == "distance":
+            return DistanceConstraint(int(spec["frame"]), int(w[spec["i"]]), int(w[spec["j"]]), float(spec["distance"]))
+        raise ValueError(f"constraint kind: expected 'point', 'fixed' or 'distance', got {kind!r}")
+
+    def edit(self, deltas, weights, specs, lam_b: float, lam_w: float, lam_e: float, window=None):
+        """Run :meth:`LargeScaleEditor.edit` from the state ``(deltas (K, V, 3), weights (T, K))``.
+
+        Returns ``(deltas (K, V, 3), weights (T, K), EditResult)`` in the result's vertex ids.
+        """
+        D = np.asarray(deltas, dtype=np.float64)
+        editor = LargeScaleEditor(self.transfer, self.reference, D[:, self.rep], weights)
+        res = editor.edit([self.constraint(s) for s in specs], lam_b, lam_w, lam_e, window)
+        return np.ascontiguousarray(res.deltas[:, self.welded]), res.weights, res
+
+    def miss_mm(self, spec: dict, deltas, weights) -> float:
+        """How far (mm) the state ``(deltas, weights)`` is from a constraint, on the shown mesh."""
+        neutral = self.result.neutral
+        f = int(spec["frame"])
+
+        def at(v):
+            return neutral[v] + weights[f] @ deltas[:, v]
+
+        if spec["kind"] == "distance":
+            return abs(float(np.linalg.norm(at(spec["i"]) - at(spec["j"]))) - float(spec["distance"])) * 1000
+        return float(np.linalg.norm(at(spec["vertex"]) - np.asarray(spec["target"], dtype=float))) * 1000
+
+    def apply(self, state: tuple, spec: dict) -> tuple:
+        """One edit spec on the state ``(deltas, weights)``: ``(deltas, weights, report)`` where
+        report holds the constraint misses before/after (mm), the rounds and the energies."""
+        D, W = state
+        cons = list(spec.get("constraints", []))
+        if not cons:
+            raise ValueError("a large-scale edit needs at least one constraint")
+        win = spec.get("window")
+        D2, W2, res = self.edit(D, W, cons, float(spec.get("lam_b", 1.0)), float(spec.get("lam_w", 1.0)),
+                                float(spec.get("lam_e", 100.0)), tuple(win) if win else None)
+        report = {"before_mm": [self.miss_mm(c, D, W) for c in cons], "after_mm": [self.miss_mm(c, D2, W2) for c in cons],
+                  "iterations": res.iterations, "energies": [float(e) for e in res.energies]}
+        return D2, W2, report
+
+
+def apply_transfer_edits(editor: TransferEditor, specs) -> dict:
+    """Every large-scale edit spec in order, from the transfer's own bases and weights:
+    ``{"deltas", "weights", "reports": [...]}`` (the dense ``transfer_edit`` stage)."""
+    r = editor.result
+    state = (np.asarray(r.deltas, dtype=np.float64), np.asarray(r.weights, dtype=np.float64))
+    reports = []
+    for spec in specs:
+        D, W, rep = editor.apply(state, spec)
+        state = (D, W)
+        reports.append(rep)
+    return {"deltas": state[0], "weights": state[1], "reports": reports}
 
 
 def _nnls_sparse(Q: sp.csc_matrix, q: np.ndarray, x0: np.ndarray, max_iter: int = 300) -> np.ndarray:

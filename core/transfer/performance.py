@@ -15,19 +15,30 @@ from ..model import MarkerLayout, Performance, Rig
 from ..progress import ProgressFn, report
 
 
-def dense_source(source: Performance, rig: Optional[Rig], name_map=None) -> np.ndarray:
-    """(T, V, 3) meshes: a mesh sequence as is, or weight curves driving ``rig``."""
+def dense_sequence(source: Performance, rig: Optional[Rig], name_map=None) -> tuple:
+    """``(meshes (T, V, 3), valid (T,))``: a mesh sequence as is, or weight curves driving
+    ``rig``. Frames without data (tracking loss) are gaps, filled by :func:`core.gaps.fill_gaps`
+    (interpolated, held at the ends — never a neutral face) and flagged in ``valid``."""
+    from ..gaps import fill_gaps
+
     if source.kind == "meshes":
-        return np.asarray(source.data)
+        valid = np.asarray(source.valid, dtype=bool).reshape(len(source.data), -1).all(1)
+        return fill_gaps(source.data, valid), valid
     if source.kind == "curves":
         if rig is None:
             raise ValueError(f"transfer: weight curves {source.name!r} need the rig they drive (--source-rig)")
         from ..retarget import drive_rig
 
         W, _ = drive_rig(source, rig, name_map)
-        return rig.evaluate(np.nan_to_num(W))
+        valid = np.isfinite(W).all(1)
+        return rig.evaluate(fill_gaps(W, valid)), valid
     raise ValueError("transfer needs a dense source (a mesh sequence, or weight curves with --source-rig); "
                      f"{source.name!r} is {source.kind}: use a marker-based method (lsq, bounded, spacetime, local, geometric)")
+
+
+def dense_source(source: Performance, rig: Optional[Rig], name_map=None) -> np.ndarray:
+    """(T, V, 3) meshes of :func:`dense_sequence` (gaps filled)."""
+    return dense_sequence(source, rig, name_map)[0]
 
 
 def shared_landmarks(source_layout: MarkerLayout, target_layout: MarkerLayout, target_positions,

@@ -1,0 +1,285 @@
+"""The shot document: everything that says what a retargeting session computes.
+
+A shot is plain data — JSON with a ``schema_version`` — holding
+
+* ``files``: every input file by role (``source``, ``target_rig``, ``target_layout`` ...) with
+  its path and the BLAKE2 hash of its bytes, so a shot opened elsewhere finds the same
+  content or says which file differs;
+* ``settings``: every stage's settings, ``{stage: {setting: value}}`` (all of them, not only
+  the changed ones, so a shot keeps meaning the same when a default changes);
+* ``edits``: the edit list of each editor with its undo/redo history — ``spacetime`` (poses
+  set at frames, Seol 2012 §6), ``transfer`` (large-scale constraints, Xu 2014 §4.3),
+  ``detail`` (fine-scale detail edits, Xu 2014 §5.2); ``done`` is what the results contain,
+  ``undone`` the redo stack (most recently undone last);
+* ``frame`` (the current frame of a review) and ``notes`` (frame-anchored review notes).
+
+:meth:`core.pipeline.Pipeline.from_shot` builds a pipeline from a shot and
+:meth:`core.pipeline.Pipeline.shot` writes one; the CLI's ``--shot`` / ``--save-shot`` and the
+dashboard's download/open use exactly these. Nothing here imports the pipeline except
+:func:`migrate` for version-0 documents (which need the pipeline's map of settings to stages).
+
+Schema history (:func:`migrate` upgrades any older document on load):
+
+* 0 — a flat ``{setting: value}`` dict as ``Pipeline(**settings)`` takes it, file settings as
+  paths (what a script or a CLI flag set could say before shots existed);
+* 1 — the document described above.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+SCHEMA_VERSION = 1
+#: the editors whose edit lists a shot holds, and the stage setting each list is
+EDITORS = {"spacetime": "edits", "transfer": "transfer_edits", "detail": "detail_edits"}
+
+
+def file_hash(path) -> str:
+    """BLAKE2b-128 of a file's bytes; of a folder, of its files' names and hashes (sorted)."""
+    p = Path(path)
+    if p.is_dir():
+        h = hashlib.blake2b(digest_size=16)
+        for c in sorted(q for q in p.iterdir() if q.is_file()):
+            h.update(c.name.encode() + b"\0" + file_hash(c).encode())
+        return h.hexdigest()
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such file")
+    h = hashlib.blake2b(digest_size=16)
+    with open(p, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclass
+class FileRef:
+    """An input file: where it was (``path``) and what it held (``sha``, :func:`file_hash`)."""
+
+    path: str
+    sha: str
+
+    @classmethod
+    def of(cls, path) -> "FileRef":
+        return cls(str(path), file_hash(path))
+
+
+@dataclass
+class EditHistory:
+    """An edit list with undo/redo: ``done`` (applied, in order) and ``undone`` (the redo
+    stack, most recently undone last). Edits are plain dicts (JSON)."""
+
+    done: list = field(default_factory=list)
+    undone: list = field(default_factory=list)
+
+    def add(self, edit: dict) -> None:
+        """Append an edit; a new edit clears the redo stack (as every editor does)."""
+        self.done.append(copy.deepcopy(edit))
+        self.undone.clear()
+
+    def undo(self) -> bool:
+        if not self.done:
+            return False
+        self.undone.append(self.done.pop())
+        return True
+
+    def redo(self) -> bool:
+        if not self.undone:
+            return False
+        self.done.append(self.undone.pop())
+        return True
+
+    def remove(self, index: int) -> dict:
+        """Take out edit ``index`` (it goes onto the redo stack, so redo brings it back last)."""
+        if not -len(self.done) <= index < len(self.done):
+            raise IndexError(f"edit {index}: there are {len(self.done)} edits")
+        e = self.done.pop(index)
+        self.undone.append(e)
+        return e
+
+    def to_dict(self) -> dict:
+        return {"done": copy.deepcopy(self.done), "undone": copy.deepcopy(self.undone)}
+
+    @classmethod
+    def from_dict(cls, d) -> "EditHistory":
+        if isinstance(d, list):  # a bare list is the done list
+            return cls(copy.deepcopy(d), [])
+        return cls(copy.deepcopy(list(d.get("done", []))), copy.deepcopy(list(d.get("undone", []))))
+
+
+@dataclass
+class Shot:
+    """The shot document (see the module docstring). Plain data; :meth:`to_json` /
+    :meth:`from_json` round-trip it exactly."""
+
+    files: dict = field(default_factory=dict)        # role -> FileRef
+    settings: dict = field(default_factory=dict)     # stage -> {setting: value}
+    edits: dict = field(default_factory=lambda: {k: EditHistory() for k in EDITORS})
+    frame: int = 0
+    notes: list = field(default_factory=list)
+    schema_version: int = SCHEMA_VERSION
+
+    # -- plain data ------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "schema_version": self.schema_version,
+            "files": {k: {"path": v.path, "sha": v.sha} for k, v in sorted(self.files.items())},
+            "settings": copy.deepcopy(self.settings),
+            "edits": {k: self.edits[k].to_dict() if k in self.edits else EditHistory().to_dict() for k in EDITORS},
+            "frame": int(self.frame),
+            "notes": copy.deepcopy(self.notes),
+        }
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> "Shot":
+        """A shot from its plain-data form, migrated from an older schema when needed.
+
+        Raises
+        ------
+        ValueError
+            Not a shot, a newer schema than this program knows, or malformed fields (named).
+        """
+        doc = migrate(doc)
+        files = {}
+        for role, ref in doc.get("files", {}).items():
+            if not isinstance(ref, dict) or "path" not in ref:
+                raise ValueError(f"shot: files.{role}: expected {{'path': ..., 'sha': ...}}, got {ref!r}")
+            files[role] = FileRef(str(ref["path"]), str(ref.get("sha", "")))
+        settings = doc.get("settings", {})
+        if not isinstance(settings, dict) or not all(isinstance(v, dict) for v in settings.values()):
+            raise ValueError("shot: settings: expected {stage: {setting: value}}")
+        edits = {k: EditHistory.from_dict(doc.get("edits", {}).get(k, {})) for k in EDITORS}
+        unknown = set(doc.get("edits", {})) - set(EDITORS)
+        if unknown:
+            raise ValueError(f"shot: edits: unknown editors {sorted(unknown)}; expected {sorted(EDITORS)}")
+        return cls(files, copy.deepcopy(settings), edits, int(doc.get("frame", 0)), copy.deepcopy(list(doc.get("notes", []))))
+
+    def to_json(self, path=None, indent: int = 1) -> str:
+        """The shot as JSON text (written to ``path`` when given)."""
+        text = json.dumps(self.to_dict(), indent=indent, sort_keys=False, allow_nan=False)
+        if path is not None:
+            Path(path).write_text(text + "\n", encoding="utf-8")
+        return text
+
+    @classmethod
+    def from_json(cls, source) -> "Shot":
+        """A shot from a JSON file path or JSON text.
+
+        Raises
+        ------
+        ValueError
+            Not JSON, or not a shot (the message names the file and what is wrong).
+        """
+        where = "shot"
+        text = source
+        if isinstance(source, Path) or (isinstance(source, str) and not source.lstrip().startswith("{")):
+            where = str(source)
+            try:
+                text = Path(source).read_text(encoding="utf-8-sig")
+            except FileNotFoundError:
+                raise FileNotFoundError(f"{source}: no such shot file") from None
+            except UnicodeDecodeError:
+                raise ValueError(f"{where}: not a shot file (not UTF-8 text)") from None
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{where}: not a shot file (invalid JSON at line {e.lineno}, column {e.colno}: {e.msg})") from None
+        if not isinstance(doc, dict):
+            raise ValueError(f"{where}: not a shot file (expected a JSON object, got {type(doc).__name__})")
+        try:
+            return cls.from_dict(doc)
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+
+    # -- identity --------------------------------------------------------------------------
+    def content_hash(self) -> str:
+        """A hash of what determines the results: the files' contents, the settings and the
+        applied edits (not paths, the frame, notes or redo stacks). Two shots with equal
+        hashes compute the same results."""
+        doc = {"files": {k: v.sha for k, v in sorted(self.files.items())}, "settings": self.settings,
+               "edits": {k: self.edits[k].done for k in EDITORS if k in self.edits}}
+        return hashlib.blake2b(json.dumps(doc, sort_keys=True, allow_nan=False).encode(), digest_size=16).hexdigest()
+
+    def resolve(self, role: str, base: Optional[Path] = None, locate: Optional[Callable] = None) -> str:
+        """The path to read for file ``role``: ``locate(role, ref)`` when given (e.g. a review
+        store that keeps files by hash), else the recorded path, else that path relative to
+        ``base`` (the shot file's folder). The content must hash to the recorded ``sha``.
+
+        Raises
+        ------
+        FileNotFoundError
+            No file found for the role.
+        ValueError
+            A file is found but its content differs from what the shot recorded.
+        """
+        ref = self.files[role]
+        candidates = []
+        if locate is not None:
+            found = locate(role, ref)
+            if found:
+                candidates.append(Path(found))
+        candidates.append(Path(ref.path))
+        if base is not None and not Path(ref.path).is_absolute():
+            candidates.append(Path(base) / ref.path)
+        for c in candidates:
+            if c.exists():
+                if ref.sha and file_hash(c) != ref.sha:
+                    raise ValueError(f"shot: {role} file {c} has changed since the shot was saved "
+                                     f"(content hash {file_hash(c)[:12]}…, the shot recorded {ref.sha[:12]}…); "
+                                     f"give the file it was made with, or override it (e.g. --{role.replace('_', '-')})")
+                return str(c)
+        raise FileNotFoundError(f"shot: {role} file {ref.path} not found"
+                                + (f" (also looked in {base})" if base is not None else ""))
+
+
+# -- migrations --------------------------------------------------------------------------------
+def _from_v0(doc: dict) -> dict:
+    """Version 0 (a flat ``{setting: value}`` dict) -> 1, routing each setting to its stage."""
+    from .pipeline import setting_owners
+
+    owners = setting_owners()
+    files_roles = {name for name, (stage, is_file) in owners.items() if is_file}
+    out = {"schema_version": 1, "files": {}, "settings": {}, "edits": {}, "frame": 0, "notes": []}
+    unknown = [k for k in doc if k not in owners]
+    if unknown:
+        raise ValueError(f"version-0 shot: unknown settings {unknown}")
+    for k, v in doc.items():
+        stage, _ = owners[k]
+        if k in files_roles:
+            if v:
+                out["files"][k] = {"path": str(v), "sha": file_hash(v)}
+        elif k in EDITORS.values():
+            editor = next(e for e, s in EDITORS.items() if s == k)
+            out["edits"][editor] = {"done": list(v or []), "undone": []}
+        else:
+            out["settings"].setdefault(stage, {})[k] = v
+    return out
+
+
+MIGRATIONS = {0: _from_v0}
+
+
+def migrate(doc: dict) -> dict:
+    """Upgrade a shot document of any older schema to :data:`SCHEMA_VERSION` (a new dict).
+
+    A dict without ``schema_version`` is version 0. Raises ValueError for a version newer
+    than this program's (a newer program wrote it) or one it has no migration for.
+    """
+    if not isinstance(doc, dict):
+        raise ValueError(f"shot: expected a JSON object, got {type(doc).__name__}")
+    v = doc.get("schema_version", 0)
+    if not isinstance(v, int) or isinstance(v, bool):
+        raise ValueError(f"shot: schema_version must be an integer, got {v!r}")
+    if v > SCHEMA_VERSION:
+        raise ValueError(f"shot: schema_version {v} is newer than this program's ({SCHEMA_VERSION}); update face-retarget")
+    doc = copy.deepcopy(doc)
+    while v < SCHEMA_VERSION:
+        if v not in MIGRATIONS:
+            raise ValueError(f"shot: no migration from schema_version {v}")
+        doc = MIGRATIONS[v](doc)
+        v = doc["schema_version"]
+    return doc

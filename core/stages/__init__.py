@@ -1,0 +1,15 @@
+"""Every stage of the pipeline, declared once (see :mod:`core.stage` for what a stage is).
+
+Importing this package registers them: the retargeting stages (:mod:`.retarget`), whose solve
+stage dispatches to the registered methods (:mod:`.methods`), the dense-transfer stages of
+Xu 2014 (:mod:`.dense`) and the normal-map stages of Liu 2011 §5 (:mod:`.normalmap`).
+"""
+
+from .methods import METHODS, Method, method_of, solve_method  # noqa: F401
+from . import retarget  # noqa: F401  (registers)
+from . import dense  # noqa: F401
+from . import normalmap  # noqa: F401
+from .retarget import INVISIBLE, solver_shapes  # noqa: F401
+
+#: methods that use the PCA prior stage (derived from the registrations)
+PRIOR_METHODS = tuple(n for n, m in METHODS.items() if "prior" in m.needs)

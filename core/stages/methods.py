@@ -1,0 +1,162 @@
+"""The solve methods: each registers itself with the settings it reads and the stages it needs.
+
+``@solve_method(name, params=..., needs=...)`` puts a method into :data:`METHODS`; the solve
+stage's ``method`` choices, its cache key (``relevant``), the CLI's ``--method`` choices, which
+optional stages run (``prior``, ``segment``) and which widgets the dashboard shows all derive
+from these declarations — nothing else lists the methods.
+
+A method's function takes the solve stage's inputs (``stabilize``, ``personalize``, ``shapes``,
+``segment``, ``prior``) and its frozen settings ``s`` and returns ``{"weights": (T, K), "info":
+{...}}`` for the solver's K shapes. ``dense`` methods (Xu 2014 transfer) do not solve for the
+target's shapes at all: the dense stages (:mod:`core.stages.dense`) compute a new rig instead.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+#: method name -> Method, in registration order
+METHODS: dict = {}
+
+
+@dataclass(frozen=True)
+class Method:
+    """A registered solve method (see the module docstring)."""
+
+    name: str
+    run: Callable
+    params: tuple = ()
+    needs: tuple = ()
+    dense: bool = False
+    doc: str = ""
+
+
+def solve_method(name: str, params=(), needs=(), dense: bool = False):
+    """Decorator: register ``fn(inputs, s) -> {"weights", "info"}`` as method ``name``."""
+
+    def deco(fn):
+        if name in METHODS:
+            raise ValueError(f"solve method {name!r} registered twice")
+        METHODS[name] = Method(name, fn, tuple(params), tuple(needs), dense, (fn.__doc__ or "").strip())
+        return fn
+
+    return deco
+
+
+def method_of(cfg) -> Method:
+    """The method a settings snapshot chooses."""
+    return METHODS[cfg.solve.method]
+
+
+def _prior(inputs):
+    return inputs["prior"]["prior"] if inputs.get("prior") else None
+
+
+def _markers(inputs):
+    st = inputs["stabilize"]["source"]
+    return inputs["personalize"]["deltas"], st.deltas, st.valid
+
+
+@solve_method("lsq")
+def _lsq(inputs, s):
+    """Per-frame least squares, unbounded (a diagnostic: no regulariser keeps it in range)."""
+    from ..solvers import baselines
+
+    B, S, valid = _markers(inputs)
+    return {"weights": baselines.no_const(B, S, valid)}
+
+
+@solve_method("bounded", params=("lower", "upper", "ridge"))
+def _bounded(inputs, s):
+    """Per-frame least squares with ``lower <= w <= upper`` (batched exact active set)."""
+    from ..solvers import baselines
+
+    B, S, valid = _markers(inputs)
+    return {"weights": baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge)}
+
+
+@solve_method("range_pf", params=("ridge",))
+def _range_pf(inputs, s):
+    """Seol 2012 §7 Range PF: per frame, -0.5 <= w <= 1.5."""
+    from ..solvers import baselines
+
+    B, S, valid = _markers(inputs)
+    return {"weights": baselines.range_pf(B, S, valid=valid, ridge=s.ridge)}
+
+
+@solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",))
+def _prior_pf(inputs, s):
+    """Seol 2012 §7 Prior PF: per frame with the PCA prior."""
+    from ..solvers import baselines
+
+    B, S, valid = _markers(inputs)
+    return {"weights": baselines.prior_pf(B, S, s.alpha, _prior(inputs), valid, ridge=s.ridge)}
+
+
+@solve_method("spacetime", params=("alpha", "beta", "boundary", "ridge"), needs=("prior",))
+def _spacetime(inputs, s):
+    """Seol 2012 movement matching + PCA prior (+ Sobolev), the whole take at once."""
+    from ..solvers import baselines
+    from ..solvers.spacetime import SpacetimeSolver
+
+    B, S, valid = _markers(inputs)
+    known = None
+    if s.boundary == "perframe":
+        ends = baselines.prior_pf(B, S[[0, -1]], s.alpha, _prior(inputs), valid[[0, -1]], ridge=s.ridge)
+        known = {0: ends[0], len(S) - 1: ends[1]}
+    solver = SpacetimeSolver(B, S, alpha=s.alpha, beta=s.beta, prior=_prior(inputs), known=known,
+                             boundary="none" if s.boundary == "none" else "neutral", valid=valid,
+                             ridge=s.ridge if s.ridge > 0 else "auto")
+    return {"weights": solver.solve(), "info": {"path": solver.method_}}
+
+
+@solve_method("local", params=("constraint", "local_temporal", "alpha", "beta", "sigma"), needs=("segment",))
+def _local(inputs, s):
+    """Liu 2011: per-region constrained QP (eq. 2), blended by the region masks (eq. 3)."""
+    from ..solvers.local import blend_weights, local_precompute, local_spacetime, reconstruct_markers, smooth_weights
+
+    B, S, valid = _markers(inputs)
+    st = inputs["stabilize"]["source"]
+    seg = inputs["segment"]
+    problem = local_precompute(np.zeros_like(st.neutral), B, seg["marker_weights"], constraint=s.constraint)
+    U = problem.solve(S, valid)  # (T, R, K) regional weights, eq. 2
+    if s.local_temporal == "spacetime":  # movement matching per region, ends from the QP
+        U = local_spacetime(B, S, seg["marker_weights"], U, s.alpha, s.beta, valid)
+    if s.sigma > 0:
+        U = smooth_weights(U, s.sigma)
+    W = blend_weights(U, seg["masks"])
+    # eq. 3 at the markers: what the mask-blended meshes show (the blended curves are a summary)
+    predicted = reconstruct_markers(np.zeros_like(st.neutral), B, U, seg["marker_masks"])
+    return {"weights": W, "info": {"region_weights": U, "masks": seg["masks"], "predicted": predicted}}
+
+
+@solve_method("geometric", params=("geometric_prior", "mu", "lam"), needs=("prior",))
+def _geometric(inputs, s):
+    """Ribera 2017: cotangent-Laplacian (or PCA / L2) prior + L1 sparsity by IRLS."""
+    from ..model import flatten
+    from ..solvers import baselines
+    from ..solvers.geometric import GeometricSolver
+    from ..solvers.spacetime import _prior_quadratic
+
+    B, S, valid = _markers(inputs)
+    kw = {"rig": inputs["shapes"]["rig"]} if s.geometric_prior == "geometric" else {}
+    if s.geometric_prior == "pca":
+        P, q, _ = _prior_quadratic(_prior(inputs), flatten(B).T, len(B))
+        kw = {"gram": P, "linear": -q}
+    frames = S
+    if not valid.all():  # the L1 solver needs complete frames: fill gaps with the No Const fit
+        fill = np.einsum("tk,kmc->tmc", baselines.no_const(B, S, valid), B)
+        frames = np.where(valid[..., None], S, fill)
+        warnings.warn(f"geometric: {int((~valid).sum())} missing marker samples filled by the per-frame fit")
+    sol = GeometricSolver(B, s.geometric_prior, mu=s.mu, lam=s.lam, **kw).solve(frames)
+    return {"weights": sol.weights, "info": {"iterations": sol.iterations}}
+
+
+@solve_method("transfer", dense=True)
+def _transfer(inputs, s):  # pragma: no cover - the solve stage is inactive for dense methods
+    """Xu 2014 dense transfer: a new rig of transferred bases (+ details), see core.stages.dense."""
+    raise RuntimeError("transfer is computed by the dense stages, not by the solve stage")

@@ -1,0 +1,453 @@
+"""The retargeting stages, from files to weights and diagnostics.
+
+::
+
+    take ─────────┐
+    source_face ──┼── load ── shapes ───────────────────────────── segment ──┐
+    target_face ──┘     │        │                                           │
+    frames ─────────────┴── stabilize ── calibrate ── personalize ──┬────── solve ── edit ── synthesize ── evaluate
+                                                                    └─ prior ─┘
+
+Each stage is a pure function of its inputs and settings (see :mod:`core.stage`); the
+pipeline caches them by content. Method modules are imported inside the functions that use
+them, so a missing optional piece fails only the method that needs it.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+
+import numpy as np
+import param
+
+from ..gaps import fill_gaps
+from ..progress import report
+from ..retarget import common_markers, source_marker_names, source_markers, target_markers
+from ..stage import Stage, register
+from .methods import METHODS, method_of
+
+#: a shape whose largest marker displacement is below this fraction of the largest shape's
+#: is invisible to the markers
+INVISIBLE = 1e-3
+
+
+@register("take")
+class Take(Stage):
+    """The source performance file."""
+
+    files = ("source",)
+    group, title = "files", "Source performance"
+    source = param.String(default="", doc="Source performance: Live Link Face CSV, marker CSV/TRC/C3D, or a GLB with a weight animation")
+
+    def run(self, inputs, s, progress=None):
+        from ..io.performance import read_performance
+
+        if not s.source:
+            raise ValueError("no source performance chosen (--source)")
+        report(progress, 0.1, "reading source")
+        return {"source": read_performance(s.source)}
+
+
+def _default_layout_key(rig_path: str, chosen: str) -> dict:
+    """The default layout file a rig falls back to is an input too: editing it re-keys."""
+    from ..io.layout import default_layout_path
+    from ..pipeline import file_key
+
+    if not rig_path or chosen:
+        return {}
+    default = default_layout_path(rig_path)
+    return {"default_layout": file_key(str(default)) if default is not None else ""}
+
+
+@register("source_face")
+class SourceFace(Stage):
+    """The rig the source curves drive, its marker layout and the channel name map."""
+
+    files = ("source_rig", "source_layout", "name_map")
+    group, title = "files", "Source rig"
+    source_rig = param.String(default="", doc="Rig the source curves drive (GLB); needed for weight-curve sources")
+    source_layout = param.String(default="", doc="Marker layout JSON on the source rig (default: data/layouts/<rig stem>.json)")
+    name_map = param.String(default="", doc="Name map JSON from source channels to source-rig shapes (default: automatic ARKit names)")
+
+    def key_extra(self, cfg):
+        return _default_layout_key(cfg.source_face.source_rig, cfg.source_face.source_layout)
+
+    def run(self, inputs, s, progress=None):
+        from ..io.rigs import load_rig, read_layout_for
+        from ..names import NameMap
+
+        report(progress, 0.2, "reading the source rig")
+        rig = load_rig(s.source_rig) if s.source_rig else None
+        layout = read_layout_for(s.source_layout, s.source_rig, rig) if rig is not None else None
+        name_map = NameMap.from_json(s.name_map) if s.name_map else None
+        return {"source_rig": rig, "source_layout": layout, "name_map": name_map}
+
+
+@register("target_face")
+class TargetFace(Stage):
+    """The target rig and its marker layout."""
+
+    files = ("target_rig", "target_layout")
+    group, title = "files", "Target rig"
+    target_rig = param.String(default="", doc="Target blendshape rig (GLB or OBJ folder)")
+    target_layout = param.String(default="", doc="Marker layout JSON on the target rig (default: data/layouts/<rig stem>.json)")
+
+    def key_extra(self, cfg):
+        return _default_layout_key(cfg.target_face.target_rig, cfg.target_face.target_layout)
+
+    def run(self, inputs, s, progress=None):
+        from ..io.rigs import load_rig, read_layout_for
+
+        if not s.target_rig:
+            raise ValueError("no target rig chosen (--target-rig)")
+        report(progress, 0.2, "reading the target rig")
+        rig = load_rig(s.target_rig)
+        return {"target_rig": rig, "target_layout": read_layout_for(s.target_layout, s.target_rig, rig)}
+
+
+@register("load")
+class Load(Stage):
+    """The take and the rigs together, checked against each other."""
+
+    deps = ("take", "source_face", "target_face")
+
+    def run(self, inputs, s, progress=None):
+        src = inputs["take"]["source"]
+        if src.kind == "curves" and inputs["source_face"]["source_rig"] is None:
+            raise ValueError(f"{src.name}: weight curves need the rig they drive (--source-rig)")
+        return {"source": src, **inputs["source_face"], **inputs["target_face"]}
+
+
+@register("frames")
+class Frames(Stage):
+    """The frame range of the take that is retargeted."""
+
+    deps = ("take",)
+    group, title = "source", "Frame range"
+    first_frame = param.Integer(default=0, bounds=(0, None), doc="First frame to retarget")
+    last_frame = param.Integer(default=-1, bounds=(-1, None), doc="Last frame to retarget (-1: the end)")
+
+    def run(self, inputs, s, progress=None):
+        n = inputs["take"]["source"].n_frames
+        stop = n if s.last_frame < 0 else min(s.last_frame + 1, n)
+        if not 0 <= s.first_frame < stop:
+            raise ValueError(f"frame range [{s.first_frame}, {s.last_frame}] is empty for {n} frames")
+        return {"first": int(s.first_frame), "stop": int(stop), "n_frames": int(n)}
+
+
+def solver_shapes(rig, spec: str) -> list:
+    """Indices of the target shapes the solvers may use: ``""`` all; ``"arkit"`` the shapes
+    with a canonical ARKit name (all shapes when the rig has none); else comma-separated names."""
+    from ..names import ARKIT_NAMES, canonical
+
+    spec = (spec or "").strip()
+    if not spec:
+        return list(range(rig.n_shapes))
+    if spec.lower() == "arkit":
+        idx = [i for i, n in enumerate(rig.names) if canonical(n) in ARKIT_NAMES]
+        return idx or list(range(rig.n_shapes))
+    return [rig.index(n.strip()) for n in spec.split(",") if n.strip()]
+
+
+@register("shapes")
+class Shapes(Stage):
+    """Which markers both faces share, and which target shapes the solvers may use.
+
+    Reads only the rigs, the layouts and the source's marker names: the frame range, the
+    neutral frame and the calibration do not change it (so segmentation does not re-run).
+    """
+
+    deps = ("load",)
+    group, title = "calibrate", "Source & calibration"
+    target_shapes = param.String(default="", doc=(
+        "Target shapes the solvers may use: empty = all; 'arkit' = the shapes with an ARKit name (all when the rig has "
+        "none); or comma-separated shape names. The others stay at zero"))
+
+    def run(self, inputs, s, progress=None):
+        ld = inputs["load"]
+        rig, layout = ld["target_rig"], ld["target_layout"]
+        names = tuple(common_markers(source_marker_names(ld["source"], ld["source_layout"]), layout))
+        idx = solver_shapes(rig, s.target_shapes)
+        # shapes that move no marker (tongue, eyeball-only, empty shapes) cannot be determined from
+        # markers: solving for them only injects noise (weights of 1e3 through near-null modes)
+        sub = layout.select(names)
+        reach = np.linalg.norm(sub.points(rig.deltas), axis=2).max(1)
+        unseen = [i for i in idx if reach[i] <= INVISIBLE * reach.max()]
+        if unseen:
+            warnings.warn(f"{len(unseen)} target shapes move no marker and stay at zero: "
+                          + ", ".join(rig.names[i] for i in unseen[:8]) + (" ..." if len(unseen) > 8 else ""))
+            idx = [i for i in idx if i not in set(unseen)]
+        solver_rig = rig.subset([rig.names[i] for i in idx]) if len(idx) < rig.n_shapes else rig
+        return {"names": names, "shape_index": np.asarray(idx), "rig": solver_rig, "layout": sub,
+                "unseen": [rig.names[i] for i in unseen]}
+
+
+@register("stabilize")
+class Stabilize(Stage):
+    """Source markers over the frame range: rigid head-motion removal (Seol 2012 §3.1)."""
+
+    deps = ("load", "frames", "shapes")
+    group, title = "source", "Frame range"
+    head_motion = param.Selector(default="auto", objects=["auto", "remove", "keep"], doc="Remove rigid head motion from captured markers (auto: captures only)")
+    neutral_frame = param.Integer(default=0, bounds=(0, None), doc="Frame of a captured take that shows the neutral face")
+
+    def run(self, inputs, s, progress=None):
+        ld, fr = inputs["load"], inputs["frames"]
+        src = ld["source"]
+        if fr["first"] or fr["stop"] != src.n_frames:
+            src = src.frames(fr["first"], fr["stop"])
+        sm = source_markers(src, ld["source_rig"], ld["source_layout"], ld["name_map"], s.head_motion,
+                            min(s.neutral_frame, src.n_frames - 1))
+        names = inputs["shapes"]["names"]
+        idx = [sm.names.index(n) for n in names]
+        sm = replace(sm, deltas=sm.deltas[:, idx], valid=sm.valid[:, idx], neutral=sm.neutral[idx], names=tuple(names))
+        return {"source": sm, "names": tuple(names)}
+
+
+@register("calibrate")
+class Calibrate(Stage):
+    """Scale-proportion matching of the target's marker blendshapes (Seol 2012 §3.2)."""
+
+    deps = ("load", "shapes", "stabilize")
+    group, title = "calibrate", "Source & calibration"
+    calibrate = param.Boolean(default=True, doc="Warp the target's marker blendshapes into the actor's proportions with an RBF")
+    rbf_smoothing = param.Number(default=0.0, bounds=(0, 1), softbounds=(0, 0.1), doc="RBF ridge relative to the mean marker distance (0: exact interpolation)")
+
+    def relevant(self, cfg):
+        return ("calibrate", "rbf_smoothing") if cfg.calibrate.calibrate else ("calibrate",)
+
+    def run(self, inputs, s, progress=None):
+        sh, st = inputs["shapes"], inputs["stabilize"]
+        tm = target_markers(sh["rig"], inputs["load"]["target_layout"], st["names"], st["source"].neutral, s.calibrate,
+                            s.rbf_smoothing)
+        return {"target": tm, "deltas": tm.calibrated, "shape_index": sh["shape_index"], "rig": sh["rig"],
+                "unseen": sh["unseen"]}
+
+
+@register("personalize")
+class Personalize(Stage):
+    """Actor-specific blendshapes by range-of-motion alignment (Ribera 2017 §4).
+
+    The ROM take is the source itself unless ``rom`` names another capture of the same
+    actor (its markers are matched by name and stabilised the same way).
+    """
+
+    deps = ("load", "stabilize", "calibrate")
+    files = ("rom",)
+    group, title = "personalize", "Actor personalisation (Ribera 2017)"
+    personalize = param.Boolean(default=False, doc="Align the target's marker blendshapes to the actor's range of motion")
+    rom = param.String(default="", doc="Range-of-motion take of the actor (default: the source itself)")
+    align_beta = param.Number(default=0.01, bounds=(0, None), softbounds=(0, 1), doc="E_Mesh weight beta (Ribera 2017 eq. 4)")
+    align_gamma = param.Number(default=0.1, bounds=(0, None), softbounds=(0, 1), doc="E_CEG weight gamma (Ribera 2017 eq. 4)")
+
+    def relevant(self, cfg):
+        return None if cfg.personalize.personalize else ("personalize",)
+
+    def run(self, inputs, s, progress=None):
+        cal = inputs["calibrate"]
+        if not s.personalize:
+            return {"deltas": cal["deltas"], "personalized": False}
+        from ..personalize import personalize
+
+        st = inputs["stabilize"]
+        src = st["source"]
+        rom_deltas, rom_valid = src.deltas, src.valid
+        if s.rom:
+            from ..io.performance import read_performance
+
+            ld = inputs["load"]
+            rom = source_markers(read_performance(s.rom), ld["source_rig"], ld["source_layout"], ld["name_map"])
+            missing = [n for n in st["names"] if n not in rom.names]
+            if missing:
+                raise ValueError(f"{s.rom}: the range-of-motion take lacks markers {missing}")
+            idx = [rom.names.index(n) for n in st["names"]]
+            rom_deltas, rom_valid = rom.deltas[:, idx], rom.valid[:, idx]
+        out = personalize(rom_deltas, cal["deltas"], src.neutral, names=st["names"], rig_deltas=cal["target"].deltas,
+                          valid=rom_valid, beta=s.align_beta, gamma=s.align_gamma)
+        return {"deltas": out.deltas, "personalized": True, "diagnostics": out}
+
+
+@register("segment")
+class Segment(Stage):
+    """Automatic segmentation of the target rig into regions (Liu 2011 §3.2.1), and the
+    per-region marker weights (§3.2.2). Reads the solver's shapes and the shared markers only."""
+
+    deps = ("shapes",)
+    group, title = "solve", "Regions (Liu 2011)"
+    regions = param.Integer(default=12, bounds=(1, 64), softbounds=(1, 24), doc="Number of regions R")
+    min_region_size = param.Number(default=0.01, bounds=(0, 0.5), doc="Smallest region as a fraction of the vertices; smaller clusters are merged")
+    mask_smoothing = param.Integer(default=10, bounds=(0, 200), doc="Laplacian smoothing iterations of the region masks (overlap for blending)")
+
+    def active(self, cfg):
+        return "segment" in method_of(cfg).needs
+
+    def run(self, inputs, s, progress=None):
+        from ..segment import marker_weights, segment
+        from ..solvers.local import masks_at
+
+        rig, layout = inputs["shapes"]["rig"], inputs["shapes"]["layout"]
+        seg = segment(rig, n_regions=s.regions, min_size=max(1, int(round(s.min_region_size * rig.n_vertices))),
+                      smooth_iters=s.mask_smoothing)
+        report(progress, 0.8, "marker weights")
+        return {"labels": seg.labels, "masks": seg.masks, "marker_weights": marker_weights(rig, layout, seg.masks),
+                "marker_masks": masks_at(layout, seg.masks), "info": dict(seg.info)}
+
+
+@register("prior")
+class Prior(Stage):
+    """Model-specific PCA prior (Seol 2012 §5) from all of the solver's shapes or a subset
+    (Fig. 13: e.g. the mouth shapes only constrain the mouth)."""
+
+    deps = ("personalize", "shapes")
+    group, title = "solve", "Prior (Seol 2012)"
+    prior_shapes = param.String(default="", doc=(
+        "Shapes the PCA prior is built from: empty = all the solver's shapes (Seol 2012 Fig. 13 a), 'arkit', or "
+        "comma-separated names (Fig. 13 b, c: e.g. the mouth shapes only)"))
+
+    def active(self, cfg):
+        return "prior" in method_of(cfg).needs
+
+    def run(self, inputs, s, progress=None):
+        from ..prior import PCAPrior
+
+        deltas = inputs["personalize"]["deltas"]
+        subset = None
+        if s.prior_shapes.strip():
+            rig = inputs["shapes"]["rig"]
+            subset = solver_shapes(rig, s.prior_shapes)
+            if len(subset) < 2:
+                raise ValueError(f"prior_shapes {s.prior_shapes!r}: the prior needs at least 2 of the solver's shapes, "
+                                 f"got {len(subset)}")
+        return {"prior": PCAPrior().fit(deltas, subset=subset), "subset": subset}
+
+
+@register("solve")
+class Solve(Stage):
+    """The retargeting solver and its term weights. Each method is registered in
+    :mod:`core.stages.methods` with the settings it reads and the stages it needs."""
+
+    deps = ("stabilize", "personalize", "shapes", "segment", "prior")
+    group, title = "solve", "Solver"
+    method = param.Selector(default="bounded", objects=list(METHODS), doc=(
+        "lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
+        "range_pf/prior_pf: Seol 2012 §7 baselines; spacetime: Seol 2012 movement matching; local: Liu 2011 "
+        "regions; geometric: Ribera 2017 prior + L1; transfer: Xu 2014 dense transfer (a new rig)"))
+    lower = param.Number(default=0.0, softbounds=(-1, 0), doc="Lower weight bound (bounded)")
+    upper = param.Number(default=1.0, softbounds=(1, 2), doc="Upper weight bound (bounded)")
+    alpha = param.Number(default=0.01, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="PCA prior weight alpha (Seol 2012 eq. 4)")
+    beta = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="Sobolev position weight beta (Seol 2012 §7.1)")
+    boundary = param.Selector(default="perframe", objects=["perframe", "neutral", "none"], doc=(
+        "Spacetime boundary frames: perframe = first/last frame from the Prior PF solution (takes rarely start and end "
+        "neutral); neutral = zero weights at both ends as in Seol 2012 §3.1; none = free (needs beta > 0)"))
+    ridge = param.Number(default=1e-5, bounds=(0, 1), softbounds=(0, 1e-3), doc=(
+        "Relative Tikhonov weight rho / sigma_max(B)^2 on the weights (bounded, range_pf, prior_pf, spacetime): pulls "
+        "combinations of shapes the markers barely see (e.g. eye-wide vs look-up vs blink) to zero; 0 = the papers' methods"))
+    mu = param.Number(default=0.3, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="Geometric prior weight mu (Ribera 2017 eq. 16)")
+    lam = param.Number(default=0.6, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="L1 sparsity weight lambda (Ribera 2017 eq. 16)")
+    constraint = param.Selector(default="simplex", objects=["simplex", "box"], doc=(
+        "Local solve constraint: simplex = the paper's convex combination of poses (w >= 0, sum w <= 1 in delta form, "
+        "Liu 2011 eq. 2); box = 0 <= w <= 1"))
+    local_temporal = param.Selector(default="perframe", objects=["perframe", "spacetime"], doc=(
+        "Local method in time: perframe = Liu 2011's per-frame constrained QP (optionally Gaussian-filtered); spacetime = "
+        "Seol 2012 movement matching inside each region (uses alpha/beta; unconstrained between the end frames)"))
+    geometric_prior = param.Selector(default="geometric", objects=["geometric", "pca", "l2", "none"], doc=(
+        "Prior of the geometric method (Ribera 2017 Fig. 14): cotangent-Laplacian bending, Seol's PCA, plain L2, none"))
+    sigma = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 5), doc="Gaussian temporal filter of the weights in frames (Liu 2011; 0: off)")
+
+    def relevant(self, cfg):
+        return ("method",) + method_of(cfg).params
+
+    def active(self, cfg):
+        return not method_of(cfg).dense
+
+    def run(self, inputs, s, progress=None):
+        m = METHODS[s.method]
+        out = m.run(inputs, s)
+        W = np.asarray(out.pop("weights"), dtype=np.float64)
+        # the prior/Sobolev weights later edits propagate with: this method's own when it has them
+        alpha = s.alpha if "alpha" in m.params else self.param.alpha.default
+        beta = s.beta if "beta" in m.params else 0.0
+        return {"weights": W, "method": m.name, "info": out.get("info", {}), "alpha": alpha, "beta": beta}
+
+
+@register("edit")
+class Edit(Stage):
+    """Spacetime edits (Seol 2012 §6) on top of any method's solution."""
+
+    deps = ("solve", "personalize", "stabilize", "prior", "shapes")
+    edits = param.List(default=[], item_type=dict, doc="Edits: {frame, weights: {shape: value}, window: [a, b] or null}")
+
+    def active(self, cfg):
+        return not method_of(cfg).dense
+
+    def run(self, inputs, s, progress=None):
+        W = inputs["solve"]["weights"]
+        if not s.edits:
+            return {"weights": W, "edits": []}
+        from ..solvers.spacetime import Edit as PoseEdit
+        from ..solvers.spacetime import SpacetimeSolver
+
+        st = inputs["stabilize"]["source"]
+        edits = []
+        for e in s.edits:
+            win = e.get("window")
+            shapes = list(e["weights"]) if isinstance(e["weights"], dict) else e.get("shapes")
+            values = list(e["weights"].values()) if isinstance(e["weights"], dict) else e["weights"]
+            edits.append(PoseEdit(int(e["frame"]), np.asarray(values, float), shapes, tuple(win) if win else None))
+        sol = inputs["solve"]
+        prior = inputs["prior"]["prior"] if inputs.get("prior") else None
+        solver = SpacetimeSolver(inputs["personalize"]["deltas"], st.deltas, alpha=sol["alpha"], beta=sol["beta"], prior=prior,
+                                 known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["shapes"]["rig"].names)
+        return {"weights": solver.edit(W, edits=edits), "edits": list(s.edits)}
+
+
+@register("synthesize")
+class Synthesize(Stage):
+    """Weights for every shape of the target rig and the target markers.
+
+    Shapes the solver did not use (``target_shapes``, shapes no marker sees) stay at zero.
+    Frames the solver could not determine (no marker sample: tracking loss) are gaps: they are
+    filled by :func:`core.gaps.fill_gaps` (linear across a gap, held at the ends) in the
+    ``weights`` that are played and written, and flagged in ``valid`` (T,) bool; ``raw`` keeps
+    the NaN."""
+
+    deps = ("load", "edit", "calibrate", "stabilize")
+
+    def active(self, cfg):
+        return not method_of(cfg).dense
+
+    def run(self, inputs, s, progress=None):
+        cal = inputs["calibrate"]
+        tm = cal["target"]
+        Wsub = np.asarray(inputs["edit"]["weights"], dtype=np.float64)
+        st = inputs["stabilize"]["source"]
+        valid = np.isfinite(Wsub).all(1) & st.valid.any(1)
+        Wfill = fill_gaps(Wsub, valid)
+        markers = tm.neutral[None] + (Wfill @ tm.deltas.reshape(len(tm.deltas), -1)).reshape((len(Wfill),) + tm.neutral.shape)
+        full = np.zeros((len(Wsub), inputs["load"]["target_rig"].n_shapes))
+        full[:, cal["shape_index"]] = Wfill
+        raw = np.zeros_like(full)
+        raw[:, cal["shape_index"]] = np.where(valid[:, None], Wsub, np.nan)
+        return {"target_markers": markers, "weights": full, "raw": raw, "valid": valid}
+
+
+@register("evaluate")
+class Evaluate(Stage):
+    """Diagnostics (marker error, Seol 2012 Fig. 11 velocity error, weight range, jitter);
+    frames without data (``synthesize["valid"]`` False) are excluded from every statistic."""
+
+    deps = ("stabilize", "personalize", "solve", "edit", "synthesize")
+    group, title = "source", "Frame range"
+    jitter_window = param.Integer(default=1, bounds=(1, 10), doc="Frame step of the jitter measure")
+
+    def active(self, cfg):
+        return not method_of(cfg).dense
+
+    def run(self, inputs, s, progress=None):
+        from ..evaluate import evaluate
+
+        st = inputs["stabilize"]["source"]
+        predicted = inputs["solve"]["info"].get("predicted") if not inputs["edit"]["edits"] else None
+        return evaluate(inputs["personalize"]["deltas"], inputs["edit"]["weights"], st.deltas, st.valid, step=s.jitter_window,
+                        predicted=predicted, frame_valid=inputs["synthesize"]["valid"])
