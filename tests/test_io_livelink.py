@@ -9,7 +9,8 @@ import pytest
 
 from datapaths import PERFORMANCES
 from core.io.livelink import (LIVELINK_CHANNELS, ROTATION_COLUMNS, read_livelink, write_livelink)
-from core.io.performance import DataQualityWarning, read_performance, write_performance
+from core.io.performance import read_performance, write_performance
+from core.io.tabular import DataQualityWarning
 from core.model import Performance
 from core.names import ARKIT_NAMES, canonical
 

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.performance import DataQualityWarning, checked_rows, estimate_fps, parse_cells, summarize_rows
+from core.io.tabular import DataQualityWarning, checked_rows, estimate_fps, parse_cells, summarize_rows
 from core.model import Performance
 from core.names import ARKIT_NAMES, canonical
 
@@ -84,7 +84,7 @@ def read_livelink(path, allow_missing: bool = False, timecode_rate=None) -> Perf
 
     Each row ``i`` gives ``w_i`` (K,) and a timecode ``HH:MM:SS:FF.sss``;
     ``t_i = 3600 HH + 60 MM + SS + (FF + .sss) / rate - t_0`` (plus 86400 s after a midnight
-    wrap). ``fps`` is derived from the times (:func:`core.io.performance.estimate_fps`), never
+    wrap). ``fps`` is derived from the times (:func:`core.io.tabular.estimate_fps`), never
     assumed. Rows are not resampled: dropped samples show as longer steps in ``times``.
 
     Parameters
