@@ -3,6 +3,9 @@
 import ast
 from pathlib import Path
 
+import numpy as np
+import pytest
+
 import core.io.performance as performance
 import core.io.tabular as tabular
 
@@ -50,3 +53,29 @@ def test_performance_reexports_the_shared_helpers():
                  "STANDARD_FPS", "FPS_SNAP_RTOL"):
         assert getattr(performance, name) is getattr(tabular, name)
         assert name in performance.__all__
+
+
+# -- estimate_fps -------------------------------------------------------------------------------
+def test_estimate_fps_float32_long_take():
+    """Two hours of float32 seconds: steps are quantised by ~0.4 %, the median step is off, the
+    rate counted over the span is not (glTF stores float32; this is what read_animation sees)."""
+    t = (np.arange(300_000) / 30.0).astype(np.float32).astype(np.float64)
+    assert abs(1 / np.median(np.diff(t)) - 30) > 0.05  # the median alone is wrong
+    assert tabular.estimate_fps(t) == 30.0
+    gappy = np.delete(t, [5, 6, 7, 150_000])
+    assert tabular.estimate_fps(gappy) == 30.0
+    assert tabular.estimate_fps(np.round(np.arange(100_000) / 60.0, 5)) == 60.0  # 5 printed decimals
+
+
+def test_estimate_fps_snap_modes():
+    t15 = (np.arange(500) / 15.0).astype(np.float32).astype(np.float64)
+    assert tabular.estimate_fps(t15, snap="whole") == 15.0
+    assert tabular.estimate_fps(t15) != 15.0 and tabular.estimate_fps(t15) == pytest.approx(15.0, rel=1e-6)
+    ntsc = np.arange(500) * 1001 / 30000
+    for snap in ("standard", "whole"):
+        assert tabular.estimate_fps(ntsc, snap=snap) == 30000 / 1001  # the same float either way
+    assert tabular.estimate_fps(np.arange(500) * 1001 / 15000, snap="whole") == 15000 / 1001
+    assert tabular.estimate_fps(np.arange(100) / 60.003, snap="none") == pytest.approx(60.003, rel=1e-9)
+    assert tabular.estimate_fps(np.arange(100) / 60.003) == 60.0  # 5e-5 off: snapped
+    with pytest.raises(ValueError, match=r"snap: expected one of \('standard', 'whole', 'none'\), got 'int'"):
+        tabular.estimate_fps(t15, snap="int")

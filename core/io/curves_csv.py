@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model import Performance
+from .tabular import estimate_fps
 
 
 def write_curves_csv(path, times, weights, names, precision: int = 6) -> None:
@@ -29,7 +30,8 @@ def write_curves_csv(path, times, weights, names, precision: int = 6) -> None:
 
 
 def read_curves_csv(path, name: str | None = None) -> Performance:
-    """Read a file written by :func:`write_curves_csv` (fps from the median time step)."""
+    """Read a file written by :func:`write_curves_csv` (fps from the times,
+    :func:`core.io.tabular.estimate_fps`; 30 for a single row)."""
     path = Path(path)
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
@@ -45,5 +47,5 @@ def read_curves_csv(path, name: str | None = None) -> Performance:
     except ValueError as e:
         raise ValueError(f"{path}: non-numeric cell ({e})") from None
     times = data[:, 0]
-    fps = 1.0 / np.median(np.diff(times)) if len(times) > 1 else 30.0
+    fps = estimate_fps(times, f"{path}: column time_s") if len(times) > 1 else 30.0
     return Performance.curves(data[:, 1:], names, fps, times=times - times[0], name=name or path.stem)

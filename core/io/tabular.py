@@ -25,20 +25,52 @@ class DataQualityWarning(UserWarning):
     """A file was read, but some samples were masked (NaN, empty, tracking loss ...)."""
 
 
-def estimate_fps(times, what: str = "times") -> float:
+#: What :func:`estimate_fps` may snap a measured rate to.
+FPS_SNAP = ("standard", "whole", "none")
+
+
+def _snap_fps(fps: float, snap: str) -> float:
+    """``fps`` replaced by the rate it is within a relative :data:`FPS_SNAP_RTOL` of, if any."""
+    if snap == "standard":
+        candidates = STANDARD_FPS
+    elif snap == "whole":
+        candidates = [c for c in (round(fps), round(fps * 1.001) * 1000 / 1001) if c > 0]
+    else:
+        candidates = ()
+    for r in candidates:
+        if abs(fps - r) <= FPS_SNAP_RTOL * r:
+            return float(r)
+    return float(fps)
+
+
+def estimate_fps(times, what: str = "times", snap: str = "standard") -> float:
     """Sample rate of a (possibly gappy) time column.
 
-    ``dt = median(positive steps)``; ``n = round((t[-1] - t[0]) / dt)`` nominal steps over the
-    whole span; ``fps = n / (t[-1] - t[0])``. Counting nominal steps over the span is exact for
-    time stamps rounded to a few decimals (the median step alone is off by the rounding) and is
-    not thrown off by dropped samples (a gap of two steps counts as two). The result is snapped
-    to the nearest rate in :data:`STANDARD_FPS` when within a relative :data:`FPS_SNAP_RTOL`.
+    With ``s_i`` the positive steps and ``dt_0 = median(s_i)``:
+
+    1. each step spans ``n_i = round(s_i / dt_0)`` nominal steps; the steps that are clearly
+       whole multiples (``|s_i / dt_0 - n_i| < 1/4``) give the mean step
+       ``dt = sum(s_i) / sum(n_i)`` over them;
+    2. ``N = round(S / dt)`` nominal steps over the span ``S = sum(s_i)``; ``fps = N / S``.
+
+    The mean step is exact where the median step is off by the rounding of the time stamps
+    (a few printed decimals; float32 seconds, whose steps are quantised by 0.4 % after two hours);
+    counting over the span is not thrown off by jitter or by dropped samples (a gap of two steps
+    counts as two). Repeated time stamps (zero steps) and backward jumps do not count. The result
+    is then snapped (``snap``) when within a relative :data:`FPS_SNAP_RTOL`:
+
+    * ``"standard"``: to the nearest rate in :data:`STANDARD_FPS` (capture files: Live Link
+      Face, marker CSV, TRC);
+    * ``"whole"``: to the nearest whole rate or NTSC rate ``n * 1000 / 1001`` (glTF animations,
+      which exporters key at any whole rate: 12 and 15 as often as 24);
+    * ``"none"``: not snapped.
 
     Parameters
     ----------
     times : (T,) float seconds
     what : str
         Names the source (file and column) in error messages.
+    snap : {"standard", "whole", "none"}
 
     Returns
     -------
@@ -47,8 +79,10 @@ def estimate_fps(times, what: str = "times") -> float:
     Raises
     ------
     ValueError
-        Fewer than two distinct time stamps, or non-finite times.
+        Fewer than two distinct time stamps, non-finite times, or an unknown ``snap``.
     """
+    if snap not in FPS_SNAP:
+        raise ValueError(f"snap: expected one of {FPS_SNAP}, got {snap!r}")
     t = np.asarray(times, dtype=np.float64)
     if t.ndim != 1 or len(t) < 2:
         raise ValueError(f"{what}: need at least 2 samples to derive a frame rate, got {t.size}")
@@ -58,14 +92,12 @@ def estimate_fps(times, what: str = "times") -> float:
     pos = steps[steps > 0]
     if not len(pos):
         raise ValueError(f"{what}: time stamps never increase; cannot derive a frame rate")
-    dt = float(np.median(pos))
-    span = float(t.max() - t.min())
-    n = max(int(round(span / dt)), 1)
-    fps = n / span
-    for r in STANDARD_FPS:
-        if abs(fps - r) <= FPS_SNAP_RTOL * r:
-            return float(r)
-    return float(fps)
+    ratio = pos / float(np.median(pos))
+    n = np.rint(ratio)
+    sure = (np.abs(ratio - n) < 0.25) & (n >= 1)  # the median step itself always is
+    dt = float(pos[sure].sum() / n[sure].sum())
+    span = float(pos.sum())
+    return _snap_fps(max(round(span / dt), 1) / span, snap)
 
 
 def summarize_rows(rows, limit: int = 8) -> str:
