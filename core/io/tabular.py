@@ -7,7 +7,8 @@ nothing here imports them: ``tabular`` <- ``livelink``, ``markers``, ``gltf`` <-
 * :func:`estimate_fps`: the sample rate of a (possibly gappy) time column.
 * :func:`checked_rows`, :func:`parse_cells`: rows of a delimited table as numbers plus masks of
   the cells that are empty, non-numeric or NaN/inf.
-* :func:`summarize_rows`: line numbers for a message.
+* :func:`summarize_rows`, :func:`line_runs`, :func:`summarize_runs`: line numbers and ranges
+  of lines for a message.
 """
 
 from __future__ import annotations
@@ -105,6 +106,27 @@ def summarize_rows(rows, limit: int = 8) -> str:
     rows = list(rows)
     head = ", ".join(str(r) for r in rows[:limit])
     return head + (f", ... (and {len(rows) - limit} more)" if len(rows) > limit else "")
+
+
+def runs(mask) -> np.ndarray:
+    """The runs of True in a (T,) bool ``mask`` as (n, 2) int rows ``[start, stop)``."""
+    m = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]])
+    edges = np.flatnonzero(m[1:] != m[:-1])
+    return edges.reshape(-1, 2)
+
+
+def line_runs(mask, lines) -> tuple:
+    """The runs of True in ``mask`` (T,) as ``((first line, last line), ...)`` of the file
+    lines ``lines`` (T,) they were read from (blank lines between rows do not split a run)."""
+    lines = np.asarray(lines)
+    return tuple((int(lines[a]), int(lines[b - 1])) for a, b in runs(mask))
+
+
+def summarize_runs(pairs, limit: int = 8) -> str:
+    """'3, 7-12, 40-41' or '..., (and 5 more)' for ``((first, last), ...)`` line pairs."""
+    pairs = list(pairs)
+    text = [str(a) if a == b else f"{a}-{b}" for a, b in pairs[:limit]]
+    return ", ".join(text) + (f", ... (and {len(pairs) - limit} more)" if len(pairs) > limit else "")
 
 
 def parse_cells(rows: list, ncols: int, delimiter: str = ",") -> tuple[np.ndarray, dict]:
