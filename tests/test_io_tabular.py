@@ -79,3 +79,15 @@ def test_estimate_fps_snap_modes():
     assert tabular.estimate_fps(np.arange(100) / 60.003) == 60.0  # 5e-5 off: snapped
     with pytest.raises(ValueError, match=r"snap: expected one of \('standard', 'whole', 'none'\), got 'int'"):
         tabular.estimate_fps(t15, snap="int")
+
+
+# -- runs of rows, for messages -----------------------------------------------------------------
+def test_runs_and_line_runs():
+    mask = np.array([0, 1, 1, 0, 1, 0, 0, 1], bool)
+    np.testing.assert_array_equal(tabular.runs(mask), [[1, 3], [4, 5], [7, 8]])
+    assert tabular.runs(np.zeros(4, bool)).shape == (0, 2)
+    lines = np.array([2, 3, 5, 6, 7, 9, 10, 12])  # blank lines 4, 8, 11 between the rows
+    pairs = tabular.line_runs(mask, lines)
+    assert pairs == ((3, 5), (7, 7), (12, 12))
+    assert tabular.summarize_runs(pairs) == "3-5, 7, 12"
+    assert tabular.summarize_runs(pairs, limit=1) == "3-5, ... (and 2 more)"
