@@ -406,7 +406,7 @@ def test_tracking_loss_rows_as_the_app_writes_them(tmp_path, rom_lines):
     assert out.read_text() == p.read_text()
 
 
-@pytest.mark.parametrize("row", ["{tc},0,", "{tc},0" + "," * 61, "{tc}, 0 ", "{tc},," + "," * 60])
+@pytest.mark.parametrize("row", ["{tc},0,", "{tc},0" + "," * 61, "{tc},0" + ", " * 300, "{tc}, 0 ", "{tc},," + "," * 60])
 def test_tracking_loss_row_variants(tmp_path, rom_lines, row):
     """A trailing comma, the row padded with empty cells, spaces, or an empty count: still loss."""
     def edit(rows):

@@ -103,12 +103,11 @@ def _parse_timecode(tc: str):
     m = _TC.match(tc)
     if not m:
         return None
-    h, mi, s = (int(g) for g in m.groups()[:3])
-    ff = int(m.group(5))
+    h, mi, s, sep, ff, frac = m.groups()
+    h, mi, s = int(h), int(mi), int(s)
     if h >= 24 or mi >= 60 or s >= 60:
         return None
-    sub = float("0." + m.group(6)) if m.group(6) else 0.0
-    return h, mi, s, ff, sub, m.group(4) == ";"
+    return h, mi, s, int(ff), float("0." + frac) if frac else 0.0, sep == ";"
 
 
 def _timecode_seconds(parts: np.ndarray, rate: int, drop: bool) -> np.ndarray:
@@ -230,20 +229,26 @@ def read_livelink(path, allow_missing: bool = False, timecode_rate=None) -> Perf
     ncol, nval, T = len(header), len(value_cols), len(body)
 
     # -- rows: Timecode, BlendShapeCount, values; 'Timecode,0' is tracking loss ----------------
-    split = [ln.split(",", 2) for _, ln in body]
-    count0 = np.array([c[1].strip() if len(c) > 1 else None for c in split], dtype=object)
-    no_values = np.array([len(c) >= 2 and not (c[2] if len(c) > 2 else "").replace(",", "").strip()
-                          for c in split], dtype=bool)
-    lost0 = no_values & (count0 == TRACKING_LOST_COUNT)  # what the app writes
-    lost = no_values & ((count0 == TRACKING_LOST_COUNT) | (count0 == ""))  # ... or every cell empty
+    tcs = [""] * T
+    lost0 = np.zeros(T, dtype=bool)  # what the app writes
+    lost = np.zeros(T, dtype=bool)  # ... or a row with every cell empty
+    for k, (_, ln) in enumerate(body):
+        head = ln.rstrip(", \t")  # 'Timecode,Count' once the empty cells after it are gone
+        if "," in ln and head.count(",") <= 1:
+            tc, _, count = head.partition(",")
+            count = count.strip()
+            lost0[k] = count == TRACKING_LOST_COUNT
+            lost[k] = lost0[k] or not count
+            tcs[k] = tc.strip()
     keep = np.flatnonzero(~lost)
     rows = checked_rows(path, [body[k][1] for k in keep], lines[keep], ncol)
-    tcs = np.array([c[0].strip() for c in split])
     values = np.full((T, nval), np.nan)
     bad = {kind: np.zeros((T, nval), dtype=bool) for kind in ("empty", "non-numeric", "nan/inf")}
     bad["empty"][lost] = True
     if len(keep):
         cells = [ln.split(",", 2) for ln in rows]
+        for k, c in zip(keep.tolist(), cells):
+            tcs[k] = c[0].strip()
         vals, bad_kept = parse_cells([c[2] for c in cells], nval)
         values[keep] = vals
         for kind, mask in bad_kept.items():
@@ -265,6 +270,7 @@ def read_livelink(path, allow_missing: bool = False, timecode_rate=None) -> Perf
             )
 
     # -- timecodes ------------------------------------------------------------------------
+    tcs = np.array(tcs)
     parts = []
     for k, tc in enumerate(tcs):
         p = _parse_timecode(tc)
