@@ -434,6 +434,13 @@ def test_real_like_take_with_300_tracking_loss_rows(tmp_path, rom_lines):
     assert best < 0.2, f"reading 1,000 rows with 300 tracking-loss rows took {best:.3f} s"
 
 
+def test_row_cut_after_the_timecode_is_truncation_not_loss(tmp_path, rom_lines):
+    p = _small(tmp_path, rom_lines)
+    p.write_text(p.read_text() + rom_lines[41].split(",")[0] + ",\n")
+    with pytest.raises(ValueError, match=r"line 42: expected 63 comma-separated cells .* got 2 \(the last row"):
+        read_livelink(p)
+
+
 def test_loss_count_with_values_is_refused(tmp_path, rom_lines):
     def edit(rows):
         rows[7][1] = "0"

@@ -238,7 +238,8 @@ def read_livelink(path, allow_missing: bool = False, timecode_rate=None) -> Perf
             tc, _, count = head.partition(",")
             count = count.strip()
             lost0[k] = count == TRACKING_LOST_COUNT
-            lost[k] = lost0[k] or not count
+            # an empty count is loss only in a row of full width ('tc,' alone is a cut-off row)
+            lost[k] = lost0[k] or (not count and ln.count(",") >= ncol - 1)
             tcs[k] = tc.strip()
     keep = np.flatnonzero(~lost)
     rows = checked_rows(path, [body[k][1] for k in keep], lines[keep], ncol)
