@@ -247,7 +247,9 @@ class Performance:
         ``data``; they are never zeroed.
     times : (T,) float seconds from the first sample.
     units : str the file declared (data is in metres).
-    extras : dict, e.g. ``{"head_rotation": (T, 3)}``, ``{"faces": (F, 3)}`` for meshes.
+    extras : dict, e.g. ``{"head_rotation": (T, 3)}``, ``{"faces": (F, 3)}`` for meshes; readers
+        put what they know about the file here, e.g. Live Link Face's ``tracking_loss`` (T,) bool
+        (frames the app lost the face; :meth:`frames` slices it with the data).
     """
 
     kind: str

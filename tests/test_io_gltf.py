@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from datapaths import PERFORMANCES, RIGS, ROOT
-from core.io.gltf import GltfError, _estimate_fps, read_animation, read_markers, read_rig, vertex_normals, write_rig
+from core.io.gltf import GltfError, read_animation, read_markers, read_rig, vertex_normals, write_rig
+from core.io.tabular import estimate_fps
 from core.model import MarkerLayout, Performance, Rig
 from core.names import canonical
 
@@ -193,10 +194,11 @@ def test_custom_times_and_fps_estimate(tmp_path, small):
 
 @pytest.mark.parametrize("fps", [24.0, 25.0, 30.0, 60.0, 120.0, 30000 / 1001, 17.3])
 def test_estimate_fps(fps):
+    """glTF times are float32 seconds; read_animation estimates with snap="whole"."""
     t = (np.arange(4000) / fps).astype(np.float32).astype(np.float64)
-    assert _estimate_fps(t) == pytest.approx(fps, rel=1e-6)
+    assert estimate_fps(t, snap="whole") == pytest.approx(fps, rel=1e-6)
     jittered = t + np.random.default_rng(8).normal(scale=1e-4 / fps, size=t.size)
-    assert _estimate_fps(np.sort(jittered)) == pytest.approx(fps, rel=1e-3)
+    assert estimate_fps(np.sort(jittered), snap="whole") == pytest.approx(fps, rel=1e-3)
 
 
 def test_cubicspline_and_step_samplers(tmp_path, small):

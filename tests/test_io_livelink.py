@@ -9,7 +9,8 @@ import pytest
 
 from datapaths import PERFORMANCES
 from core.io.livelink import (LIVELINK_CHANNELS, ROTATION_COLUMNS, read_livelink, write_livelink)
-from core.io.performance import DataQualityWarning, read_performance, write_performance
+from core.io.performance import read_performance, write_performance
+from core.io.tabular import DataQualityWarning
 from core.model import Performance
 from core.names import ARKIT_NAMES, canonical
 
@@ -360,3 +361,207 @@ def test_gappy_capture_fps_not_assumed(tmp_path):
     back = read_livelink(tmp_path / "g.csv")
     assert back.fps == 60.0
     assert np.abs(back.times - t).max() <= 1 / (2000 * 60)
+
+
+# -- real takes: what the app writes beyond the bundled captures ---------------------------------
+# Built here from the bundled ROM capture's own rows, edited the way real takes differ (see the
+# module docstring of core.io.livelink for the takes and readers this is based on).
+def _lost(rows, first, last):
+    """Rows ``first..last`` (indices into ``rows``, header at 0) as the app writes tracking loss:
+    the timecode, then BlendShapeCount 0 and nothing else."""
+    for i in range(first, last + 1):
+        rows[i] = [rows[i][0], "0"]
+
+
+def test_tracking_loss_rows_as_the_app_writes_them(tmp_path, rom_lines):
+    def edit(rows):
+        _lost(rows, 11, 19)  # file lines 12-20
+        _lost(rows, 30, 30)  # line 31
+    p = _small(tmp_path, rom_lines, edit, name="take.csv")
+    with pytest.warns(DataQualityWarning) as rec:
+        perf = read_livelink(p)
+    assert len(rec) == 1
+    msg = str(rec[0].message)
+    assert "take.csv" in msg and "not zeroed" in msg
+    assert "10 tracking-loss rows at lines 12-20, 31" in msg and "'Timecode,0'" in msg
+    full = read_livelink(_small(tmp_path, rom_lines))
+    assert perf.n_frames == 40  # kept in the timeline ...
+    np.testing.assert_array_equal(perf.times, full.times)  # ... at their own timecodes
+    assert perf.fps == 30.0
+    lost = np.zeros(40, bool)
+    lost[10:19] = lost[29] = True
+    assert not perf.valid[lost].any() and np.isnan(perf.data[lost]).all()  # invalid, never zeros
+    assert perf.valid[~lost].all()
+    np.testing.assert_array_equal(perf.data[~lost], full.data[~lost])
+    np.testing.assert_array_equal(perf.extras["tracking_loss"], lost)
+    assert perf.extras["tracking_loss_lines"] == ((12, 20), (31, 31))
+    for key in ("head_rotation", "eye_rotation_left", "eye_rotation_right"):
+        assert np.isnan(perf.extras[key][lost]).all() and np.isfinite(perf.extras[key][~lost]).all()
+    assert list(perf.extras["timecode"]) == [r.split(",")[0] for r in rom_lines[1:41]]
+    # the slice of a take carries its own loss flags
+    assert perf.frames(10, 20).extras["tracking_loss"].sum() == 9
+    # written back, the rows are 'Timecode,0' again: the take round-trips byte for byte
+    out = tmp_path / "back.csv"
+    write_livelink(out, perf, timecode_start=perf.extras["timecode_start"], timecode_rate=60)
+    assert out.read_text() == p.read_text()
+
+
+@pytest.mark.parametrize("row", ["{tc},0,", "{tc},0" + "," * 61, "{tc},0" + ", " * 300, "{tc}, 0 ", "{tc},," + "," * 60])
+def test_tracking_loss_row_variants(tmp_path, rom_lines, row):
+    """A trailing comma, the row padded with empty cells, spaces, or an empty count: still loss."""
+    def edit(rows):
+        rows[5] = [row.format(tc=rows[5][0])]
+    with pytest.warns(DataQualityWarning, match=r"1 tracking-loss rows at lines 6 "):
+        perf = read_livelink(_small(tmp_path, rom_lines, edit))
+    assert perf.n_frames == 40 and not perf.valid[4].any() and perf.valid.sum() == 39 * 52
+
+
+def test_real_like_take_with_300_tracking_loss_rows(tmp_path, rom_lines):
+    """Runs of loss rows like a real take's (S88-001: 129, 123 and 25 rows), 300 in all, read
+    quickly and through the format dispatch."""
+    def edit(rows):
+        for a, b in ((100, 229), (400, 522), (700, 746)):
+            _lost(rows, a, b)
+    p = _small(tmp_path, rom_lines, edit, n=1000, name="real_like.csv")
+    with pytest.warns(DataQualityWarning, match=r"real_like\.csv.*300 tracking-loss rows at lines "
+                                                r"101-230, 401-523, 701-747 "):
+        perf = read_performance(p)
+    assert perf.n_frames == 1000 and (~perf.valid.any(axis=1)).sum() == 300
+    assert perf.fps == 30.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataQualityWarning)
+        best = min(_timed(lambda: read_livelink(p)) for _ in range(3))
+    assert best < 0.2, f"reading 1,000 rows with 300 tracking-loss rows took {best:.3f} s"
+
+
+def test_row_cut_after_the_timecode_is_truncation_not_loss(tmp_path, rom_lines):
+    p = _small(tmp_path, rom_lines)
+    p.write_text(p.read_text() + rom_lines[41].split(",")[0] + ",\n")
+    with pytest.raises(ValueError, match=r"line 42: expected 63 comma-separated cells .* got 2 \(the last row"):
+        read_livelink(p)
+
+
+def test_loss_count_with_values_is_refused(tmp_path, rom_lines):
+    def edit(rows):
+        rows[7][1] = "0"
+    with pytest.raises(ValueError, match=r"small\.csv: line 8, column BlendShapeCount: 0 \(tracking lost\) "
+                                         r"but the row has values; expected 61"):
+        read_livelink(_small(tmp_path, rom_lines, edit))
+
+
+def test_sixty_fps_take(tmp_path):
+    """A 60 fps take: the counter steps by 1 through 0..59 on a 60 fps timecode."""
+    perf = _random_curves(T=150, fps=60.0, masked=False)
+    write_livelink(tmp_path / "t60.csv", perf, timecode_start="09:30:00:00.000", timecode_rate=60)
+    counters = [int(r.split(",")[0].split(":")[3].split(".")[0]) for r in (tmp_path / "t60.csv").read_text().splitlines()[1:]]
+    assert counters[:3] == [0, 1, 2] and max(counters) == 59
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = read_livelink(tmp_path / "t60.csv")
+    assert back.fps == 60.0 and back.extras["timecode_rate"] == 60
+    assert back.times[-1] == pytest.approx(149 / 60, abs=1e-9)
+
+
+def test_head_rotation_is_kept_as_written(tmp_path, rom_lines):
+    """A take with head rotation captured: the values are not zero and are kept as written."""
+    yaw = np.linspace(-0.4, 0.4, 40)
+
+    def edit(rows):
+        j = rows[0].index("HeadYaw")
+        for i in range(1, 41):
+            rows[i][j:j + 3] = [f"{yaw[i - 1]:.10f}", "-0.1250000000", "0.0312500000"]
+    perf = read_livelink(_small(tmp_path, rom_lines, edit))
+    head = perf.extras["head_rotation"]
+    np.testing.assert_array_equal(head[:, 0], np.round(yaw, 10))
+    assert (head[:, 1] == -0.125).all() and (head[:, 2] == 0.03125).all()
+    assert "headYaw" not in perf.names and len(perf.names) == 52
+
+
+def test_columns_are_matched_by_name_not_position(tmp_path, rom_lines):
+    """Other column orders (JawLeft/JawRight and MouthLeft/MouthRight swapped, the rotations
+    first, the sides in Right-first order) and spellings (lower camel case) read the same."""
+    ref = read_livelink(_small(tmp_path, rom_lines))
+    header = rom_lines[0].split(",")
+    swap = {"JawRight": "JawLeft", "JawLeft": "JawRight", "MouthRight": "MouthLeft", "MouthLeft": "MouthRight"}
+    names = [swap.get(c, c) for c in header[2:54]]  # the swapped order ...
+    names = ([c for c in names if c.endswith("Right")] + [c for c in names if not c.endswith("Right")])
+    order = header[54:] + names  # ... rotations first
+    cols = {c: j for j, c in enumerate(header)}
+    lower = {c: c[0].lower() + c[1:] for c in order}
+
+    def permute(rows):
+        for i, r in enumerate(rows):
+            rows[i] = r[:2] + ([lower[c] for c in order] if i == 0 else [r[cols[c]] for c in order])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        perf = read_livelink(_small(tmp_path, rom_lines, permute, name="perm.csv"))
+    assert perf.names != ref.names and sorted(perf.names) == sorted(ref.names)
+    np.testing.assert_array_equal(perf.select(ref.names).data, ref.data)
+    for key in ("head_rotation", "eye_rotation_left", "eye_rotation_right"):
+        np.testing.assert_array_equal(perf.extras[key], ref.extras[key])
+
+
+def test_bom_crlf_and_trailing_cells(tmp_path, rom_lines):
+    ref = read_livelink(_small(tmp_path, rom_lines))
+    text = "\ufeff" + "\r\n".join(ln + "," for ln in rom_lines[:41]) + "\r\n"
+    p = tmp_path / "win.csv"
+    p.write_bytes(text.encode("utf-8"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        perf = read_performance(p)  # the dispatch sees the header through the BOM too
+    np.testing.assert_array_equal(perf.data, ref.data)
+    np.testing.assert_array_equal(perf.times, ref.times)
+    assert perf.names == ref.names and perf.extras["timecode_start"] == ref.extras["timecode_start"]
+
+
+def test_subframe_timecodes(tmp_path, rom_lines):
+    """t = 3600 HH + 60 MM + SS + (FF + .sss) / rate, by hand for a few rows."""
+    tcs = ["10:00:00:00.000", "10:00:00:01.998", "10:00:00:04.250", "10:00:00:58.5", "10:00:01:00.001", "10:00:01:02"]
+
+    def edit(rows):
+        del rows[len(tcs) + 1:]
+        for i, tc in enumerate(tcs):
+            rows[i + 1][0] = tc
+    perf = read_livelink(_small(tmp_path, rom_lines, edit))
+    want = np.array([0.0, 1.998, 4.25, 58.5, 60.001, 62.0]) / 60
+    np.testing.assert_allclose(perf.times, want, rtol=0, atol=1e-10)  # seconds since midnight, float64
+    assert perf.extras["timecode_rate"] == 60 and perf.extras["timecode_drop_frame"] is False
+
+
+def test_drop_frame_timecodes(tmp_path, rom_lines):
+    """';' is SMPTE drop frame: frame numbers 0 and 1 do not exist at the start of a minute
+    unless it is a multiple of ten. No app file seen uses it; it is read correctly if one does.
+    Frame numbers by hand: 00:00:59;29 = 1799, 00:01:00;02 = 1800, 00:09:59;29 = 17981,
+    00:10:00;00 = 17982."""
+    tcs = ["00:00:59;28", "00:00:59;29", "00:01:00;02", "00:01:00;03",
+           "00:09:59;28", "00:09:59;29", "00:10:00;00", "00:10:00;01"]
+    frames = np.array([1798, 1799, 1800, 1801, 17980, 17981, 17982, 17983])
+
+    def edit(rows, tcs=tcs):
+        del rows[len(tcs) + 1:]
+        for i, tc in enumerate(tcs):
+            rows[i + 1][0] = tc
+    perf = read_livelink(_small(tmp_path, rom_lines, edit), timecode_rate=30)
+    assert perf.extras["timecode_drop_frame"] is True and perf.extras["timecode_rate"] == 30
+    np.testing.assert_allclose(perf.times, (frames - frames[0]) * 1001 / 30000, rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match=r"line 2, column Timecode: '00:01:00;00' does not exist in drop-frame"):
+        read_livelink(_small(tmp_path, rom_lines, lambda r: edit(r, ["00:01:00;00", "00:01:00;02"])))
+    with pytest.raises(ValueError, match=r"line 3, column Timecode: .* mixes drop-frame"):
+        read_livelink(_small(tmp_path, rom_lines, lambda r: edit(r, ["00:00:01;00", "00:00:01:01"])))
+    with pytest.raises(ValueError, match=r"drop frame exists at \(30, 60\) only"):
+        read_livelink(_small(tmp_path, rom_lines, edit), timecode_rate=50)
+    with pytest.raises(ValueError, match=r"timecode_start: .* drop-frame"):
+        write_livelink(tmp_path / "df.csv", perf, timecode_start="00:00:00;00.000", timecode_rate=30)
+
+
+def test_header_trailing_comma_and_empty_name(tmp_path, rom_lines):
+    def trailing(rows):
+        rows[0].append("")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read_livelink(_small(tmp_path, rom_lines, trailing)).n_frames == 40
+
+    def hole(rows):
+        rows[0][10] = ""
+    with pytest.raises(ValueError, match=r"small\.csv: line 1: header column 11 has no name"):
+        read_livelink(_small(tmp_path, rom_lines, hole))

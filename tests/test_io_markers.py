@@ -11,8 +11,8 @@ import core.io.gltf
 from datapaths import PERFORMANCES
 from core.io.markers import (declared_units, read_c3d, read_marker_csv, read_trc, write_c3d,
                              write_marker_csv, write_trc)
-from core.io.performance import (DataQualityWarning, estimate_fps, read_performance,
-                                 write_performance)
+from core.io.performance import read_performance, write_performance
+from core.io.tabular import DataQualityWarning, estimate_fps
 from core.model import Performance
 
 ANIMFACE = {"animface_markers_jaw_60hz.csv": 1590, "animface_markers_eyebrows_60hz.csv": 902}

@@ -17,6 +17,7 @@ from typing import Optional, Union
 import numpy as np
 
 from ..model import Performance
+from .tabular import estimate_fps
 
 #: the columns before the shapes
 LEAD = ("time_s", "frame", "valid")
@@ -56,8 +57,9 @@ def write_curves_csv(path, times, weights, names, precision: Union[int, str, Non
 
 
 def read_curves_csv(path, name: Optional[str] = None) -> Performance:
-    """Read a file written by :func:`write_curves_csv` (fps from the median time step); a
-    ``valid`` 0 row reads as a frame whose samples are all missing."""
+    """Read a file written by :func:`write_curves_csv` (fps from the times,
+    :func:`core.io.tabular.estimate_fps`; 30 for a single row); a ``valid`` 0 row reads as a
+    frame whose samples are all missing."""
     path = Path(path)
     with open(path, newline="", encoding="utf-8-sig") as f:
         rows = list(csv.reader(f))
@@ -78,5 +80,5 @@ def read_curves_csv(path, name: Optional[str] = None) -> Performance:
     valid = np.isfinite(W)
     if lead == 3:
         valid &= (data[:, 2] != 0)[:, None]
-    fps = 1.0 / np.median(np.diff(times)) if len(times) > 1 else 30.0
+    fps = estimate_fps(times, f"{path}: column time_s") if len(times) > 1 else 30.0
     return Performance.curves(np.where(valid, W, np.nan), names, fps, valid=valid, times=times - times[0], name=name or path.stem)

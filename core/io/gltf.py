@@ -36,6 +36,7 @@ from typing import Optional
 import numpy as np
 
 from ..model import MarkerLayout, Performance, Rig
+from .tabular import estimate_fps
 
 _COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
 _NCOMP = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
@@ -373,24 +374,6 @@ def read_markers(path, mesh: int | None = None) -> Optional[MarkerLayout]:
     return layout
 
 
-def _estimate_fps(times: np.ndarray) -> float:
-    """Frame rate of sample ``times`` (seconds), robust to dropped frames.
-
-    1 / median(dt); when every step is within 1 % of the median the mean rate (T-1)/duration
-    is used (it averages out float32 rounding of the times), then snapped to a whole or NTSC
-    (n*1000/1001) rate within a relative 1e-4.
-    """
-    dt = np.diff(times)
-    med = float(np.median(dt))
-    rate = 1.0 / med
-    if np.all(np.abs(dt - med) <= 0.01 * med):
-        rate = (len(times) - 1) / float(times[-1] - times[0])
-    for snap in (round(rate), round(rate * 1.001) / 1.001):
-        if snap > 0 and abs(rate - snap) <= 1e-4 * snap:
-            return float(snap)
-    return float(rate)
-
-
 def read_animation(path, animation: int = 0, fps: Optional[float] = None) -> Performance:
     """Morph-weight curves of ``animations[animation]`` as a ``Performance`` of kind "curves".
 
@@ -406,8 +389,9 @@ def read_animation(path, animation: int = 0, fps: Optional[float] = None) -> Per
     animation : int
         Index into ``animations``.
     fps : float, optional
-        Frame rate to record; by default estimated from the times (see ``_estimate_fps``);
-        30 when the animation has a single key.
+        Frame rate to record; by default estimated from the times
+        (:func:`core.io.tabular.estimate_fps` with ``snap="whole"``); 30 when the animation has
+        a single key.
 
     Returns
     -------
@@ -455,7 +439,7 @@ def read_animation(path, animation: int = 0, fps: Optional[float] = None) -> Per
             )
         data = values.reshape(T, per_key, K)[:, per_key // 2, :].astype(np.float64)
         if fps is None:
-            fps = _estimate_fps(times) if T > 1 else 30.0
+            fps = estimate_fps(times, f"{path}: {sw}.input", snap="whole") if T > 1 else 30.0
         name = anim.name or path.stem
         try:
             return Performance.curves(data, names, fps, times=times, name=name,

@@ -11,7 +11,7 @@ Marker CSV
     ``# units: <u>`` comment line before the header declares them; without one the caller must
     pass ``units=`` (``read_performance`` passes ``"cm"`` for ``animface_*.csv``, the bundled
     AnimFace captures that ``data/SOURCES.md`` documents as centimetres). Units are never guessed
-    from the numbers. ``fps`` comes from ``time_s`` (:func:`core.io.performance.estimate_fps`).
+    from the numbers. ``fps`` comes from ``time_s`` (:func:`core.io.tabular.estimate_fps`).
 TRC
     The OpenSim/Vicon text format: ``PathFileType 4 (X/Y/Z) <file>``; a line of keys
     (``DataRate CameraRate NumFrames NumMarkers Units OrigDataRate OrigDataStartFrame
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.performance import DataQualityWarning, checked_rows, estimate_fps, parse_cells, summarize_rows
+from core.io.tabular import DataQualityWarning, checked_rows, estimate_fps, parse_cells, summarize_rows
 from core.model import Performance, unit_scale
 
 _UNITS = re.compile(r"^#\s*units\s*[:=]\s*(\S+)\s*$", re.IGNORECASE)
