@@ -100,8 +100,8 @@ def _retarget(args) -> int:
         return _transfer(pipe, args)
     bar = None if args.quiet else StderrBar("retarget")
     t0 = time.perf_counter()
-    res = pipe.results(["load", "frames", "calibrate", "solve", "synthesize", "evaluate"], progress=bar)
-    ld, st, ev = res["load"], pipe.results(["stabilize"])["stabilize"]["source"], res["evaluate"]
+    res = pipe.results(["load", "frames", "stabilize", "calibrate", "solve", "synthesize", "evaluate"], progress=bar)
+    ld, st, ev = res["load"], res["stabilize"]["source"], res["evaluate"]
     syn = res["synthesize"]
     W, valid = syn["weights"], syn["valid"]
     rig = ld["target_rig"]

@@ -19,6 +19,8 @@ from typing import Callable
 
 import numpy as np
 
+from ..gaps import fill_gaps
+
 #: method name -> Method, in registration order
 METHODS: dict = {}
 
@@ -123,7 +125,11 @@ def _local(inputs, s):
     st = inputs["stabilize"]["source"]
     seg = inputs["segment"]
     problem = local_precompute(np.zeros_like(st.neutral), B, seg["marker_weights"], constraint=s.constraint)
-    U = problem.solve(S, valid)  # (T, R, K) regional weights, eq. 2
+    has = valid.any(1)  # frames without a marker sample (tracking loss) are gaps: filled, flagged by synthesize
+    U = np.empty((len(S), len(seg["masks"]), len(B)))
+    U[has] = problem.solve(S[has], valid[has])  # (T, R, K) regional weights, eq. 2
+    if not has.all():
+        U = fill_gaps(U, has)
     if s.local_temporal == "spacetime":  # movement matching per region, ends from the QP
         U = local_spacetime(B, S, seg["marker_weights"], U, s.alpha, s.beta, valid)
     if s.sigma > 0:
