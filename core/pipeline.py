@@ -276,27 +276,19 @@ class Pipeline:
 
     # the shot -------------------------------------------------------------------------
     def shot(self) -> Shot:
-        """The shot document of this pipeline: files (path + content hash; a rig's default
-        layout recorded as the file it is), every stage's settings, every edit list with its
-        redo stack, the frame and the notes."""
-        from .io.layout import default_layout_path
-
+        """The shot document of this pipeline: files (the path each file setting reads, e.g. a
+        rig's default layout, with its content hash), every stage's settings, every edit list with
+        its redo stack, the frame and the notes."""
         with self._lock:
             cfg = self.config()
             files, settings = {}, {}
             for n, st in self.stages.items():
-                vals = vars(getattr(cfg, n))
-                for k, v in vals.items():
-                    if k in st.files:
-                        if v:
-                            files[k] = FileRef(str(v), file_key(str(v)))
-                    elif k not in EDITORS.values():
+                for k, v in vars(getattr(cfg, n)).items():
+                    if k not in st.files and k not in EDITORS.values():
                         settings.setdefault(n, {})[k] = v
-            for rig, layout in (("source_rig", "source_layout"), ("target_rig", "target_layout")):
-                if rig in files and layout not in files:
-                    default = default_layout_path(files[rig].path)
-                    if default is not None:
-                        files[layout] = FileRef(str(default), file_key(str(default)))
+                for k, path in st.file_paths(cfg).items():
+                    if path:
+                        files[k] = FileRef(str(path), file_key(str(path)))
             edits = {e: self.edits(e) for e in EDITORS}
             return Shot(files, settings, edits, int(self.frame), copy.deepcopy(self.notes))
 
@@ -359,10 +351,10 @@ class Pipeline:
         keep = stage.relevant(cfg)
         if keep is not None:
             values = {k: v for k, v in values.items() if k in set(keep)}
-        for f in stage.files:
+        for f, path in stage.file_paths(cfg).items():
             if f in values:
-                values[f] = file_key(values[f]) if values[f] else ""
-        memo[name] = content_key(name, values, stage.key_extra(cfg), [self.key(d, memo, cfg) for d in stage.deps])
+                values[f] = file_key(path) if path else ""
+        memo[name] = content_key(name, values, [self.key(d, memo, cfg) for d in stage.deps])
         return memo[name]
 
     def _run(self, targets: list, progress: Optional[ProgressFn] = None) -> dict:

@@ -225,13 +225,16 @@ class Shot:
         candidates.append(Path(ref.path))
         if base is not None and not Path(ref.path).is_absolute():
             candidates.append(Path(base) / ref.path)
+        changed = None
         for c in candidates:
             if c.exists():
-                if ref.sha and file_hash(c) != ref.sha:
-                    raise ValueError(f"shot: {role} file {c} has changed since the shot was saved "
-                                     f"(content hash {file_hash(c)[:12]}…, the shot recorded {ref.sha[:12]}…); "
-                                     f"give the file it was made with, or override it (e.g. --{role.replace('_', '-')})")
-                return str(c)
+                if not ref.sha or file_hash(c) == ref.sha:
+                    return str(c)
+                changed = changed or c  # another candidate may still hold the recorded content
+        if changed is not None:
+            raise ValueError(f"shot: {role} file {changed} has changed since the shot was saved "
+                             f"(content hash {file_hash(changed)[:12]}…, the shot recorded {ref.sha[:12]}…); "
+                             f"give the file it was made with, or override it (e.g. --{role.replace('_', '-')})")
         raise FileNotFoundError(f"shot: {role} file {ref.path} not found"
                                 + (f" (also looked in {base})" if base is not None else ""))
 

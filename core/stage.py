@@ -9,8 +9,8 @@ dashboard widgets, CLI flags and the shot's ``settings[stage]``), and the class 
   of a disabled feature is not in the key, so changing it re-runs nothing);
 * ``active(cfg)`` — whether the stage runs at all (an inactive stage yields None and costs
   nothing; e.g. segmentation only for the local method);
-* ``key_extra(cfg)`` — any further content the output depends on (e.g. the default layout file
-  a rig falls back to when no layout is chosen);
+* ``file_paths(cfg)`` — the file each file setting actually reads (e.g. the default layout a rig
+  falls back to when no layout is chosen): the key hashes these, and the shot records them;
 * ``run(inputs, s, progress)`` — the pure function: ``inputs[dep]`` are the upstream results,
   ``s`` a frozen copy of the stage's settings taken when the key was computed.
 
@@ -55,8 +55,10 @@ class Stage(param.Parameterized):
     def active(self, cfg) -> bool:
         return True
 
-    def key_extra(self, cfg) -> dict:
-        return {}
+    def file_paths(self, cfg) -> dict:
+        """file setting -> the path it reads now ("" for none); default: the setting's value."""
+        own = getattr(cfg, self.stage_name)
+        return {f: getattr(own, f) for f in self.files}
 
     def run(self, inputs: dict, s, progress=None) -> dict:  # pragma: no cover - abstract
         raise NotImplementedError

@@ -126,3 +126,122 @@ def test_every_method_runs_through_every_stage(method):
     assert W.shape == (60, 11) and np.isfinite(W).all()
     assert abs(W[30, pipe.results(["load"])["load"]["target_rig"].names.index("mouthOpen")] - 0.5) < 1e-9
     assert np.isfinite(res["evaluate"]["marker_error_mm"]).all()
+
+
+# -- exact invalidation: one test per case of the "one shot, one pipeline" issue ------------------
+def _ran(pipe, before):
+    return {k for k in pipe.runs if pipe.runs[k] != before.get(k, 0)}
+
+
+def test_an_edited_default_layout_file_changes_the_result(tmp_path):
+    """A rig's default layout (here its sidecar <rig>.layout.json) is an input: editing it
+    re-keys the target rig and everything below, and changes the weights."""
+    import json
+    import shutil
+
+    rig = tmp_path / "my_tiger.glb"
+    shutil.copy(RIGS / "jeeliz_tiger.glb", rig)
+    layout = json.loads((RIGS.parent / "layouts" / "jeeliz_tiger.json").read_text())
+    layout["rig"] = rig.name
+    side = tmp_path / "my_tiger.layout.json"
+    side.write_text(json.dumps(layout))
+    pipe = Pipeline(cache=StageCache(), source=FILES["source"], source_rig=FILES["source_rig"], target_rig=str(rig),
+                    method="lsq", last_frame=59)
+    pipe.run()
+    W0 = pipe.results(["synthesize"])["synthesize"]["weights"].copy()
+    before = dict(pipe.runs)
+    pipe.run()
+    assert _ran(pipe, before) == set()  # nothing changed: all hits
+    # move the mouth-corner marker to a neighbouring vertex
+    layout["markers"]["Mouth_Lend"] = {"vertex": int(layout["markers"]["Mouth_Lend"]["vertex"]) + 1}
+    side.write_text(json.dumps(layout))
+    pipe.run()
+    assert {"target_face", "load", "shapes", "stabilize", "calibrate", "solve"} <= _ran(pipe, before)
+    assert "take" not in _ran(pipe, before) and "source_face" not in _ran(pipe, before)
+    assert not np.array_equal(pipe.results(["synthesize"])["synthesize"]["weights"], W0)
+
+
+def test_frame_range_does_not_resegment(pipe):
+    pipe.configure(method="local", regions=4)
+    pipe.run()
+    before = dict(pipe.runs)
+    pipe.configure(first_frame=10, last_frame=99)
+    pipe.run()
+    ran = _ran(pipe, before)
+    assert "segment" not in ran and "shapes" not in ran and "load" not in ran
+    assert {"frames", "stabilize", "calibrate", "solve", "evaluate"} <= ran
+
+
+@pytest.mark.parametrize("switch,off_setting,value", [
+    ({"personalize": False}, "align_beta", 0.5),
+    ({"personalize": False}, "rom", str(PERFORMANCES / "livelinkface_rom.csv")),
+    ({"calibrate": False}, "rbf_smoothing", 0.05),
+])
+def test_settings_of_a_disabled_stage_rerun_nothing(pipe, switch, off_setting, value):
+    pipe.configure(**switch)
+    pipe.run()
+    before = dict(pipe.runs)
+    pipe.configure(**{off_setting: value})
+    pipe.run()
+    assert _ran(pipe, before) == set()
+
+
+def test_prior_shapes_builds_the_subset_prior_of_seol_fig13(pipe):
+    """prior_shapes is in the prior's key and used: a prior of the mouth shapes only changes
+    the spacetime result (Seol 2012 Fig. 13 b)."""
+    pipe.configure(method="spacetime", target_shapes="arkit")
+    W_all = pipe.results(["solve"])["solve"]["weights"].copy()
+    before = dict(pipe.runs)
+    names = pipe.results(["shapes"])["shapes"]["rig"].names
+    mouth = [n for n in names if "Mouth" in n or "Jaw" in n]
+    pipe.configure(prior_shapes=",".join(mouth))
+    res = pipe.results(["prior", "solve"])
+    assert _ran(pipe, before) >= {"prior", "solve"} and "personalize" not in _ran(pipe, before)
+    assert len(res["prior"]["subset"]) == len(mouth) and res["prior"]["prior"].n_samples_ == len(mouth)
+    assert not np.allclose(res["solve"]["weights"], W_all)
+    with pytest.raises(KeyError, match="NoSuchShape"):
+        pipe.configure(prior_shapes="NoSuchShape")
+        pipe.results(["prior"])
+
+
+def test_results_survive_an_evicting_cache():
+    """results() returns what it computed even when the LRU is too small to keep it."""
+    pipe = Pipeline(cache=StageCache(max_entries=2), last_frame=29, method="lsq", **FILES)
+    res = pipe.results(["load", "stabilize", "solve", "synthesize"])
+    assert all(res[k] is not None for k in res)
+    assert res["synthesize"]["weights"].shape == (30, 175)
+
+
+def test_a_run_reads_one_snapshot_of_the_settings(pipe):
+    """A setting changed while a stage runs belongs to the next run (the key and the run read
+    the same snapshot)."""
+    seen = {}
+    solve = pipe.stages["solve"]
+    original = type(solve).run
+
+    def spy(self, inputs, s, progress=None):
+        pipe.configure(upper=0.5)  # a widget moved during the solve
+        seen["upper"] = s.upper
+        return original(self, inputs, s, progress)
+
+    pipe.configure(method="bounded", upper=0.9)
+    type(solve).run = spy
+    try:
+        W = pipe.results(["solve"])["solve"]["weights"]
+    finally:
+        type(solve).run = original
+    assert seen["upper"] == 0.9 and W.max() <= 0.9 + 1e-9
+    assert pipe.solve.upper == 0.5
+    assert pipe.results(["solve"])["solve"]["weights"].max() <= 0.5 + 1e-9
+
+
+def test_method_registry_is_the_one_source_of_method_knowledge():
+    from core.pipeline import METHOD_PARAMS, METHODS
+    from core.stages import PRIOR_METHODS
+    from core.stages.methods import METHODS as REGISTRY
+
+    assert METHODS == tuple(REGISTRY) and list(Pipeline().solve.param.method.objects) == list(REGISTRY)
+    assert METHOD_PARAMS["spacetime"] == REGISTRY["spacetime"].params
+    assert set(PRIOR_METHODS) == {n for n, m in REGISTRY.items() if "prior" in m.needs}
+    pipe = Pipeline(method="local")
+    assert pipe.segment.active(pipe.config()) and not pipe.prior.active(pipe.config())

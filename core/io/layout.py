@@ -216,8 +216,20 @@ def layouts_dir() -> Path:
     return Path(core.__file__).resolve().parents[1] / "data" / "layouts"
 
 
+def sidecar_layout_path(rig_path) -> Path:
+    """Where a rig's own layout lives: ``<rig>.layout.json`` beside the rig file (an uploaded or
+    user rig keeps its layout there, next to it)."""
+    p = Path(rig_path)
+    return p.with_name(p.stem + ".layout.json") if not p.is_dir() else p / "layout.json"
+
+
 def default_layout_path(rig_path) -> Optional[Path]:
-    """``data/layouts/<rig stem>.json`` when a bundled layout exists for ``rig_path``, else None."""
+    """The layout a rig falls back to when none is chosen: its sidecar ``<rig>.layout.json``
+    (:func:`sidecar_layout_path`) when it exists, else the bundled ``data/layouts/<rig stem>.json``,
+    else None."""
+    side = sidecar_layout_path(rig_path)
+    if side.exists():
+        return side
     p = layouts_dir() / f"{Path(rig_path).stem}.json"
     return p if p.exists() else None
 

@@ -27,11 +27,12 @@ def load_rig(path) -> Rig:
 
 
 def read_layout_for(layout_path: Optional[str], rig_path, rig: Rig) -> MarkerLayout:
-    """The layout given, else data/layouts/<rig stem>.json; checked against ``rig``.
+    """The layout given, else the rig's default (its sidecar ``<rig>.layout.json``, else the bundled
+    ``data/layouts/<rig stem>.json``, :func:`core.io.layout.default_layout_path`); checked against ``rig``.
 
     Raises FileNotFoundError saying how to make one (``face-retarget layout``) when neither exists.
     """
-    from .layout import default_layout_path, read_layout
+    from .layout import default_layout_path, read_layout, sidecar_layout_path
 
     if layout_path:
         return read_layout(layout_path, rig=rig)
@@ -39,6 +40,6 @@ def read_layout_for(layout_path: Optional[str], rig_path, rig: Rig) -> MarkerLay
     if default is None:
         raise FileNotFoundError(
             f"no marker layout for rig {Path(rig_path).name}: pass --target-layout/--source-layout, or transfer one with "
-            f"`face-retarget layout --from data/layouts/ict_facekit.json --rig {rig_path} --out my_layout.json`"
+            f"`face-retarget layout --from data/layouts/ict_facekit.json --rig {rig_path} --out {sidecar_layout_path(rig_path)}`"
         )
     return read_layout(default, rig=rig)

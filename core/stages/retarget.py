@@ -49,15 +49,15 @@ class Take(Stage):
         return {"source": read_performance(s.source)}
 
 
-def _default_layout_key(rig_path: str, chosen: str) -> dict:
-    """The default layout file a rig falls back to is an input too: editing it re-keys."""
+def _with_default_layout(paths: dict, rig: str, layout: str) -> dict:
+    """``paths`` with the rig's default layout (its sidecar, else the bundled one) filled in
+    when no layout is chosen: the file read is an input like any other (editing it re-keys)."""
     from ..io.layout import default_layout_path
-    from ..pipeline import file_key
 
-    if not rig_path or chosen:
-        return {}
-    default = default_layout_path(rig_path)
-    return {"default_layout": file_key(str(default)) if default is not None else ""}
+    if paths[rig] and not paths[layout]:
+        default = default_layout_path(paths[rig])
+        paths[layout] = str(default) if default is not None else ""
+    return paths
 
 
 @register("source_face")
@@ -70,8 +70,8 @@ class SourceFace(Stage):
     source_layout = param.String(default="", doc="Marker layout JSON on the source rig (default: data/layouts/<rig stem>.json)")
     name_map = param.String(default="", doc="Name map JSON from source channels to source-rig shapes (default: automatic ARKit names)")
 
-    def key_extra(self, cfg):
-        return _default_layout_key(cfg.source_face.source_rig, cfg.source_face.source_layout)
+    def file_paths(self, cfg):
+        return _with_default_layout(super().file_paths(cfg), "source_rig", "source_layout")
 
     def run(self, inputs, s, progress=None):
         from ..io.rigs import load_rig, read_layout_for
@@ -93,8 +93,8 @@ class TargetFace(Stage):
     target_rig = param.String(default="", doc="Target blendshape rig (GLB or OBJ folder)")
     target_layout = param.String(default="", doc="Marker layout JSON on the target rig (default: data/layouts/<rig stem>.json)")
 
-    def key_extra(self, cfg):
-        return _default_layout_key(cfg.target_face.target_rig, cfg.target_face.target_layout)
+    def file_paths(self, cfg):
+        return _with_default_layout(super().file_paths(cfg), "target_rig", "target_layout")
 
     def run(self, inputs, s, progress=None):
         from ..io.rigs import load_rig, read_layout_for
