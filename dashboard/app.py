@@ -15,16 +15,16 @@ from pathlib import Path
 
 import numpy as np
 import panel as pn
+import param
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from core.evaluate import marker_error_field  # noqa: E402
-from core.pipeline import METHOD_PARAMS  # noqa: E402
 from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
-from dashboard.session import Session  # noqa: E402
+from dashboard.session import NONE, Session  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
 from dashboard.transfer_view import TransferView  # noqa: E402
@@ -44,17 +44,39 @@ CSS = """
 .fr-status {font-size: 0.86em;}
 """
 
-STAGE_PARAMS = {
-    "solve": None,  # chosen by method, see _solve_params
-    "stabilize": ["head_motion", "neutral_frame", "first_frame", "last_frame"],
-    "calibrate": ["calibrate", "target_shapes", "rbf_smoothing"],
-    "segment": ["regions", "min_region_size", "mask_smoothing"],
-    "personalize": ["personalize", "rom", "align_beta", "align_gamma"],
-}
+#: the sidebar's setting cards: (title, stage groups, collapsed); which stages belong to a group
+#: and which of their settings show is declared by the stages (core.stages), not here
+SIDEBAR_CARDS = [("Solver", ("solve",), False), ("Source & calibration", ("source", "calibrate"), True),
+                 ("Actor personalisation (Ribera 2017)", ("personalize",), True)]
+#: tiny relative weights read better typed than on a slider that shows 1e-5 as "0"
+TYPED = {"ridge": pn.widgets.FloatInput, "rbf_smoothing": pn.widgets.FloatInput}
 
 
-def _solve_params(method: str) -> list:
-    return ["method"] + list(METHOD_PARAMS[method])
+def visible_settings(stage, cfg) -> list:
+    """The settings of ``stage`` a user can change now: the ones that matter in this
+    configuration (``stage.relevant``), without the edit lists (they have their own controls)
+    — for an inactive stage (e.g. segmentation with a global method) none."""
+    if not stage.active(cfg):
+        return []
+    keep = stage.relevant(cfg)
+    names = stage.setting_names() if keep is None else [n for n in stage.setting_names() if n in set(keep)]
+    return [n for n in names if not isinstance(stage.param[n], param.List)]
+
+
+def stage_params(pipe, groups) -> list:
+    """``[(stage, [setting names])]`` of the stages in ``groups`` with something to show now."""
+    cfg = pipe.config()
+    out = []
+    for st in pipe.stages.values():
+        if type(st).group in groups:
+            names = visible_settings(st, cfg)
+            if names:
+                out.append((st, names))
+    return sorted(out, key=lambda p: p[0].stage_name != "solve")  # the method choice first
+
+
+def _shown(pipe) -> tuple:
+    return tuple(tuple((st.stage_name, tuple(n)) for st, n in stage_params(pipe, groups)) for _, groups, _ in SIDEBAR_CARDS)
 
 
 class DashboardApp:
@@ -66,7 +88,7 @@ class DashboardApp:
         self._viewer_keys = {"source": None, "target": None}
         self._build_widgets()
         self.transfer_view = TransferView(self.s)
-        self.normalmap_view = NormalMapView(active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
+        self.normalmap_view = NormalMapView(self.pipe, active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
         self.personalize_view = PersonalizeView()
         self._build_layout()
         self.refresh()
@@ -77,7 +99,7 @@ class DashboardApp:
         self.w_source = pn.widgets.Select.from_param(s.param.source, name="Source performance", sizing_mode="stretch_width")
         self.w_source_rig = pn.widgets.Select.from_param(s.param.source_rig, name="Source rig (for weight curves)", sizing_mode="stretch_width")
         self.w_target = pn.widgets.Select.from_param(s.param.target_rig, name="Target rig", sizing_mode="stretch_width")
-        self.w_upload = pn.widgets.FileInput(accept=".csv,.trc,.c3d,.glb,.gltf", multiple=False, sizing_mode="stretch_width")
+        self.w_upload = pn.widgets.FileInput(accept=".csv,.trc,.c3d,.glb,.gltf,.json", multiple=False, sizing_mode="stretch_width")
         self.w_upload.param.watch(self._on_upload, "value")
         self.settings_box = pn.Column(sizing_mode="stretch_width")
         self.w_auto = pn.widgets.Checkbox.from_param(s.param.auto_update, name="Auto-update on every change")
@@ -112,32 +134,41 @@ class DashboardApp:
         self.w_undo.on_click(lambda e: self._undo(1))
         self.w_redo.on_click(lambda e: self._undo(-1))
         self.w_edits = pn.Column(sizing_mode="stretch_width")
-        self._redo_stack: list = []
+        self.w_shot = pn.widgets.FileDownload(callback=self._shot_bytes, filename="shot.json", label="Download shot",
+                                              button_type="light", sizing_mode="stretch_width")
         self.source_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
         self.target_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
         self.region_box = pn.Column(sizing_mode="stretch_width")
         s.param.watch(self._on_busy, ["busy", "progress", "status"])
         s.param.watch(lambda e: self._changed(), ["source", "source_rig", "target_rig"])
-        for name, obj in self.pipe.settings_objects.items():
-            if name in STAGE_PARAMS:
-                obj.param.watch(self._on_setting, [p for p in obj.param if p != "name"])
+        self._shown = None
+        groups = {g for _, gs, _ in SIDEBAR_CARDS for g in gs}
+        for st in self.pipe.stages.values():
+            if type(st).group in groups:
+                st.param.watch(self._on_setting, st.setting_names())
         self._build_settings()
 
+    def _shot_bytes(self):
+        import io
+
+        return io.BytesIO(self.s.shot().to_json().encode("utf-8"))
+
     def _build_settings(self):
-        m = self.pipe.solve.method
-        # tiny relative weights read better typed than on a slider that shows 1e-5 as "0"
-        typed = {"ridge": pn.widgets.FloatInput, "rbf_smoothing": pn.widgets.FloatInput}
-        cards = [pn.Param(self.pipe.solve, parameters=_solve_params(m), widgets=typed, show_name=False, sizing_mode="stretch_width")]
-        if m == "local":
-            cards.append(pn.Param(self.pipe.segment, parameters=STAGE_PARAMS["segment"], show_name=False, sizing_mode="stretch_width"))
-        more = pn.Card(
-            pn.Param(self.pipe.stabilize, parameters=STAGE_PARAMS["stabilize"], show_name=False, sizing_mode="stretch_width"),
-            pn.Param(self.pipe.calibrate, parameters=STAGE_PARAMS["calibrate"], widgets=typed, show_name=False, sizing_mode="stretch_width"),
-            title="Source & calibration", collapsed=True, sizing_mode="stretch_width")
-        personal = pn.Card(
-            pn.Param(self.pipe.personalize, parameters=STAGE_PARAMS["personalize"], show_name=False, sizing_mode="stretch_width"),
-            title="Actor personalisation (Ribera 2017)", collapsed=not self.pipe.personalize.personalize, sizing_mode="stretch_width")
-        self.settings_box[:] = cards + [more, personal]
+        """The sidebar's setting cards, generated from the stages' settings (only those that
+        matter for the current method and switches)."""
+        rom = {"(the source itself)": ""} | dict(self.s.files["performances"])
+        widgets = dict(TYPED, rom={"type": pn.widgets.Select, "options": rom})
+        cards = []
+        for title, groups, collapsed in SIDEBAR_CARDS:
+            panes = [pn.Param(st, parameters=names, widgets={k: v for k, v in widgets.items() if k in names},
+                              show_name=False, sizing_mode="stretch_width") for st, names in stage_params(self.pipe, groups)]
+            if title == "Solver":
+                cards.extend(panes)
+            else:
+                open_ = title.startswith("Actor") and self.pipe.personalize.personalize
+                cards.append(pn.Card(*panes, title=title, collapsed=collapsed and not open_, sizing_mode="stretch_width"))
+        self._shown = _shown(self.pipe)
+        self.settings_box[:] = cards
 
     def _build_layout(self):
         sidebar = pn.Column(
@@ -145,12 +176,16 @@ class DashboardApp:
             pn.pane.Markdown("Transfer a captured face performance onto another character's blendshape rig. "
                              "Pick a capture and a target, press play, tune the solver.", css_classes=["fr-muted"]),
             self.w_source, self.w_source_rig, self.w_target,
-            pn.pane.Markdown("Upload a performance (.csv/.trc/.c3d) or rig (.glb)", css_classes=["fr-muted"], margin=(0, 10)),
+            pn.pane.Markdown("Upload a performance (.csv/.trc/.c3d), a rig (.glb) or a shot (.json)", css_classes=["fr-muted"], margin=(0, 10)),
             self.w_upload,
             pn.layout.Divider(),
             pn.pane.Markdown("**Solver**"),
             self.settings_box,
             self.w_auto, self.w_apply, self.w_progress, self.w_status,
+            pn.pane.Markdown("Everything this page shows (files, settings, edits) is one shot file: download it to "
+                             "reproduce the result with `face-retarget retarget --shot shot.json`, upload it to come back.",
+                             css_classes=["fr-muted"], margin=(0, 10)),
+            self.w_shot,
             pn.layout.Divider(),
             pn.pane.Markdown("**Timings** (server, last change)"),
             self.w_timings,
@@ -185,8 +220,8 @@ class DashboardApp:
 
     # -- events -----------------------------------------------------------------------------
     def _on_setting(self, *events):
-        # a new method shows its own widgets before the (possibly long) recompute starts
-        if any(e.name == "method" for e in events):
+        # a new method (or switch) shows its own widgets before the (possibly long) recompute starts
+        if _shown(self.pipe) != self._shown:
             self._build_settings()
         self._changed()
 
@@ -209,6 +244,7 @@ class DashboardApp:
             self._notify("error", str(e))
 
     def _on_frame(self, event):
+        self.pipe.frame = int(event.new)  # the review state the shot carries
         t = self._time_of(event.new)
         self.curves.set_time(t)
         self.diag.set_time(t)
@@ -252,29 +288,21 @@ class DashboardApp:
             self._notify("warning", "the window must extend on both sides of the frame; choose a frame away from the ends")
             return
         edit = {"frame": int(f), "weights": {self.w_edit_shape.value: round(float(self.w_edit_value.value), 4)}, "window": window}
-        self._redo_stack.clear()
-        self.pipe.edit.edits = list(self.pipe.edit.edits) + [edit]
+        self.pipe.add_edit("spacetime", edit)
         self.refresh()
 
     def _remove_edit(self, i: int):
-        edits = list(self.pipe.edit.edits)
-        self._redo_stack.append(edits.pop(i))
-        self.pipe.edit.edits = edits
+        self.pipe.remove_edit("spacetime", i)
         self.refresh()
 
     def _undo(self, direction: int):
-        edits = list(self.pipe.edit.edits)
-        if direction > 0 and edits:
-            self._redo_stack.append(edits.pop())
-        elif direction < 0 and self._redo_stack:
-            edits.append(self._redo_stack.pop())
-        else:
-            return
-        self.pipe.edit.edits = edits
-        self.refresh()
+        if self.pipe.undo("spacetime") if direction > 0 else self.pipe.redo_edit("spacetime"):
+            self.refresh()
 
     def _draw_edits(self):
         rows = []
+        self.w_undo.disabled = not self.pipe.edit.edits
+        self.w_redo.disabled = not self.pipe.redo["spacetime"]
         for i, e in enumerate(self.pipe.edit.edits):
             (shape, value), = e["weights"].items()
             win = "whole take" if not e["window"] else f"{e['window'][0]}–{e['window'][1]}"

@@ -14,7 +14,8 @@ The card drives :class:`core.transfer.detail_edit.DetailEditor` from clicks on t
   active (coating ratio μ): *per frame* (default) repeats the operation on every frame of that
   window, so the edit follows the details' motion; *eq. 18-21* is the paper's propagation with
   λ_e, λ_t, λ_s (it keeps fine-grained edits near the key frame, see docs/transfer.md). The
-  result joins the tab's edit list (undo).
+  edit is a spec appended to the shot's ``detail_edits`` (undo/redo are the pipeline's); the
+  pipeline's ``detail_edit`` stage computes the new details.
 
 Details are shown on the paused frame as the viewer's ``offsets`` (``TransferResult.details``
 is a per-frame displacement the blendshape rig does not hold); while playing, the viewer shows
@@ -22,12 +23,11 @@ the large-scale rig only (one (V, 3) array per frame would be 175 KB per frame o
 *Details while playing* is ticked: the details then travel once as a few dozen extra morph
 targets (:func:`core.transfer.details.detail_morph_targets`, error ≤ 5 % of the largest
 detail, measured and shown) played with the bases.
-No numerics here: the view only maps rig ids, frames and widget values to core calls.
+No numerics here: the view only maps rig ids, frames and widget values to specs and core calls.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Optional
 
@@ -35,7 +35,6 @@ import numpy as np
 import panel as pn
 
 from core.transfer.detail_edit import DetailEditor
-from core.transfer.details import detail_morph_targets
 
 # vertex colours are linear RGB in three.js (mesh_color is sRGB): MESH_RGB is #d8b49c, the
 # viewer's default mesh_color, in linear RGB, so the unselected skin keeps its colour
@@ -54,7 +53,7 @@ class DetailPanel:
 
     def __init__(self, host):
         self.host = host
-        self.editor: Optional[DetailEditor] = None
+        self.editor: Optional[DetailEditor] = None  # for the selection preview (the stage makes the edits)
         self.picks: list[int] = []        # rig vertex ids (selection clicks, in order)
         self.strokes: list[tuple] = []    # (rig id, rig id): drags across the mesh (paint)
         self.key_frame: Optional[int] = None
@@ -62,13 +61,11 @@ class DetailPanel:
         self.targets: list[list] = []     # wrinkle target points (metres)
         self._build()
 
-    # -- layout --------------------------------------------------------------------------------
     def _build(self):
         self.w_show = pn.widgets.Checkbox(name="Show fine details (paused frame)", value=True)
         self.w_show.param.watch(lambda e: self.show_frame(), "value")
         self.w_play = pn.widgets.Checkbox(name="Details while playing (extra morph targets)", value=False)
         self.w_play.param.watch(lambda e: self._on_play_details(), "value")
-        self._morphs = (None, None)  # (details array, (coeffs, basis, max error)) of the last factorisation
         self.w_select = pn.widgets.RadioButtonGroup(name="Selection", options=["paint", "curve"], value="paint",
                                                     button_type="light")
         self.w_select.param.watch(lambda e: self.draw(), "value")
@@ -95,7 +92,12 @@ class DetailPanel:
         self.w_apply.on_click(lambda e: self.apply())
         self.w_clear = pn.widgets.Button(name="Clear selection", width=130)
         self.w_clear.on_click(lambda e: self.clear())
+        self.w_undo = pn.widgets.Button(name="Undo detail edit", width=130)
+        self.w_undo.on_click(lambda e: self.host.undo("detail"))
+        self.w_redo = pn.widgets.Button(name="Redo detail edit", width=130)
+        self.w_redo.on_click(lambda e: self.host.redo("detail"))
         self.w_info = pn.pane.Markdown("", sizing_mode="stretch_width")
+        self.w_edits = pn.pane.Markdown("", sizing_mode="stretch_width")
         help_ = pn.pane.Markdown(
             "Set **Click does** to *detail selection* and click on the mesh (or drag across it: a stroke): *paint* "
             "takes every vertex within the radius of a click or a stroke, *curve* every vertex within it of the line through your clicks (draw along a "
@@ -107,13 +109,13 @@ class DetailPanel:
             help_, self.w_show, self.w_play, pn.Row(self.w_select, self.w_radius), self.w_op, self.w_factor,
             pn.Row(self.w_angle, self.w_pscale, self.w_pmode), self.w_mirror, self.w_lam_l,
             self.w_prop, pn.Row(self.w_mu, self.w_lam_e, self.w_lam_t, self.w_lam_s), pn.Row(self.w_apply, self.w_clear),
-            self.w_info,
+            pn.Row(self.w_undo, self.w_redo), self.w_edits, self.w_info,
             title="Fine-scale details (Xu 2014 §5.2)", sizing_mode="stretch_width", collapsed=False)
 
     # -- state ---------------------------------------------------------------------------------
-    def reset(self, result, settings) -> None:
+    def reset(self, result) -> None:
         """A new transfer: an editor on its details (factorises the detail Poisson operator)."""
-        self.editor = DetailEditor.from_result(result, settings) if result.details is not None else None
+        self.editor = DetailEditor.from_result(result) if result.details is not None else None
         if self.editor is not None:  # a brush of ~3 edges whatever the mesh's size
             self.w_radius.value = round(3000 * self.editor.mean_edge(), 1)
         self.clear(draw=False)
@@ -122,21 +124,18 @@ class DetailPanel:
 
     def current(self) -> Optional[DetailEditor]:
         """The editor on the host's current state (bases, weights, details)."""
-        if self.editor is None or not self.host.states:
+        if self.editor is None or not self.host.dense:
             return None
-        D, W = self.host.states[-1]
-        return self.editor.rebase(details=self.host.detail_states[-1], deltas=D, weights=W)
+        D, W = self.host.state
+        return self.editor.rebase(details=self.host.current_details, deltas=D, weights=W)
 
     def morphs(self):
         """The current details as low-rank morph targets ``(coeffs (T, r), basis (r, V, 3),
-        max error m)`` (:func:`core.transfer.details.detail_morph_targets`), computed once per
-        details array; None without details."""
-        details = self.host.detail_states[-1] if self.host.detail_states else None
-        if details is None:
+        max error m)`` (the pipeline's ``detail_morphs`` stage); None without details."""
+        if self.host.current_details is None:
             return None
-        if self._morphs[0] is not details:
-            self._morphs = (details, detail_morph_targets(details))
-        return self._morphs[1]
+        m = self.host.pipe.results(["detail_morphs"])["detail_morphs"]
+        return None if m["basis"] is None else (m["coeffs"], m["basis"], m["max_error"])
 
     def _on_play_details(self) -> None:
         self.host._show_state()
@@ -189,17 +188,14 @@ class DetailPanel:
                             f"{self.key_frame}")
         self.draw()
 
+    def selection(self) -> dict:
+        """The selection spec of the current picks (see :meth:`DetailEditor.select`)."""
+        return {"mode": self.w_select.value, "picks": list(self.picks), "strokes": [list(s) for s in self.strokes],
+                "radius": float(self.w_radius.value) / 1000}
+
     def region(self, ed: DetailEditor) -> np.ndarray:
         """Editor ids of the current selection (empty when nothing is picked)."""
-        if not self.picks:
-            return np.zeros(0, dtype=np.int64)
-        ids = ed.to_editor(self.picks)
-        r = float(self.w_radius.value) / 1000
-        if self.w_select.value == "curve":
-            return ed.select_curve(ids, r, self.key_frame)
-        parts = [ed.select_paint(ids, r, self.key_frame)]
-        parts += [ed.select_curve(ed.to_editor([a, b]), r, self.key_frame) for a, b in self.strokes if a != b]
-        return np.unique(np.concatenate(parts))
+        return ed.select(self.selection(), self.key_frame if self.key_frame is not None else 0)
 
     # -- drawing -------------------------------------------------------------------------------
     def highlight_ids(self) -> list:
@@ -230,6 +226,13 @@ class DetailPanel:
             parts.append(f"wrinkle target: {len(self.targets)} points")
         if self.editor is not None:
             self.w_info.object = " · ".join(parts) if parts else "*nothing selected*"
+        done = self.host.pipe.detail_edit.detail_edits
+        reports = self.host.dense["detail_edit"]["reports"] if self.host.dense else []
+        self.w_edits.object = ("**Detail edits**\n\n" + "\n".join(
+            f"{k}. {r['what']} at frame {r['frame']}, frames {r['window'][0]}–{r['window'][1]}, max change "
+            f"{r['max_change_mm']:.2f} mm" for k, r in enumerate(reports, start=1))) if done and reports else ""
+        self.w_undo.disabled = not done
+        self.w_redo.disabled = not self.host.pipe.redo["detail"]
         self.host._draw_lists()
 
     def show_frame(self, *_) -> None:
@@ -237,18 +240,33 @@ class DetailPanel:
         v = self.host.viewer
         if v is None:
             return
-        if (self.editor is None or not self.w_show.value or v.playing or not self.host.detail_states
+        details = self.host.current_details
+        if (self.editor is None or not self.w_show.value or v.playing or details is None
                 or self.w_play.value):  # playing along as morph targets: no offsets on top
             if v.offsets is not None:
                 v.set_offsets(None)
             return
-        details = self.host.detail_states[-1]
         f = min(int(v.frame), len(details) - 1)
         v.set_offsets(details[f])
 
     # -- editing -------------------------------------------------------------------------------
+    def spec(self) -> dict:
+        """The detail edit the card describes now (plain data for the shot)."""
+        op = {"scale": "scale", "copy-paste": "copy_paste", "reshape wrinkle": "reshape"}[self.w_op.value]
+        spec = {"op": op, "frame": int(self.key_frame if self.key_frame is not None else 0), "selection": self.selection(),
+                "mu": float(self.w_mu.value), "lam_e": float(self.w_lam_e.value), "lam_t": float(self.w_lam_t.value),
+                "lam_s": float(self.w_lam_s.value), "propagation": self.w_prop.value}
+        if op == "scale":
+            spec["factor"] = float(self.w_factor.value)
+        elif op == "copy_paste":
+            spec.update(anchor=self.anchor, angle_deg=float(self.w_angle.value), scale=float(self.w_pscale.value),
+                        mode=self.w_pmode.value, mirror=bool(self.w_mirror.value))
+        else:
+            spec.update(targets=[list(map(float, t)) for t in self.targets], lam_l=float(self.w_lam_l.value))
+        return spec
+
     def apply(self) -> bool:
-        """Make the key-frame edit, propagate it and push the new details (False + status if not)."""
+        """Append the card's detail edit to the shot and show the new details (False + status if not)."""
         ed = self.current()
         if ed is None:
             self.host.status = "⚠ no transfer with fine-scale details to edit"
@@ -256,46 +274,25 @@ class DetailPanel:
         if not self.picks:
             self.host.status = "nothing selected: set Click does to detail selection and click on the mesh"
             return False
-        op = self.w_op.value
-        k = int(self.key_frame)
-        t0 = time.perf_counter()
+        spec = self.spec()
         try:
-            region = self.region(ed)
-            if op == "scale":
-                edit = ed.scale(region, k, float(self.w_factor.value))
-                what = f"scale ×{self.w_factor.value:g}"
-            elif op == "copy-paste":
-                if self.anchor is None:
-                    self.host.status = "copy-paste: set Click does to paste anchor and click where the details go"
-                    return False
-                edit = ed.copy_paste(region, k, int(ed.to_editor([self.anchor])[0]), math.radians(float(self.w_angle.value)),
-                                     float(self.w_pscale.value), self.w_pmode.value, mirror=bool(self.w_mirror.value))
-                what = f"copy-paste to vertex {self.anchor} ({edit.info['pasted_vertices']} vertices)"
-            else:
-                if self.w_select.value != "curve" or len(self.picks) < 2:
-                    self.host.status = "reshape: select the wrinkle as a curve (two or more clicks along it)"
-                    return False
-                if len(self.targets) < 2:
-                    self.host.status = "reshape: set Click does to wrinkle target and click two or more points"
-                    return False
-                edit = ed.reshape(ed.to_editor(self.picks), np.asarray(self.targets), k, float(self.w_radius.value) / 1000,
-                                  float(self.w_lam_l.value))
-                what = f"reshape wrinkle ({edit.info['region']} vertices, moved ≤ {edit.info['max_move_mm']:.1f} mm)"
-            if ed.activity(edit.selection)[k] <= 0:
-                self.host.status = f"⚠ the selection has no fine details at frame {k}: nothing to edit there"
-                return False
-            res = ed.apply(edit, mu=float(self.w_mu.value), lam_e=float(self.w_lam_e.value),
-                           lam_t=float(self.w_lam_t.value), lam_s=float(self.w_lam_s.value), propagation=self.w_prop.value)
+            ed.key_edit(spec)  # says what is missing (anchor, target curve, no details here) before anything runs
+        except ValueError as e:
+            self.host.status = f"⚠ {e}"
+            return False
+        t0 = time.perf_counter()
+        self.host.pipe.add_edit("detail", spec)
+        try:
+            self.host._recompute()
         except (ValueError, RuntimeError) as e:
+            self.host.pipe.undo("detail")
+            self.host.pipe.redo["detail"].clear()
             self.host.status = f"⚠ detail edit failed: {e}"
             return False
-        ts, te = res.window
-        report = (f"{what} at frame {k}, frames {ts}–{te}, max change {res.max_change_mm:.2f} mm, "
-                  f"{time.perf_counter() - t0:.2f} s")
-        self.host.push_details(res.details, report)
+        rep = self.host.dense["detail_edit"]["reports"][-1]
+        report = (f"{rep['what']} at frame {rep['frame']}, frames {rep['window'][0]}–{rep['window'][1]}, max change "
+                  f"{rep['max_change_mm']:.2f} mm, {time.perf_counter() - t0:.2f} s")
         self.clear()
-        if self.w_play.value:
-            self.host._show_state()
         self.show_frame()
-        self.host.status = f"detail edit {len(self.host.edits)}: {report}"
+        self.host.status = f"detail edit {len(self.host.pipe.detail_edit.detail_edits)}: {report}"
         return True

@@ -3,230 +3,37 @@
 Three views of the target rig at the dashboard's frame, side by side, one camera:
 
 (a) the full-resolution rig playing the solved weights (vertex normals);
-(b) a decimated copy (10 % of the triangles, :func:`core.normalmap.decimate`) with the
-    normal map blended for the frame, ``N = normalize(N_0 + Σ_k B_k Σ_i u_ki (N_i − N_0))``
-    (eq. 3 on normals, :func:`core.normalmap.blend_normal_maps`): regional weights and masks
-    for the local method, the global weights (R = 1, B = 1) otherwise;
+(b) a decimated copy (10 % of the triangles) with the normal map blended for the frame,
+    ``N = normalize(N_0 + Σ_k B_k Σ_i u_ki (N_i − N_0))`` (eq. 3 on normals): regional weights
+    and masks for the local method, the global weights (R = 1, B = 1) otherwise;
 (c) the same decimated copy with its own vertex normals.
 
-The per-shape maps N_i are baked once per rig and resolution (:func:`core.normalmap.
-shape_normal_maps` on :func:`core.normalmap.uv_raster`) and kept in a small LRU shared by
-all sessions, keyed by the rig's name, a hash of its arrays and the resolution. Per frame
-only the blended map travels: H·W·3 bytes (ICT: 512×256 texels at 256/UV unit, 384 KB;
-1024×512 at 512, 1.5 MB). The blend runs on the covered texels and the shapes with a
-non-zero weight only (the other terms of the sum are zero), which is the same call to core
-on smaller arrays.
+Everything numeric is core's, and cached by the pipeline: the per-shape maps are the
+``normalmap_bake`` stage (per rig content and resolution, shared by all sessions), the decimated
+rig ``normalmap_decimate``, the local method's masks in texture space ``normalmap_masks``; per
+frame the view calls :func:`core.normalmap.frame_blend_weights` and
+:func:`core.normalmap.frame_normal_map`, and only the blended map travels: H·W·3 bytes (ICT:
+512×256 texels at 256/UV unit, 384 KB; 1024×512 at 512, 1.5 MB).
 
-A rig without UVs (Rocketbox, Jeeliz) gets a hint instead. Numerics stay in core; here:
-packing (covered texels, texture coordinates normalised to the image, 8-bit encoding) and
-filling texels no triangle covers with their nearest covered texel so bilinear filtering
-and mipmaps at UV-island borders do not pull in undefined normals.
+A rig without UVs (Rocketbox, Jeeliz) gets a hint instead.
 """
 
 from __future__ import annotations
 
-import hashlib
 import html
-import threading
 import time
-from collections import OrderedDict
-from dataclasses import dataclass
 
 import numpy as np
 import panel as pn
 import param
 
-from core.normalmap import blend_normal_maps, decimate, mask_maps, shape_normal_maps, uv_raster
+from core.normalmap import frame_blend_weights, frame_normal_map, texture_coordinates
 
-from .viewer import MeshViewer, encode_normal_map
+from .viewer import MeshViewer
 
 HINT = "normal-map blending needs a rig with UVs — choose ict_facekit.glb as the target"
 VIEW_HEIGHT = 380
-#: fraction of the triangles the decimation removes (keeps 10 %)
-REDUCTION = 0.9
 SYNC_GROUP = "normalmap"
-
-
-# -- baked data, cached across sessions ----------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class Bake:
-    """Per-shape object-space normal maps of one rig at one resolution, packed for blending.
-
-    Attributes
-    ----------
-    raster : core.normalmap.UVRaster
-    maps : (K+1, 1, n, 3) float16, read-only
-        N_0 (neutral) and N_i (``neutral + delta_i``) at the n covered texels, laid out as an
-        image of height 1 so :func:`core.normalmap.blend_normal_maps` takes it as is.
-    fill : (H, W) int
-        For every texel, the index (into the n covered texels) of the nearest covered one.
-    seconds : float
-        Time the bake took.
-    """
-
-    raster: object
-    maps: np.ndarray
-    fill: np.ndarray
-    seconds: float
-
-    @property
-    def shape(self) -> tuple:
-        return self.raster.shape
-
-    @property
-    def n_covered(self) -> int:
-        return int(self.maps.shape[2])
-
-
-class _LRU:
-    """A few large results (baked maps, decimated rigs) shared by all sessions."""
-
-    def __init__(self, size: int = 4):
-        self.size = size
-        self.items: OrderedDict = OrderedDict()
-        self.lock = threading.RLock()
-
-    def get(self, key, make):
-        with self.lock:  # one bake at a time; a second session asking for it waits and reuses it
-            if key in self.items:
-                self.items.move_to_end(key)
-                return self.items[key]
-            value = make()
-            self.items[key] = value
-            while len(self.items) > self.size:
-                self.items.popitem(last=False)
-            return value
-
-    def clear(self):
-        with self.lock:
-            self.items.clear()
-
-
-CACHE = _LRU(4)
-
-
-def _readonly(a: np.ndarray) -> np.ndarray:
-    a.setflags(write=False)
-    return a
-
-
-def rig_key(rig) -> tuple:
-    """(name, BLAKE2 digest of neutral, faces, deltas, uvs): a content key (an uploaded rig may reuse a name)."""
-    h = hashlib.blake2b(digest_size=16)
-    for a in (rig.neutral, rig.faces, rig.deltas, rig.uvs):
-        if a is not None:
-            a = np.ascontiguousarray(a)
-            h.update(str((a.dtype.str, a.shape)).encode())
-            h.update(a.data)
-    return (rig.name, h.hexdigest())
-
-
-def bake(rig, resolution: int, key: tuple | None = None) -> Bake:
-    """The rig's per-shape normal maps at ``resolution`` texels per UV unit (cached).
-
-    Raises ValueError when the rig has no UVs.
-    """
-    if rig.uvs is None:
-        raise ValueError(f"rig {rig.name!r} has no UVs; {HINT}")
-    key = key or rig_key(rig)
-
-    def make():
-        from scipy import ndimage
-
-        t0 = time.perf_counter()
-        ras = uv_raster(rig.uvs, rig.faces, int(resolution))
-        cov = ras.covered
-        full = shape_normal_maps(rig, ras, dtype=np.float16)  # (K+1, H, W, 3)
-        maps = np.ascontiguousarray(full[:, cov][:, None])
-        del full
-        # nearest covered texel of every texel (distance transform to the covered set)
-        ii, jj = ndimage.distance_transform_edt(~cov, return_distances=False, return_indices=True)
-        lin = np.full(ras.shape, -1, dtype=np.int64)
-        lin[cov] = np.arange(int(cov.sum()))
-        fill = lin[ii, jj]
-        return Bake(ras, _readonly(maps), _readonly(fill), time.perf_counter() - t0)
-
-    return CACHE.get(("bake", key, int(resolution)), make)
-
-
-def decimated(rig, key: tuple | None = None):
-    """:func:`core.normalmap.decimate` of ``rig`` keeping 10 % of its triangles (cached)."""
-    key = key or rig_key(rig)
-    return CACHE.get(("decimate", key, REDUCTION), lambda: decimate(rig, REDUCTION)[0])
-
-
-def texture_coordinates(uvs, raster) -> np.ndarray:
-    """The rig's UVs as coordinates in [0, 1] of the baked image: ``(u − u0)/(u1 − u0)``,
-    ``(v − v0)/(v1 − v0)`` over the raster's extent (whole UDIM tiles; ICT's u spans [0, 2]).
-    Row 0 of the image is v = v0, the viewer's (glTF's) convention. (V, 2) float32."""
-    u0, u1, v0, v1 = raster.extent
-    uv = np.asarray(uvs, dtype=np.float64)
-    return ((uv - [u0, v0]) / [u1 - u0, v1 - v0]).astype(np.float32)
-
-
-def mask_texels(b: Bake, faces, masks, key) -> np.ndarray:
-    """Region masks B_k at the covered texels, (R, 1, n) float32 (cached by content)."""
-    masks = np.asarray(masks, dtype=np.float64)
-    h = hashlib.blake2b(np.ascontiguousarray(masks).data, digest_size=16).hexdigest()
-    return CACHE.get(("masks", key, b.raster.resolution, h),
-                     lambda: _readonly(np.ascontiguousarray(mask_maps(b.raster, faces, masks)[:, b.raster.covered][:, None],
-                                                            dtype=np.float32)))
-
-
-def frame_weights(snapshot: dict, frame: int):
-    """The weights eq. 3 blends at ``frame``: ``(U (R, K), masks (R, V) or None, note)``.
-
-    Local method (Liu 2011): the regional weights ``solve_info["region_weights"][frame]``
-    placed into the target's K shapes (``solver_names``) with ``segment["masks"]``, as long
-    as the shown weights are still their mask-area blend (spacetime edits change the global
-    curves only; then the global weights are used and ``note`` says so). Otherwise the
-    global weights of the frame as one region (R = 1, masks None = 1 everywhere).
-    """
-    W = np.asarray(snapshot["weights"], dtype=np.float64)
-    f = int(np.clip(frame, 0, len(W) - 1))
-    w = np.nan_to_num(W[f])
-    rig = snapshot["target_rig"]
-    seg = snapshot.get("segment")
-    U = (snapshot.get("solve_info") or {}).get("region_weights")
-    if snapshot.get("method") != "local" or not seg or U is None:
-        return w[None], None, "global weights"
-    from core.solvers.local import blend_weights
-
-    masks = np.asarray(seg["masks"], dtype=np.float64)
-    names = list(snapshot.get("solver_names") or rig.names)
-    U = np.asarray(U, dtype=np.float64)
-    if masks.shape[1] != rig.n_vertices or U.shape[1:] != (len(masks), len(names)) or len(U) != len(W):
-        return w[None], None, "global weights (regional data does not match the target rig)"
-    idx = [rig.index(n) for n in names]
-    u = np.nan_to_num(U[f])
-    shown = w[idx]
-    if not np.allclose(blend_weights(u[None], masks)[0], shown, rtol=1e-6, atol=1e-6 * max(1.0, np.abs(shown).max())):
-        return w[None], None, "global weights (edited: the regional weights no longer give the shown curves)"
-    full = np.zeros((len(masks), rig.n_shapes))
-    full[:, idx] = u
-    return full, masks, f"{len(masks)} regions"
-
-
-def blended_normal_map(b: Bake, U, masks_texels=None) -> np.ndarray:
-    """Eq. 3 on normal maps for one frame, as the viewer's (H, W, 3) uint8 image.
-
-    Parameters
-    ----------
-    b : Bake
-    U : (R, K) regional (or, R = 1, global) weights of the frame
-    masks_texels : (R, 1, n) masks at the covered texels (:func:`mask_texels`); None: R = 1, ones.
-    """
-    U = np.asarray(U, dtype=np.float64)
-    K = b.maps.shape[0] - 1
-    if U.ndim != 2 or U.shape[1] != K:
-        raise ValueError(f"U: expected (R, {K}), got {U.shape}")
-    act = np.flatnonzero(np.any(U != 0, axis=0))  # shapes with weight 0 add nothing to the sum
-    if masks_texels is None:
-        if len(U) != 1:
-            raise ValueError(f"U: {len(U)} regions need masks_texels")
-        masks_texels = np.ones((1, 1, b.n_covered))
-    N = blend_normal_maps(b.maps[np.r_[0, act + 1]], U[:, act], masks_texels)[0]  # (n, 3)
-    return encode_normal_map(N)[b.fill]
 
 
 # -- the view ------------------------------------------------------------------------------
@@ -240,19 +47,21 @@ class NormalMapView(pn.viewable.Viewer):
 
     Parameters
     ----------
+    pipeline : core.pipeline.Pipeline whose results the snapshots come from (its normal-map
+        stages bake the maps; its ``normalmap_resolution`` is the resolution widget)
     on_frame : callable(int), optional
-    **params : enabled, resolution, active, view_width
+    **params : enabled, active, view_width
     """
 
     enabled = param.Boolean(default=True, doc="Blend and show the normal map on the decimated mesh (b).")
-    resolution = param.Selector(default=256, objects=[256, 512], doc="Texels per UV unit of the baked and blended maps.")
     active = param.Boolean(default=True, doc="Draw on update; False: only remember the snapshot and frame.")
     view_width = param.Integer(default=None, allow_None=True, bounds=(100, None),
                                doc="Fixed width (px) of each 3D view; None: the three share the row. Fixed widths "
                                    "make the three renders line up pixel for pixel (same camera, same aspect).")
 
-    def __init__(self, on_frame=None, **params):
+    def __init__(self, pipeline, on_frame=None, **params):
         super().__init__(**params)
+        self.pipeline = pipeline
         self.on_frame = on_frame
         self._snap: dict | None = None
         self._frame = 0
@@ -264,7 +73,9 @@ class NormalMapView(pn.viewable.Viewer):
         self.last_map: np.ndarray | None = None
         self.info: dict = {}
         self.w_enabled = pn.widgets.Toggle.from_param(self.param.enabled, name="Normal map on/off", width=170)
-        self.w_resolution = pn.widgets.Select.from_param(self.param.resolution, name="Map resolution (texels per UV unit)", width=230)
+        bake = pipeline.normalmap_bake
+        self.w_resolution = pn.widgets.Select.from_param(bake.param.normalmap_resolution, name="Map resolution (texels per UV unit)", width=230)
+        bake.param.watch(lambda e: self._on_settings(), "normalmap_resolution")
         # the dashboard's frame slider lives on another tab: this one scrubs here (on release, a
         # blend takes 0.1-0.5 s) and reports to ``on_frame(frame)`` so the app can follow
         self.w_frame = pn.widgets.IntSlider(label="Frame", start=0, end=1, value=0, sizing_mode="stretch_width")
@@ -298,7 +109,7 @@ class NormalMapView(pn.viewable.Viewer):
         if self.on_frame is not None:
             self.on_frame(self._frame)
 
-    @param.depends("active", "enabled", "resolution", watch=True)
+    @param.depends("active", "enabled", watch=True)
     def _on_settings(self):
         if self.active and self._snap:
             self._draw()
@@ -314,7 +125,7 @@ class NormalMapView(pn.viewable.Viewer):
             self.info = {"hint": HINT}
             return
         if rig is not self._rig:
-            key = rig_key(rig)
+            key = self.pipeline.key("target_face")
             if key != self._key:
                 self._build(rig, key, snap)
             self._rig = rig
@@ -338,10 +149,13 @@ class NormalMapView(pn.viewable.Viewer):
         self._rig = self._key = self._track = self._map_key = None
         self.last_map = None
 
+    def _stage(self, name):
+        return self.pipeline.results([name])[name]
+
     def _build(self, rig, key, snap):
         t0 = time.perf_counter()
-        low = decimated(rig, key)
-        b = bake(rig, self.resolution, key)
+        low = self._stage("normalmap_decimate")["rig"]
+        b = self._stage("normalmap_bake")["bake"]
         uv_low = texture_coordinates(low.uvs, b.raster)
         W = np.nan_to_num(np.asarray(snap["weights"], dtype=np.float32))
         lo, hi = rig.neutral.min(0), rig.neutral.max(0)
@@ -371,14 +185,16 @@ class NormalMapView(pn.viewable.Viewer):
             self.last_map = None
             self.status.object = f"frame {f} · normal map off (b) shows the decimated mesh's own vertex normals"
             return
-        b = bake(rig, self.resolution, self._key)
-        U, masks, note = frame_weights(snap, f)
-        map_key = (self.resolution, note, U.tobytes())  # frames with equal weights share the map
+        b = self._stage("normalmap_bake")["bake"]
+        seg = snap.get("segment") if snap.get("method") == "local" else None
+        U, use_masks, note = frame_blend_weights(snap["weights"], f, rig.names, (snap.get("solve_info") or {}).get("region_weights"),
+                                                 seg["masks"] if seg else None, snap.get("solver_names"))
+        map_key = (b.raster.resolution, note, U.tobytes())  # frames with equal weights share the map
         if map_key == self._map_key:
             return
         t0 = time.perf_counter()
-        mt = None if masks is None else mask_texels(b, rig.faces, masks, self._key)
-        img = blended_normal_map(b, U, mt)
+        mt = self._stage("normalmap_masks")["masks"] if use_masks else None
+        img = frame_normal_map(b, U, mt)
         ms = (time.perf_counter() - t0) * 1e3
         self.mapped_viewer.set_normal_map(img)
         self._map_key, self.last_map = map_key, img

@@ -1,9 +1,12 @@
 """One browser session's state: the chosen files, the pipeline, the latest results.
 
-The session owns a :class:`core.pipeline.Pipeline` whose settings objects are the widgets'
-models. ``recompute()`` runs whatever is stale (the pipeline knows) and publishes a plain
-snapshot that views turn into panes; errors become a message, never a stack trace.
-No numerics live here: only choosing files, calling the pipeline and packaging results.
+The session owns a :class:`core.pipeline.Pipeline`: its stages' settings are the widgets'
+models, its edit lists (with undo/redo) and its frame and notes are the session's whole state,
+so :meth:`shot` is everything the page shows and :meth:`open_shot` brings a saved one back.
+``recompute()`` runs whatever is stale (the pipeline knows) and publishes a plain snapshot that
+views turn into panes; :meth:`dense` runs the dense-transfer stages. Errors become a message,
+never a stack trace. No numerics live here: only choosing files, calling the pipeline and
+packaging results.
 """
 
 from __future__ import annotations
@@ -20,16 +23,22 @@ import numpy as np
 import param
 
 from core.pipeline import Pipeline, StageCache
+from core.shot import EDITORS, Shot
 
 log = logging.getLogger("face_retarget.dashboard")
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data"
 NONE = "(none)"
+UPLOAD = "⤒ "
 
 #: one cache for every session of this server process: results are keyed by content,
 #: so two reviewers looking at the same take share the work
 SHARED_CACHE = StageCache(max_entries=128)
+#: the stages a retargeting view needs
+RETARGET_STAGES = ["load", "frames", "stabilize", "calibrate", "personalize", "segment", "solve", "edit", "synthesize", "evaluate"]
+#: the stages the dense-transfer tab shows
+DENSE_STAGES = ["transfer", "transfer_edit", "detail_edit"]
 
 
 def bundled(kind: str) -> dict:
@@ -64,10 +73,14 @@ class Session(param.Parameterized):
         self.source_rig = next((k for k in rigs if k.startswith("ict")), NONE)
         self.target_rig = next((k for k in rigs if k.startswith("rocketbox")), next(iter(rigs), None))
         # the sample's target has 175 shapes of which 52 are ARKit: solving on those gives curves an
-        # animator recognises (a rig without ARKit names keeps all its shapes, see core.stages.solver_shapes)
-        self.pipeline.configure(method="spacetime" if _has_spacetime() else "lsq", target_shapes="arkit")
+        # animator recognises (a rig without ARKit names keeps all its shapes, see core.stages.solver_shapes);
+        # the dense transfer starts on 300 frames (2,000 ICT frames take minutes)
+        self.pipeline.configure(method="spacetime", target_shapes="arkit", transfer_last_frame=299)
         self.snapshot: dict = {}
         self._lock = threading.Lock()
+        self._apply_selection()
+        # the pipeline always holds the selected files (views may run stages without a recompute)
+        self.param.watch(lambda *events: self._apply_selection(), ["source", "source_rig", "target_rig"])
         self.upload_dir = Path(tempfile.mkdtemp(prefix="face-retarget-upload-"))
 
     # -- files --------------------------------------------------------------------------
@@ -79,15 +92,16 @@ class Session(param.Parameterized):
     def add_upload(self, filename: str, data: bytes) -> str:
         """Save an uploaded file and offer it in the right list; returns what it became.
 
-        The file is not parsed here: the load stage parses it and reports errors by name.
+        A ``.json`` upload is a shot (it has ``schema_version``) and is opened. Other files are
+        not parsed here: the load stage parses them and reports errors by name.
         """
         name = Path(filename).name
         if not name or not data:
-            raise ValueError("empty upload")
+            raise ValueError(f"{name or 'the upload'}: the file is empty")
         path = self.upload_dir / name
         path.write_bytes(data)
         suffix = path.suffix.lower()
-        label = f"⤒ {name}"
+        label = UPLOAD + name
         if suffix in (".glb", ".gltf"):
             self.files["rigs"][label] = str(path)
             self._refresh_options()
@@ -98,8 +112,34 @@ class Session(param.Parameterized):
             self.source = label
             return f"performance {name} selected as the source"
         if suffix == ".json":
+            if b'"schema_version"' in data[:4096]:
+                self.open_shot(data.decode("utf-8-sig", errors="replace"), name=name)
+                return f"shot {name} opened"
             return name  # layouts and name maps are applied by the caller
-        raise ValueError(f"{name}: unsupported file type {suffix!r}; upload a .csv/.trc/.c3d performance, a .glb/.gltf rig or a .json layout")
+        raise ValueError(f"{name}: unsupported file type {suffix!r}; upload a .csv/.trc/.c3d performance, a .glb/.gltf rig "
+                         f"or a .json shot")
+
+    def _label_for(self, kind: str, path: str) -> str:
+        """The list label of a file path, adding it to the list when it is not there yet."""
+        files = self.files[kind]
+        for label, p in files.items():
+            if Path(p).resolve() == Path(path).resolve():
+                return label
+        label = UPLOAD + Path(path).name
+        files[label] = str(path)
+        return label
+
+    def use_files(self, source: str = None, source_rig: str = None, target_rig: str = None) -> None:
+        """Select files by path (added to the lists when they are not there yet)."""
+        labels = {}
+        if source is not None:
+            labels["source"] = self._label_for("performances", source)
+        if source_rig is not None:
+            labels["source_rig"] = self._label_for("rigs", source_rig) if source_rig else NONE
+        if target_rig is not None:
+            labels["target_rig"] = self._label_for("rigs", target_rig)
+        self._refresh_options()
+        self.param.update(**labels)
 
     def _apply_selection(self):
         rigs = self.files["rigs"]
@@ -109,9 +149,34 @@ class Session(param.Parameterized):
             target_rig=rigs.get(self.target_rig, ""),
         )
 
+    # -- the shot -----------------------------------------------------------------------
+    def shot(self) -> Shot:
+        """Everything this page shows, as a shot document (files, settings, edits, frame, notes)."""
+        self._apply_selection()
+        return self.pipeline.shot()
+
+    def open_shot(self, shot, name: str = "shot") -> None:
+        """Make this session the shot's (a Shot, a path or JSON text): its files become the
+        selections (added to the lists when new), its settings and edit lists the pipeline's.
+
+        Raises ValueError / FileNotFoundError naming what is missing or wrong.
+        """
+        other = Pipeline.from_shot(shot, cache=self.pipeline.cache)
+        cfg = other.config()
+        values = {}
+        for n, st in other.stages.items():
+            values.update({k: v for k, v in vars(getattr(cfg, n)).items() if k not in EDITORS.values()})
+        self.pipeline.configure(**values)
+        for editor in EDITORS:
+            self.pipeline._set_edits(editor, other.edits(editor))
+        self.pipeline.frame, self.pipeline.notes = other.frame, list(other.notes)
+        src, srig, trig = other.take.source, other.source_face.source_rig, other.target_face.target_rig
+        self.use_files(source=src or None, source_rig=srig, target_rig=trig or None)
+        log.info("opened shot %s", name)
+
     # -- running ------------------------------------------------------------------------
     def recompute(self) -> bool:
-        """Run the stale stages and publish a snapshot; returns False on error (see ``error``)."""
+        """Run the stale retargeting stages and publish a snapshot; False on error (see ``error``)."""
         with self._lock:
             self.busy, self.error, self.progress = True, "", 0
             t0 = time.perf_counter()
@@ -119,22 +184,37 @@ class Session(param.Parameterized):
                 self._apply_selection()
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
-                    res = self.pipeline.results(["load", "stabilize", "calibrate", "personalize", "segment", "solve", "edit", "synthesize",
-                                                 "evaluate"],
-                                                progress=self._progress)
+                    res = self.pipeline.results(RETARGET_STAGES, progress=self._progress)
+                timings = {k: v * 1e3 for k, v in self.pipeline.timings.items()}
                 self.snapshot = self._package(res, [str(w.message) for w in caught])
+                self.snapshot["timings"] = timings
                 self.snapshot["server_ms"] = (time.perf_counter() - t0) * 1e3
                 self.status = self._status_line()
-                log.info("recompute %.1f ms: %s", self.snapshot["server_ms"], self.snapshot["timings"])
+                log.info("recompute %.1f ms: %s", self.snapshot["server_ms"], timings)
                 self.version += 1
                 return True
             except Exception as e:  # shown as a notification; the trace goes to the log only
                 log.warning("recompute failed: %s", traceback.format_exc())
-                self.error = _readable(e).replace(str(self.upload_dir) + "/", "")  # uploads by their own name
+                self.error = self.readable(e)
                 self.status = "error: " + self.error
                 return False
             finally:
                 self.busy, self.progress = False, 100
+
+    def dense(self, progress=None) -> dict:
+        """Run the dense-transfer stages (Xu 2014) of this session's shot; returns their results
+        (``transfer``, ``transfer_edit``, ``detail_edit``) and the stage timings. Raises."""
+        self._apply_selection()
+        res = self.pipeline.results(DENSE_STAGES, progress=progress)
+        res["timings"] = dict(self.pipeline.timings)
+        return res
+
+    def readable(self, e: Exception) -> str:
+        """An exception as a message for the page: uploads by their own name, no server paths."""
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+        if not isinstance(e, (ValueError, KeyError, FileNotFoundError)):
+            msg = f"{type(e).__name__}: {msg}"
+        return msg.replace(str(self.upload_dir) + "/", "")
 
     def _progress(self, fraction: float, message: str):
         self.progress = int(round(100 * min(max(fraction, 0), 1)))
@@ -148,7 +228,8 @@ class Session(param.Parameterized):
         times = st.times - st.times[0]
         source_rig = ld["source_rig"]
         return {
-            "times": times, "fps": st.fps, "weights": W, "target_rig": ld["target_rig"], "target_names": list(ld["target_rig"].names),
+            "times": times, "fps": st.fps, "weights": W, "valid": res["synthesize"]["valid"],
+            "first_frame": res["frames"]["first"], "target_rig": ld["target_rig"], "target_names": list(ld["target_rig"].names),
             "source_rig": source_rig, "source_weights": st.source_weights, "source_markers": st.positions,
             "target_markers": res["synthesize"]["target_markers"], "marker_names": list(st.names),
             "target_layout": ld["target_layout"].select(tm.names), "source_layout": ld["source_layout"].select(tm.names) if ld["source_layout"] else None,
@@ -156,25 +237,13 @@ class Session(param.Parameterized):
             "personalize": res["personalize"], "calibrated_deltas": tm.calibrated, "raw_deltas": tm.deltas,
             "solver_names": list(res["calibrate"]["rig"].names),
             "source_neutral": st.neutral,  # the shapes of the (K_solver, M, 3) deltas
-            "solve_info": res["solve"]["info"],
-            "timings": {k: v * 1e3 for k, v in self.pipeline.timings.items()}, "warnings": warnings_,
+            "solve_info": res["solve"]["info"], "warnings": warnings_,
         }
 
     def _status_line(self) -> str:
         s = self.snapshot
         ev = s["evaluate"]
+        gaps = int((~np.asarray(s["valid"])).sum())
         return (f"{len(s['times'])} frames @ {s['fps']:g} fps · {len(s['marker_names'])} markers · {s['method']} · "
-                f"marker error median {np.nanmedian(ev['marker_error_mm']):.2f} mm · server {s['server_ms']:.0f} ms")
-
-
-def _has_spacetime() -> bool:
-    try:
-        from core.solvers import spacetime  # noqa: F401
-        return True
-    except ImportError:
-        return False
-
-
-def _readable(e: Exception) -> str:
-    msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-    return f"{msg}" if isinstance(e, (ValueError, KeyError, FileNotFoundError)) else f"{type(e).__name__}: {msg}"
+                f"marker error median {np.nanmedian(ev['marker_error_mm']):.2f} mm · server {s['server_ms']:.0f} ms"
+                + (f" · {gaps} frames without data" if gaps else ""))

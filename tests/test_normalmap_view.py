@@ -12,7 +12,20 @@ import numpy as np
 import param
 import pytest
 
-from core.normalmap import angle_deg, blend_normal_maps, mask_maps, shape_normal_maps, vertex_normals_seamless
+from core.normalmap import (angle_deg, blend_normal_maps, frame_blend_weights, mask_maps, shape_normal_maps,
+                            texture_coordinates, vertex_normals_seamless)
+from core.pipeline import Pipeline, StageCache
+from datapaths import PERFORMANCES, RIGS
+
+CACHE = StageCache()
+
+
+def target_pipeline(rig_file="ict_facekit.glb", **settings):
+    return Pipeline(cache=CACHE, target_rig=str(RIGS / rig_file), **settings)
+
+
+def bake(pipe):
+    return pipe.results(["normalmap_bake"])["normalmap_bake"]["bake"]
 
 
 @pytest.fixture(scope="module")
@@ -53,15 +66,13 @@ def lookup(img, st):
 def view(ict, track):
     from dashboard.normalmap_view import NormalMapView
 
-    v = NormalMapView()
+    v = NormalMapView(target_pipeline())
     v.update(snapshot(ict, track), 1)
     return v
 
 
 def test_update_sends_a_blended_map_per_frame_and_only_the_map(view, ict, track):
-    from dashboard import normalmap_view as nv
-
-    b = nv.bake(ict, 256)
+    b = bake(view.pipeline)
     H, W = b.shape
     assert (H, W) == (256, 512)  # ICT's UVs span two UDIM tiles
     img = view.mapped_viewer.normal_map
@@ -101,11 +112,9 @@ def test_update_sends_a_blended_map_per_frame_and_only_the_map(view, ict, track)
 def test_map_convention_reproduces_the_vertex_normals(view, ict):
     """Read at each vertex's texture coordinates with the viewer's convention, the neutral's
     map gives that vertex's normal (a flipped v would not)."""
-    from dashboard import normalmap_view as nv
-
     view.update(view._snap, 0)
     img = view.mapped_viewer.normal_map
-    st = nv.texture_coordinates(ict.uvs, nv.bake(ict, 256).raster)
+    st = texture_coordinates(ict.uvs, bake(view.pipeline).raster)
     truth = vertex_normals_seamless(ict)
     err = angle_deg(lookup(decode(img), st), truth)
     flipped = angle_deg(lookup(decode(img[::-1]), st), truth)
@@ -119,10 +128,10 @@ def test_toggle_and_resolution(view, ict):
     assert lo.normal_map is None and "off" in view.status.object
     view.enabled = True
     assert lo.normal_map is not None and lo.normal_map.shape == (256, 512, 3)
-    view.resolution = 512
+    view.pipeline.configure(normalmap_resolution=512)  # the resolution widget's setting (a pipeline stage's)
     assert lo.normal_map.shape == (512, 1024, 3)
     assert view.mapped_viewer is lo  # no rebuild: only the map changed
-    view.resolution = 256
+    view.pipeline.configure(normalmap_resolution=256)
     assert lo.normal_map.shape == (256, 512, 3)
 
 
@@ -130,7 +139,7 @@ def test_own_frame_slider_draws_and_reports(ict, track):
     from dashboard.normalmap_view import NormalMapView
 
     seen = []
-    v = NormalMapView(on_frame=seen.append)
+    v = NormalMapView(target_pipeline(), on_frame=seen.append)
     v.update(snapshot(ict, track), 1)
     assert (v.w_frame.start, v.w_frame.end, v.w_frame.value) == (0, len(track) - 1, 1) and seen == []
     before = v.mapped_viewer.normal_map
@@ -145,64 +154,56 @@ def test_own_frame_slider_draws_and_reports(ict, track):
 def test_inactive_view_defers_work(ict, track):
     from dashboard.normalmap_view import NormalMapView
 
-    v = NormalMapView(active=False)
+    v = NormalMapView(target_pipeline(), active=False)
     v.update(snapshot(ict, track), 2)
     assert v.mapped_viewer is None and v.body.objects == []
     v.active = True
     assert v.mapped_viewer is not None and v.mapped_viewer.frame == 2 and v.mapped_viewer.normal_map is not None
 
 
-def test_local_method_blends_with_region_masks(view, ict, track):
-    """Local snapshots: eq. 3 with regional weights and masks; after an edit (shown weights no
-    longer the mask blend of the regional ones) the global weights are used."""
-    from core.solvers.local import blend_weights
-    from dashboard import normalmap_view as nv
+def test_local_method_blends_with_region_masks(ict):
+    """Local results (a real session: the Live Link take on ICT, 3 regions): eq. 3 with the
+    regional weights and the masks of the pipeline's segmentation; after an edit (shown weights
+    no longer the mask blend of the regional ones) the global weights are used."""
+    from dashboard.normalmap_view import NormalMapView
+    from dashboard.session import Session
 
-    # two soft regions, left/right of the face, summing to 1
-    x = ict.neutral[:, 0] / np.abs(ict.neutral[:, 0]).max()
-    left = 1 / (1 + np.exp(-x / 0.05))
-    masks = np.stack([left, 1 - left])
-    rng = np.random.default_rng(5)
-    solver = list(ict.names[:30])
-    U = rng.uniform(0, 1, (len(track), 2, 30)) * (rng.random((len(track), 2, 30)) < 0.4)
-    W = np.zeros((len(track), ict.n_shapes))
-    W[:, :30] = blend_weights(U, masks)
-    snap = snapshot(ict, W, method="local", segment={"labels": (left < 0.5).astype(int), "masks": masks},
-                    solve_info={"region_weights": U, "masks": masks}, solver_names=solver)
-    Ur, m, note = nv.frame_weights(snap, 4)
-    assert Ur.shape == (2, ict.n_shapes) and np.array_equal(m, masks)
-    np.testing.assert_array_equal(Ur[:, :30], U[4])
-    assert note == "2 regions"
+    s = Session(cache=CACHE)
+    s.use_files(source=str(PERFORMANCES / "livelinkface_take_s07.csv"), source_rig=str(RIGS / "ict_facekit.glb"),
+                target_rig=str(RIGS / "ict_facekit.glb"))
+    s.pipeline.configure(method="local", regions=3, last_frame=9, target_shapes="")
+    assert s.recompute(), s.error
+    snap = s.snapshot
+    masks, U = snap["segment"]["masks"], snap["solve_info"]["region_weights"]
+    Ur, use_masks, note = frame_blend_weights(snap["weights"], 4, ict.names, U, masks, snap["solver_names"])
+    assert use_masks and Ur.shape == (len(masks), ict.n_shapes) and note == f"{len(masks)} regions"
+    view = NormalMapView(s.pipeline)
     view.update(snap, 4)
     img = view.mapped_viewer.normal_map
-    b = nv.bake(ict, 256)
+    b = bake(s.pipeline)
     maps = shape_normal_maps(ict, b.raster)
-    Uf = np.zeros((2, ict.n_shapes))
-    Uf[:, :30] = U[4]
-    ref = blend_normal_maps(maps, Uf, mask_maps(b.raster, ict.faces, masks))
+    ref = blend_normal_maps(maps, Ur, mask_maps(b.raster, ict.faces, masks))
     cov = b.raster.covered
     err = angle_deg(decode(img)[cov], ref[cov])
     assert np.percentile(err, 99) < 1.0
-    # regions matter here: the global blend of the same frame differs
-    glob = blend_normal_maps(maps, W[4][None], np.ones((1,) + b.shape))
-    assert np.percentile(angle_deg(glob[cov], ref[cov]), 99) > 3.0
     assert "regions" in view.status.object
 
-    edited = dict(snap, weights=W + 0.1 * (np.arange(ict.n_shapes) == 0))
-    Ug, mg, note = nv.frame_weights(edited, 4)
-    assert mg is None and Ug.shape == (1, ict.n_shapes) and "edited" in note
+    edited = np.asarray(snap["weights"]) + 0.1 * (np.arange(ict.n_shapes) == 0)
+    Ug, mg, note = frame_blend_weights(edited, 4, ict.names, U, masks, snap["solver_names"])
+    assert not mg and Ug.shape == (1, ict.n_shapes) and "edited" in note
 
 
 def test_rig_without_uvs_shows_the_hint(view, rocketbox, ict, track):
     from dashboard.normalmap_view import HINT, NormalMapView
 
     assert rocketbox.uvs is None
-    v = NormalMapView()
+    v = NormalMapView(target_pipeline("rocketbox_female_adult_02.glb"))
     v.update(snapshot(rocketbox, np.zeros((3, rocketbox.n_shapes))), 0)
     assert v.mapped_viewer is None
     (pane,) = v.body.objects
     assert pane.object == HINT and "ict_facekit.glb" in HINT
     # and back to a rig with UVs
+    v.pipeline.configure(target_rig=str(RIGS / "ict_facekit.glb"))
     v.update(snapshot(ict, track), 1)
     assert v.mapped_viewer is not None and v.mapped_viewer.normal_map is not None
 

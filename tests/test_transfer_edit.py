@@ -155,3 +155,36 @@ def test_detail_window_scale_and_region(tiger):
     curve = tiger.neutral[[0, 50]]
     sel = region_near_curve(tiger.neutral, curve, 1e-3)
     assert 0 in sel and 50 in sel
+
+
+def test_transfer_editor_uses_the_results_system_or_rebuilds_it(tiger, rocketbox):
+    """TransferEditor (the large-scale editor of a TransferResult): the result carries its
+    factorised eq. 9 system; one that does not is rebuilt from the source rig and settings,
+    and consistency() tells whether the rebuild is the system the transfer used."""
+    import dataclasses
+
+    from core.transfer import TransferSettings, transfer_sequence
+    from core.transfer.edit import TransferEditor
+
+    t = np.arange(30)
+    W = np.clip(0.5 + 0.5 * np.sin(t[:, None] / (5 + 2 * np.arange(tiger.n_shapes))), 0, 1)
+    res = transfer_sequence(tiger.neutral, tiger.faces, tiger.evaluate(W), tiger.neutral * [1.1, 0.95, 1.0], tiger.faces,
+                            max_bases=6)
+    assert res.system is not None and res.editor().consistency() < 1e-12
+    bare = dataclasses.replace(res, system=None, welded=None)
+    assert TransferEditor(bare, tiger).consistency() < 1e-9
+    # other smoothing than the transfer used: not the same system, and the check says so
+    assert TransferEditor(bare, tiger, TransferSettings(iterations=5)).consistency() > 1e-3
+    with pytest.raises(ValueError, match="source_rig 'rocketbox.*expected the topology"):
+        TransferEditor(bare, rocketbox)
+    with pytest.raises(ValueError, match="give the source rig"):
+        TransferEditor(bare)
+    # an edit spec (plain data, as the shot stores it) moves a vertex towards its target
+    S = res.sequence()
+    v = int(np.argmax(np.linalg.norm(S - S.mean(0), axis=2).max(0)))
+    target = (S[10, v] + 0.5 * (S[20, v] - S[10, v])).tolist()
+    spec = {"constraints": [{"kind": "point", "frame": 10, "vertex": v, "target": target}], "window": [5, 15],
+            "lam_b": 0.0, "lam_w": 1.0, "lam_e": 100.0}
+    D, Wn, rep = res.editor().apply((res.deltas, res.weights), spec)
+    assert rep["after_mm"][0] < 0.5 * rep["before_mm"][0]
+    np.testing.assert_array_equal(Wn[16:], res.weights[16:])

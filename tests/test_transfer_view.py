@@ -1,10 +1,11 @@
 """The dense-transfer editing view (dashboard/transfer_view.py), driven through its params and
 widgets without a browser: a drag on the viewer (its ``dragged`` param, as the browser sets it)
-becomes a point constraint, Apply runs core's LargeScaleEditor, the viewer gets the new
-bases/weights; undo restores them.
+becomes a point constraint, Apply appends a large-scale edit to the shot (the pipeline's
+``transfer_edit`` stage runs core's editor), the viewer gets the new bases/weights; undo
+restores them.
 
-Fast tests use a same-topology transfer of the tiger (no registration); the slow one runs the
-real ICT → Rocketbox transfer of a Live Link take through a dashboard Session.
+Fast tests use a same-topology transfer of the tiger through the pipeline (no registration,
+tests/dense_case.py); the slow one runs the real ICT → Rocketbox transfer of a Live Link take.
 """
 
 from __future__ import annotations
@@ -12,8 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.transfer import TransferSettings, transfer_sequence
+from core.pipeline import StageCache
 from core.transfer.edit import LargeScaleEditor, PointConstraint
+from dense_case import T as FRAMES
+from dense_case import tiger_files
 
 
 def shown(result_neutral, D, W):
@@ -22,23 +25,30 @@ def shown(result_neutral, D, W):
 
 
 @pytest.fixture(scope="module")
-def tiger_transfer(tiger):
-    t = np.arange(40)
-    K = tiger.n_shapes
-    W = np.clip(0.5 + 0.5 * np.sin(t[:, None] / (5 + 2 * np.arange(K)) + np.arange(K)), 0, 1)
-    res = transfer_sequence(tiger.neutral, tiger.faces, tiger.evaluate(W), tiger.neutral * [1.1, 0.95, 1.0], tiger.faces,
-                            max_bases=8)
-    return res
+def tiger_case(tmp_path_factory):
+    return tiger_files(tmp_path_factory.mktemp("tiger"))
 
 
 @pytest.fixture
-def view(tiger, tiger_transfer):
+def view(tiger_case):
     from dashboard.session import Session
-    from dashboard.transfer_view import EditableTransfer, TransferView
+    from dashboard.transfer_view import TransferView
 
-    v = TransferView(Session())
-    v.show(EditableTransfer(tiger_transfer, tiger), first_frame=0, target_name="tiger")
+    s = Session(cache=CACHE)
+    s.use_files(**tiger_case)
+    s.pipeline.configure(transfer_max_bases=8, transfer_last_frame=-1)
+    v = TransferView(s)
+    assert v.run(block=True), v.status
+    assert v.result is not None, v.status
     return v
+
+
+CACHE = StageCache()  # the tests share the transfer; each view starts with empty edit lists
+
+
+@pytest.fixture
+def tiger_transfer(view):
+    return view.result
 
 
 def moving_vertex(res, frame):
@@ -56,15 +66,15 @@ def drag(viewer, vertex, frame, start, end, count=1):
                       "end": [float(x) for x in end], "count": count}
 
 
-def test_editable_transfer_rebuilds_the_transfer_system(tiger, rocketbox, tiger_transfer):
-    from dashboard.transfer_view import EditableTransfer
-
-    ed = EditableTransfer(tiger_transfer, tiger)
-    assert ed.consistency() < 1e-9
-    # other smoothing than the transfer used: not the same system, and the check says so
-    assert EditableTransfer(tiger_transfer, tiger, TransferSettings(iterations=5)).consistency() > 1e-3
-    with pytest.raises(ValueError, match="source_rig 'rocketbox.*expected the topology"):
-        EditableTransfer(tiger_transfer, rocketbox)
+def test_the_view_shows_the_pipelines_transfer(view, tiger_transfer):
+    res = tiger_transfer
+    assert len(res.weights) == FRAMES and view.viewer.n_shapes == res.n_bases and res.n_bases <= 8
+    assert view.viewer.pick_mode == "vertex" and view.first_frame == 0
+    # the registration and transfer are the pipeline's cached stages: running again computes nothing
+    runs = dict(view.pipe.runs)
+    assert view.run(block=True)
+    assert dict(view.pipe.runs) == runs
+    assert view.editor.consistency() < 1e-9
 
 
 def test_drag_becomes_a_point_constraint_and_apply_edits_the_window(view, tiger_transfer):
@@ -74,7 +84,6 @@ def test_drag_becomes_a_point_constraint_and_apply_edits_the_window(view, tiger_
     v, f2, S = moving_vertex(res, f)
     start, target = S[f, v], S[f2, v]
     assert np.linalg.norm(target - start) > 1e-3 * 0.25  # the test needs a real move (tiger ~0.25 m)
-    assert view.viewer.pick_mode == "vertex"
     view.w_lam_b.value = 0.0  # weights only: frames outside the window must not change at all
     view.w_half.value = 4
     drag(view.viewer, v, f, start, target)
@@ -82,7 +91,7 @@ def test_drag_becomes_a_point_constraint_and_apply_edits_the_window(view, tiger_
     assert view.viewer.highlight == [v]
     assert view.window() == (16, 24)
     assert view.apply_edit(), view.status
-    D1, W1 = view.states[-1]
+    D1, W1 = view.state
     after = res.neutral[v] + W1[f] @ D1[:, v]
     miss0, miss1 = np.linalg.norm(start - target), np.linalg.norm(after - target)
     assert miss1 < 0.5 * miss0, f"vertex did not move towards the target: {miss0 * 1e3:.2f} -> {miss1 * 1e3:.2f} mm"
@@ -94,11 +103,15 @@ def test_drag_becomes_a_point_constraint_and_apply_edits_the_window(view, tiger_
     assert not np.allclose(S1[16:25], S[16:25])
     # the viewer plays the edited weights; constraints are consumed, the edit is listed
     np.testing.assert_allclose(view.viewer.track, W1.astype(np.float32))
-    assert view.pending == [] and len(view.edits) == 1 and view.viewer.highlight == []
+    assert view.pending == [] and view.viewer.highlight == []
+    (spec,) = view.pipe.transfer_edit.transfer_edits  # the edit is in the shot, as plain data
+    assert spec == {"constraints": [{"kind": "point", "frame": f, "vertex": v, "target": target.tolist()}],
+                    "window": [16, 24], "lam_b": 0.0, "lam_w": 1.0, "lam_e": 100.0}
+    assert view.session.shot().edits["transfer"].done == [spec]
     # the same edit by core's editor directly (the view only glues): identical weights
-    ed = LargeScaleEditor(view.editable.transfer, np.asarray(res.neutral)[view.editable.rep],
-                          np.asarray(res.deltas)[:, view.editable.rep], res.weights)
-    direct = ed.edit([PointConstraint(f, int(view.editable.welded[v]), tuple(target))], 0.0, 1.0, 100.0, (16, 24))
+    e = view.editor
+    ed = LargeScaleEditor(e.transfer, np.asarray(res.neutral)[e.rep], np.asarray(res.deltas)[:, e.rep], res.weights)
+    direct = ed.edit([PointConstraint(f, int(e.welded[v]), tuple(target))], 0.0, 1.0, 100.0, (16, 24))
     np.testing.assert_allclose(direct.weights, W1, rtol=0, atol=1e-12)
 
     # a second edit with λ_b > 0 edits the bases (every frame using them moves) but not the
@@ -110,7 +123,7 @@ def test_drag_becomes_a_point_constraint_and_apply_edits_the_window(view, tiger_
     target2 = S1f + 0.5 * (S[f3, v2] - S1f)
     drag(view.viewer, v2, f, S1f, target2, count=2)
     assert view.apply_edit(), view.status
-    D2, W2 = view.states[-1]
+    D2, W2 = view.state
     after2 = res.neutral[v2] + W2[f] @ D2[:, v2]
     assert np.linalg.norm(after2 - target2) < 0.5 * np.linalg.norm(S1f - target2)
     assert not np.allclose(D2, D1)
@@ -118,13 +131,15 @@ def test_drag_becomes_a_point_constraint_and_apply_edits_the_window(view, tiger_
     np.testing.assert_array_equal(W2[out2], W1[out2])
     np.testing.assert_allclose(view.viewer.deltas, D2.astype(np.float32))
 
-    # undo twice: back to the transfer, in the viewer too
+    # undo twice: back to the transfer, in the viewer too; redo brings the first edit back
     assert view.undo()
-    np.testing.assert_array_equal(view.states[-1][1], W1)
+    np.testing.assert_array_equal(view.state[1], W1)
     np.testing.assert_allclose(view.viewer.deltas, D1.astype(np.float32))
     assert view.undo() and not view.undo()
     np.testing.assert_allclose(view.viewer.track, res.weights.astype(np.float32))
-    assert len(view.edits) == 0
+    assert view.pipe.transfer_edit.transfer_edits == [] and len(view.pipe.redo["transfer"]) == 2
+    assert view.redo()
+    np.testing.assert_array_equal(view.state[1], W1)
 
 
 def test_distance_and_fixed_constraints(view, tiger_transfer):
@@ -154,7 +169,7 @@ def test_distance_and_fixed_constraints(view, tiger_transfer):
     view.w_half.value = 0  # whole range
     assert view.window() is None
     assert view.apply_edit(), view.status
-    D1, W1 = view.states[-1]
+    D1, W1 = view.state
     S1 = shown(res.neutral, D1, W1)
     d1 = np.linalg.norm(S1[f, v] - S1[f, j])
     want = d0 * 1.3
@@ -183,15 +198,15 @@ def test_ict_to_rocketbox_run_then_drag_edit():
     view.update(session.snapshot)
     assert view.w_range.value == (0, 299) and not view.w_run.disabled
     view.w_range.value = (600, 629)
-    view.w_iter.value = 30  # the settings card reaches the transfer and the editor
+    session.pipeline.configure(transfer_iterations=30)  # the settings card's widgets set these
     assert view.run(block=True), view.status
-    assert view.editable is not None, view.status
-    res = view.editable.result
+    assert view.result is not None, view.status
+    res = view.result
     assert res.weights.shape[0] == 30 and res.n_bases >= 1
     assert res.registration is not None and res.registration.report["landmark_residual_mm_mean"] < 5
-    assert view.editable.consistency() < 1e-8
-    st = view.editable.settings
-    assert st.iterations == 30 and st.feature_lines is not None and len(st.feature_lines) == 3  # 2 eyes + mouth
+    assert view.editor.consistency() < 1e-8
+    lines = session.pipeline.results(["deform"])["deform"]["feature_lines"]
+    assert lines is not None and len(lines) == 3  # 2 eyes + mouth
     assert view.viewer.n_shapes == res.n_bases and view.viewer.pick_mode == "vertex"
     assert view.first_frame == 600 and "30 frames" in view.status
 
@@ -203,13 +218,17 @@ def test_ict_to_rocketbox_run_then_drag_edit():
     view.w_half.value = 5
     drag(view.viewer, v, f, start, target)
     assert view.apply_edit(), view.status
-    D1, W1 = view.states[-1]
+    D1, W1 = view.state
     after = res.neutral[v] + W1[f] @ D1[:, v]
     assert np.linalg.norm(after - target) < 0.5 * np.linalg.norm(start - target)
     outside = np.r_[0:10, 21:30]
     np.testing.assert_array_equal(W1[outside], res.weights[outside])
     np.testing.assert_array_equal(D1, res.deltas)
     np.testing.assert_allclose(view.viewer.track, W1.astype(np.float32))
+    # a second take of the same actor onto the same rig reuses the registration
+    runs = session.pipeline.runs["register"]
+    view.w_range.value = (700, 719)
+    assert view.run(block=True) and session.pipeline.runs["register"] == runs
 
 
 def busiest_vertex(view, frame):
@@ -252,8 +271,8 @@ def test_detail_scale_edit_from_clicks_then_undo(view, tiger_transfer):
     view.details.w_factor.value = 0.0
     view.details.w_lam_e.value = 100.0
     assert view.details.apply(), view.status
-    new = view.detail_states[-1]
-    assert len(view.edits) == 1 and view.edits[0].kind == "detail" and "scale ×0" in view.status
+    new = view.current_details
+    assert len(view.pipe.detail_edit.detail_edits) == 1 and "scale ×0" in view.status
     # the same edit by core directly: identical details
     ed = view.details.editor
     region = ed.select_paint(ed.to_editor([vtx]), view.details.w_radius.value / 1000, k)
@@ -269,8 +288,8 @@ def test_detail_scale_edit_from_clicks_then_undo(view, tiger_transfer):
     # shown: the viewer's offsets are the edited details of its frame; bases/weights unchanged
     view.viewer.frame = k
     np.testing.assert_array_equal(view.viewer.offsets, new[k])
-    np.testing.assert_array_equal(view.states[-1][0], view.states[0][0])
-    assert view.undo()
+    np.testing.assert_array_equal(view.state[0], res.deltas)
+    assert view.undo("detail")
     np.testing.assert_array_equal(view.viewer.offsets, res.details[k].astype(np.float32))
 
 
@@ -291,8 +310,8 @@ def test_detail_copy_paste_and_reshape_from_clicks(view, tiger_transfer):
     view.viewer.picked = {"vertex": far, "frame": k, "position": res.neutral[far].tolist(), "count": 2}
     assert far in view.viewer.highlight
     assert view.details.apply(), view.status
-    pasted = view.detail_states[-1][k] - res.details[k]
-    assert np.linalg.norm(pasted[far]) > 0 and "copy-paste" in view.edits[-1].report
+    pasted = view.current_details[k] - res.details[k]
+    assert np.linalg.norm(pasted[far]) > 0 and "copy-paste" in view.status
     # reshape: the wrinkle as a curve through two vertices near the busiest one, a target beside it
     view.details.clear()
     view.details.w_op.value = "reshape wrinkle"
@@ -307,9 +326,10 @@ def test_detail_copy_paste_and_reshape_from_clicks(view, tiger_transfer):
     shift = np.array([0.0, 0.004, 0.0])
     for n, x in enumerate((a, b)):
         view.viewer.picked = {"vertex": x, "frame": k, "position": (res.neutral[x] + shift).tolist(), "count": 5 + n}
+    before = view.current_details
     assert view.details.apply(), view.status
-    assert view.edits[-1].kind == "detail" and "reshape" in view.edits[-1].report
-    assert len(view.edits) == 2 and not np.array_equal(view.detail_states[-1], view.detail_states[-2])
+    assert "reshape" in view.status and [e["op"] for e in view.pipe.detail_edit.detail_edits] == ["copy_paste", "reshape"]
+    assert not np.array_equal(view.current_details, before)
 
 
 def test_detail_paint_stroke_from_a_drag(view, tiger_transfer):
@@ -357,9 +377,9 @@ def test_details_play_along_as_morph_targets(view, tiger_transfer):
     view.viewer.picked = {"vertex": busiest_vertex(view, k), "frame": k, "position": [0.0, 0.0, 0.0], "count": 1}
     assert view.details.apply(), view.status
     shown = v.neutral[None] + np.einsum("tk,kvc->tvc", v.track, v.deltas)
-    want = res.neutral[None] + np.einsum("tk,kvc->tvc", res.weights, res.deltas) + view.detail_states[-1]
+    want = res.neutral[None] + np.einsum("tk,kvc->tvc", res.weights, res.deltas) + view.current_details
     assert np.linalg.norm(shown - want, axis=2).max() <= view.details.morphs()[2] + 1e-6
     view.details.w_play.value = False
     assert v.n_shapes == K and np.array_equal(v.track, res.weights.astype(np.float32))
     v.frame = k
-    np.testing.assert_array_equal(v.offsets, view.detail_states[-1][k])
+    np.testing.assert_array_equal(v.offsets, view.current_details[k])

@@ -771,7 +771,7 @@ class DetailEditor:
                          propagation=spec.get("propagation", "per_frame"))
         ts, te = res.window
         return res, {"what": what, "frame": int(spec["frame"]), "window": [int(ts), int(te)],
-                     "max_change_mm": float(res.max_change_mm), "seconds": float(res.timings["total"])}
+                     "max_change_mm": float(res.max_change_mm), "seconds": float(res.seconds["total"])}
 
     def apply_reference(self, edit: KeyEdit, window: tuple, lam_e: float = 1.0, lam_t: float = 0.1,
                         lam_s: float = 1.0, propagation: str = "eq18", taper: int = 3) -> np.ndarray:

@@ -1,48 +1,58 @@
 """Detail-editing test page: the dense-transfer tab on a same-topology transfer of the Jeeliz
-tiger (no registration, a few seconds), opened on frame 20 with "Click does" set to detail
-selection and the scale factor at 3 (enhance), so a click and Apply make a visible edit.
+tiger onto a stretched copy (tests/dense_case.py: no registration, a few seconds), opened on
+frame 20 with "Click does" set to detail selection and the scale factor at 3 (enhance), so a
+click and Apply make a visible edit.
 
 Served by tests/browser/test_detail_browser.py (``panel serve tests/browser/detail_app.py``).
-:func:`transfer` is deterministic; the test recomputes the same transfer in numpy.
+:func:`transfer` is deterministic; the test recomputes the same transfer.
 """
 
 from __future__ import annotations
 
 import sys
+import tempfile
 from pathlib import Path
 
-import numpy as np
 import panel as pn
 
 ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from core.io.gltf import read_rig  # noqa: E402
-from core.transfer import transfer_sequence  # noqa: E402
+if str(ROOT / "tests") not in sys.path:
+    sys.path.insert(0, str(ROOT / "tests"))
 
 RIG = ROOT / "data" / "rigs" / "jeeliz_tiger.glb"
+#: the case's files, the same for the test process and the server process (deterministic)
+CASE = Path(tempfile.gettempdir()) / "face-retarget-tiger-case"
 KEY = 20
-LABEL = "tiger (dense transfer)"
+LABEL = "tiger_big (dense transfer)"
 FACTOR = 3.0
 LAM_E = 100.0
 
 
-def transfer(rig):
-    t = np.arange(40)
-    K = rig.n_shapes
-    W = np.clip(0.5 + 0.5 * np.sin(t[:, None] / (5 + 2 * np.arange(K)) + np.arange(K)), 0, 1)
-    return transfer_sequence(rig.neutral, rig.faces, rig.evaluate(W), rig.neutral * [1.1, 0.95, 1.0], rig.faces,
-                             max_bases=8)
+def session():
+    """A dashboard session on the tiger case (tests/dense_case.py), dense settings as the test expects."""
+    from core.pipeline import StageCache
+    from dashboard.session import Session
+    from dense_case import tiger_files
+
+    s = Session(cache=StageCache())
+    s.use_files(**tiger_files(CASE))
+    s.pipeline.configure(transfer_max_bases=8, transfer_last_frame=-1)
+    return s
+
+
+def transfer():
+    """The transfer the page shows (the pipeline's dense stages on the case)."""
+    return session().dense()["transfer"]["result"]
 
 
 def app():
-    from dashboard.session import Session
-    from dashboard.transfer_view import EditableTransfer, TransferView
+    from dashboard.transfer_view import TransferView
 
-    rig = read_rig(RIG)
-    view = TransferView(Session())
-    view.show(EditableTransfer(transfer(rig), rig), first_frame=0, target_name="tiger")
+    view = TransferView(session())
+    assert view.run(block=True), view.status
     view.w_tool.value = "detail selection"
     view.w_frame.value = KEY
     view.details.w_factor.value = FACTOR

@@ -26,6 +26,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from core.io.gltf import read_rig  # noqa: E402
+from core.normalmap import frame_normal_map, texture_coordinates  # noqa: E402
+from core.pipeline import Pipeline  # noqa: E402
 from dashboard import normalmap_view as nv  # noqa: E402
 from dashboard.viewer import MeshViewer  # noqa: E402
 
@@ -57,10 +59,15 @@ def query(name: str, default: str) -> str:
     return vals[0].decode() if vals else default
 
 
+def pipeline(**settings) -> Pipeline:
+    """A pipeline on the ICT target: its normal-map stages bake what the page shows."""
+    return Pipeline(target_rig=str(RIG), **settings)
+
+
 def orientation_page(rig):
-    b = nv.bake(rig, 512)
-    st = nv.texture_coordinates(rig.uvs, b.raster)
-    neutral = nv.blended_normal_map(b, np.zeros((1, rig.n_shapes)))
+    b = pipeline(normalmap_resolution=512).results(["normalmap_bake"])["normalmap_bake"]["bake"]
+    st = texture_coordinates(rig.uvs, b.raster)
+    neutral = frame_normal_map(b, np.zeros((1, rig.n_shapes)))
     one = rig.subset(["jawOpen"])
     lo, hi = rig.neutral.min(0), rig.neutral.max(0)
     common = dict(shading="standard", sync_group="orientation", width=310, height=460, frame_bounds=list(np.r_[lo, hi]))
@@ -79,7 +86,7 @@ def app():
         return orientation_page(rig)
     W = track(rig)
     snap = snapshot(rig, W)
-    view = nv.NormalMapView(view_width=400)
+    view = nv.NormalMapView(pipeline(), view_width=400)
     view.update(snap, FRAME)
     frame = pn.widgets.Select(name="frame", options=list(range(T)), value=FRAME, width=120)
     frame.param.watch(lambda e: view.update(snap, e.new), "value")

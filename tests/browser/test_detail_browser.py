@@ -4,7 +4,7 @@ The page (tests/browser/detail_app.py) shows a transfer of the tiger on frame 20
 details as the viewer's offsets. The test clicks a vertex on the canvas (detail selection),
 checks the selection is coloured, presses "Apply detail edit" (scale ×3 on every frame of the μ window)
 and compares what the browser draws with core's result computed here: the vertex positions
-the browser shows must be neutral + w Δ + the edited details; "Undo" restores the
+the browser shows must be neutral + w Δ + the edited details; "Undo detail edit" restores the
 picture.
 """
 
@@ -37,7 +37,7 @@ def case(detail_app):
     from core.transfer.detail_edit import DetailEditor
 
     rig = read_rig(detail_app.RIG)
-    res = detail_app.transfer(rig)
+    res = detail_app.transfer()
     return rig, res, DetailEditor.from_result(res)
 
 
@@ -130,7 +130,7 @@ def test_click_select_apply_and_undo_a_detail_edit(page, detail_url, detail_app,
     assert np.hypot(box["x"] + dx - x, box["y"] + dy - y) < 80, "the change is not around the selection"
 
     # undo: the transfer's own details again, the picture as before
-    page.get_by_role("button", name="Undo", exact=True).click()
+    page.get_by_role("button", name="Undo detail edit", exact=True).click()
     expect(page.get_by_text(re.compile(r"^undone"))).to_be_visible(timeout=20_000)
     page.wait_for_function(
         "([label, v, z]) => Math.abs(window.__faceRetarget.viewers[label].vertexPositions([v])[0][2] - z) < 1e-6",
