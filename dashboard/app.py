@@ -79,10 +79,12 @@ def _shown(pipe) -> tuple:
     return tuple(tuple((st.stage_name, tuple(n)) for st, n in stage_params(pipe, groups)) for _, groups, _ in SIDEBAR_CARDS)
 
 
-class DashboardApp:
-    """One browser session's page."""
+class DashboardApp(pn.viewable.Viewer):
+    """One browser session's page; a Panel object, so it also displays in a notebook cell
+    (``pn.extension()``, then the app as a cell's value) sharing ``session.pipeline`` with code."""
 
-    def __init__(self, session: Session | None = None):
+    def __init__(self, session: Session | None = None, **params):
+        super().__init__(**params)
         self.s = session or Session()
         self.pipe = self.s.pipeline
         self._viewer_keys = {"source": None, "target": None}

@@ -57,7 +57,7 @@ def _default_shape(names, previous, similarity, key_frames):
     return names[int(np.argmax(S[:, kf].max(axis=1)))] if len(kf) else names[0]
 
 
-class PersonalizeView:
+class PersonalizeView(pn.viewable.Viewer):
     """The range-of-motion alignment diagnostics of one session (see the module docstring).
 
     ``update(snapshot)`` takes the session's snapshot (:meth:`dashboard.session.Session._package`);
@@ -68,7 +68,8 @@ class PersonalizeView:
     ``dx``/``dy``/``dz`` the unmagnified delta in mm, ``mask`` u_k).
     """
 
-    def __init__(self):
+    def __init__(self, **params):
+        super().__init__(**params)
         self._snap_ref = None  # the snapshot objects drawn last (held so identity checks are safe)
         self.names: list = []
         self._initial = self._personal = self._neutral = self._diag = None

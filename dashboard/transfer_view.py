@@ -48,7 +48,7 @@ TYPED = {"transfer_eps": pn.widgets.FloatInput, "transfer_alpha": pn.widgets.Flo
 RANGE = ("transfer_first_frame", "transfer_last_frame")
 
 
-class TransferView(param.Parameterized):
+class TransferView(pn.viewable.Viewer):
     """The dense-transfer tab: run Xu 2014 on the session's take, play it, edit it by dragging."""
 
     busy = param.Boolean(default=False)
