@@ -174,27 +174,20 @@ def bake(raster: UVRaster, faces: np.ndarray, values: np.ndarray, fill: float = 
     return out
 
 
-def _welded_normals(positions: np.ndarray, faces: np.ndarray, weld_index: np.ndarray, n_welded: int) -> np.ndarray:
-    from .geometry import vertex_normals
-
-    first = np.zeros(n_welded, dtype=np.int64)
-    first[weld_index[::-1]] = np.arange(len(weld_index))[::-1]
-    Nw = vertex_normals(positions[first], weld_index[faces])
-    return Nw[weld_index]
-
-
 def vertex_normals_seamless(rig: Rig, positions: Optional[np.ndarray] = None) -> np.ndarray:
     """Area-weighted unit vertex normals computed on the seam-welded mesh, (V, 3).
 
-    ``positions`` (V, 3) defaults to the neutral; seam copies of a vertex get one normal.
+    ``positions`` (V, 3) defaults to the neutral; seam copies of a vertex get one normal
+    (:func:`core.geometry.vertex_normals` with the ``weld_index`` of :func:`core.segment.weld`).
     """
+    from .geometry import vertex_normals
     from .segment import weld
 
     g = weld(rig)
     P = rig.neutral if positions is None else np.asarray(positions, dtype=np.float64)
     if P.shape != rig.neutral.shape:
         raise ValueError(f"positions: expected {rig.neutral.shape}, got {P.shape}")
-    return _welded_normals(P, rig.faces, g.index, g.n)
+    return vertex_normals(P, rig.faces, weld_index=g.index)
 
 
 def shape_normal_maps(rig: Rig, raster: UVRaster, dtype=np.float32) -> np.ndarray:
@@ -203,6 +196,7 @@ def shape_normal_maps(rig: Rig, raster: UVRaster, dtype=np.float32) -> np.ndarra
     Per-vertex normals of each pose, baked with :func:`bake` and renormalised per texel;
     zero where no triangle covers a texel.
     """
+    from .geometry import vertex_normals
     from .segment import weld
 
     if rig.uvs is None:
@@ -211,9 +205,10 @@ def shape_normal_maps(rig: Rig, raster: UVRaster, dtype=np.float32) -> np.ndarra
     S = bake_matrix(raster, rig.faces, rig.n_vertices)
     cov = raster.covered
     maps = np.zeros((rig.n_shapes + 1,) + raster.shape + (3,), dtype=dtype)
+    poses = np.concatenate([rig.neutral[None], rig.neutral + rig.deltas])
+    normals = vertex_normals(poses, rig.faces, weld_index=g.index)  # (K+1, V, 3), one pass
     for i in range(rig.n_shapes + 1):
-        P = rig.neutral if i == 0 else rig.neutral + rig.deltas[i - 1]
-        N = S @ _welded_normals(P, rig.faces, g.index, g.n)
+        N = S @ normals[i]
         n = np.linalg.norm(N, axis=-1, keepdims=True)
         maps[i][cov] = np.where(n > 0, N / np.where(n > 0, n, 1), 0.0)
     return maps

@@ -149,7 +149,7 @@ def _animals(ict, li, seq, W, lines, wi, rep, Fw, fast):
     from core.io.layout import read_layout
     from core.transfer import register, transfer_sequence
     from core.transfer.correspond import face_crop
-    from core.transfer._mesh import face_cross
+    from core.geometry import face_cross
     from core.transfer.performance import shared_landmarks
 
     # a few expressive frames of the take: largest motion, jaw open, blink, smile

@@ -117,6 +117,73 @@ def test_normals_and_orientation():
     np.testing.assert_allclose(vn[i], s / np.linalg.norm(s))
 
 
+def test_vertex_normals_hand_derived_two_faces():
+    # a flat triangle N1 = (0, 0, 1) (2A = 1) and a slanted one N2 = (v3 - v0) x (v1 - v0) = (0, 2, 2)
+    # (2A = 2 sqrt 2) on the shared edge 0-1: the shared corners get normalize(N1 + N2) = (0, 2, 3) / sqrt 13
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -2, 2]])
+    F = np.array([[0, 1, 2], [0, 3, 1]])
+    want = np.array([[0, 2, 3], [0, 2, 3], [0, 0, 1], [0, 1, 1]]) / np.array([[13 ** 0.5], [13 ** 0.5], [1], [2 ** 0.5]])
+    np.testing.assert_allclose(g.vertex_normals(V, F), want, atol=1e-15)
+    Vt, Ft = _tri()
+    np.testing.assert_array_equal(g.vertex_normals(Vt, Ft), [[0, 0, 1]] * 3)
+
+
+def test_vertex_normals_batch_rotation_and_per_face_loop(tiger):
+    """The batch equals pose-by-pose calls to the bit, and a plain loop over the faces in face
+    order (the sums of the incidence product); normals turn with a rotation."""
+    from scipy.spatial.transform import Rotation
+
+    V, F = tiger.neutral, tiger.faces
+    poses = np.concatenate([V[None], V + tiger.deltas[:4]])
+    batch = g.vertex_normals(poses, F)
+    for k in range(len(poses)):
+        assert np.array_equal(batch[k], g.vertex_normals(poses[k], F))
+    ref = np.zeros_like(V)
+    for a, b, c in F:
+        ref[[a, b, c]] += np.cross(V[b] - V[a], V[c] - V[a])
+    assert np.array_equal(batch[0], ref / np.linalg.norm(ref, axis=1, keepdims=True))
+    f32 = g.vertex_normals(poses.astype(np.float32), F)
+    dev = np.abs(f32 - batch).max(axis=-1)  # float32 rounding, worse on the tiger's tiniest faces
+    assert f32.dtype == np.float32 and np.median(dev) < 1e-7 and np.percentile(dev, 99) < 1e-5 and dev.max() < 1e-4
+    R = Rotation.from_rotvec([0.3, -0.7, 0.2]).as_matrix()
+    np.testing.assert_allclose(g.vertex_normals(V @ R.T + [1.0, 2.0, 3.0], F), batch[0] @ R.T, atol=1e-12)
+
+
+def test_vertex_normals_across_a_seam_and_fallback():
+    # a unit square folded along its diagonal 0-2, the two halves' copies of 0 and 2 split (a seam)
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 0, 0], [1, 1, 0], [0, 1, 1], [5, 5, 5]])
+    F = np.array([[0, 1, 2], [3, 4, 5]])
+    wi = np.array([0, 1, 2, 0, 2, 3, 4])
+    seam = g.vertex_normals(V, F)
+    assert np.allclose(seam[0], [0, 0, 1]) and not np.allclose(seam[3], seam[0])  # cut: one face each
+    n = g.vertex_normals(V, F, weld_index=wi)
+    welded = g.vertex_normals(V[[0, 1, 2, 5, 6]], wi[F])  # the same mesh without the seam
+    np.testing.assert_allclose(n, welded[wi], atol=1e-15)
+    assert np.array_equal(n[0], n[3]) and np.array_equal(n[2], n[4])
+    # vertex 6 is on no face: zero, or the fallback (glTF's +Z)
+    assert np.array_equal(n[6], [0, 0, 0])
+    assert np.array_equal(g.vertex_normals(V, F, fallback=(0, 0, 1))[6], [0, 0, 1])
+    with pytest.raises(ValueError, match="weld_index"):
+        g.vertex_normals(V, F, weld_index=wi[:3])
+
+
+def test_old_normal_callers_are_the_shared_function(tiger):
+    """glTF's NORMAL, the seam-welded normals of the normal maps and the transfer's frames are
+    geometry.vertex_normals with their option (same bits)."""
+    from core.io.gltf import vertex_normals as gltf_normals
+    from core.normalmap import vertex_normals_seamless
+    from core.segment import weld as weld_rig
+
+    V, F = tiger.neutral, tiger.faces
+    poses = np.concatenate([V[None], V + tiger.deltas])
+    assert np.array_equal(gltf_normals(poses, F), g.vertex_normals(poses, F, fallback=(0.0, 0.0, 1.0)))
+    assert np.array_equal(vertex_normals_seamless(tiger), g.vertex_normals(V, F, weld_index=weld_rig(tiger).index))
+    t, b, n = g.vertex_frames(poses, F)
+    assert np.array_equal(n, g.vertex_normals(poses, F))
+    np.testing.assert_allclose(np.einsum("...i,...i->...", t, n), 0, atol=1e-12)
+    np.testing.assert_allclose(np.cross(n, t), b, atol=1e-15)
+
+
 def test_boundary_loops_ordered():
     V, F = _grid(4, 4, jitter=0)
     loops = g.boundary_loops(F)
