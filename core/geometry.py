@@ -1,4 +1,4 @@
-"""The one mesh layer: Laplacians, mass matrices, normals and frames, boundaries.
+"""The one mesh layer: Laplacians, mass matrices, normals and frames, weld, boundaries.
 
 libigl/gpytoolbox style: short noun names, ``(V, F)`` arguments, scipy.sparse outputs. Every
 method that needs one of these operators calls the function here (one implementation per
@@ -8,7 +8,8 @@ algorithm, its variants as explicit options):
   :func:`uniform_laplacian`, :func:`vertex_adjacency`, :func:`vertex_face_incidence`;
 * normals and frames: :func:`face_normals`, :func:`vertex_normals` (one mesh or a batch of
   poses, optionally across UV seams), :func:`vertex_frames` (Xu et al. 2014 §5.1);
-* topology: :func:`boundary_loops`, :func:`edges`; :func:`farthest_points`.
+* topology: :func:`weld` (UV-seam copies merged), :func:`boundary_loops`, :func:`edges`;
+  :func:`farthest_points`.
 
 Sign conventions (used everywhere in this package)
 --------------------------------------------------
@@ -24,6 +25,8 @@ Sign conventions (used everywhere in this package)
   contribute nothing to the Laplacians or mass matrices instead of an inf/NaN cotangent; a
   vertex whose area-weighted normal sum is below the same bound has no normal (zero, or the
   ``fallback`` of :func:`vertex_normals`).
+* Tolerances are relative to the model: ``DEGENERATE_EPS * size**2`` for areas,
+  ``WELD_TOL * size`` for coincident vertices.
 
 References
 ----------
@@ -37,11 +40,15 @@ References
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
 #: relative area below which a triangle counts as degenerate (times size**2)
 DEGENERATE_EPS = 1e-14
+#: relative distance below which two vertices are one in :func:`weld` (times size)
+WELD_TOL = 1e-9
 
 
 def _check_mesh(V, F, name="V"):
@@ -384,7 +391,7 @@ def vertex_normals(V, F, *, weld_index=None, fallback=None, incidence=None) -> n
         float64.
     F : (F, 3) int
     weld_index : (n,) int, optional
-        Welded id of every vertex (seam copies share an id): normals computed across seams.
+        Welded id of every vertex (``weld(V, F).index``): normals computed across seams.
     fallback : (3,) float, optional
         The normal of a vertex that has none: on no face, on degenerate faces only, or where
         its faces cancel (sum below ``DEGENERATE_EPS * size**2``). Default the zero vector;
@@ -496,6 +503,95 @@ def vertex_frames(V, F, neighbour=None, incidence=None):
         t = np.where(bad[..., None], alt, t)
     t = _unit(t)
     return t, cross(n, t), n
+
+
+@dataclass(frozen=True, eq=False)
+class Weld:
+    """Result of :func:`weld`; unpacks as ``index, first, faces``.
+
+    Attributes
+    ----------
+    index : (n,) int64     welded id of every input vertex
+    first : (m,) int64     one input vertex per welded id, its first occurrence
+                           (``V[first]`` are the welded positions)
+    faces : (F', 3) int64  the faces in welded ids, faces that collapsed dropped
+    kept : (F,) bool       the input faces that did not collapse (``faces = index[F][kept]``)
+    """
+
+    index: np.ndarray
+    first: np.ndarray
+    faces: np.ndarray
+    kept: np.ndarray
+
+    @property
+    def n(self) -> int:
+        """Number of welded vertices."""
+        return len(self.first)
+
+    def __iter__(self):
+        # ``index, first, faces = weld(V, F)``, the form most callers take
+        return iter((self.index, self.first, self.faces))
+
+
+def weld(V, F, tol=None, *, attributes=None) -> Weld:
+    r"""Merge coincident vertices: the copies a rig makes along its UV seams.
+
+    A UV seam cuts the mesh into islands joined by nothing; every Laplacian, adjacency,
+    normal and connected-component computation that should see one surface runs on the
+    welded mesh. Vertices i and j are one when
+
+    .. math:: \operatorname{round}(x_i / \mathrm{tol}) = \operatorname{round}(x_j / \mathrm{tol})
+
+    for their positions and, when given, their ``attributes`` (a grid of spacing ``tol``:
+    seam copies, equal to the last bit, always merge; two distinct vertices closer than
+    ``tol`` may stay apart when they straddle a cell). ``tol=0`` asks for bit-identical
+    values (``-0.0`` and ``0.0`` are equal). Welded ids follow the first occurrence, so a
+    mesh without duplicates keeps its numbering.
+
+    Parameters
+    ----------
+    V : (n, 3) float
+    F : (F, 3) int
+    tol : float, optional
+        Default ``WELD_TOL * size`` (bounding-box diagonal); 0 for exact equality.
+    attributes : (..., n, c) float, optional
+        Values that must agree too, in the units of ``V`` (blendshape deltas (K, n, 3):
+        closed lips touch at rest but move apart, so they stay two vertices).
+
+    Returns
+    -------
+    Weld(index, first, faces, kept)
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, a negative tolerance, ``attributes`` without n rows.
+    """
+    V, F = _check_mesh(V, F)
+    n = len(V)
+    tol = WELD_TOL * max(_size(V), 1e-300) if tol is None else float(tol)
+    if not tol >= 0:
+        raise ValueError(f"tol: expected a distance >= 0, got {tol}")
+    key = V
+    if attributes is not None:
+        a = np.asarray(attributes, dtype=np.float64)
+        if a.ndim < 2 or a.shape[-2] != n:
+            raise ValueError(f"attributes: expected (..., {n}, c) values per vertex, got {a.shape}")
+        key = np.concatenate([V, np.moveaxis(a, -2, 0).reshape(n, -1)], axis=1)
+    if tol > 0:
+        key = np.round(key / tol).astype(np.int64)
+    else:
+        key = np.ascontiguousarray(key + 0.0)  # -0.0 -> 0.0
+    # one row as one opaque value (its bytes): equal rows are equal keys
+    rows = key.view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel()
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")  # welded ids by first occurrence
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    index = rank[inverse.ravel()].astype(np.int64)
+    wf = index[F]
+    ok = (wf[:, 0] != wf[:, 1]) & (wf[:, 1] != wf[:, 2]) & (wf[:, 0] != wf[:, 2])
+    return Weld(index, first[order].astype(np.int64), wf[ok], ok)
 
 
 def boundary_loops(F):

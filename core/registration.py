@@ -93,19 +93,18 @@ def _apply(s, R, t, p):
 
 
 def merged_mesh(rig: Rig, mask_faces: Optional[np.ndarray] = None):
-    """Merge the rig's UV-seam duplicates (identical positions) into one vertex.
+    """Merge the rig's UV-seam duplicates (identical positions) into one vertex
+    (:func:`core.geometry.weld`, default tolerance).
 
     Returns (positions (Vm, 3), faces (Fm, 3) merged ids, merged_of (V,) original -> merged,
     face_index (Fm,) original face of each merged face). Degenerate merged faces are dropped.
+    Merged ids follow the first occurrence of each position.
     """
-    scale = max(rig.size, 1e-12) * 1e-9
-    key = np.round(rig.neutral / scale).astype(np.int64)
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    from .geometry import weld
+
     fidx = np.arange(len(rig.faces)) if mask_faces is None else np.flatnonzero(mask_faces)
-    f = inverse[rig.faces[fidx]]
-    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    return rig.neutral[first], f[ok], inverse, fidx[ok]
+    w = weld(rig.neutral, rig.faces[fidx])
+    return rig.neutral[w.first], w.faces, w.index, fidx[w.kept]
 
 
 def skin_faces(rig: Rig) -> np.ndarray:

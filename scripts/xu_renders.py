@@ -66,7 +66,7 @@ def main(fast: bool = False, animals_only: bool = False):
     from core.io.livelink import read_livelink
     from core.names import NameMap
     from core.transfer import feature_lines_near
-    from core.transfer._mesh import weld
+    from core.geometry import weld
 
     OUT.mkdir(parents=True, exist_ok=True)
     ict = read_rig(DATA / "rigs" / "ict_facekit.glb")

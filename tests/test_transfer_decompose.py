@@ -7,8 +7,7 @@ import trimesh
 
 from core.transfer import (PoissonReconstructor, TaubinFilter, factor_sequence, laplacian_coating,
                            laplacian_operator, taubin_smooth)
-from core.geometry import vertex_frames
-from core.transfer._mesh import weld
+from core.geometry import vertex_frames, weld
 
 
 def _noisy_sphere(subdiv=2, seed=0):

@@ -11,8 +11,7 @@ from core.transfer import (TransferSettings, feature_lines_near, line_edges, nai
                            transfer_sequence)
 from core.transfer import DetailTransfer, FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence
 from core.transfer import details
-from core.geometry import first_neighbour, vertex_face_incidence, vertex_frames
-from core.transfer._mesh import weld
+from core.geometry import first_neighbour, vertex_face_incidence, vertex_frames, weld
 from core.transfer.details import _FramedSequence
 from tests.conftest import LAYOUTS, PERFORMANCES
 

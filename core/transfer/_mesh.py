@@ -1,10 +1,8 @@
 """Private mesh helpers for the transfer package.
 
 Only what no other package needs (mesh operators others use are public in
-:mod:`core.geometry`: normals, frames, incidence, cross products):
+:mod:`core.geometry`: weld, normals, frames, incidence, cross products):
 
-* :func:`weld` merges coincident vertices (rigs split vertices along UV seams, which cuts
-  the mesh into islands and breaks every Laplacian across the seam);
 * :func:`to_local` / :func:`to_world` change coordinates to and from the per-vertex frames
   of :func:`core.geometry.vertex_frames` (Xu 2014 §5.1);
 * :class:`PinnedSolver` one factorisation of a symmetric positive semi-definite mesh
@@ -18,6 +16,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
+
+# transitional: dashboard/transfer_view.py still imports weld from here; delete this line once
+# it imports core.geometry.weld (nothing in core, tests, scripts or benchmarks uses it)
+from ..geometry import weld  # noqa: F401
 
 
 def bbox_size(positions: np.ndarray) -> float:
@@ -45,32 +47,6 @@ def check_faces(f, n: int, name: str = "faces") -> np.ndarray:
     if a.size and (a.min() < 0 or a.max() >= n):
         raise ValueError(f"{name}: indices must lie in [0, {n}), got [{a.min()}, {a.max()}]")
     return a.astype(np.int64)
-
-
-def weld(positions: np.ndarray, faces: np.ndarray, tol: float | None = None):
-    """Merge vertices closer than ``tol`` (default ``1e-9 * size``).
-
-    Returns
-    -------
-    welded_index : (V,) int  -- welded id of every input vertex
-    representative : (V',) int -- one input vertex per welded vertex
-    welded_faces : (F', 3) int -- faces on welded ids, faces that collapsed dropped
-    """
-    p = np.asarray(positions, dtype=np.float64)
-    size = bbox_size(p)
-    tol = 1e-9 * max(size, 1e-300) if tol is None else tol
-    key = np.round(p / tol).astype(np.int64)
-    _, rep, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    inv = inv.ravel()
-    # order welded vertices by first occurrence so that a mesh without duplicates keeps its order
-    order = np.argsort(rep, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    welded_index = rank[inv]
-    representative = rep[order]
-    wf = welded_index[np.asarray(faces)]
-    ok = (wf[:, 0] != wf[:, 1]) & (wf[:, 1] != wf[:, 2]) & (wf[:, 0] != wf[:, 2])
-    return welded_index, representative, wf[ok]
 
 
 def to_local(frames: tuple, x: np.ndarray) -> np.ndarray:

@@ -34,8 +34,8 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from ..geometry import face_cross
-from ._mesh import bbox_size, check_faces, check_positions, components, weld
+from ..geometry import face_cross, weld
+from ._mesh import bbox_size, check_faces, check_positions, components
 
 __all__ = ["similarity_align", "Registration", "register", "resample_onto", "barycentric_map", "landmarks_from_shapes",
            "face_crop", "flipped_triangles"]

@@ -39,8 +39,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..geometry import uniform_laplacian, vertex_adjacency, vertex_normals
-from ._mesh import weld
+from ..geometry import uniform_laplacian, vertex_adjacency, vertex_normals, weld
 from .decompose import PoissonReconstructor
 
 __all__ = ["region_near_curve", "region_near_points", "detail_window", "scale_details", "propagate_details",
