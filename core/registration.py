@@ -55,7 +55,8 @@ _FEATURE_SHAPES = {
 # ---------------------------------------------------------------------------------------------
 # small geometric helpers
 def similarity(src: np.ndarray, dst: np.ndarray, weights: Optional[np.ndarray] = None) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991, eq. 40-42).
+    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991, eq. 40-42):
+    :func:`core.geometry.procrustes` with ``scale=True``.
 
     Parameters
     ----------
@@ -70,22 +71,9 @@ def similarity(src: np.ndarray, dst: np.ndarray, weights: Optional[np.ndarray] =
     ------
     ValueError for mismatched shapes or fewer than 3 points.
     """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
-        raise ValueError(f"similarity: src and dst must both be (N>=3, 3), got {src.shape} and {dst.shape}")
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = w / w.sum()
-    ms, md = w @ src, w @ dst
-    a, b = src - ms, dst - md
-    cov = (b * w[:, None]).T @ a
-    U, S, Vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(U @ Vt))
-    D = np.diag([1.0, 1.0, d])
-    R = U @ D @ Vt
-    var = w @ (a * a).sum(1)
-    s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
-    return s, R, md - s * R @ ms
+    from .geometry import procrustes
+
+    return procrustes(src, dst, weights, scale=True)
 
 
 def _apply(s, R, t, p):

@@ -303,3 +303,58 @@ def test_farthest_points_on_a_line_and_errors():
     assert list(farthest_points(P, 3, start=0)) == [0, 10, 5]
     with pytest.raises(ValueError, match="n must lie"):
         farthest_points(P, 12)
+
+
+def test_procrustes_hand_derived_rotation_and_reflection():
+    # a quarter turn about z, scale 2, shift (1, 2, 3): x -> 2 Rz x + t, recovered exactly
+    P = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    Rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    Q = 2 * P @ Rz.T + [1, 2, 3]
+    s, R, t = g.procrustes(P, Q, scale=True)
+    assert s == pytest.approx(2) and np.allclose(R, Rz, atol=1e-15) and np.allclose(t, [1, 2, 3])
+    s, R, t = g.procrustes(P, P @ Rz.T + [1, 2, 3])  # rigid: s = 1
+    assert s == 1.0 and np.allclose(R, Rz, atol=1e-15) and np.allclose(t, [1, 2, 3])
+    # identity: a point set onto itself
+    s, R, t = g.procrustes(P, P, scale=True)
+    assert s == pytest.approx(1) and np.allclose(R, np.eye(3)) and np.allclose(t, 0)
+    # a mirror image: the best proper rotation, never the reflection
+    M = P * [1, 1, -1]
+    _, R, _ = g.procrustes(P, M)
+    assert np.linalg.det(R) == pytest.approx(1)
+    # zero weight: that point may be NaN and is ignored
+    Qn = np.vstack([Q, [[np.nan, np.nan, np.nan]]])
+    s2, R2, t2 = g.procrustes(np.vstack([P, [[5.0, 5, 5]]]), Qn, [1, 1, 1, 1, 0], scale=True)
+    assert np.allclose([s2], [2]) and np.allclose(R2, Rz) and np.allclose(t2, [1, 2, 3])
+    with pytest.raises(ValueError, match=r"\(N>=3, 3\)"):
+        g.procrustes(P[:2], Q[:2])
+    with pytest.raises(ValueError, match="weights"):
+        g.procrustes(P, Q, [1, 1, 1])
+
+
+def test_procrustes_batch_and_the_old_callers():
+    """A batch equals item by item; the stabilisation's Kabsch, the layout transfer's and the
+    dense correspondence's similarities are procrustes with their option (same bits)."""
+    from scipy.spatial.transform import Rotation
+
+    from core.registration import similarity
+    from core.stabilize import kabsch
+    from core.transfer import similarity_align
+
+    rng = np.random.default_rng(4)
+    Y = rng.normal(size=(9, 3))
+    R = Rotation.from_rotvec(rng.normal(scale=0.5, size=(6, 3))).as_matrix()
+    X = np.einsum("tij,mj->tmi", R, Y) + rng.normal(size=(6, 1, 3)) + rng.normal(scale=0.01, size=(6, 9, 3))
+    W = rng.random((6, 9))
+    s, Rb, tb = g.procrustes(Y, X, W)
+    assert s.shape == (6,) and (s == 1).all()
+    for k in range(6):
+        _, Rk, tk = g.procrustes(Y, X[k], W[k])
+        np.testing.assert_allclose(Rb[k], Rk, atol=1e-14)
+        np.testing.assert_allclose(tb[k], tk, atol=1e-14)
+    Rk, tk = kabsch(Y, X, W)
+    assert np.array_equal(Rk, Rb) and np.array_equal(tk, tb)
+    ws = g.procrustes(Y, X[0], W[0], scale=True)
+    assert all(np.array_equal(a, b) for a, b in zip(similarity(Y, X[0], W[0]), ws))
+    plain = g.procrustes(Y, X[0], scale=True)
+    assert all(np.array_equal(a, b) for a, b in zip(similarity(Y, X[0]), plain))
+    assert all(np.array_equal(a, b) for a, b in zip(similarity_align(Y, X[0]), plain))

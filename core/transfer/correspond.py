@@ -34,7 +34,7 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from ..geometry import face_cross, weld
+from ..geometry import face_cross, procrustes, weld
 from ._mesh import bbox_size, check_faces, check_positions, components
 
 __all__ = ["similarity_align", "Registration", "register", "resample_onto", "barycentric_map", "landmarks_from_shapes",
@@ -46,7 +46,8 @@ def similarity_align(source_points, target_points) -> tuple[float, np.ndarray, n
 
     .. math:: \min_{s, R \in SO(3), t} \sum_i \|s R p_i + t - q_i\|^2
 
-    (Umeyama 1991, closed form by SVD with the reflection fix).
+    (Umeyama 1991, closed form by SVD with the reflection fix): :func:`core.geometry.procrustes`
+    with ``scale=True``.
 
     Returns
     -------
@@ -57,21 +58,7 @@ def similarity_align(source_points, target_points) -> tuple[float, np.ndarray, n
     ValueError
         Fewer than 3 points or mismatched shapes.
     """
-    p = np.asarray(source_points, dtype=np.float64)
-    q = np.asarray(target_points, dtype=np.float64)
-    if p.shape != q.shape or p.ndim != 2 or p.shape[1] != 3 or len(p) < 3:
-        raise ValueError(f"source_points, target_points: expected two (M, 3) arrays with M >= 3, got {p.shape}, {q.shape}")
-    mp, mq = p.mean(0), q.mean(0)
-    P, Q = p - mp, q - mq
-    U, S, Vt = np.linalg.svd(Q.T @ P / len(p))
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    var = (P ** 2).sum() / len(p)
-    s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
-    t = mq - s * R @ mp
-    return s, R, t
+    return procrustes(source_points, target_points, scale=True)
 
 
 def barycentric_map(points, mesh_positions, mesh_faces):
