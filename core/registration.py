@@ -9,8 +9,8 @@ The layout's markers sit on the source rig's neutral. To put them on a target ri
    target surface (Besl & McKay 1992);
 2. **register** non-rigidly: the source face region (decimated to ~2,500 vertices) is deformed
    onto the target surface, pulled by the landmarks or the eye/jaw motion centres, with
-   optimal-step non-rigid ICP (Amberg, Romdhani & Vetter 2007, ``trimesh.registration.nricp_amberg``),
-   which minimises per-vertex affine transforms X_i under
+   optimal-step non-rigid ICP (Amberg, Romdhani & Vetter 2007, :func:`core.geometry.nonrigid_icp`
+   on ``trimesh.registration.nricp_amberg``), which minimises per-vertex affine transforms X_i under
 
    ``E(X) = E_d(X) + alpha E_s(X) + beta E_l(X)``,
    ``E_d = sum_i w_i || X_i v_i - u_i ||^2`` (closest target points u_i),
@@ -32,17 +32,13 @@ from typing import Mapping, Optional, Sequence, Union
 
 import numpy as np
 
+from .geometry import nonrigid_icp, nricp_steps
 from .model import MarkerLayout, Rig
 
-#: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations)
-#: in the normalised frame; stiffness goes from stiff (almost affine) to supple. Tuned on the
-#: bundled rigs for a few seconds per pair (see scripts/layout_report.py).
-DEFAULT_STEPS = (
-    (0.02, 10.0, 0.5, 6),
-    (0.007, 5.0, 0.5, 6),
-    (0.002, 2.5, 0.5, 6),
-    (0.0007, 1.0, 0.0, 4),
-)
+#: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations):
+#: the shared stiff-to-supple schedule with fewer iterations and a stiffer last step, tuned on
+#: the bundled rigs for a few seconds per pair (see scripts/layout_report.py)
+DEFAULT_STEPS = nricp_steps(iterations=(6, 6, 6, 4), final_stiffness=7e-4)
 
 #: shapes that locate the eyes and the jaw, by canonical ARKit name and known aliases
 _FEATURE_SHAPES = {
@@ -173,7 +169,7 @@ def transfer_layout(
         for automatic alignment. Needs >= 3 names for the similarity; they also pull the
         registration (``wl`` in ``steps``) and are placed exactly.
     steps : sequence of (ws, wl, wn, max_iter), optional
-        nricp_amberg schedule in the normalised frame (unit face-region diagonal); default
+        :func:`core.geometry.nonrigid_icp` schedule (unit face-region diagonal); default
         :data:`DEFAULT_STEPS`. ``[]`` skips the non-rigid stage (similarity + ICP only).
     region : float
         The source face region registered: vertices within ``region`` x the markers' bounding
@@ -275,20 +271,20 @@ def transfer_layout(
         src_init = src_n.copy()
 
     # -- 2. non-rigid registration -------------------------------------------------------------
-    smesh = trimesh.Trimesh(src_init, RF, process=False)
     if steps:
         kw = {}
         if len(lm_names):
             idx = [layout.names.index(n) for n in lm_names]
-            kw = dict(source_landmarks=(mk_face[idx], mk_bary[idx]), target_positions=norm(_inv(s, R, t, lm_target)))
+            kw = dict(landmarks=(mk_face[idx], mk_bary[idx]), landmark_positions=norm(_inv(s, R, t, lm_target)))
         elif feature_landmarks and fs_ft is not None:
             # the eye-close and jaw-open motion centres pull the registration (surface points
             # nearest them on both rigs)
             fs, ft = fs_ft
             lf, lb, _, _ = closest_on_faces(fs, RV, RF)
             _, _, ft_on, _ = closest_on_faces(ft, T_all, target_rig.faces, np.flatnonzero(tskin))
-            kw = dict(source_landmarks=(lf, lb), target_positions=norm(_inv(s, R, t, ft_on)))
-        registered = trimesh.registration.nricp_amberg(smesh, tmesh, steps=[list(x) for x in steps], distance_threshold=0.1, **kw)
+            kw = dict(landmarks=(lf, lb), landmark_positions=norm(_inv(s, R, t, ft_on)))
+        # threshold 0.1 of the face region's diagonal (the source is at unit diagonal here)
+        registered = nonrigid_icp(src_init, RF, tmesh.vertices, tmesh.faces, steps=steps, distance_threshold=0.1, **kw)
     else:
         registered = src_init
     # -- residual: registered region -> target surface (in metres, target frame) -------------

@@ -358,3 +358,40 @@ def test_procrustes_batch_and_the_old_callers():
     plain = g.procrustes(Y, X[0], scale=True)
     assert all(np.array_equal(a, b) for a, b in zip(similarity(Y, X[0]), plain))
     assert all(np.array_equal(a, b) for a, b in zip(similarity_align(Y, X[0]), plain))
+
+
+def test_nricp_steps_are_the_old_schedules():
+    """One schedule, the callers' variants as options (the literals the two modules had)."""
+    from core.registration import DEFAULT_STEPS as LAYOUT_STEPS
+    from core.transfer.correspond import CROP_STEPS, DEFAULT_STEPS
+
+    assert g.nricp_steps() == ((0.02, 10, 0.5, 10), (0.007, 5, 0.5, 10), (0.002, 2.5, 0.5, 10), (0.0005, 1, 0.0, 10))
+    assert DEFAULT_STEPS == g.nricp_steps()
+    assert CROP_STEPS == ((0.02, 10, 0.5, 10), (0.007, 5, 0.5, 10), (0.002, 2.5, 0.5, 10), (0.0005, 1, 0.5, 10))
+    assert LAYOUT_STEPS == ((0.02, 10.0, 0.5, 6), (0.007, 5.0, 0.5, 6), (0.002, 2.5, 0.5, 6), (0.0007, 1.0, 0.0, 4))
+    with pytest.raises(ValueError, match="iterations"):
+        g.nricp_steps(iterations=(1, 2))
+
+
+def test_nonrigid_icp_identity_and_a_moved_sphere():
+    import trimesh
+
+    sph = trimesh.creation.icosphere(subdivisions=2)
+    V, F = np.asarray(sph.vertices), np.asarray(sph.faces)
+    lm = np.array([0, 10, 40, 90])
+    # onto itself, landmarks where they are: nothing moves
+    same = g.nonrigid_icp(V, F, V, F, lm, V[lm], steps=g.nricp_steps(iterations=3))
+    assert np.abs(same - V).max() < 1e-6
+    # onto a scaled, shifted copy (units do not matter: a 100x larger pair gives 100x the result)
+    T = 1.1 * V + [0.05, -0.02, 0.03]
+    got = g.nonrigid_icp(V, F, T, F, lm, T[lm])
+    # on the target sphere (radius 1.1 about the shift; the facets' sag is ~1 %), landmarks on theirs
+    r = np.linalg.norm(got - [0.05, -0.02, 0.03], axis=1)
+    assert np.abs(r - 1.1).max() < 0.02 and np.abs(r - 1.1).max() < 0.1 * np.abs(np.linalg.norm(V - [0.05, -0.02, 0.03], axis=1) - 1.1).max()
+    assert np.abs(got[lm] - T[lm]).max() < 1e-3
+    big = g.nonrigid_icp(100 * V, F, 100 * T, F, lm, 100 * T[lm])
+    np.testing.assert_allclose(big, 100 * got, atol=1e-6 * 100)
+    with pytest.raises(ValueError, match="both or neither"):
+        g.nonrigid_icp(V, F, T, F, lm)
+    with pytest.raises(ValueError, match="landmark_positions"):
+        g.nonrigid_icp(V, F, T, F, lm, T[:2])
