@@ -9,9 +9,10 @@ algorithm, its variants as explicit options):
 * normals and frames: :func:`face_normals`, :func:`vertex_normals` (one mesh or a batch of
   poses, optionally across UV seams), :func:`vertex_frames` (Xu et al. 2014 §5.1);
 * topology: :func:`weld` (UV-seam copies merged), :func:`boundary_loops`, :func:`edges`;
-  :func:`farthest_points`;
+  :func:`farthest_points` (virtual markers);
 * alignment: :func:`procrustes` (Kabsch / Umeyama, weighted, batched), :func:`nonrigid_icp`
-  with the schedule :func:`nricp_steps` (Amberg et al. 2007, through trimesh).
+  with the schedule :func:`nricp_steps` (Amberg et al. 2007, through trimesh);
+* construction: :func:`marker_triangulation` (the mesh over a face's markers).
 
 Sign conventions (used everywhere in this package)
 --------------------------------------------------
@@ -863,3 +864,110 @@ def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=No
     out = trimesh.registration.nricp_amberg(src, tgt, steps=[list(x) for x in steps],
                                             distance_threshold=distance_threshold, **kw)
     return np.asarray(out, dtype=np.float64)
+
+
+# ---------------------------------------------------------------------------------------------
+# construction
+# ---------------------------------------------------------------------------------------------
+
+
+def _cylinder_uv(points, up, forward):
+    """Unroll points on a vertical cylinder behind the face: u = R·angle, v = height.
+
+    The axis runs along ``up`` through the centroid moved back by R along ``forward``, with
+    R half the points' width; a face is about that round, so cheeks at the side spread out
+    instead of folding onto the front as a plane projection would fold them.
+    """
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    fwd = np.asarray(forward, float)
+    fwd = fwd - (fwd @ up) * up
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(up, fwd)
+    c = points.mean(axis=0)
+    x = (points - c) @ right
+    R = max(0.5 * (x.max() - x.min()), 1e-12)
+    z = (points - c) @ fwd + R
+    return np.column_stack([R * np.arctan2(x, z), (points - c) @ up])
+
+
+def _angles_edges(P, F):
+    """(F, 3) corner angles in degrees and (F, 3) lengths of the opposite edges."""
+    a, b, c = P[F[:, 0]], P[F[:, 1]], P[F[:, 2]]
+    e = np.stack([np.linalg.norm(b - c, axis=1), np.linalg.norm(c - a, axis=1), np.linalg.norm(a - b, axis=1)], 1)
+    cosang = np.stack([
+        np.einsum("ij,ij->i", b - a, c - a), np.einsum("ij,ij->i", a - b, c - b), np.einsum("ij,ij->i", a - c, b - c)
+    ], 1) / np.maximum(np.stack([e[:, 1] * e[:, 2], e[:, 2] * e[:, 0], e[:, 0] * e[:, 1]], 1), 1e-300)
+    return np.degrees(np.arccos(np.clip(cosang, -1, 1))), e
+
+
+def marker_triangulation(points, up=(0.0, 1.0, 0.0), forward=(0.0, 0.0, 1.0), min_angle: float = 10.0,
+                         max_edge: float = 3.0, unroll: str = "cylinder") -> np.ndarray:
+    """Triangulate face markers in a 2-D parameterisation (Ribera et al. 2017 §4.4).
+
+    The markers are flattened and Delaunay-triangulated there (scipy.spatial.Delaunay):
+
+    * ``unroll="cylinder"``: on a cylinder around the head's vertical axis (u = R·azimuth,
+      v = height; the face looks down ``forward`` with ``up`` up, glTF's +Z/+Y by default),
+      so cheeks at the side spread out;
+    * ``unroll="plane"``: onto the markers' best-fit plane (their two principal axes), which
+      needs no head frame — for captured markers in whatever frame the capture has (a face's
+      marker set is a height field over that plane).
+
+    The convex hull of a face has long thin triangles along its rim; boundary triangles are
+    peeled off while they have a 3-D angle below ``min_angle`` degrees or an edge longer
+    than ``max_edge`` times the median edge length.
+
+    Parameters
+    ----------
+    points : (M, 3) float
+        Neutral marker positions, M >= 3.
+    up, forward : (3,) float
+        Head frame: the cylinder's axis, and the side the faces are oriented to.
+    min_angle : float
+        Degrees.
+    max_edge : float
+        Relative to the median edge length.
+    unroll : {"cylinder", "plane"}
+
+    Returns
+    -------
+    faces : (F, 3) int64, each oriented so its normal points along ``forward``.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 markers, non-finite positions, all markers on a line, unknown ``unroll``.
+    """
+    from scipy.spatial import Delaunay, QhullError
+
+    if unroll not in ("cylinder", "plane"):
+        raise ValueError(f"unroll: expected 'cylinder' or 'plane', got {unroll!r}")
+    P = np.asarray(points, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"points: expected marker positions of shape (M, 3), got {P.shape}")
+    if len(P) < 3 or not np.isfinite(P).all():
+        raise ValueError(f"points: need at least 3 finite marker positions, got {len(P)} rows")
+    if unroll == "cylinder":
+        uv = _cylinder_uv(P, up, forward)
+    else:
+        c = P - P.mean(0)
+        uv = c @ np.linalg.svd(c, full_matrices=False)[2][:2].T
+    try:
+        F = Delaunay(uv).simplices.astype(np.int64)
+    except QhullError as e:
+        raise ValueError(f"points: cannot triangulate the markers (collinear?): {str(e).splitlines()[0]}") from None
+    _, e0 = _angles_edges(P, F)
+    med = np.median(e0)
+    while len(F) > 1:
+        ang, e = _angles_edges(P, F)
+        bad = (ang.min(axis=1) < min_angle) | (e.max(axis=1) > max_edge * med)
+        und = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+        _, inv, cnt = np.unique(und, axis=0, return_inverse=True, return_counts=True)
+        on_rim = (cnt[inv.ravel()] == 1).reshape(3, -1).T.any(axis=1)
+        drop = bad & on_rim
+        if not drop.any():
+            break
+        F = F[~drop]
+    flip = face_normals(P, F) @ np.asarray(forward, float) < 0
+    F[flip] = F[flip][:, ::-1]
+    return F

@@ -395,3 +395,58 @@ def test_nonrigid_icp_identity_and_a_moved_sphere():
         g.nonrigid_icp(V, F, T, F, lm)
     with pytest.raises(ValueError, match="landmark_positions"):
         g.nonrigid_icp(V, F, T, F, lm, T[:2])
+
+
+def test_marker_triangulation_hand_derived_square():
+    # four corners and a raised centre: four triangles around the centre, all facing forward
+    P = np.array([[-1.0, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [0, 0, 0.1]])
+    for unroll in ("cylinder", "plane"):
+        F = g.marker_triangulation(P, unroll=unroll)
+        assert sorted(map(tuple, np.sort(F, 1))) == [(0, 1, 4), (0, 3, 4), (1, 2, 4), (2, 3, 4)]
+        assert (g.face_normals(P, F)[:, 2] > 0).all()
+        back = g.marker_triangulation(P, forward=(0, 0, -1), unroll=unroll)
+        assert (g.face_normals(P, back)[:, 2] < 0).all()
+    with pytest.raises(ValueError, match="unroll"):
+        g.marker_triangulation(P, unroll="sphere")
+    with pytest.raises(ValueError, match="points"):
+        g.marker_triangulation(P[:2])
+
+
+def test_marker_triangulation_is_a_disk_in_any_frame_and_the_old_callers():
+    """On the AnimFace markers both unrollings give a disk over every marker; the plane one
+    does not depend on the capture's frame (a rotated take gives the same triangles) and is
+    the mesh the dashboard shows (retarget.marker_rig); personalize's is this function."""
+    from scipy.spatial.transform import Rotation
+
+    from core import personalize
+    from core.io.markers import read_marker_csv
+    from core.retarget import marker_rig
+    from datapaths import PERFORMANCES
+
+    perf = read_marker_csv(PERFORMANCES / "animface_markers_jaw_60hz.csv", units="cm")
+    X = perf.data[0]
+    assert personalize.marker_triangulation is g.marker_triangulation
+    for unroll in ("cylinder", "plane"):
+        F = g.marker_triangulation(X, unroll=unroll)
+        assert set(F.ravel()) == set(range(len(X)))
+        assert len(X) - len(g.edges(F)) + len(F) == 1 and len(g.boundary_loops(F)) == 1
+    F = g.marker_triangulation(X, unroll="plane")
+    R = Rotation.from_rotvec([0.4, -0.3, 1.2]).as_matrix()
+    Fr = g.marker_triangulation(X @ R.T, forward=R @ [0, 0, 1.0], unroll="plane")
+    tris = lambda F: sorted(map(tuple, np.sort(F, 1)))  # noqa: E731  (Delaunay's order may differ)
+    assert tris(Fr) == tris(F)
+    assert (g.face_normals(X @ R.T, Fr) @ (R @ [0, 0, 1.0]) > 0).all()
+    rig, track = marker_rig(perf.data)
+    np.testing.assert_array_equal(rig.faces, F)
+    assert track.shape == (len(perf.data), 1)
+    # marker_rig's former mesh (plane Delaunay, triangles with an edge >= 3 x the median longest
+    # edge dropped anywhere): the same triangles, now all facing the camera (+Z); they faced
+    # whichever way the SVD's sign put them (away, on this take)
+    from scipy.spatial import Delaunay
+
+    c = X - X.mean(0)
+    old = Delaunay(c @ np.linalg.svd(c, full_matrices=False)[2][:2].T).simplices
+    longest = np.linalg.norm(X[old] - X[np.roll(old, 1, axis=1)], axis=2).max(1)
+    old = old[longest < 3 * np.median(longest)]
+    assert tris(old) == tris(F)
+    assert (g.face_normals(X, F)[:, 2] > 0).all()
