@@ -12,7 +12,8 @@ algorithm, its variants as explicit options):
   :func:`farthest_points` (virtual markers);
 * alignment: :func:`procrustes` (Kabsch / Umeyama, weighted, batched), :func:`nonrigid_icp`
   with the schedule :func:`nricp_steps` (Amberg et al. 2007, through trimesh);
-* construction: :func:`marker_triangulation` (the mesh over a face's markers).
+* construction: :func:`marker_triangulation` (the mesh over a face's markers),
+  :func:`decimate` (quadric, through pyvista).
 
 Sign conventions (used everywhere in this package)
 --------------------------------------------------
@@ -46,11 +47,13 @@ References
        point patterns", eq. 40-42 (the similarity, with the reflection fix).
 .. [6] Amberg, Romdhani & Vetter 2007, "Optimal step nonrigid ICP algorithms for surface
        registration".
+.. [7] Garland & Heckbert 1997, "Surface simplification using quadric error metrics".
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import scipy.sparse as sp
@@ -818,9 +821,9 @@ def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=No
     ``distance_threshold`` and :math:`\cos^{wn}` of the normal angle, G = diag(1, 1, 1, 1)
     (Amberg et al. 2007 eq. 12); ``trimesh.registration.nricp_amberg`` does the work.
 
-    trimesh moves the source to its (surface) centroid and scales it to unit bounding-box diagonal
-    before it starts (and the target with it): ``steps`` and ``distance_threshold`` are read
-    in that frame, so they are relative to the source's size whatever its units.
+    trimesh moves the source to its (surface) centroid and scales it to unit bounding-box
+    diagonal before it starts (and the target with it): ``steps`` and ``distance_threshold``
+    are read in that frame, so they are relative to the source's size whatever its units.
 
     Parameters
     ----------
@@ -971,3 +974,55 @@ def marker_triangulation(points, up=(0.0, 1.0, 0.0), forward=(0.0, 0.0, 1.0), mi
     flip = face_normals(P, F) @ np.asarray(forward, float) < 0
     F[flip] = F[flip][:, ::-1]
     return F
+
+
+def decimate(V, F, reduction: Optional[float] = None, *, max_vertices: Optional[int] = None, uvs=None):
+    """Quadric edge-collapse decimation [7] (VTK's vtkQuadricDecimation through pyvista).
+
+    Edges are collapsed in order of the quadric error of the merged vertex until the
+    requested fraction of triangles is gone. With ``uvs`` the texture coordinates are part
+    of the error metric and carried to the new vertices.
+
+    Parameters
+    ----------
+    V : (n, 3) float, F : (F, 3) int
+    reduction : float in (0, 1), optional
+        Fraction of the triangles to remove.
+    max_vertices : int, optional
+        Instead of ``reduction``: about this many vertices remain
+        (``reduction = 1 - max_vertices / n``); a mesh with no more is returned as it is.
+    uvs : (n, 2) float, optional
+        Texture coordinates to carry.
+
+    Returns
+    -------
+    V' : (m, 3) float64, F' : (F', 3) int64, uvs' : (m, 2) float64 or None
+
+    Raises
+    ------
+    ValueError
+        Neither or both of ``reduction`` and ``max_vertices``, a reduction outside (0, 1),
+        ``uvs`` not (n, 2).
+    """
+    V, F = _check_mesh(V, F)
+    if (reduction is None) == (max_vertices is None):
+        raise ValueError("decimate: give one of reduction (fraction of triangles to remove) or max_vertices")
+    if uvs is not None:
+        uvs = np.asarray(uvs)
+        if uvs.shape != (len(V), 2):
+            raise ValueError(f"uvs: expected ({len(V)}, 2) texture coordinates, got {uvs.shape}")
+    if max_vertices is not None:
+        if len(V) <= max_vertices:
+            return V, F, (None if uvs is None else np.asarray(uvs, dtype=np.float64))
+        reduction = 1.0 - max_vertices / len(V)
+    if not 0 < reduction < 1:
+        raise ValueError(f"reduction: expected a fraction in (0, 1), got {reduction}")
+    import pyvista as pv
+
+    mesh = pv.PolyData(V.copy(), np.hstack([np.full((len(F), 1), 3), F]).ravel())
+    if uvs is not None:
+        mesh.active_texture_coordinates = uvs.astype(np.float32)
+    low = mesh.decimate(reduction, **({"tcoords": True} if uvs is not None else {}))
+    out_uv = None if uvs is None else np.asarray(low.active_texture_coordinates, dtype=np.float64)
+    return (np.asarray(low.points, dtype=np.float64), np.asarray(low.faces).reshape(-1, 4)[:, 1:].astype(np.int64),
+            out_uv)

@@ -20,9 +20,9 @@ Pieces:
   without a GL context).
 * :func:`bake` interpolates any per-vertex field into texture space with it.
 * :func:`shape_normal_maps`, :func:`mask_maps`, :func:`blend_normal_maps`.
-* :func:`decimate` builds a low-resolution rig (VTK quadric decimation through pyvista,
-  deltas and masks sampled at each new vertex's closest point on the full mesh) -- the
-  coarse geometry on which the blended maps restore detail.
+* :func:`decimate` builds a low-resolution rig (:func:`core.geometry.decimate`, VTK quadric
+  decimation through pyvista, deltas and masks sampled at each new vertex's closest point on
+  the full mesh) -- the coarse geometry on which the blended maps restore detail.
 * :func:`sample` reads a map at UV points (bilinear), :func:`angle_deg` compares normals.
 """
 
@@ -276,8 +276,8 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def decimate(rig: Rig, reduction: float = 0.9, masks: Optional[np.ndarray] = None):
     """A low-resolution copy of ``rig`` for showing what the blended maps restore.
 
-    The neutral is decimated by VTK's quadric decimation (pyvista ``decimate``) with the UVs
-    in the error metric, so texture coordinates are carried to the new vertices. Every new
+    The neutral is decimated by :func:`core.geometry.decimate` (VTK's quadric decimation) with
+    the UVs in the error metric, so texture coordinates are carried to the new vertices. Every new
     vertex takes the deltas (and ``masks``) of its closest point on the full neutral mesh
     (trimesh proximity query, barycentric interpolation).
 
@@ -292,20 +292,15 @@ def decimate(rig: Rig, reduction: float = 0.9, masks: Optional[np.ndarray] = Non
     low : Rig
     low_masks : (R, V_low) or None
     """
-    import pyvista as pv
     import trimesh
+
+    from .geometry import decimate as quadric_decimation
 
     if not 0 < reduction < 1:
         raise ValueError(f"reduction: expected a fraction in (0, 1), got {reduction}")
     if rig.uvs is None:
         raise ValueError(f"rig {rig.name!r} has no UVs")
-    cells = np.hstack([np.full((len(rig.faces), 1), 3), rig.faces]).ravel()
-    mesh = pv.PolyData(rig.neutral.copy(), cells)
-    mesh.active_texture_coordinates = rig.uvs.astype(np.float32)
-    low = mesh.decimate(reduction, tcoords=True)
-    P = np.asarray(low.points, dtype=np.float64)
-    F = np.asarray(low.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
-    uv = np.asarray(low.active_texture_coordinates, dtype=np.float64)
+    P, F, uv = quadric_decimation(rig.neutral, rig.faces, reduction, uvs=rig.uvs)
     tm = trimesh.Trimesh(rig.neutral, rig.faces, process=False)
     closest, _, tri = trimesh.proximity.closest_point(tm, P)
     bc = trimesh.triangles.points_to_barycentric(rig.neutral[rig.faces[tri]], closest)

@@ -32,7 +32,7 @@ from typing import Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from .geometry import nonrigid_icp, nricp_steps
+from .geometry import decimate, nonrigid_icp, nricp_steps
 from .model import MarkerLayout, Rig
 
 #: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations):
@@ -223,7 +223,8 @@ def transfer_layout(
         raise ValueError("transfer_layout: a marker's triangle is not on the source skin; is the layout on an eyeball or teeth?")
     # decimate the region so nricp stays at a few seconds (ICT's face region has ~12k vertices);
     # markers ride the decimated surface at their closest point (face + barycentric)
-    RV, RF = _decimate(RV, RF, max_vertices)
+    if max_vertices is not None:
+        RV, RF, _ = decimate(RV, RF, max_vertices=max_vertices)
     diag = np.linalg.norm(RV.max(0) - RV.min(0))
     norm = lambda x: (np.asarray(x) - centre) / diag  # noqa: E731
     denorm = lambda x: np.asarray(x) * diag + centre  # noqa: E731
@@ -317,18 +318,6 @@ def transfer_layout(
 
 
 # ---------------------------------------------------------------------------------------------
-def _decimate(V: np.ndarray, F: np.ndarray, max_vertices: int):
-    """Quadric decimation (VTK's vtkQuadricDecimation through pyvista) to about ``max_vertices``;
-    returns the input when it is already small enough."""
-    if max_vertices is None or len(V) <= max_vertices:
-        return V, F
-    import pyvista as pv
-
-    poly = pv.PolyData(V, np.hstack([np.full((len(F), 1), 3), F]).ravel())
-    dec = poly.decimate(1.0 - max_vertices / len(V))
-    return np.asarray(dec.points, dtype=np.float64), dec.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
-
-
 def _inv(s, R, t, p):
     """Inverse similarity: target -> source frame."""
     return (np.asarray(p) - t) @ R / s

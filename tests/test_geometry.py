@@ -387,7 +387,8 @@ def test_nonrigid_icp_identity_and_a_moved_sphere():
     got = g.nonrigid_icp(V, F, T, F, lm, T[lm])
     # on the target sphere (radius 1.1 about the shift; the facets' sag is ~1 %), landmarks on theirs
     r = np.linalg.norm(got - [0.05, -0.02, 0.03], axis=1)
-    assert np.abs(r - 1.1).max() < 0.02 and np.abs(r - 1.1).max() < 0.1 * np.abs(np.linalg.norm(V - [0.05, -0.02, 0.03], axis=1) - 1.1).max()
+    before = np.abs(np.linalg.norm(V - [0.05, -0.02, 0.03], axis=1) - 1.1).max()
+    assert np.abs(r - 1.1).max() < 0.02 and np.abs(r - 1.1).max() < 0.1 * before
     assert np.abs(got[lm] - T[lm]).max() < 1e-3
     big = g.nonrigid_icp(100 * V, F, 100 * T, F, lm, 100 * T[lm])
     np.testing.assert_allclose(big, 100 * got, atol=1e-6 * 100)
@@ -450,3 +451,36 @@ def test_marker_triangulation_is_a_disk_in_any_frame_and_the_old_callers():
     old = old[longest < 3 * np.median(longest)]
     assert tris(old) == tris(F)
     assert (g.face_normals(X, F)[:, 2] > 0).all()
+
+
+def test_decimate_plane_identity_and_uvs():
+    """A plane stays a plane (its quadrics are zero); texture coordinates that are a linear
+    function of the position stay that function; a small enough mesh comes back as it is."""
+    V, F = _grid(12, 10, jitter=0.0)
+    V[:, 2] = 0.2 * V[:, 0] - 0.1 * V[:, 1]  # a tilted plane
+    uv = V[:, :2] / 10
+    Vd, Fd, uvd = g.decimate(V, F, 0.5, uvs=uv)
+    assert len(Fd) <= 0.55 * len(F) and len(Vd) < len(V)
+    np.testing.assert_allclose(Vd[:, 2], 0.2 * Vd[:, 0] - 0.1 * Vd[:, 1], atol=1e-6)
+    np.testing.assert_allclose(uvd, Vd[:, :2] / 10, atol=1e-5)
+    assert 0.5 * g.doublearea(Vd, Fd).sum() == pytest.approx(0.5 * g.doublearea(V, F).sum(), rel=1e-5)
+    same = g.decimate(V, F, max_vertices=len(V))
+    assert same[0] is not None and np.array_equal(same[0], V) and np.array_equal(same[1], F) and same[2] is None
+    Vm, Fm, _ = g.decimate(V, F, max_vertices=60)
+    assert 40 <= len(Vm) <= 80
+    with pytest.raises(ValueError, match="one of"):
+        g.decimate(V, F)
+    with pytest.raises(ValueError, match="reduction"):
+        g.decimate(V, F, 1.5)
+    with pytest.raises(ValueError, match="uvs"):
+        g.decimate(V, F, 0.5, uvs=uv[:3])
+
+
+def test_decimate_is_the_normal_maps_low_rig(ict):
+    """normalmap.decimate is geometry.decimate with the UVs, deltas carried by closest point."""
+    from core.normalmap import decimate as low_rig
+
+    low, _ = low_rig(ict, 0.9)
+    P, F, uv = g.decimate(ict.neutral, ict.faces, 0.9, uvs=ict.uvs)
+    assert np.array_equal(low.faces, F) and np.array_equal(low.uvs, uv)
+    assert np.abs(low.neutral - P).max() < 0.005 * ict.size  # its vertices snapped onto the full surface
