@@ -48,7 +48,7 @@ def _setup(n_frames=363, subdivide=True):
     from core.io.livelink import read_livelink
     from core.names import NameMap
     from core.transfer import feature_lines_near, register
-    from core.transfer._mesh import weld
+    from core.geometry import weld
 
     ict = read_rig(DATA / "rigs" / "ict_facekit.glb")
     rb = read_rig(DATA / "rigs" / "rocketbox_female_adult_02.glb")

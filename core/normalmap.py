@@ -20,9 +20,9 @@ Pieces:
   without a GL context).
 * :func:`bake` interpolates any per-vertex field into texture space with it.
 * :func:`shape_normal_maps`, :func:`mask_maps`, :func:`blend_normal_maps`.
-* :func:`decimate` builds a low-resolution rig (VTK quadric decimation through pyvista,
-  deltas and masks sampled at each new vertex's closest point on the full mesh) -- the
-  coarse geometry on which the blended maps restore detail.
+* :func:`decimate` builds a low-resolution rig (:func:`core.geometry.decimate`, VTK quadric
+  decimation through pyvista, deltas and masks sampled at each new vertex's closest point on
+  the full mesh) -- the coarse geometry on which the blended maps restore detail.
 * :func:`sample` reads a map at UV points (bilinear), :func:`angle_deg` compares normals.
 * :func:`bake_rig` packs a rig's maps for per-frame blending (covered texels only, float16, the
   nearest covered texel of every texel for filling), :func:`frame_blend_weights` chooses what
@@ -180,27 +180,20 @@ def bake(raster: UVRaster, faces: np.ndarray, values: np.ndarray, fill: float = 
     return out
 
 
-def _welded_normals(positions: np.ndarray, faces: np.ndarray, weld_index: np.ndarray, n_welded: int) -> np.ndarray:
-    from .geometry import vertex_normals
-
-    first = np.zeros(n_welded, dtype=np.int64)
-    first[weld_index[::-1]] = np.arange(len(weld_index))[::-1]
-    Nw = vertex_normals(positions[first], weld_index[faces])
-    return Nw[weld_index]
-
-
 def vertex_normals_seamless(rig: Rig, positions: Optional[np.ndarray] = None) -> np.ndarray:
     """Area-weighted unit vertex normals computed on the seam-welded mesh, (V, 3).
 
-    ``positions`` (V, 3) defaults to the neutral; seam copies of a vertex get one normal.
+    ``positions`` (V, 3) defaults to the neutral; seam copies of a vertex get one normal
+    (:func:`core.geometry.vertex_normals` with the ``weld_index`` of :func:`core.segment.weld`).
     """
+    from .geometry import vertex_normals
     from .segment import weld
 
     g = weld(rig)
     P = rig.neutral if positions is None else np.asarray(positions, dtype=np.float64)
     if P.shape != rig.neutral.shape:
         raise ValueError(f"positions: expected {rig.neutral.shape}, got {P.shape}")
-    return _welded_normals(P, rig.faces, g.index, g.n)
+    return vertex_normals(P, rig.faces, weld_index=g.index)
 
 
 def shape_normal_maps(rig: Rig, raster: UVRaster, dtype=np.float32) -> np.ndarray:
@@ -209,6 +202,7 @@ def shape_normal_maps(rig: Rig, raster: UVRaster, dtype=np.float32) -> np.ndarra
     Per-vertex normals of each pose, baked with :func:`bake` and renormalised per texel;
     zero where no triangle covers a texel.
     """
+    from .geometry import vertex_normals
     from .segment import weld
 
     if rig.uvs is None:
@@ -217,9 +211,10 @@ def shape_normal_maps(rig: Rig, raster: UVRaster, dtype=np.float32) -> np.ndarra
     S = bake_matrix(raster, rig.faces, rig.n_vertices)
     cov = raster.covered
     maps = np.zeros((rig.n_shapes + 1,) + raster.shape + (3,), dtype=dtype)
+    poses = np.concatenate([rig.neutral[None], rig.neutral + rig.deltas])
+    normals = vertex_normals(poses, rig.faces, weld_index=g.index)  # (K+1, V, 3), one pass
     for i in range(rig.n_shapes + 1):
-        P = rig.neutral if i == 0 else rig.neutral + rig.deltas[i - 1]
-        N = S @ _welded_normals(P, rig.faces, g.index, g.n)
+        N = S @ normals[i]
         n = np.linalg.norm(N, axis=-1, keepdims=True)
         maps[i][cov] = np.where(n > 0, N / np.where(n > 0, n, 1), 0.0)
     return maps
@@ -287,8 +282,8 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def decimate(rig: Rig, reduction: float = 0.9, masks: Optional[np.ndarray] = None):
     """A low-resolution copy of ``rig`` for showing what the blended maps restore.
 
-    The neutral is decimated by VTK's quadric decimation (pyvista ``decimate``) with the UVs
-    in the error metric, so texture coordinates are carried to the new vertices. Every new
+    The neutral is decimated by :func:`core.geometry.decimate` (VTK's quadric decimation) with
+    the UVs in the error metric, so texture coordinates are carried to the new vertices. Every new
     vertex takes the deltas (and ``masks``) of its closest point on the full neutral mesh
     (trimesh proximity query, barycentric interpolation).
 
@@ -303,20 +298,15 @@ def decimate(rig: Rig, reduction: float = 0.9, masks: Optional[np.ndarray] = Non
     low : Rig
     low_masks : (R, V_low) or None
     """
-    import pyvista as pv
     import trimesh
+
+    from .geometry import decimate as quadric_decimation
 
     if not 0 < reduction < 1:
         raise ValueError(f"reduction: expected a fraction in (0, 1), got {reduction}")
     if rig.uvs is None:
         raise ValueError(f"rig {rig.name!r} has no UVs")
-    cells = np.hstack([np.full((len(rig.faces), 1), 3), rig.faces]).ravel()
-    mesh = pv.PolyData(rig.neutral.copy(), cells)
-    mesh.active_texture_coordinates = rig.uvs.astype(np.float32)
-    low = mesh.decimate(reduction, tcoords=True)
-    P = np.asarray(low.points, dtype=np.float64)
-    F = np.asarray(low.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
-    uv = np.asarray(low.active_texture_coordinates, dtype=np.float64)
+    P, F, uv = quadric_decimation(rig.neutral, rig.faces, reduction, uvs=rig.uvs)
     tm = trimesh.Trimesh(rig.neutral, rig.faces, process=False)
     closest, _, tri = trimesh.proximity.closest_point(tm, P)
     bc = trimesh.triangles.points_to_barycentric(rig.neutral[rig.faces[tri]], closest)

@@ -56,6 +56,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from core import geometry
+from core.geometry import marker_triangulation  # noqa: F401  (Ribera §4.4: part of this module's API)
 
 #: Ribera 2017 defaults (§4, eq. 4 and eq. 7)
 BETA = 0.01
@@ -323,94 +324,6 @@ def contact_edges(names):
             (ups if k[0] == "up" else downs).setdefault(k[1], i)
     pairs = [(ups[k], downs[k]) for k in sorted(ups) if k in downs]
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
-
-
-def _cylinder_uv(points, up, forward):
-    """Unroll markers on a vertical cylinder behind the face: u = R·angle, v = height.
-
-    The axis runs along ``up`` through the centroid moved back by R along ``forward``, with
-    R half the markers' width; a face is about that round, so cheeks at the side spread out
-    instead of folding onto the front as a plane projection would fold them.
-    """
-    up = np.asarray(up, float) / np.linalg.norm(up)
-    fwd = np.asarray(forward, float)
-    fwd = fwd - (fwd @ up) * up
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(up, fwd)
-    c = points.mean(axis=0)
-    x = (points - c) @ right
-    R = max(0.5 * (x.max() - x.min()), 1e-12)
-    z = (points - c) @ fwd + R
-    return np.column_stack([R * np.arctan2(x, z), (points - c) @ up])
-
-
-def marker_triangulation(points, up=(0.0, 1.0, 0.0), forward=(0.0, 0.0, 1.0), min_angle=10.0, max_edge=3.0):
-    """Triangulate face markers in a 2-D parameterisation (Ribera et al. 2017 §4.4).
-
-    The markers are unrolled on a cylinder around the head's vertical axis (u = R·azimuth,
-    v = height; the face looks down ``forward`` with ``up`` up, glTF's +Z/+Y by default) and
-    Delaunay-triangulated there (scipy.spatial.Delaunay). The convex hull of a face has long
-    thin triangles along its rim; boundary triangles are peeled off while they have a 3-D
-    angle below ``min_angle`` degrees or an edge longer than ``max_edge`` times the median
-    edge length.
-
-    Parameters
-    ----------
-    points : (M, 3) float
-        Neutral marker positions, M >= 3.
-    up, forward : (3,) float
-        Head frame.
-    min_angle : float
-        Degrees.
-    max_edge : float
-        Relative to the median edge length.
-
-    Returns
-    -------
-    faces : (F, 3) int64, oriented so their normals point along ``forward`` on average.
-
-    Raises
-    ------
-    ValueError
-        Fewer than 3 markers, non-finite positions, or all markers on a line.
-    """
-    from scipy.spatial import Delaunay, QhullError
-
-    P = _points(points, "points", (None, 3))
-    if len(P) < 3 or not np.isfinite(P).all():
-        raise ValueError(f"points: need at least 3 finite marker positions, got {len(P)} rows")
-    uv = _cylinder_uv(P, up, forward)
-    try:
-        tri = Delaunay(uv)
-    except QhullError as e:
-        raise ValueError(f"points: cannot triangulate the markers (collinear?): {str(e).splitlines()[0]}") from None
-    F = tri.simplices.astype(np.int64)
-
-    def angles_edges(F):
-        a, b, c = P[F[:, 0]], P[F[:, 1]], P[F[:, 2]]
-        e = np.stack([np.linalg.norm(b - c, axis=1), np.linalg.norm(c - a, axis=1), np.linalg.norm(a - b, axis=1)], 1)
-        cosang = np.stack([
-            np.einsum("ij,ij->i", b - a, c - a), np.einsum("ij,ij->i", a - b, c - b), np.einsum("ij,ij->i", a - c, b - c)
-        ], 1) / np.maximum(np.stack([e[:, 1] * e[:, 2], e[:, 2] * e[:, 0], e[:, 0] * e[:, 1]], 1), 1e-300)
-        return np.degrees(np.arccos(np.clip(cosang, -1, 1))), e
-
-    _, e0 = angles_edges(F)
-    med = np.median(e0)
-    while len(F) > 1:
-        ang, e = angles_edges(F)
-        bad = (ang.min(axis=1) < min_angle) | (e.max(axis=1) > max_edge * med)
-        und = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-        _, inv, cnt = np.unique(und, axis=0, return_inverse=True, return_counts=True)
-        on_rim = (cnt[inv.ravel()] == 1).reshape(3, -1).T.any(axis=1)
-        drop = bad & on_rim
-        if not drop.any():
-            break
-        F = F[~drop]
-    n = geometry.face_normals(P, F)
-    fwd = np.asarray(forward, float)
-    flip = n @ fwd < 0
-    F[flip] = F[flip][:, ::-1]
-    return F
 
 
 def marker_laplacian(points, faces, contacts=None, contact_weight=None):

@@ -9,8 +9,8 @@ The layout's markers sit on the source rig's neutral. To put them on a target ri
    target surface (Besl & McKay 1992);
 2. **register** non-rigidly: the source face region (decimated to ~2,500 vertices) is deformed
    onto the target surface, pulled by the landmarks or the eye/jaw motion centres, with
-   optimal-step non-rigid ICP (Amberg, Romdhani & Vetter 2007, ``trimesh.registration.nricp_amberg``),
-   which minimises per-vertex affine transforms X_i under
+   optimal-step non-rigid ICP (Amberg, Romdhani & Vetter 2007, :func:`core.geometry.nonrigid_icp`
+   on ``trimesh.registration.nricp_amberg``), which minimises per-vertex affine transforms X_i under
 
    ``E(X) = E_d(X) + alpha E_s(X) + beta E_l(X)``,
    ``E_d = sum_i w_i || X_i v_i - u_i ||^2`` (closest target points u_i),
@@ -32,17 +32,13 @@ from typing import Mapping, Optional, Sequence, Union
 
 import numpy as np
 
+from .geometry import decimate, nonrigid_icp, nricp_steps
 from .model import MarkerLayout, Rig
 
-#: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations)
-#: in the normalised frame; stiffness goes from stiff (almost affine) to supple. Tuned on the
-#: bundled rigs for a few seconds per pair (see scripts/layout_report.py).
-DEFAULT_STEPS = (
-    (0.02, 10.0, 0.5, 6),
-    (0.007, 5.0, 0.5, 6),
-    (0.002, 2.5, 0.5, 6),
-    (0.0007, 1.0, 0.0, 4),
-)
+#: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations):
+#: the shared stiff-to-supple schedule with fewer iterations and a stiffer last step, tuned on
+#: the bundled rigs for a few seconds per pair (see scripts/layout_report.py)
+DEFAULT_STEPS = nricp_steps(iterations=(6, 6, 6, 4), final_stiffness=7e-4)
 
 #: shapes that locate the eyes and the jaw, by canonical ARKit name and known aliases
 _FEATURE_SHAPES = {
@@ -55,7 +51,8 @@ _FEATURE_SHAPES = {
 # ---------------------------------------------------------------------------------------------
 # small geometric helpers
 def similarity(src: np.ndarray, dst: np.ndarray, weights: Optional[np.ndarray] = None) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991, eq. 40-42).
+    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991, eq. 40-42):
+    :func:`core.geometry.procrustes` with ``scale=True``.
 
     Parameters
     ----------
@@ -70,22 +67,9 @@ def similarity(src: np.ndarray, dst: np.ndarray, weights: Optional[np.ndarray] =
     ------
     ValueError for mismatched shapes or fewer than 3 points.
     """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
-        raise ValueError(f"similarity: src and dst must both be (N>=3, 3), got {src.shape} and {dst.shape}")
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = w / w.sum()
-    ms, md = w @ src, w @ dst
-    a, b = src - ms, dst - md
-    cov = (b * w[:, None]).T @ a
-    U, S, Vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(U @ Vt))
-    D = np.diag([1.0, 1.0, d])
-    R = U @ D @ Vt
-    var = w @ (a * a).sum(1)
-    s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
-    return s, R, md - s * R @ ms
+    from .geometry import procrustes
+
+    return procrustes(src, dst, weights, scale=True)
 
 
 def _apply(s, R, t, p):
@@ -93,19 +77,18 @@ def _apply(s, R, t, p):
 
 
 def merged_mesh(rig: Rig, mask_faces: Optional[np.ndarray] = None):
-    """Merge the rig's UV-seam duplicates (identical positions) into one vertex.
+    """Merge the rig's UV-seam duplicates (identical positions) into one vertex
+    (:func:`core.geometry.weld`, default tolerance).
 
     Returns (positions (Vm, 3), faces (Fm, 3) merged ids, merged_of (V,) original -> merged,
     face_index (Fm,) original face of each merged face). Degenerate merged faces are dropped.
+    Merged ids follow the first occurrence of each position.
     """
-    scale = max(rig.size, 1e-12) * 1e-9
-    key = np.round(rig.neutral / scale).astype(np.int64)
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    from .geometry import weld
+
     fidx = np.arange(len(rig.faces)) if mask_faces is None else np.flatnonzero(mask_faces)
-    f = inverse[rig.faces[fidx]]
-    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    return rig.neutral[first], f[ok], inverse, fidx[ok]
+    w = weld(rig.neutral, rig.faces[fidx])
+    return rig.neutral[w.first], w.faces, w.index, fidx[w.kept]
 
 
 def skin_faces(rig: Rig) -> np.ndarray:
@@ -186,7 +169,7 @@ def transfer_layout(
         for automatic alignment. Needs >= 3 names for the similarity; they also pull the
         registration (``wl`` in ``steps``) and are placed exactly.
     steps : sequence of (ws, wl, wn, max_iter), optional
-        nricp_amberg schedule in the normalised frame (unit face-region diagonal); default
+        :func:`core.geometry.nonrigid_icp` schedule (unit face-region diagonal); default
         :data:`DEFAULT_STEPS`. ``[]`` skips the non-rigid stage (similarity + ICP only).
     region : float
         The source face region registered: vertices within ``region`` x the markers' bounding
@@ -240,7 +223,8 @@ def transfer_layout(
         raise ValueError("transfer_layout: a marker's triangle is not on the source skin; is the layout on an eyeball or teeth?")
     # decimate the region so nricp stays at a few seconds (ICT's face region has ~12k vertices);
     # markers ride the decimated surface at their closest point (face + barycentric)
-    RV, RF = _decimate(RV, RF, max_vertices)
+    if max_vertices is not None:
+        RV, RF, _ = decimate(RV, RF, max_vertices=max_vertices)
     diag = np.linalg.norm(RV.max(0) - RV.min(0))
     norm = lambda x: (np.asarray(x) - centre) / diag  # noqa: E731
     denorm = lambda x: np.asarray(x) * diag + centre  # noqa: E731
@@ -288,20 +272,20 @@ def transfer_layout(
         src_init = src_n.copy()
 
     # -- 2. non-rigid registration -------------------------------------------------------------
-    smesh = trimesh.Trimesh(src_init, RF, process=False)
     if steps:
         kw = {}
         if len(lm_names):
             idx = [layout.names.index(n) for n in lm_names]
-            kw = dict(source_landmarks=(mk_face[idx], mk_bary[idx]), target_positions=norm(_inv(s, R, t, lm_target)))
+            kw = dict(landmarks=(mk_face[idx], mk_bary[idx]), landmark_positions=norm(_inv(s, R, t, lm_target)))
         elif feature_landmarks and fs_ft is not None:
             # the eye-close and jaw-open motion centres pull the registration (surface points
             # nearest them on both rigs)
             fs, ft = fs_ft
             lf, lb, _, _ = closest_on_faces(fs, RV, RF)
             _, _, ft_on, _ = closest_on_faces(ft, T_all, target_rig.faces, np.flatnonzero(tskin))
-            kw = dict(source_landmarks=(lf, lb), target_positions=norm(_inv(s, R, t, ft_on)))
-        registered = trimesh.registration.nricp_amberg(smesh, tmesh, steps=[list(x) for x in steps], distance_threshold=0.1, **kw)
+            kw = dict(landmarks=(lf, lb), landmark_positions=norm(_inv(s, R, t, ft_on)))
+        # threshold 0.1 of the face region's diagonal (the source is at unit diagonal here)
+        registered = nonrigid_icp(src_init, RF, tmesh.vertices, tmesh.faces, steps=steps, distance_threshold=0.1, **kw)
     else:
         registered = src_init
     # -- residual: registered region -> target surface (in metres, target frame) -------------
@@ -334,18 +318,6 @@ def transfer_layout(
 
 
 # ---------------------------------------------------------------------------------------------
-def _decimate(V: np.ndarray, F: np.ndarray, max_vertices: int):
-    """Quadric decimation (VTK's vtkQuadricDecimation through pyvista) to about ``max_vertices``;
-    returns the input when it is already small enough."""
-    if max_vertices is None or len(V) <= max_vertices:
-        return V, F
-    import pyvista as pv
-
-    poly = pv.PolyData(V, np.hstack([np.full((len(F), 1), 3), F]).ravel())
-    dec = poly.decimate(1.0 - max_vertices / len(V))
-    return np.asarray(dec.points, dtype=np.float64), dec.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
-
-
 def _inv(s, R, t, p):
     """Inverse similarity: target -> source frame."""
     return (np.asarray(p) - t) @ R / s

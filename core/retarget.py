@@ -193,23 +193,17 @@ def marker_rig(positions) -> tuple:
     """A displayable surface for captured markers: (Rig, (T, 1) zero track).
 
     The neutral is the first frame (missing markers filled with their mean over the take);
-    triangles are a Delaunay triangulation in the plane of the markers' two principal axes
-    (a face's marker set is a height field over that plane). The rig has one zero shape so
-    viewers that play a weight track can show it; the markers themselves move via
-    ``marker_track``.
+    triangles are :func:`core.geometry.marker_triangulation` in the plane of the markers' two
+    principal axes (``unroll="plane"``: a face's marker set is a height field over that plane,
+    whatever frame the capture has), rim slivers peeled. The rig has one zero shape so viewers
+    that play a weight track can show it; the markers themselves move via ``marker_track``.
     """
-    from scipy.spatial import Delaunay
+    from .geometry import marker_triangulation
 
     P = np.asarray(positions, dtype=np.float64)
     mean = np.nanmean(P, axis=0)
     neutral = np.where(np.isfinite(P[0]), P[0], mean)
     neutral = np.nan_to_num(neutral)
-    c = neutral - neutral.mean(0)
-    _, _, Vt = np.linalg.svd(c, full_matrices=False)
-    tri = Delaunay(c @ Vt[:2].T)
-    faces = tri.simplices
-    # drop sliver triangles on the convex hull (long edges bridging across the face)
-    edge = np.linalg.norm(neutral[faces] - neutral[np.roll(faces, 1, axis=1)], axis=2).max(1)
-    faces = faces[edge < 3 * np.median(edge)]
+    faces = marker_triangulation(neutral, unroll="plane")
     rig = Rig(neutral, faces, np.zeros((1,) + neutral.shape), ["rest"], name="markers")
     return rig, np.zeros((len(P), 1))

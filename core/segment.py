@@ -2,8 +2,9 @@
 
 Steps, each a pure function below, chained by :func:`segment` (or :class:`Segmenter`):
 
-1. **Weld** (:func:`weld`): rigs with UVs split vertices along seams (ICT: 14,629 vertices,
-   14,062 distinct). Every graph operation runs on the welded mesh so a seam is not a cut.
+1. **Weld** (:func:`weld`, on :func:`core.geometry.weld`): rigs with UVs split vertices along
+   seams (ICT: 14,629 vertices, 14,062 distinct). Every graph operation runs on the welded mesh
+   so a seam is not a cut.
 2. **Principal directions** (:func:`principal_directions`): for vertex v, PCA of its K+1
    positions ``{n_v} ∪ {n_v + d_kv}`` (neutral and every shape): the eigenvector of the
    3x3 scatter matrix ``C_v = Σ_k (p_kv - p̄_v)(p_kv - p̄_v)^T`` with the largest eigenvalue.
@@ -68,8 +69,8 @@ class WeldedGraph:
         Welded id of every rig vertex.
     first : (n,) int
         One rig vertex per welded id (the first).
-    faces : (F, 3) int
-        Faces in welded ids.
+    faces : (F', 3) int
+        Faces in welded ids (faces that collapsed dropped).
     adjacency : (n, n) csr_matrix
         0/1 edge adjacency of the welded mesh.
     lengths : (n, n) csr_matrix
@@ -88,7 +89,8 @@ class WeldedGraph:
 
 
 def weld(rig: Rig) -> WeldedGraph:
-    """Merge vertices with bit-identical neutral position *and* deltas (UV-seam copies).
+    """The rig's welded mesh graph: :func:`core.geometry.weld` of vertices with bit-identical
+    neutral position *and* deltas (UV-seam copies), plus its adjacency and edge lengths.
 
     Requiring identical deltas too keeps apart distinct vertices that merely touch at rest
     (e.g. closed lips zipped at one position).
@@ -97,28 +99,11 @@ def weld(rig: Rig) -> WeldedGraph:
     -------
     WeldedGraph
     """
+    from .geometry import weld as weld_vertices
+
     _check_rig(rig)
-    P = np.ascontiguousarray(rig.neutral)
-    void = P.view(np.dtype((np.void, P.dtype.itemsize * 3))).ravel()
-    _, rep, index = np.unique(void, return_index=True, return_inverse=True)
-    index = index.ravel()
-    # same position but different deltas: not a seam copy, give it its own id
-    differ = np.flatnonzero((rig.deltas != rig.deltas[:, rep[index]]).any(axis=(0, 2)))
-    if len(differ):
-        index = index.copy()
-        index[differ] = index.max() + 1 + np.arange(len(differ))
-    _, first, index = np.unique(index, return_index=True, return_inverse=True)
-    index = index.ravel()
-    # renumber welded ids in order of first appearance, so the welded mesh follows rig order
-    order = np.argsort(first, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    index = rank[index]
-    first = first[order]
-    faces = index[rig.faces]
-    n = len(first)
-    good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
-    fg = faces[good]
+    w = weld_vertices(rig.neutral, rig.faces, tol=0, attributes=rig.deltas)
+    index, first, fg, n = w.index, w.first, w.faces, w.n
     # 0/1 adjacency straight from the face edges (core.geometry.vertex_adjacency gives the
     # same matrix via np.unique(axis=0), which is ~10x slower on 28k faces)
     i = np.concatenate([fg[:, 0], fg[:, 1], fg[:, 2]])
@@ -133,7 +118,7 @@ def weld(rig: Rig) -> WeldedGraph:
     # Dijkstra treats stored zeros as missing edges; a zero-length edge gets a tiny length
     d = np.maximum(d, 1e-12 * max(rig.size, 1e-300))
     Lg = sp.csr_matrix((d, (Ac.row, Ac.col)), shape=(n, n))
-    return WeldedGraph(index, first, faces, A, Lg)
+    return WeldedGraph(index, first, fg, A, Lg)
 
 
 def _check_rig(rig):

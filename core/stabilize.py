@@ -11,7 +11,7 @@ R_t^T (X_t - t_t); (R_t, t_t) are kept so the head motion can be re-applied to t
 
 The paper writes the SVD as Y^T X_l = U D V^T, R = V U^T; we use the centred, reflection-
 corrected form of the same solution (Kabsch 1976), batched over all frames with one
-``numpy.linalg.svd`` call.
+``numpy.linalg.svd`` call (:func:`core.geometry.procrustes`).
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .geometry import procrustes
 from .model import Performance
 
 #: Name patterns of markers that move with the skull, not with expressions.
@@ -60,7 +61,8 @@ class Stabilized:
 
 
 def kabsch(Y: np.ndarray, X: np.ndarray, weights: np.ndarray):
-    """Batched weighted Kabsch: R_t, t_t minimising sum_i w_ti ||R_t y_i + t_t - x_ti||^2.
+    """Batched weighted Kabsch: R_t, t_t minimising sum_i w_ti ||R_t y_i + t_t - x_ti||^2
+    (:func:`core.geometry.procrustes`, rigid, one SVD call for all frames).
 
     Parameters
     ----------
@@ -72,21 +74,7 @@ def kabsch(Y: np.ndarray, X: np.ndarray, weights: np.ndarray):
     -------
     R : (T, 3, 3) proper rotations (det = +1), t : (T, 3)
     """
-    w = np.asarray(weights, dtype=np.float64)
-    X = np.where(w[..., None] > 0, X, 0.0)
-    wsum = np.maximum(w.sum(1, keepdims=True), 1e-300)
-    cy = (w @ Y) / wsum  # (T, 3)
-    cx = np.einsum("tm,tmc->tc", w, X) / wsum
-    Yc = Y[None] - cy[:, None]
-    Xc = X - cx[:, None]
-    H = np.einsum("tm,tmi,tmj->tij", w, Yc, Xc)  # sum w y x^T
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("tji,tkj->tik", Vt, U)))
-    d[d == 0] = 1
-    D = np.ones((len(w), 3))
-    D[:, 2] = d
-    R = np.einsum("tji,tj,tkj->tik", Vt, D, U)  # V diag(1,1,d) U^T
-    t = cx - np.einsum("tij,tj->ti", R, cy)
+    _, R, t = procrustes(Y, X, weights)
     return R, t
 
 

@@ -50,6 +50,7 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from core.geometry import weld  # noqa: E402
 from core.io.gltf import read_rig  # noqa: E402
 from core.io.layout import write_layout  # noqa: E402
 from core.model import MarkerLayout, Rig  # noqa: E402
@@ -97,13 +98,10 @@ class Features:
     def __init__(self, rig: Rig, cfg: dict):
         self.rig = rig
         V = rig.n_vertices
-        # merge UV-seam duplicates: unique positions
-        _, first, inverse = np.unique(np.round(rig.neutral / (rig.size * 1e-7)).astype(np.int64), axis=0, return_index=True, return_inverse=True)
-        inverse = inverse.reshape(-1)
+        # merge UV-seam duplicates: unique positions (to 1e-7 of the rig's size)
+        inverse, first, mfaces = weld(rig.neutral, rig.faces, tol=1e-7 * rig.size)
         self.rep = first  # merged id -> one original vertex
         self.merged_of = inverse  # original vertex -> merged id
-        mfaces = inverse[rig.faces]
-        mfaces = mfaces[(mfaces[:, 0] != mfaces[:, 1]) & (mfaces[:, 1] != mfaces[:, 2]) & (mfaces[:, 0] != mfaces[:, 2])]
         mesh = trimesh.Trimesh(rig.neutral[first], mfaces, process=False)
         comps = trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(mfaces)))
         main_faces = max(comps, key=len)

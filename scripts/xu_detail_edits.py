@@ -35,7 +35,7 @@ def transfer(fast: bool):
     from core.io.livelink import read_livelink
     from core.names import NameMap
     from core.transfer import register, transfer_sequence
-    from core.transfer._mesh import weld
+    from core.geometry import weld
     from core.transfer.performance import shared_landmarks
 
     ict = read_rig(DATA / "rigs" / "ict_facekit.glb")

@@ -66,7 +66,7 @@ def main(fast: bool = False, animals_only: bool = False):
     from core.io.livelink import read_livelink
     from core.names import NameMap
     from core.transfer import feature_lines_near
-    from core.transfer._mesh import weld
+    from core.geometry import weld
 
     OUT.mkdir(parents=True, exist_ok=True)
     ict = read_rig(DATA / "rigs" / "ict_facekit.glb")
@@ -149,7 +149,7 @@ def _animals(ict, li, seq, W, lines, wi, rep, Fw, fast):
     from core.io.layout import read_layout
     from core.transfer import register, transfer_sequence
     from core.transfer.correspond import face_crop
-    from core.transfer._mesh import face_cross
+    from core.geometry import face_cross
     from core.transfer.performance import shared_landmarks
 
     # a few expressive frames of the take: largest motion, jaw open, blink, smile

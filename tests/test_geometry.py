@@ -117,6 +117,125 @@ def test_normals_and_orientation():
     np.testing.assert_allclose(vn[i], s / np.linalg.norm(s))
 
 
+def test_vertex_normals_hand_derived_two_faces():
+    # a flat triangle N1 = (0, 0, 1) (2A = 1) and a slanted one N2 = (v3 - v0) x (v1 - v0) = (0, 2, 2)
+    # (2A = 2 sqrt 2) on the shared edge 0-1: the shared corners get normalize(N1 + N2) = (0, 2, 3) / sqrt 13
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -2, 2]])
+    F = np.array([[0, 1, 2], [0, 3, 1]])
+    want = np.array([[0, 2, 3], [0, 2, 3], [0, 0, 1], [0, 1, 1]]) / np.array([[13 ** 0.5], [13 ** 0.5], [1], [2 ** 0.5]])
+    np.testing.assert_allclose(g.vertex_normals(V, F), want, atol=1e-15)
+    Vt, Ft = _tri()
+    np.testing.assert_array_equal(g.vertex_normals(Vt, Ft), [[0, 0, 1]] * 3)
+
+
+def test_vertex_normals_batch_rotation_and_per_face_loop(tiger):
+    """The batch equals pose-by-pose calls to the bit, and a plain loop over the faces in face
+    order (the sums of the incidence product); normals turn with a rotation."""
+    from scipy.spatial.transform import Rotation
+
+    V, F = tiger.neutral, tiger.faces
+    poses = np.concatenate([V[None], V + tiger.deltas[:4]])
+    batch = g.vertex_normals(poses, F)
+    for k in range(len(poses)):
+        assert np.array_equal(batch[k], g.vertex_normals(poses[k], F))
+    ref = np.zeros_like(V)
+    for a, b, c in F:
+        ref[[a, b, c]] += np.cross(V[b] - V[a], V[c] - V[a])
+    assert np.array_equal(batch[0], ref / np.linalg.norm(ref, axis=1, keepdims=True))
+    f32 = g.vertex_normals(poses.astype(np.float32), F)
+    dev = np.abs(f32 - batch).max(axis=-1)  # float32 rounding, worse on the tiger's tiniest faces
+    assert f32.dtype == np.float32 and np.median(dev) < 1e-7 and np.percentile(dev, 99) < 1e-5 and dev.max() < 1e-4
+    R = Rotation.from_rotvec([0.3, -0.7, 0.2]).as_matrix()
+    np.testing.assert_allclose(g.vertex_normals(V @ R.T + [1.0, 2.0, 3.0], F), batch[0] @ R.T, atol=1e-12)
+
+
+def test_vertex_normals_across_a_seam_and_fallback():
+    # a unit square folded along its diagonal 0-2, the two halves' copies of 0 and 2 split (a seam)
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 0, 0], [1, 1, 0], [0, 1, 1], [5, 5, 5]])
+    F = np.array([[0, 1, 2], [3, 4, 5]])
+    wi = np.array([0, 1, 2, 0, 2, 3, 4])
+    seam = g.vertex_normals(V, F)
+    assert np.allclose(seam[0], [0, 0, 1]) and not np.allclose(seam[3], seam[0])  # cut: one face each
+    n = g.vertex_normals(V, F, weld_index=wi)
+    welded = g.vertex_normals(V[[0, 1, 2, 5, 6]], wi[F])  # the same mesh without the seam
+    np.testing.assert_allclose(n, welded[wi], atol=1e-15)
+    assert np.array_equal(n[0], n[3]) and np.array_equal(n[2], n[4])
+    # vertex 6 is on no face: zero, or the fallback (glTF's +Z)
+    assert np.array_equal(n[6], [0, 0, 0])
+    assert np.array_equal(g.vertex_normals(V, F, fallback=(0, 0, 1))[6], [0, 0, 1])
+    with pytest.raises(ValueError, match="weld_index"):
+        g.vertex_normals(V, F, weld_index=wi[:3])
+
+
+def test_old_normal_callers_are_the_shared_function(tiger):
+    """glTF's NORMAL, the seam-welded normals of the normal maps and the transfer's frames are
+    geometry.vertex_normals with their option (same bits)."""
+    from core.io.gltf import vertex_normals as gltf_normals
+    from core.normalmap import vertex_normals_seamless
+    from core.segment import weld as weld_rig
+
+    V, F = tiger.neutral, tiger.faces
+    poses = np.concatenate([V[None], V + tiger.deltas])
+    assert np.array_equal(gltf_normals(poses, F), g.vertex_normals(poses, F, fallback=(0.0, 0.0, 1.0)))
+    assert np.array_equal(vertex_normals_seamless(tiger), g.vertex_normals(V, F, weld_index=weld_rig(tiger).index))
+    t, b, n = g.vertex_frames(poses, F)
+    assert np.array_equal(n, g.vertex_normals(poses, F))
+    np.testing.assert_allclose(np.einsum("...i,...i->...", t, n), 0, atol=1e-12)
+    np.testing.assert_allclose(np.cross(n, t), b, atol=1e-15)
+
+
+def test_weld_hand_derived_seam():
+    # two triangles of a square whose diagonal 0-2 is a seam: 3 and 4 copy 0 and 2
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 0, 0], [1, 1, 0], [0, 1, 0]])
+    F = np.array([[0, 1, 2], [3, 4, 5], [0, 3, 1]])  # the last collapses once 0 and 3 are one
+    w = g.weld(V, F)
+    np.testing.assert_array_equal(w.index, [0, 1, 2, 0, 2, 3])
+    np.testing.assert_array_equal(w.first, [0, 1, 2, 5])
+    np.testing.assert_array_equal(w.faces, [[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_array_equal(w.kept, [True, True, False])
+    assert w.n == 4
+    index, first, faces = w  # unpacks as the transfer code takes it
+    assert index is w.index and first is w.first and faces is w.faces
+    # within the tolerance (1e-9 of the size by default) a copy merges; beyond it, not
+    near = V.copy()
+    near[3] += 1e-13
+    assert g.weld(near, F).n == 4 and g.weld(near, F, tol=0).n == 5
+    signed = V.copy()
+    signed[3] = -0.0
+    assert g.weld(signed, F, tol=0).n == 4  # -0.0 and 0.0 are one value
+    # attributes that differ keep vertices apart (closed lips: same rest position, other deltas)
+    deltas = np.zeros((2, 6, 3))
+    deltas[1, 3] = [0, 0, 1e-3]
+    assert g.weld(V, F, tol=0, attributes=deltas).n == 5
+    with pytest.raises(ValueError, match="attributes"):
+        g.weld(V, F, attributes=deltas[:, :4])
+    with pytest.raises(ValueError, match="tol"):
+        g.weld(V, F, tol=-1.0)
+
+
+def test_weld_identity_and_the_old_callers(ict, tiger):
+    """A mesh without duplicates keeps its numbering; the segmentation's graph, the transfer's
+    weld and the layout transfer's merged mesh are geometry.weld with their options."""
+    from core.registration import merged_mesh
+    from core.segment import weld as weld_rig
+
+    w = g.weld(tiger.neutral, tiger.faces)
+    np.testing.assert_array_equal(w.index, np.arange(tiger.n_vertices))
+    np.testing.assert_array_equal(w.faces, tiger.faces)
+    w = g.weld(ict.neutral, ict.faces)
+    assert w.n == 14062 and len(w.faces) == len(ict.faces)  # ICT: 14,629 vertices, 14,062 distinct
+    np.testing.assert_array_equal(ict.neutral[w.first][w.index], ict.neutral)  # copies coincide
+    exact = g.weld(ict.neutral, ict.faces, tol=0, attributes=ict.deltas)
+    graph = weld_rig(ict)
+    np.testing.assert_array_equal(graph.index, exact.index)
+    np.testing.assert_array_equal(graph.first, exact.first)
+    np.testing.assert_array_equal(exact.index, w.index)  # ICT's seam copies share their deltas
+    P, Fm, merged_of, fidx = merged_mesh(ict)
+    np.testing.assert_array_equal(merged_of, w.index)
+    np.testing.assert_array_equal(Fm, w.faces)
+    np.testing.assert_array_equal(fidx, np.flatnonzero(w.kept))
+
+
 def test_boundary_loops_ordered():
     V, F = _grid(4, 4, jitter=0)
     loops = g.boundary_loops(F)
@@ -184,3 +303,184 @@ def test_farthest_points_on_a_line_and_errors():
     assert list(farthest_points(P, 3, start=0)) == [0, 10, 5]
     with pytest.raises(ValueError, match="n must lie"):
         farthest_points(P, 12)
+
+
+def test_procrustes_hand_derived_rotation_and_reflection():
+    # a quarter turn about z, scale 2, shift (1, 2, 3): x -> 2 Rz x + t, recovered exactly
+    P = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    Rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    Q = 2 * P @ Rz.T + [1, 2, 3]
+    s, R, t = g.procrustes(P, Q, scale=True)
+    assert s == pytest.approx(2) and np.allclose(R, Rz, atol=1e-15) and np.allclose(t, [1, 2, 3])
+    s, R, t = g.procrustes(P, P @ Rz.T + [1, 2, 3])  # rigid: s = 1
+    assert s == 1.0 and np.allclose(R, Rz, atol=1e-15) and np.allclose(t, [1, 2, 3])
+    # identity: a point set onto itself
+    s, R, t = g.procrustes(P, P, scale=True)
+    assert s == pytest.approx(1) and np.allclose(R, np.eye(3)) and np.allclose(t, 0)
+    # a mirror image: the best proper rotation, never the reflection
+    M = P * [1, 1, -1]
+    _, R, _ = g.procrustes(P, M)
+    assert np.linalg.det(R) == pytest.approx(1)
+    # zero weight: that point may be NaN and is ignored
+    Qn = np.vstack([Q, [[np.nan, np.nan, np.nan]]])
+    s2, R2, t2 = g.procrustes(np.vstack([P, [[5.0, 5, 5]]]), Qn, [1, 1, 1, 1, 0], scale=True)
+    assert np.allclose([s2], [2]) and np.allclose(R2, Rz) and np.allclose(t2, [1, 2, 3])
+    with pytest.raises(ValueError, match=r"\(N>=3, 3\)"):
+        g.procrustes(P[:2], Q[:2])
+    with pytest.raises(ValueError, match="weights"):
+        g.procrustes(P, Q, [1, 1, 1])
+
+
+def test_procrustes_batch_and_the_old_callers():
+    """A batch equals item by item; the stabilisation's Kabsch, the layout transfer's and the
+    dense correspondence's similarities are procrustes with their option (same bits)."""
+    from scipy.spatial.transform import Rotation
+
+    from core.registration import similarity
+    from core.stabilize import kabsch
+    from core.transfer import similarity_align
+
+    rng = np.random.default_rng(4)
+    Y = rng.normal(size=(9, 3))
+    R = Rotation.from_rotvec(rng.normal(scale=0.5, size=(6, 3))).as_matrix()
+    X = np.einsum("tij,mj->tmi", R, Y) + rng.normal(size=(6, 1, 3)) + rng.normal(scale=0.01, size=(6, 9, 3))
+    W = rng.random((6, 9))
+    s, Rb, tb = g.procrustes(Y, X, W)
+    assert s.shape == (6,) and (s == 1).all()
+    for k in range(6):
+        _, Rk, tk = g.procrustes(Y, X[k], W[k])
+        np.testing.assert_allclose(Rb[k], Rk, atol=1e-14)
+        np.testing.assert_allclose(tb[k], tk, atol=1e-14)
+    Rk, tk = kabsch(Y, X, W)
+    assert np.array_equal(Rk, Rb) and np.array_equal(tk, tb)
+    ws = g.procrustes(Y, X[0], W[0], scale=True)
+    assert all(np.array_equal(a, b) for a, b in zip(similarity(Y, X[0], W[0]), ws))
+    plain = g.procrustes(Y, X[0], scale=True)
+    assert all(np.array_equal(a, b) for a, b in zip(similarity(Y, X[0]), plain))
+    assert all(np.array_equal(a, b) for a, b in zip(similarity_align(Y, X[0]), plain))
+
+
+def test_nricp_steps_are_the_old_schedules():
+    """One schedule, the callers' variants as options (the literals the two modules had)."""
+    from core.registration import DEFAULT_STEPS as LAYOUT_STEPS
+    from core.transfer.correspond import CROP_STEPS, DEFAULT_STEPS
+
+    assert g.nricp_steps() == ((0.02, 10, 0.5, 10), (0.007, 5, 0.5, 10), (0.002, 2.5, 0.5, 10), (0.0005, 1, 0.0, 10))
+    assert DEFAULT_STEPS == g.nricp_steps()
+    assert CROP_STEPS == ((0.02, 10, 0.5, 10), (0.007, 5, 0.5, 10), (0.002, 2.5, 0.5, 10), (0.0005, 1, 0.5, 10))
+    assert LAYOUT_STEPS == ((0.02, 10.0, 0.5, 6), (0.007, 5.0, 0.5, 6), (0.002, 2.5, 0.5, 6), (0.0007, 1.0, 0.0, 4))
+    with pytest.raises(ValueError, match="iterations"):
+        g.nricp_steps(iterations=(1, 2))
+
+
+def test_nonrigid_icp_identity_and_a_moved_sphere():
+    import trimesh
+
+    sph = trimesh.creation.icosphere(subdivisions=2)
+    V, F = np.asarray(sph.vertices), np.asarray(sph.faces)
+    lm = np.array([0, 10, 40, 90])
+    # onto itself, landmarks where they are: nothing moves
+    same = g.nonrigid_icp(V, F, V, F, lm, V[lm], steps=g.nricp_steps(iterations=3))
+    assert np.abs(same - V).max() < 1e-6
+    # onto a scaled, shifted copy (units do not matter: a 100x larger pair gives 100x the result)
+    T = 1.1 * V + [0.05, -0.02, 0.03]
+    got = g.nonrigid_icp(V, F, T, F, lm, T[lm])
+    # on the target sphere (radius 1.1 about the shift; the facets' sag is ~1 %), landmarks on theirs
+    r = np.linalg.norm(got - [0.05, -0.02, 0.03], axis=1)
+    before = np.abs(np.linalg.norm(V - [0.05, -0.02, 0.03], axis=1) - 1.1).max()
+    assert np.abs(r - 1.1).max() < 0.02 and np.abs(r - 1.1).max() < 0.1 * before
+    assert np.abs(got[lm] - T[lm]).max() < 1e-3
+    big = g.nonrigid_icp(100 * V, F, 100 * T, F, lm, 100 * T[lm])
+    np.testing.assert_allclose(big, 100 * got, atol=1e-6 * 100)
+    with pytest.raises(ValueError, match="both or neither"):
+        g.nonrigid_icp(V, F, T, F, lm)
+    with pytest.raises(ValueError, match="landmark_positions"):
+        g.nonrigid_icp(V, F, T, F, lm, T[:2])
+
+
+def test_marker_triangulation_hand_derived_square():
+    # four corners and a raised centre: four triangles around the centre, all facing forward
+    P = np.array([[-1.0, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [0, 0, 0.1]])
+    for unroll in ("cylinder", "plane"):
+        F = g.marker_triangulation(P, unroll=unroll)
+        assert sorted(map(tuple, np.sort(F, 1))) == [(0, 1, 4), (0, 3, 4), (1, 2, 4), (2, 3, 4)]
+        assert (g.face_normals(P, F)[:, 2] > 0).all()
+        back = g.marker_triangulation(P, forward=(0, 0, -1), unroll=unroll)
+        assert (g.face_normals(P, back)[:, 2] < 0).all()
+    with pytest.raises(ValueError, match="unroll"):
+        g.marker_triangulation(P, unroll="sphere")
+    with pytest.raises(ValueError, match="points"):
+        g.marker_triangulation(P[:2])
+
+
+def test_marker_triangulation_is_a_disk_in_any_frame_and_the_old_callers():
+    """On the AnimFace markers both unrollings give a disk over every marker; the plane one
+    does not depend on the capture's frame (a rotated take gives the same triangles) and is
+    the mesh the dashboard shows (retarget.marker_rig); personalize's is this function."""
+    from scipy.spatial.transform import Rotation
+
+    from core import personalize
+    from core.io.markers import read_marker_csv
+    from core.retarget import marker_rig
+    from datapaths import PERFORMANCES
+
+    perf = read_marker_csv(PERFORMANCES / "animface_markers_jaw_60hz.csv", units="cm")
+    X = perf.data[0]
+    assert personalize.marker_triangulation is g.marker_triangulation
+    for unroll in ("cylinder", "plane"):
+        F = g.marker_triangulation(X, unroll=unroll)
+        assert set(F.ravel()) == set(range(len(X)))
+        assert len(X) - len(g.edges(F)) + len(F) == 1 and len(g.boundary_loops(F)) == 1
+    F = g.marker_triangulation(X, unroll="plane")
+    R = Rotation.from_rotvec([0.4, -0.3, 1.2]).as_matrix()
+    Fr = g.marker_triangulation(X @ R.T, forward=R @ [0, 0, 1.0], unroll="plane")
+    tris = lambda F: sorted(map(tuple, np.sort(F, 1)))  # noqa: E731  (Delaunay's order may differ)
+    assert tris(Fr) == tris(F)
+    assert (g.face_normals(X @ R.T, Fr) @ (R @ [0, 0, 1.0]) > 0).all()
+    rig, track = marker_rig(perf.data)
+    np.testing.assert_array_equal(rig.faces, F)
+    assert track.shape == (len(perf.data), 1)
+    # marker_rig's former mesh (plane Delaunay, triangles with an edge >= 3 x the median longest
+    # edge dropped anywhere): the same triangles, now all facing the camera (+Z); they faced
+    # whichever way the SVD's sign put them (away, on this take)
+    from scipy.spatial import Delaunay
+
+    c = X - X.mean(0)
+    old = Delaunay(c @ np.linalg.svd(c, full_matrices=False)[2][:2].T).simplices
+    longest = np.linalg.norm(X[old] - X[np.roll(old, 1, axis=1)], axis=2).max(1)
+    old = old[longest < 3 * np.median(longest)]
+    assert tris(old) == tris(F)
+    assert (g.face_normals(X, F)[:, 2] > 0).all()
+
+
+def test_decimate_plane_identity_and_uvs():
+    """A plane stays a plane (its quadrics are zero); texture coordinates that are a linear
+    function of the position stay that function; a small enough mesh comes back as it is."""
+    V, F = _grid(12, 10, jitter=0.0)
+    V[:, 2] = 0.2 * V[:, 0] - 0.1 * V[:, 1]  # a tilted plane
+    uv = V[:, :2] / 10
+    Vd, Fd, uvd = g.decimate(V, F, 0.5, uvs=uv)
+    assert len(Fd) <= 0.55 * len(F) and len(Vd) < len(V)
+    np.testing.assert_allclose(Vd[:, 2], 0.2 * Vd[:, 0] - 0.1 * Vd[:, 1], atol=1e-6)
+    np.testing.assert_allclose(uvd, Vd[:, :2] / 10, atol=1e-5)
+    assert 0.5 * g.doublearea(Vd, Fd).sum() == pytest.approx(0.5 * g.doublearea(V, F).sum(), rel=1e-5)
+    same = g.decimate(V, F, max_vertices=len(V))
+    assert same[0] is not None and np.array_equal(same[0], V) and np.array_equal(same[1], F) and same[2] is None
+    Vm, Fm, _ = g.decimate(V, F, max_vertices=60)
+    assert 40 <= len(Vm) <= 80
+    with pytest.raises(ValueError, match="one of"):
+        g.decimate(V, F)
+    with pytest.raises(ValueError, match="reduction"):
+        g.decimate(V, F, 1.5)
+    with pytest.raises(ValueError, match="uvs"):
+        g.decimate(V, F, 0.5, uvs=uv[:3])
+
+
+def test_decimate_is_the_normal_maps_low_rig(ict):
+    """normalmap.decimate is geometry.decimate with the UVs, deltas carried by closest point."""
+    from core.normalmap import decimate as low_rig
+
+    low, _ = low_rig(ict, 0.9)
+    P, F, uv = g.decimate(ict.neutral, ict.faces, 0.9, uvs=ict.uvs)
+    assert np.array_equal(low.faces, F) and np.array_equal(low.uvs, uv)
+    assert np.abs(low.neutral - P).max() < 0.005 * ict.size  # its vertices snapped onto the full surface

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from core.transfer import (DeformationTransfer, deformation_gradients, deformation_transfer, line_edges,
                            line_gradients)
-from core.transfer._mesh import weld
+from core.geometry import weld
 
 
 def _sphere(subdiv=2):

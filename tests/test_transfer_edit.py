@@ -7,7 +7,7 @@ import scipy.sparse as sp
 from scipy.optimize import lsq_linear
 
 from core.transfer import DeformationTransfer, taubin_smooth
-from core.transfer._mesh import weld
+from core.geometry import weld
 from core.transfer.detail_edit import (_reference_propagation, detail_window, propagate_details, region_near_curve,
                                        scale_details)
 from core.transfer.edit import DistanceConstraint, LargeScaleEditor, PointConstraint, _reference_weights

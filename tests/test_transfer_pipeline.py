@@ -11,9 +11,14 @@ from core.transfer import (TransferSettings, feature_lines_near, line_edges, nai
                            transfer_sequence)
 from core.transfer import DetailTransfer, FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence
 from core.transfer import details
-from core.transfer._mesh import first_neighbour, frame_vectors, incidence, local_frames, weld
+from core.geometry import first_neighbour, vertex_face_incidence, vertex_frames, weld
 from core.transfer.details import _FramedSequence
 from tests.conftest import LAYOUTS, PERFORMANCES
+
+
+def local_frames(P, F):
+    """(V, 3, 3) frames with columns [t, b, n]: world = frame @ local."""
+    return np.stack(vertex_frames(P, F), axis=-1)
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +188,7 @@ def _coat(P, fac, smooth):
 
 def _reference_details(det, smooth, coat, tgt):
     """Eq. 16 and 5 as written, one frame at a time in float64: frames from
-    _mesh.local_frames, R_v = F'_t F_t^T per vertex, and the per-frame reconstruction
+    geometry.vertex_frames, R_v = F'_t F_t^T per vertex, and the per-frame reconstruction
     PoissonReconstructor.displacement (checked against dense solves in test_transfer_decompose)."""
     F = det.faces
     y0 = det.ref_displacement
@@ -268,17 +273,17 @@ def test_screened_detail_reference_is_a_dense_solve(tiger_detail_case, monkeypat
 
 @pytest.mark.parametrize("factored", [True, False])
 @pytest.mark.parametrize("work", [np.float64, np.float32])
-def test_batched_frames_equal_frame_vectors(tiger_detail_case, factored, work, monkeypatch):
+def test_batched_frames_equal_vertex_frames(tiger_detail_case, factored, work, monkeypatch):
     monkeypatch.setattr(details, "_WORK", work)
     c = tiger_detail_case
     F = np.asarray(c["Fw"])
     V = len(c["N"])
     nb = first_neighbour(F, V)
     seq = c["smooth"] if factored else (lambda idx: c["smooth"].frames(idx))
-    fs = _FramedSequence(seq, F, np.where(nb < 0, np.arange(V), nb), incidence(F, V))
+    fs = _FramedSequence(seq, F, np.where(nb < 0, np.arange(V), nb), vertex_face_incidence(F, V))
     got = fs.frames(slice(2, 6))  # (3, V, t) each
     for i, t in enumerate(range(2, 6)):
-        want = frame_vectors(c["smooth"].frames(t)[0], F)
+        want = vertex_frames(c["smooth"].frames(t)[0], F)
         for g, w in zip(got, want):
             dev = np.abs(g[:, :, i].T - w).max(axis=1)
             assert g.dtype == work
@@ -291,7 +296,7 @@ def test_batched_frames_equal_frame_vectors(tiger_detail_case, factored, work, m
 
 
 def test_batched_frames_fall_back_where_the_tangent_edge_vanishes():
-    """A vertex whose first neighbour nearly coincides with it: frame_vectors' axis fallback."""
+    """A vertex whose first neighbour nearly coincides with it: vertex_frames' axis fallback."""
     import trimesh
 
     g = trimesh.creation.box().subdivide().subdivide()
@@ -300,9 +305,9 @@ def test_batched_frames_fall_back_where_the_tangent_edge_vanishes():
     nb = first_neighbour(F, len(V))
     V[nb[0]] = V[0] + 1e-9 * (V[nb[0]] - V[0])  # the edge 0 -> nb[0] shrinks to nothing
     fac = FactoredSequence(V, np.zeros((1, 0)), np.zeros((0, len(V), 3)), 0.0)
-    fs = _FramedSequence(fac, F, np.where(nb < 0, np.arange(len(V)), nb), incidence(F, len(V)))
+    fs = _FramedSequence(fac, F, np.where(nb < 0, np.arange(len(V)), nb), vertex_face_incidence(F, len(V)))
     got = fs.frames(slice(0, 1))
-    want = frame_vectors(V, F)
+    want = vertex_frames(V, F)
     n0 = want[2][0]
     axis = np.array([1.0, 0, 0]) if abs(n0[0]) < 0.9 else np.array([0, 1.0, 0])
     fallback = axis - (axis @ n0) * n0

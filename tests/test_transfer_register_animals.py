@@ -11,7 +11,7 @@ import pytest
 
 from core.io.layout import read_layout
 from core.transfer import TransferSettings, register
-from core.transfer._mesh import weld
+from core.geometry import weld
 from core.transfer.correspond import face_crop, flipped_triangles
 from core.transfer.performance import shared_landmarks
 from datapaths import LAYOUTS

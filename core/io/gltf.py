@@ -455,38 +455,14 @@ def read_animation(path, animation: int = 0, fps: Optional[float] = None) -> Per
 
 
 def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit area-weighted vertex normals of one or many meshes.
+    """The ``NORMAL`` glTF stores: :func:`core.geometry.vertex_normals` with a +Z fallback.
 
-    ``n_v = normalize(sum_{f ∋ v} (p1 - p0) × (p2 - p0))``; a vertex on no (or only
-    degenerate) triangles gets +Z so the result is always unit length, as glTF requires.
-
-    Parameters
-    ----------
-    positions : (V, 3) or (S, V, 3) float
-    faces : (F, 3) int
-
-    Returns
-    -------
-    (V, 3) or (S, V, 3) float64.
+    Unit area-weighted vertex normals of (V, 3) or (S, V, 3) positions, float64; a vertex on
+    no (or only degenerate) triangles gets +Z, since glTF requires unit normals.
     """
-    import trimesh
+    from ..geometry import vertex_normals as normals
 
-    p = np.asarray(positions, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    one = p.ndim == 2
-    p = p[None] if one else p
-    V = p.shape[1]
-    # (V, F) incidence as a sparse matrix, built once by trimesh, reused for every shape; a
-    # loop over shapes keeps the temporaries cache-sized (a batched (S, F, 3, 3) gather is
-    # 4x slower on ICT)
-    inc = trimesh.geometry.index_sparse(V, faces).tocsr()
-    f0, f1, f2 = faces.T
-    out = np.empty_like(p)
-    for s, q in enumerate(p):
-        vn = inc @ np.cross(q[f1] - q[f0], q[f2] - q[f0])  # |cross| = 2 * triangle area
-        norm = np.linalg.norm(vn, axis=1, keepdims=True)
-        out[s] = np.divide(vn, norm, out=np.tile([0.0, 0.0, 1.0], (V, 1)), where=norm > 0)
-    return out[0] if one else out
+    return normals(np.asarray(positions, dtype=np.float64), faces, fallback=(0.0, 0.0, 1.0))
 
 
 class _Bin:

@@ -22,7 +22,8 @@ import numpy as np
 
 from ..progress import ProgressFn, report
 
-from ._mesh import bbox_size, check_faces, check_positions, weld
+from ..geometry import weld
+from ._mesh import bbox_size, check_faces, check_positions
 from .bases import BasisSelection, gram_from_factored, nnls_gram, select_bases
 from .correspond import Registration, landmarks_from_shapes, register, similarity_align
 from .decompose import (FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence,

@@ -1,12 +1,10 @@
 """Private mesh helpers for the transfer package.
 
-What :mod:`core.geometry` does not offer in the batched form this package needs:
+Only what no other package needs (mesh operators others use are public in
+:mod:`core.geometry`: weld, normals, frames, incidence, cross products):
 
-* :func:`weld` merges coincident vertices (rigs split vertices along UV seams, which cuts
-  the mesh into islands and breaks every Laplacian across the seam);
-* :func:`vertex_normals_batch` area-weighted normals of T frames at once (one sparse
-  product instead of T ``np.add.at`` passes of ``geometry.vertex_normals``);
-* :func:`local_frames` the per-vertex frame (tangent, bitangent, normal) of Xu 2014 §5.1;
+* :func:`to_local` / :func:`to_world` change coordinates to and from the per-vertex frames
+  of :func:`core.geometry.vertex_frames` (Xu 2014 §5.1);
 * :class:`PinnedSolver` one factorisation of a symmetric positive semi-definite mesh
   operator whose null space is the per-component constants (Laplacians), used for every
   Poisson / deformation-transfer solve with many right-hand sides.
@@ -18,6 +16,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
+
+# transitional: dashboard/transfer_view.py still imports weld from here; delete this line once
+# it imports core.geometry.weld (nothing in core, tests, scripts or benchmarks uses it)
+from ..geometry import weld  # noqa: F401
 
 
 def bbox_size(positions: np.ndarray) -> float:
@@ -45,133 +47,6 @@ def check_faces(f, n: int, name: str = "faces") -> np.ndarray:
     if a.size and (a.min() < 0 or a.max() >= n):
         raise ValueError(f"{name}: indices must lie in [0, {n}), got [{a.min()}, {a.max()}]")
     return a.astype(np.int64)
-
-
-def weld(positions: np.ndarray, faces: np.ndarray, tol: float | None = None):
-    """Merge vertices closer than ``tol`` (default ``1e-9 * size``).
-
-    Returns
-    -------
-    welded_index : (V,) int  -- welded id of every input vertex
-    representative : (V',) int -- one input vertex per welded vertex
-    welded_faces : (F', 3) int -- faces on welded ids, faces that collapsed dropped
-    """
-    p = np.asarray(positions, dtype=np.float64)
-    size = bbox_size(p)
-    tol = 1e-9 * max(size, 1e-300) if tol is None else tol
-    key = np.round(p / tol).astype(np.int64)
-    _, rep, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    inv = inv.ravel()
-    # order welded vertices by first occurrence so that a mesh without duplicates keeps its order
-    order = np.argsort(rep, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    welded_index = rank[inv]
-    representative = rep[order]
-    wf = welded_index[np.asarray(faces)]
-    ok = (wf[:, 0] != wf[:, 1]) & (wf[:, 1] != wf[:, 2]) & (wf[:, 0] != wf[:, 2])
-    return welded_index, representative, wf[ok]
-
-
-def incidence(faces: np.ndarray, n: int) -> sp.csr_matrix:
-    """(V, F) 0/1 vertex-face incidence."""
-    F = len(faces)
-    rows = faces.ravel()
-    cols = np.repeat(np.arange(F), 3)
-    return sp.csr_matrix((np.ones(3 * F), (rows, cols)), shape=(n, F))
-
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product over the last axis of (..., 3) arrays (``np.cross`` without its
-    axis-moving copies, ~3x faster on (T, F, 3) batches)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    np.multiply(a1, b2, out=out[..., 0])
-    out[..., 0] -= a2 * b1
-    np.multiply(a2, b0, out=out[..., 1])
-    out[..., 1] -= a0 * b2
-    np.multiply(a0, b1, out=out[..., 2])
-    out[..., 2] -= a1 * b0
-    return out
-
-
-def face_cross(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(..., F, 3) un-normalised face normals ``(v1 - v0) x (v2 - v0)`` (length = 2 area)."""
-    p0 = positions[..., faces[:, 0], :]
-    return cross(positions[..., faces[:, 1], :] - p0, positions[..., faces[:, 2], :] - p0)
-
-
-def _normalize(x: np.ndarray) -> np.ndarray:
-    n = np.sqrt(np.einsum("...i,...i->...", x, x))[..., None]
-    return np.divide(x, n, out=np.zeros_like(x), where=n > 0)
-
-
-def vertex_normals_batch(positions: np.ndarray, faces: np.ndarray, inc: sp.csr_matrix | None = None) -> np.ndarray:
-    """Area-weighted unit vertex normals of (T, V, 3) or (V, 3) frames, same dtype as input.
-
-    Same definition as :func:`core.geometry.vertex_normals` (``normalize(sum 2A_f n_f)``),
-    batched over frames with one sparse product.
-    """
-    x = np.asarray(positions)
-    single = x.ndim == 2
-    if single:
-        x = x[None]
-    T, V, _ = x.shape
-    inc = incidence(faces, V) if inc is None else inc
-    N = face_cross(x, faces)  # (T, F, 3)
-    acc = inc.astype(x.dtype) @ N.transpose(1, 0, 2).reshape(len(faces), -1)  # (V, T*3)
-    acc = _normalize(acc.reshape(V, T, 3).transpose(1, 0, 2))
-    return acc[0] if single else acc
-
-
-def first_neighbour(faces: np.ndarray, n: int) -> np.ndarray:
-    """(V,) one edge-neighbour per vertex (the lowest-index neighbour), -1 when isolated."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.concatenate([e, e[:, ::-1]])
-    order = np.lexsort((e[:, 1], e[:, 0]))
-    e = e[order]
-    first = np.full(n, -1, dtype=np.int64)
-    starts = np.flatnonzero(np.r_[True, e[1:, 0] != e[:-1, 0]])
-    first[e[starts, 0]] = e[starts, 1]
-    return first
-
-
-def frame_vectors(positions: np.ndarray, faces: np.ndarray, neighbour: np.ndarray | None = None,
-                  inc: sp.csr_matrix | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-vertex orthonormal frame ``(t, b, n)``, each (..., V, 3) in the input's dtype.
-
-    ``n`` is the area-weighted vertex normal and ``t`` the edge to a fixed neighbour projected
-    onto the tangent plane and normalised (Xu et al. 2014 §5.1: "determined by its normal and
-    a tangent vector, which is generated by projecting an edge originating from the vertex to
-    its tangent plane"); ``b = n x t``. Where the edge is parallel to the normal (or the vertex
-    is isolated) any unit vector orthogonal to ``n`` is used.
-    """
-    x = np.asarray(positions)
-    if not np.issubdtype(x.dtype, np.floating):
-        x = x.astype(np.float64)
-    V = x.shape[-2]
-    nb = first_neighbour(faces, V) if neighbour is None else neighbour
-    n = vertex_normals_batch(x, faces, inc)
-    nbi = np.where(nb < 0, np.arange(V), nb)
-    t = x[..., nbi, :] - x
-    t -= np.einsum("...i,...i->...", t, n)[..., None] * n
-    tn = np.sqrt(np.einsum("...i,...i->...", t, t))
-    bad = tn <= 1e-6 * (tn.max() if tn.size else 1.0)
-    if bad.any():
-        alt = np.where(np.abs(n[..., :1]) < 0.9, np.array([1.0, 0, 0], x.dtype), np.array([0, 1.0, 0], x.dtype))
-        alt = alt - np.einsum("...i,...i->...", alt, n)[..., None] * n
-        t = np.where(bad[..., None], alt, t)
-    t = _normalize(t)
-    b = cross(n, t)
-    return t, b, n
-
-
-def local_frames(positions: np.ndarray, faces: np.ndarray, neighbour: np.ndarray | None = None,
-                 inc: sp.csr_matrix | None = None) -> np.ndarray:
-    """Frames of :func:`frame_vectors` as (..., V, 3, 3) matrices with columns ``[t, b, n]``:
-    ``world = F @ local``."""
-    return np.stack(frame_vectors(positions, faces, neighbour, inc), axis=-1)
 
 
 def to_local(frames: tuple, x: np.ndarray) -> np.ndarray:

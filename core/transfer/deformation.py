@@ -33,7 +33,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..geometry import gradient
-from ._mesh import PinnedSolver, bbox_size, check_faces, check_positions, components, cross, face_cross
+from ..geometry import cross, face_cross
+from ._mesh import PinnedSolver, bbox_size, check_faces, check_positions, components
 
 __all__ = ["triangle_frames", "deformation_gradients", "line_gradients", "DeformationTransfer", "deformation_transfer"]
 

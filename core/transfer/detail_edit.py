@@ -40,8 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..geometry import uniform_laplacian, vertex_adjacency
-from ._mesh import vertex_normals_batch, weld
+from ..geometry import uniform_laplacian, vertex_adjacency, vertex_normals, weld
 from .decompose import PoissonReconstructor
 
 __all__ = ["region_near_curve", "region_near_points", "detail_window", "scale_details", "propagate_details",
@@ -404,7 +403,7 @@ class DetailEditor:
         return self.neutral[r] + np.einsum("k,kvc->vc", self.weights[f], self.deltas[:, r])
 
     def normals(self, frame: int) -> np.ndarray:
-        return vertex_normals_batch(self.surface(frame), self.faces)
+        return vertex_normals(self.surface(frame), self.faces)
 
     def coating(self, frame: int) -> np.ndarray:
         """(n, 3) the detail coating ``ξ_t = A D_t`` at ``frame``."""
@@ -538,7 +537,7 @@ class DetailEditor:
         if not 0 <= a < self.n_vertices:
             raise ValueError(f"anchor: expected an editor vertex id in [0, {self.n_vertices})")
         X = self.surface(f)
-        N = vertex_normals_batch(X, self.faces)
+        N = vertex_normals(X, self.faces)
         ext, ring = falloff(self.faces, self.n_vertices, S, band, self.adjacency)
         w = 1.0 - ring / (band + 1.0)
         c_idx = S[np.argmin(np.linalg.norm(X[S] - X[S].mean(0), axis=1))]
@@ -594,7 +593,7 @@ class DetailEditor:
         X = self.surface(f)
         P = self.select_curve(C, radius, f)
         x = self.deform_region(P, C, Q, X, lam_l)
-        N = vertex_normals_batch(X, self.faces)
+        N = vertex_normals(X, self.faces)
         ext, ring = falloff(self.faces, self.n_vertices, P, band, self.adjacency)
         w = 1.0 - ring / (band + 1.0)
         move = x - X[P]

@@ -2,7 +2,7 @@ r"""Fine-scale detail transfer by Laplacian-coating rotation (Xu et al. 2014 §5
 
 For every vertex and frame, the source coating change is rotated from the local frame ``F_t``
 of the smoothed source ``S̄_t`` into the local frame ``F'_t`` of the smoothed target ``T̄_t``
-(frames: normal + projected edge, :func:`~core.transfer._mesh.frame_vectors`):
+(frames: normal + projected edge, :func:`core.geometry.vertex_frames`):
 
 .. math:: \hat D'_t = R_v(\xi_t - \xi_0),\quad R_v = F'_t F_t^T \qquad (16)
 
@@ -51,7 +51,8 @@ from typing import Callable, Union
 import numpy as np
 import scipy.sparse as sp
 
-from ._mesh import first_neighbour, frame_vectors, incidence, to_local
+from ..geometry import first_neighbour, vertex_face_incidence, vertex_frames
+from ._mesh import to_local
 from .decompose import FactoredSequence, PoissonReconstructor, factor_sequence
 
 __all__ = ["local_coating", "DetailTransfer", "detail_morph_targets"]
@@ -59,18 +60,18 @@ __all__ = ["local_coating", "DetailTransfer", "detail_morph_targets"]
 
 def local_coating(frames, coating: np.ndarray) -> np.ndarray:
     """World coating (..., V, 3) -> local coordinates ``F^T ξ`` (..., V, 3); ``frames`` is
-    ``(t, b, n)`` from :func:`~core.transfer._mesh.frame_vectors`."""
+    ``(t, b, n)`` from :func:`core.geometry.vertex_frames`."""
     return to_local(frames, coating)
 
 
 # -- component-major (3, V, t) kernels -------------------------------------------------------
-# Hand-written rather than _mesh.frame_vectors: that one works on (t, V, 3) sequences, whose
+# Hand-written rather than geometry.vertex_frames: that one works on (t, V, 3) sequences, whose
 # per-vertex gathers copy 12-byte rows and whose component slices are 3-strided (2.3 ms per
 # frame for the face cross products of a 112K-face mesh). Here a chunk of t frames is held
 # as (3, V, t) / (3, F, t): every component is one contiguous block (0.5 ms per frame for the
 # same products), the normal sums of the three coordinates are one sparse product with the
 # block-diagonal incidence, and the linear parts come out of one matrix product in this
-# layout. Tested equal to frame_vectors.
+# layout. Tested equal to vertex_frames.
 
 
 _WORK = np.float32  # working precision of the frames and the rotation
@@ -103,7 +104,7 @@ def _normalize_(x: np.ndarray) -> None:
 
 
 def _frames_from_edges(e1: np.ndarray, e2: np.ndarray, et: np.ndarray, inc) -> tuple:
-    """Frames ``(t, b, n)`` of :func:`~core.transfer._mesh.frame_vectors`, each (3, V, t),
+    """Frames ``(t, b, n)`` of :func:`core.geometry.vertex_frames`, each (3, V, t),
     from the face edges ``e1 = x_1 - x_0``, ``e2 = x_2 - x_0`` ((3, F, t)) and the tangent
     edges ``et = x_nb - x`` ((3, V, t), overwritten); ``inc`` is the (3V, 3F) block-diagonal
     incidence ``I_3 ⊗ (V, F)`` (one sparse product for the three coordinates)."""
@@ -112,7 +113,7 @@ def _frames_from_edges(e1: np.ndarray, e2: np.ndarray, et: np.ndarray, inc) -> t
     _normalize_(n)
     et -= _dot(et, n) * n
     tn = np.sqrt(_dot(et, et))
-    # as frame_vectors: an edge (nearly) along the normal falls back to an axis; the
+    # as vertex_frames: an edge (nearly) along the normal falls back to an axis; the
     # threshold is relative to the longest projected edge of the same frame
     bad = tn <= 1e-6 * (tn.max(axis=0) if tn.size else 1.0)
     if bad.any():
@@ -204,15 +205,15 @@ class DetailTransfer:
         V = poisson.n
         self.nb = first_neighbour(self.faces, V)
         self._nbi = np.where(self.nb < 0, np.arange(V), self.nb)
-        self.inc = incidence(self.faces, V)
+        self.inc = vertex_face_incidence(self.faces, V)
         self.gain = float(gain)
         self.rotate_reference = bool(rotate_reference)
         self.xi0 = np.asarray(source_coating_ref, dtype=np.float64)
-        F0 = frame_vectors(np.asarray(source_smooth_ref, dtype=np.float64), self.faces, self.nb, self.inc)
+        F0 = vertex_frames(np.asarray(source_smooth_ref, dtype=np.float64), self.faces, self.nb, self.inc)
         self.l0 = local_coating(F0, source_coating_ref)
         T0 = np.asarray(target_ref, dtype=np.float64)
         Tb0 = np.asarray(target_smooth_ref, dtype=np.float64)
-        Ft0 = frame_vectors(Tb0, self.faces, self.nb, self.inc)
+        Ft0 = vertex_frames(Tb0, self.faces, self.nb, self.inc)
         self.That0 = np.asarray(poisson.L @ (T0 - Tb0))
         self.lt0 = local_coating(Ft0, self.That0)
         self.ref_displacement = T0 - Tb0

@@ -449,7 +449,7 @@ def benchmark(n_frames: int = 1300):
     import time
 
     from ..io.gltf import read_rig
-    from ._mesh import weld
+    from ..geometry import weld
     from .detail_edit import _reference_propagation, propagate_details
     from .decompose import taubin_smooth
     from pathlib import Path

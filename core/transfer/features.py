@@ -143,7 +143,7 @@ def feature_lines_near(positions, faces, points, radius: float) -> list:
     list of (m,) int arrays of *input* vertex ids (one representative per welded vertex), the
     form ``TransferSettings.feature_lines`` takes.
     """
-    from ._mesh import weld
+    from ..geometry import weld
 
     p = np.asarray(positions, dtype=np.float64)
     wi, rep, wf = weld(p, faces)
