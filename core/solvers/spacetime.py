@@ -64,71 +64,20 @@ import scipy.sparse as sp
 import scipy.sparse.linalg
 from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs
 
-from core.model import flatten
-from core.prior import PCAPrior, alpha_for_units
+from core.prior import PCAPrior, alpha_for_units, prior_quadratic
+from core.solvers.inputs import as_basis, as_sequence, as_valid, zero_filled
 
 __all__ = [
     "SpacetimeSolver", "solve_spacetime", "spacetime_reference", "Edit", "SpacetimeEnergy",
     "known_matrix", "known_rows",
 ]
 
+#: Deprecated alias kept only while core/stages.py (being redesigned) imports it from here;
+#: use :func:`core.prior.prior_quadratic`.
+_prior_quadratic = prior_quadratic
+
 #: relative ridge used by ``ridge="auto"`` when ``B`` is rank deficient (times sigma_max(B)^2)
 AUTO_RIDGE = 1e-9
-
-
-# -- input normalisation (shared with baselines and metrics) ------------------------------------
-def _as_basis(B, name: str = "B") -> np.ndarray:
-    """(K, M, 3) marker deltas or the paper's (3M, K) matrix -> (3M, K) float64."""
-    B = np.asarray(B, dtype=np.float64)
-    if B.ndim == 3:
-        if B.shape[2] != 3:
-            raise ValueError(f"{name}: expected (K, M, 3) marker deltas or a (3M, K) matrix, got {B.shape}")
-        B = flatten(B).T
-    elif B.ndim != 2 or B.shape[0] % 3:
-        raise ValueError(f"{name}: expected (K, M, 3) marker deltas or a (3M, K) matrix, got {B.shape}")
-    if not np.isfinite(B).all():
-        raise ValueError(f"{name}: contains NaN/inf")
-    return np.ascontiguousarray(B)
-
-
-def _as_sequence(S, M: int, name: str = "S") -> np.ndarray:
-    """(T, M, 3) source marker deltas -> float64 (T, M, 3) (NaN kept for missing samples)."""
-    S = np.asarray(S, dtype=np.float64)
-    if S.ndim != 3 or S.shape[1:] != (M, 3):
-        raise ValueError(f"{name}: expected (T, {M}, 3) source marker deltas, got {S.shape}")
-    if len(S) < 1:
-        raise ValueError(f"{name}: needs at least one frame")
-    return S
-
-
-def _as_valid(valid, S3: np.ndarray, name: str = "valid") -> np.ndarray:
-    """(T, M) bool mask: given, or where ``S`` is finite. Valid samples must be finite."""
-    with np.errstate(all="ignore"):
-        all_finite = bool(np.isfinite(np.add.reduce(S3, axis=None)))  # one pass, no temporaries
-    finite = np.ones(S3.shape[:2], bool) if all_finite else np.isfinite(S3).all(-1)
-    if valid is None:
-        return finite
-    v = np.asarray(valid)
-    if v.shape != finite.shape:
-        raise ValueError(f"{name}: expected shape {finite.shape} (frames, markers), got {v.shape}")
-    v = v.astype(bool)
-    bad = v & ~finite
-    if bad.any():
-        t, m = np.argwhere(bad)[0]
-        raise ValueError(f"{name}: sample (frame {t}, marker {m}) is marked valid but is NaN/inf")
-    return v
-
-
-def _zero_filled(S3: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(T, 3M) with missing samples set to 0 (they are masked out of every term).
-
-    Without missing samples this is a read-only view of ``S3`` (no copy of a long take).
-    """
-    if valid.all():
-        v = S3.reshape(len(S3), -1).view()
-        v.flags.writeable = False
-        return v
-    return np.where(valid[:, :, None], S3, 0.0).reshape(len(S3), -1)
 
 
 def _nonneg(x, shape, name) -> np.ndarray:
@@ -196,24 +145,6 @@ def known_matrix(known, T: int, K: int, boundary="neutral", name: str = "known")
     for t, w in known_rows(known, T, K, boundary, name).items():
         Kn[t] = w
     return Kn
-
-
-def _prior_quadratic(prior, Bm: np.ndarray, K: int):
-    """(P, q, c) for the solver's B from a PCAPrior, a (P, q[, c]) tuple, or None (fit on B)."""
-    if prior is None:
-        prior = PCAPrior().fit(Bm.T.reshape(K, -1, 3))
-    if isinstance(prior, PCAPrior):
-        return prior.quadratic(Bm)
-    if isinstance(prior, (tuple, list)) and len(prior) in (2, 3):
-        P = np.asarray(prior[0], dtype=np.float64)
-        q = np.asarray(prior[1], dtype=np.float64)
-        c = float(prior[2]) if len(prior) == 3 else 0.0
-        if P.shape != (K, K) or q.shape != (K,):
-            raise ValueError(f"prior: expected (P (K, K), q (K,)) with K={K}, got {P.shape}, {q.shape}")
-        if not np.allclose(P, P.T, rtol=1e-10, atol=1e-12 * max(np.abs(P).max(), 1e-300)):
-            raise ValueError("prior: P must be symmetric")
-        return 0.5 * (P + P.T), q, c
-    raise ValueError(f"prior: expected a fitted PCAPrior, a (P, q) tuple or None, got {type(prior).__name__}")
 
 
 # -- the energy -------------------------------------------------------------------------------
@@ -313,13 +244,13 @@ class SpacetimeSolver:
     def __init__(self, B, S, alpha: float = 0.01, beta: float = 0.0, prior=None, known=None,
                  boundary="neutral", valid=None, marker_weights=None, frame_weights=None,
                  alpha_units: str = "cm", ridge="auto", names=None, method: str = "auto"):
-        Bm = _as_basis(B)
+        Bm = as_basis(B)
         n3, K = Bm.shape
         M = n3 // 3
-        S3 = _as_sequence(S, M)
+        S3 = as_sequence(S, M)
         T = len(S3)
-        self.valid_ = _as_valid(valid, S3)
-        self._S = _zero_filled(S3, self.valid_)
+        self.valid_ = as_valid(valid, S3)
+        self._S = zero_filled(S3, self.valid_)
         self._holes = not self.valid_.all()
         self.T, self.K, self.M = T, K, M
         self._B = Bm
@@ -345,7 +276,7 @@ class SpacetimeSolver:
         A = Bm.T @ Bm
         self._A = A
         if self.alpha_ > 0:
-            self.P_, self.q_, self._c = _prior_quadratic(prior, Bm, K)
+            self.P_, self.q_, self._c = prior_quadratic(prior, Bm, K)
         else:
             self.P_, self.q_, self._c = np.zeros((K, K)), np.zeros(K), 0.0
         self._G = Bm.T @ (self._gamma3[:, None] * Bm)
@@ -863,13 +794,13 @@ def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, bounda
     -------
     (T, K) float
     """
-    Bm = _as_basis(B)
+    Bm = as_basis(B)
     n3, K = Bm.shape
     M = n3 // 3
-    S3 = _as_sequence(S, M)
+    S3 = as_sequence(S, M)
     T = len(S3)
-    valid = _as_valid(valid, S3)
-    Sz = _zero_filled(S3, valid)
+    valid = as_valid(valid, S3)
+    Sz = zero_filled(S3, valid)
     a = alpha_for_units(alpha, alpha_units)
     gam = np.ones(M) if marker_weights is None else _nonneg(marker_weights, (M,), "marker_weights")
     fw = np.ones(T) if frame_weights is None else _nonneg(frame_weights, (T,), "frame_weights")
@@ -892,7 +823,7 @@ def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, bounda
             blocks.append(np.sqrt(a) * sp.kron(sp.identity(T), sp.csr_matrix(R), format="csr"))
             rhs.append(np.sqrt(a) * np.tile(m, T))
         else:
-            P, q, _ = _prior_quadratic(prior, Bm, K)
+            P, q, _ = prior_quadratic(prior, Bm, K)
             Pextra = (a * sp.kron(sp.identity(T), sp.csr_matrix(P), format="csr"), a * np.tile(q, T))
     wpos = np.sqrt(beta * fw[:, None] * np.repeat(gam, 3)[None, :] * np.repeat(valid, 3, axis=1)).ravel()
     if beta > 0:
