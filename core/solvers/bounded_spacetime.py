@@ -400,7 +400,7 @@ def bounded_spacetime_reference(B, S, alpha: float, beta: float, prior, known, *
         m = osqp.OSQP()
         m.setup(sp.triu(P, format="csc"), qq, Acon, np.concatenate(lb), np.concatenate(ub), verbose=False,
                 eps_abs=tol, eps_rel=tol, max_iter=200000, polishing=True, polish_refine_iter=10)
-        res = m.solve()
+        res = m.solve(raise_error=False)
         z = np.asarray(res.x)
         info = {"status": str(res.info.status), "iterations": int(res.info.iter)}
     else:
