@@ -119,22 +119,29 @@ def kkt_violation(W, g, lower, upper, l1, scale: float) -> np.ndarray:
     """
     W = np.asarray(W, dtype=np.float64)
     g = np.asarray(g, dtype=np.float64)
-    lo = np.broadcast_to(lower, W.shape)
-    hi = np.broadcast_to(upper, W.shape)
-    lam = np.broadcast_to(l1, W.shape)
-    slo, shi = _slopes(lo, hi, lam)
+    shape = W.shape
+    lo, hi, lam = (np.asarray(a, dtype=np.float64) for a in (lower, upper, l1))
     at_lo = W == lo
     at_hi = (W == hi) & ~at_lo
-    at_0 = (W == 0) & (lam > 0) & (lo < 0) & (hi > 0)
-    inside = ~(at_lo | at_hi | at_0)
-    v = np.where(inside, np.abs(g + lam * np.sign(W)), 0.0)
-    v = np.where(at_lo, np.maximum(0.0, -(g + slo)), v)
-    v = np.where(at_hi & ~at_lo, np.maximum(0.0, g + shi), v)
-    v = np.where(at_0, np.maximum(0.0, np.abs(g) - lam), v)
-    with np.errstate(invalid="ignore"):
-        out = np.maximum(lo - W, 0.0) + np.maximum(W - hi, 0.0)
-    v = np.where(out > 0, np.maximum(v, scale * out), v)
-    return np.where(np.isnan(v), np.inf, v)  # NaN (a failed solve) never passes
+    if (lam > 0).any():
+        slo, shi = _slopes(lo, hi, lam)
+        v = np.abs(g + lam * np.sign(W))  # free: |g + l1 sign(w)|
+        at_0 = (W == 0) & ((lam > 0) & (lo < 0) & (hi > 0))
+        if at_0.any():
+            v[at_0] = np.maximum(np.abs(g[at_0]) - np.broadcast_to(lam, shape)[at_0], 0.0)
+    else:
+        slo = shi = np.zeros(1)
+        v = np.abs(g)
+    if at_lo.any():
+        v[at_lo] = np.maximum(-(g[at_lo] + np.broadcast_to(slo, shape)[at_lo]), 0.0)
+    if at_hi.any():
+        v[at_hi] = np.maximum(g[at_hi] + np.broadcast_to(shi, shape)[at_hi], 0.0)
+    d = np.maximum(lo - W, W - hi)  # > 0 outside the bounds
+    out = d > 0
+    if out.any():
+        v[out] = np.maximum(v[out], scale * d[out])
+    v[np.isnan(v)] = np.inf  # NaN (a failed solve) never passes
+    return v
 
 
 def _prox_state(y, c, lo, hi, lam):
@@ -186,9 +193,14 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
     use_l1 = bool((lam[~known] > 0).any()) if (~known).any() else False
     info = {"iterations": 0, "pdas": 0, "admm": 0}
 
+    free = ~known
+    anyfree = bool(free.any())
+
     def residual(X, g):
-        v = kkt_violation(X, g, lo[0], hi[0], lam[0], system.scale)[~known]
-        return float(v.max()) if v.size else 0.0
+        if not anyfree:
+            return 0.0
+        v = kkt_violation(X, g, lo[0], hi[0], lam[0], system.scale)
+        return float(v[free].max())
 
     def small(X, r):
         return r <= tol * system.scale * max(1.0, float(np.abs(X).max()))

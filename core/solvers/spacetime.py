@@ -295,6 +295,8 @@ class _Tridiagonals:
         ratio = np.zeros(K * n)
         ratio[:-1] = -ef  # l_c = e_c / d~_c; T^-1[c, b] = -l_c T^-1[c + 1, b] for c < b
         self.ratio = ratio.reshape(K, n)
+        self.inv_diag_t = np.ascontiguousarray(self.inv_diag.T)  # (n, K): rows gathered by frame
+        self.ratio_t = np.ascontiguousarray(self.ratio.T)
         self._f = (df, ef)
         return self
 
@@ -323,7 +325,11 @@ class _Tridiagonals:
 
 
 #: entries per block of the capacitance solve (see :func:`_capacitance_solve`)
-CAPACITANCE_BLOCK = 16
+CAPACITANCE_BLOCK = 32
+#: ratio products below exp(-36) (< eps / 2) are taken as exp(-36) inside a block (see below)
+_LOG_TINY = -36.0
+#: largest block: its log products span at most 36 (block - 1) <= 2 * 700 (no overflow)
+_MAX_BLOCK = 39
 
 
 def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shapes: np.ndarray,
@@ -337,17 +343,26 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     ``s <= t``, with ``theta_c`` the negated multipliers of its LDL^T factorisation (all in
     [0, 1) for these diagonally dominant systems, 0 across a known frame). Sorted by frame,
     ``C`` is therefore *quasiseparable* with diagonal K x K transitions, and its block Cholesky
-    factor inherits the structure: with entries in blocks of ``block`` (dense diagonal blocks
-    ``C_ii`` from pairwise products inside the block),
+    factor inherits the structure: with entries in blocks of ``block``,
 
         C_li = Q_l Phi_{i->l} P_i^T  (l > i),   L_li = Q_l Phi_{i->l} N_i,
         L_ii L_ii^T = C_ii - Q_i W_i Q_i^T,     L_ii N_i^T = P_i - Q_i W_i Psi_i,
         W_{i+1} = Phi_i (Psi_i W_i Psi_i + N_i N_i^T) Phi_i
 
-    where ``P`` (``Q``) are the entries' rows of ``U`` carried to the block's last (from its
-    first) entry, ``Psi_i`` the transition across block ``i`` and ``Phi_i`` from block ``i`` to
-    ``i + 1``. Every transition is a product of ratios <= 1 (no division, no overflow). Cost
-    ``O(p (block + K) K)`` time and ``O(p K)`` memory instead of the dense ``O(p^3)``.
+    where ``P`` (``Q``) are the entries' rows of ``U`` (times ``diag T^-1``) carried to the
+    block's last (from its first) entry, ``Psi_i`` the transition across block ``i`` and
+    ``Phi_i`` from block ``i`` to ``i + 1``: products of ratios <= 1, no division across blocks,
+    no overflow. The dense diagonal blocks are one batched product ``(U e^-l) (Q e^l)^T`` with
+    ``l`` the block-local log ratio products (centred), each ratio floored at ``exp(-36)``
+    (< eps / 2) so that blocks of up to 39 entries cannot overflow; the floor changes an
+    entry by less than rounding.
+    Cost ``O(p (block + K) K)`` time and ``O(p (block + K))`` memory instead of the dense
+    ``O(p^3)``.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        The capacitance system is numerically not positive definite.
     """
     p = len(rows)
     if p == 0:
@@ -355,73 +370,75 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     K = U.shape[1]
     order = np.lexsort((shapes, rows))
     rows, shapes, rhs = rows[order], shapes[order], rhs[order]
-    bs = int(max(1, min(block, p)))
+    bs = int(max(1, min(block, p, _MAX_BLOCK)))
     nb = -(-p // bs)
     P = nb * bs
     # ratio products from each entry to the next (1 within a frame)
     frames = np.unique(rows)
     step = np.ones((P, K))
     if len(frames) > 1:
-        seg = np.multiply.reduceat(tri.ratio, frames, axis=1)[:, :-1].T  # (F - 1, K): frames[i] -> frames[i+1]
+        seg = np.multiply.reduceat(tri.ratio_t, frames, axis=0)[:-1]  # (F - 1, K): frames[i] -> frames[i+1]
         nxt = np.flatnonzero(rows[1:] > rows[:-1])
         step[nxt] = seg[np.searchsorted(frames, rows[nxt])]
     Ue = np.zeros((P, K))
-    Ue[:p] = U[shapes]
+    np.take(U, shapes, axis=0, out=Ue[:p])
     Qg = np.zeros((P, K))
-    Qg[:p] = Ue[:p] * tri.inv_diag[:, rows].T
+    np.multiply(Ue[:p], tri.inv_diag_t[rows], out=Qg[:p])
     Ue, Qg, step = Ue.reshape(nb, bs, K), Qg.reshape(nb, bs, K), step.reshape(nb, bs, K)
-    # diagonal blocks C_ii (upper part row by row) and the generators
-    Cd = np.zeros((nb, bs, bs))
-    toend = np.empty((nb, bs, K))
-    prod = np.ones((nb, bs, K))
-    for x in range(bs):
-        # prod[:, y] = ratio product from entry x to entry y (y >= x)
-        if x:
-            prod = prod[:, 1:]
-            prod[:] = 1.0
-        if x < bs - 1:
-            np.cumprod(step[:, x:bs - 1], axis=1, out=prod[:, 1:])
-        if x == 0:
-            fromstart = prod.copy()
-        Cd[:, x, x:] = np.einsum("ik,iyk->iy", Ue[:, x], prod * Qg[:, x:])
-        toend[:, x] = prod[:, -1]
-    iu = np.triu_indices(bs, 1)
-    Cd[:, iu[1], iu[0]] = Cd[:, iu[0], iu[1]]
-    Pg = Ue * toend
-    Qg = Qg * fromstart
-    Psi = fromstart[:, -1]  # (nb, K) first -> last entry of each block
-    Phi = step[:, -1]  # (nb, K) last entry of block i -> first of i + 1
+    Phi = step[:, -1].copy()  # (nb, K): last entry of block i -> first of i + 1
+    lp = np.zeros((nb, bs, K))  # block-local log products from the block's first entry
+    with np.errstate(divide="ignore"):
+        np.log(step[:, :-1], out=lp[:, 1:])
+    np.maximum(lp[:, 1:], _LOG_TINY, out=lp[:, 1:])
+    np.cumsum(lp[:, 1:], axis=1, out=lp[:, 1:])
+    # diagonal blocks: C_ii[x, y] = sum_k U_xk Qg_yk e^(l_y - l_x) for x <= y (upper triangle kept);
+    # l centred per block and direction: e^(l - mid) stays within e^(+-36 (block - 1) / 2), no overflow
+    mid = 0.5 * lp[:, -1:]
+    E1 = np.exp(lp - mid)
+    Pg = Ue / E1  # U e^(mid - l)
+    Cd = np.matmul(Pg, np.transpose(Qg * E1, (0, 2, 1)))
+    iu = np.tril_indices(bs, -1)
+    Cd[:, iu[0], iu[1]] = Cd[:, iu[1], iu[0]]
+    em = np.exp(mid)
+    Pg *= em  # carried to the block's last entry: U e^(l_last - l), l_last = 2 mid
+    E1 *= em  # e^l: carried from the block's first entry
+    Qg *= E1
+    Psi = E1[:, -1]  # (nb, K) first -> last entry of each block
     c = np.zeros(P)
     c[:p] = rhs
     c = c.reshape(nb, bs)
     if P > p:  # padding entries: decoupled identity rows
         k = np.arange(bs - (P - p), bs)
         Cd[-1, k, k] = 1.0
-    W = np.zeros((K, K))
-    v = np.zeros(K)
-    Ls, Ns, ys = [], [], []
+    a = Psi * Phi
+    Wa = a[:, :, None] * a[:, None, :]  # transitions of the accumulated W
+    Wf = Phi[:, :, None] * Phi[:, None, :]
+    Wv = np.zeros((K, K + 1))  # [W | v]: the recursion's state, propagated in one product
+    Ls, Ns = [], []
+    rhs_i = np.empty((bs, K + 1), order="F")
     for i in range(nb):
         Qi = Qg[i]
-        QW = Qi @ W
-        rhs_i = np.empty((bs, K + 1), order="F")
-        np.subtract(Pg[i], QW * Psi[i], out=rhs_i[:, :K])
-        rhs_i[:, K] = c[i] - Qi @ v
+        QWv = Qi @ Wv
+        QW = QWv[:, :K]
+        np.multiply(QW, Psi[i], out=rhs_i[:, :K])
+        np.subtract(Pg[i], rhs_i[:, :K], out=rhs_i[:, :K])
+        np.subtract(c[i], QWv[:, K], out=rhs_i[:, K])
         Lii, info = dpotrf(Cd[i] - QW @ Qi.T, lower=1, clean=1)
         if info != 0:
             raise np.linalg.LinAlgError("capacitance system not positive definite")
-        sol, _ = dtrtrs(Lii, rhs_i, lower=1)
-        Nt, y = sol[:, :K], sol[:, K]
+        sol, _ = dtrtrs(Lii, rhs_i, lower=1)  # [N_i^T | y_i]
         Ls.append(Lii)
-        Ns.append(Nt)
-        ys.append(y)
+        Ns.append(sol)
         if i < nb - 1:
-            a = Psi[i] * Phi[i]
-            W = W * np.multiply.outer(a, a) + (Nt.T @ Nt) * np.multiply.outer(Phi[i], Phi[i])
-            v = v * a + (Nt.T @ y) * Phi[i]
+            G = sol[:, :K].T @ sol  # [N N^T | N y]
+            Wv[:, :K] *= Wa[i]
+            Wv[:, :K] += G[:, :K] * Wf[i]
+            Wv[:, K] *= a[i]
+            Wv[:, K] += G[:, K] * Phi[i]
     lam = np.empty((nb, bs))
     z = np.zeros(K)
     for i in range(nb - 1, -1, -1):
-        lam[i] = dtrtrs(Ls[i], ys[i] - Ns[i] @ z, lower=1, trans=1)[0]
+        lam[i] = dtrtrs(Ls[i], Ns[i][:, K] - Ns[i][:, :K] @ z, lower=1, trans=1)[0]
         if i:
             z = (z * Psi[i] + Qg[i].T @ lam[i]) * Phi[i - 1]
     out = np.empty(p)
