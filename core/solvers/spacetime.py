@@ -7,6 +7,8 @@ deltas ``S`` (T, M, 3)::
          + alpha * sum_t E_prior(w_t)                                  PCA prior (§5, eq. 4)
          + sum_t beta * f_t * ||Gamma^1/2 (B w_t - s_t)||^2            Sobolev position term (§7.1)
          + rho * sum_t ||w_t||^2                                       ridge, only when B is rank deficient
+         + sum_t sum_{k named} gamma_k (w_tk - n_tk)^2                 name term: pull toward namesake curves
+        (+ sum_tk l1_k |w_tk|,  lower_k <= w_tk <= upper_k)            bounded solver, see below
 
 subject to known entries of ``W`` (boundary frames, user poses, partial poses; §4, §6).
 ``f_t`` are per-frame and ``Gamma = diag(gamma_m)`` per-marker Sobolev weights. Missing samples
@@ -20,15 +22,22 @@ With ``A = B^T B``, ``P`` the prior quadratic (:class:`core.prior.PCAPrior`),
 ``G = B^T Gamma B``, the path-graph Laplacian ``L = D^T D`` (tridiagonal; Seol's appendix) and
 ``vec`` stacking the frames' weight vectors (= the paper's ``vec(W)`` of its K x T ``W``)::
 
-    (L (x) A + I (x) alpha P + diag(beta f) (x) G + rho I) vec(W) = r                      (*)
+    (L (x) A + I (x) (alpha P + Gn) + diag(beta f) (x) G + rho I) vec(W) = r               (*)
+
+with ``Gn = diag(gamma_k [shape k has a namesake])``.
 
 Known frames delete rows/columns of ``L`` (the unknown frames' ``L_uu`` stays tridiagonal and
 falls apart into independent segments between known frames); their values move to ``r``.
 
 Fast path (simultaneous diagonalisation), used when there is no missing sample and either the
 marker weights are uniform (``G = c A``) or the frame weights are (``f = const``). Then (*) is
-``L' (x) A + I (x) C`` with ``L' = L_uu + diag(beta f c)`` and ``C = alpha P + rho I`` (or
-``L' = L_uu`` and ``C = alpha P + beta f G + rho I``). The generalised symmetric eigenproblem of
+``L' (x) A + I (x) C`` with ``L' = L_uu + diag(beta f c)`` and ``C = alpha P + Gn + rho I`` (or
+``L' = L_uu`` and ``C = alpha P + Gn + beta f G + rho I``). The name term keeps this form: ``Gn``
+is not a multiple of ``I`` (only some shapes have a namesake) and is not diagonalised by the
+``U`` of ``(A, alpha P)``, but it is the same K x K matrix in every frame, so it simply joins
+``C`` before the pencil below is diagonalised (``name_weight = 0`` gives today's ``C`` exactly).
+A namesake curve with gaps (some frames NaN) would make ``Gn`` vary per frame; it is refused.
+The generalised symmetric eigenproblem of
 the pencil ``(A, A + C)``, ``A U = (A + C) U diag(mu)``, ``U^T (A + C) U = I``, gives
 ``U^T A U = diag(mu)``, ``U^T C U = diag(1 - mu)`` with ``0 <= mu <= 1``; it needs only
 ``A + C`` positive definite (not ``A``), so rank-deficient ``B`` with a prior, or shapes the
@@ -38,9 +47,19 @@ by LAPACK ``pttrf/pttrs``. Cost ``O(K^3)`` once per solver, ``O(T M K + T K^2)``
 
 Partial known weights (some shapes of a frame fixed) are exact constraints ``E^T x = c`` on the
 fast system ``H0`` where those frames are free: ``x = H0^-1 (r - E lam)`` with the capacitance
-system ``(E^T H0^-1 E) lam = E^T H0^-1 r - c``. ``E^T H0^-1 E`` is assembled from the columns of
-the K tridiagonal inverses at the constrained frames: cost ``O(T K F + p^2 K + p^3)`` for ``p``
-constrained entries on ``F`` frames.
+system ``(E^T H0^-1 E) lam = E^T H0^-1 r - c``. The inverse of each SPD tridiagonal is
+semiseparable, so ``E^T H0^-1 E`` sorted by frame is quasiseparable with K x K diagonal
+transitions and is factorised block by block without ever being formed
+(:func:`_capacitance_solve`): ``O(p (32 + K) K)`` for ``p`` constrained entries, plus one more
+banded solve. :class:`RangeSystem` packages this equality-constrained solve; the bounded
+solver calls it once per active-set step.
+
+Bounds and sparsity (:mod:`core.solvers.bounded_spacetime`): with ``lower``/``upper`` (scalars
+or per shape) or ``l1 > 0`` the same energy plus ``l1 ||W||_1`` is minimised subject to the
+bounds, exactly to the KKT tolerance ``tol * ||B^T B||_2 * max(1, max |W|)`` (default
+:data:`KKT_RTOL` = 1e-9): a primal-dual active-set method whose inner solve is the
+``RangeSystem`` solve above (the fast path when it applies), restarted from ADMM iterates when
+it cycles. Edits (§6) re-solve their windows the same way.
 
 General path (block tridiagonal), used with missing samples or per-frame *and* per-marker
 weights: (*) is block tridiagonal with K x K blocks (each difference's and frame's own mask),
@@ -49,7 +68,10 @@ known entries are eliminated symmetrically, and a block Cholesky-Thomas sweep so
 
 Units: ``B`` and ``S`` in metres (the library convention). ``alpha`` is given for lengths in
 ``alpha_units`` (default cm, see :func:`core.prior.alpha_for_units`) and used internally as
-``alpha * s**2``. ``beta`` is scale-free (both terms are squared lengths).
+``alpha * s**2``. ``beta`` is scale-free (both terms are squared lengths). ``ridge``, ``l1`` and
+``name_weight`` are relative to ``sigma_max(B)^2`` (a weight costs ``sigma_max(B)^2`` per unit
+squared in the data term of the most visible shape combination), so they do not depend on the
+rig's size either; the absolute values are ``ridge_``, ``l1_``, ``name_weight_``.
 """
 
 from __future__ import annotations
@@ -458,7 +480,7 @@ class RangeSystem:
     ----------
     lo, hi, n, K : int      the range (inclusive) and its size
     fixed : (n, K) bool     entries known in the range (constraints of every solve)
-    values : (n, K) float   their values (0 elsewhere)
+    values : (n, K) float   their values (0 elsewhere; made on first use)
     path : str              "fast" (diagonalised tridiagonals + capacitance) or "block"
     scale : float           ``||B^T B||_2``, the scale KKT residuals are measured in
     curvature : (K,) float  ``2 diag(2 A + C)``, a per-shape curvature for active-set steps
@@ -469,18 +491,34 @@ class RangeSystem:
         self.n, self.K = hi - lo + 1, solver.K
         self.path = path
         n, K = self.n, self.K
+        self._rows = rows
         self.fixed = np.zeros((n, K), bool)
-        self.values = np.zeros((n, K))
         for t, w in rows.items():
-            m = np.isfinite(w)
-            self.fixed[t] = m
-            self.values[t, m] = w[m]
+            self.fixed[t] = np.isfinite(w)
         self.full = self.fixed.all(1)
+        self._values = None
         self.scale = solver.scale_
         self.curvature = 2.0 * (2.0 * np.diag(solver._A) + np.diag(solver._C))
         self._Z0 = None
         if path == "fast":
             self._setup_fast()
+
+    @property
+    def values(self) -> np.ndarray:
+        """(n, K) known values, 0 where not known (made on first use)."""
+        if self._values is None:
+            v = np.zeros((self.n, self.K))
+            for t, w in self._rows.items():
+                m = np.isfinite(w)
+                v[t, m] = w[m]
+            self._values = v
+        return self._values
+
+    def _put_known(self, X):
+        """Known entries into ``X`` exactly, row by row (no dense (n, K) values array)."""
+        for t, w in self._rows.items():
+            m = np.isfinite(w)
+            X[t, m] = w[m]
 
     # -- the fast path ------------------------------------------------------------------------
     def _setup_fast(self):
@@ -508,7 +546,7 @@ class RangeSystem:
         for t in np.flatnonzero(full):
             for nb in (t - 1, t + 1):
                 if 0 <= nb < n and not full[nb]:
-                    rz[:, nb] += self.values[t] @ s._AU
+                    rz[:, nb] += self._rows[t] @ s._AU
         contiguous = not full[1:-1].any()  # only the range ends may be known
         if contiguous:
             u0, u1 = int(full[0]), n - int(full[-1])
@@ -550,10 +588,13 @@ class RangeSystem:
         comes with the solve. The block path eliminates them and evaluates ``g`` literally.
         """
         n, K = self.n, self.K
-        fx = self.fixed if fixed is None else (self.fixed | np.asarray(fixed, bool))
-        val = self.values if values is None else np.where(self.fixed, self.values, values)
+        if fixed is None:
+            fx, val = self.fixed, None  # only the known entries: no dense values needed
+        else:
+            fx = self.fixed | np.asarray(fixed, bool)
+            val = np.where(self.fixed, self.values, values)
         if self.path == "block":
-            return self._solve_block(fx, val, linear)
+            return self._solve_block(fx, self.values if val is None else val, linear)
         s = self.solver
         uidx, U, tri = self._uidx, s._U, self._tri
         rows, ks = np.nonzero(fx[uidx])  # constrained entries on the unknown frames
@@ -570,10 +611,11 @@ class RangeSystem:
         if len(rows):
             tri.factor()
             x0 = np.einsum("ja,aj->a", Z[:, rows], U[ks])
+            vf = (self.values if val is None else val)[uidx[rows], ks]
             try:
-                lam = _capacitance_solve(tri, U, rows, ks, x0 - val[uidx[rows], ks])
+                lam = _capacitance_solve(tri, U, rows, ks, x0 - vf)
             except np.linalg.LinAlgError:  # numerically singular capacitance: eliminate directly
-                return self._solve_block(fx, val, linear)
+                return self._solve_block(fx, self.values if val is None else val, linear)
             V = np.zeros((len(uidx), K))
             V[rows, ks] = lam
             dr = np.unique(rows)
@@ -584,12 +626,17 @@ class RangeSystem:
         else:
             s.method_ = "fast"
         X = np.empty((n, K))
-        X[self.full] = self.values[self.full]
         if self._contiguous and len(uidx):
             np.matmul(Z.T, U.T, out=X[uidx[0]:uidx[-1] + 1])
         elif len(uidx):
             X[uidx] = Z.T @ U.T
-        X[fx] = val[fx]  # constraints hold exactly (they already do to rounding)
+        # constraints hold exactly (they already do to rounding)
+        if val is None:
+            self._put_known(X)
+        else:
+            X[fx] = val[fx]
+        if _consume:
+            return X, None
         g = np.zeros((n, K)) if linear is None else 2.0 * np.asarray(linear, dtype=np.float64)
         if lam is not None:
             g[uidx[rows], ks] -= 2.0 * lam
@@ -651,10 +698,12 @@ class SpacetimeSolver:
     """Precomputed spacetime retargeting problem (Seol et al. 2012, eq. 2, 4, 5 and §7.1).
 
     Minimises ``||D(BW)^T - DS^T||^2 + alpha sum_t E_prior(w_t) + beta sum_t f_t
-    ||Gamma^1/2 (B w_t - s_t)||^2 (+ rho ||W||^2)`` subject to known weights; see the module
-    docstring for the energy, the normal equations and the two exact solution paths.
+    ||Gamma^1/2 (B w_t - s_t)||^2 (+ rho ||W||^2 + gamma ||W - W_named||^2)`` subject to known
+    weights, and with ``lower``/``upper``/``l1`` subject to the bounds with the L1 term; see the
+    module docstring for the energy, the normal equations and the exact solution paths.
     Construction does the ``O(K^3)`` work (prior quadratic, simultaneous diagonalisation);
-    :meth:`solve` and :meth:`edit` are ``O(T M K + T K^2)`` on the fast path.
+    :meth:`solve` and :meth:`edit` are ``O(T M K + T K^2)`` on the fast path, times the few
+    active-set steps (each ``O(T K^2 + p (32 + K) K)`` for ``p`` weights on a bound) when bounded.
 
     Parameters
     ----------
@@ -689,6 +738,20 @@ class SpacetimeSolver:
         Shape names, so edits may name shapes.
     method : {"auto", "fast", "block"}
         Solution path; "auto" takes the fast path whenever it is exact for the inputs.
+    lower, upper : float or (K,) float, optional (keyword only)
+        Weight bounds (None: unbounded). Known weights (boundary frames included) must lie
+        inside them; edit values outside are clipped with a warning.
+    l1 : float or (K,) float >= 0 (keyword only)
+        Relative L1 weight: ``l1 * sigma_max(B)^2 * ||W||_1`` is added (a linear term for
+        non-negative bounds). 0: none.
+    name_target : (T, K) float, optional (keyword only)
+        Namesake curves ``W_named``: for each shape the curve of the source channel with the
+        same (canonical) name; a column of NaN = no namesake, no term for that shape.
+    name_weight : float or (K,) float >= 0 (keyword only)
+        Relative ``gamma``: ``gamma * sigma_max(B)^2 ||W - W_named||^2`` over the named shapes.
+        0 (default): today's energy exactly.
+    tol : float > 0 (keyword only)
+        Relative KKT tolerance of the bounded solver (default :data:`KKT_RTOL`).
 
     Attributes
     ----------
@@ -697,12 +760,20 @@ class SpacetimeSolver:
     known_ : (T, K) float     the known weights, NaN = free
     P_, q_ : prior quadratic for ``B``
     fast_ : bool              whether the fast path is available for these inputs
-    method_ : str             the path the last solve used
+    method_ : str             the path the last solve used ("fast", "fast+capacitance", "block",
+                              "fast+bounded", "block+bounded", "known")
+    scale_ : float            ``sigma_max(B)^2 = ||B^T B||_2``, the scale of the relative settings
+    lower_, upper_ : (K,)     bounds (-inf/inf where none)
+    l1_, name_weight_ : (K,)  absolute L1 and name weights (m^2)
+    bounded_ : bool           whether solves go through the bounded solver
+    info_ : dict              the bounded solver's report of the last solve (iterations, active,
+                              kkt, converged; see :func:`core.solvers.bounded_spacetime.solve_bounded`)
 
     Raises
     ------
     ValueError
-        Shapes/values of any argument (naming it), or a singular problem.
+        Shapes/values of any argument (naming it), known weights outside the bounds, a
+        namesake curve with gaps, or a singular problem.
     """
 
     def __init__(self, B, S, alpha: float = 0.01, beta: float = 0.0, prior=None, known=None,
