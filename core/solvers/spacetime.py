@@ -355,7 +355,7 @@ _MAX_BLOCK = 39
 
 
 def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shapes: np.ndarray,
-                       rhs: np.ndarray, block: int = CAPACITANCE_BLOCK) -> np.ndarray:
+                       rhs: np.ndarray, block: int = CAPACITANCE_BLOCK, presorted: bool = False) -> np.ndarray:
     """``lam`` with ``(E^T H^-1 E) lam = rhs`` for the fast path's ``H^-1 = U diag_j(T_j^-1) U^T``.
 
     ``E`` selects the ``p`` entries ``(rows[a], shapes[a])`` (frame in the range's unknown
@@ -390,8 +390,9 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     if p == 0:
         return np.zeros(0)
     K = U.shape[1]
-    order = np.lexsort((shapes, rows))
-    rows, shapes, rhs = rows[order], shapes[order], rhs[order]
+    order = None if presorted else np.lexsort((shapes, rows))
+    if order is not None:
+        rows, shapes, rhs = rows[order], shapes[order], rhs[order]
     bs = int(max(1, min(block, p, _MAX_BLOCK)))
     nb = -(-p // bs)
     P = nb * bs
@@ -463,6 +464,8 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         lam[i] = dtrtrs(Ls[i], Ns[i][:, K] - Ns[i][:, :K] @ z, lower=1, trans=1)[0]
         if i:
             z = (z * Psi[i] + Qg[i].T @ lam[i]) * Phi[i - 1]
+    if order is None:
+        return lam.ravel()[:p].copy()
     out = np.empty(p)
     out[order] = lam.ravel()[:p]
     return out
@@ -612,15 +615,16 @@ class RangeSystem:
             tri.factor()
             x0 = np.einsum("ja,aj->a", Z[:, rows], U[ks])
             vf = (self.values if val is None else val)[uidx[rows], ks]
-            try:
-                lam = _capacitance_solve(tri, U, rows, ks, x0 - vf)
+            try:  # np.nonzero's entries come sorted by frame, as the recursion wants them
+                lam = _capacitance_solve(tri, U, rows, ks, x0 - vf, presorted=True)
             except np.linalg.LinAlgError:  # numerically singular capacitance: eliminate directly
                 return self._solve_block(fx, self.values if val is None else val, linear)
-            V = np.zeros((len(uidx), K))
-            V[rows, ks] = lam
-            dr = np.unique(rows)
+            first = np.r_[True, rows[1:] != rows[:-1]]
+            dr = rows[first]  # frames with constrained entries
+            Ld = np.zeros((len(dr), K))
+            Ld[np.cumsum(first) - 1, ks] = lam
             Vu = np.zeros((K, len(uidx)))
-            Vu[:, dr] = (V[dr] @ U).T
+            Vu[:, dr] = (Ld @ U).T  # U^T E lam, nonzero only on those frames
             Z = Z - tri.solve(Vu, overwrite=True)
             s.method_ = "fast+capacitance"
         else:
@@ -631,10 +635,9 @@ class RangeSystem:
         elif len(uidx):
             X[uidx] = Z.T @ U.T
         # constraints hold exactly (they already do to rounding)
-        if val is None:
-            self._put_known(X)
-        else:
-            X[fx] = val[fx]
+        self._put_known(X)
+        if len(rows):
+            X[uidx[rows], ks] = vf
         if _consume:
             return X, None
         g = np.zeros((n, K)) if linear is None else 2.0 * np.asarray(linear, dtype=np.float64)
