@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from core.solvers.spacetime import _as_basis, _as_sequence, _as_valid, _zero_filled
+from core.solvers.inputs import as_basis, as_sequence, as_valid, zero_filled
 
 __all__ = ["velocity_error", "marker_error_mm", "weight_range", "VelocityError", "MarkerError", "WeightRange"]
 
@@ -55,15 +55,15 @@ class WeightRange(NamedTuple):
 
 
 def _inputs(B, W, S, valid):
-    Bm = _as_basis(B)
+    Bm = as_basis(B)
     K = Bm.shape[1]
     M = Bm.shape[0] // 3
-    S3 = _as_sequence(S, M)
+    S3 = as_sequence(S, M)
     W = np.asarray(W, dtype=np.float64)
     if W.shape != (len(S3), K):
         raise ValueError(f"W: expected ({len(S3)}, {K}) weights for {len(S3)} frames and {K} shapes, got {W.shape}")
-    valid = _as_valid(valid, S3)
-    return Bm, W, _zero_filled(S3, valid), valid
+    valid = as_valid(valid, S3)
+    return Bm, W, zero_filled(S3, valid), valid
 
 
 def _residual(B, W, S, valid, predicted):

@@ -39,7 +39,7 @@ import numpy as np
 
 from core.model import flatten, unit_scale
 
-__all__ = ["PCAPrior", "alpha_for_units"]
+__all__ = ["PCAPrior", "alpha_for_units", "prior_quadratic"]
 
 
 def alpha_for_units(alpha: float, units: str = "cm") -> float:
@@ -243,3 +243,37 @@ class PCAPrior:
         v = self.coefficients(W, basis)
         e = (v**2 / self.eigenvalues_).sum(-1)
         return float(e) if np.ndim(e) == 0 else e
+
+
+def prior_quadratic(prior, B: np.ndarray, K: int):
+    """The prior as ``(P, q, c)`` for the weights of ``B``: ``E_prior(w) = w^T P w - 2 q^T w + c``.
+
+    Parameters
+    ----------
+    prior : PCAPrior, (P, q) or (P, q, c) tuple, or None
+        A fitted :class:`PCAPrior` (its :meth:`PCAPrior.quadratic` for ``B``), an explicit
+        quadratic, or None: the paper's default, a PCA of ``B``'s own shapes (Seol 2012, §5).
+    B : (3M, K) float
+        Marker blendshape matrix the weights multiply.
+    K : int
+        Number of shapes (checked against an explicit ``P``, ``q``).
+
+    Raises
+    ------
+    ValueError
+        An explicit ``P`` that is not (K, K) and symmetric or ``q`` not (K,), or another type.
+    """
+    if prior is None:
+        prior = PCAPrior().fit(B.T.reshape(K, -1, 3))
+    if isinstance(prior, PCAPrior):
+        return prior.quadratic(B)
+    if isinstance(prior, (tuple, list)) and len(prior) in (2, 3):
+        P = np.asarray(prior[0], dtype=np.float64)
+        q = np.asarray(prior[1], dtype=np.float64)
+        c = float(prior[2]) if len(prior) == 3 else 0.0
+        if P.shape != (K, K) or q.shape != (K,):
+            raise ValueError(f"prior: expected (P (K, K), q (K,)) with K={K}, got {P.shape}, {q.shape}")
+        if not np.allclose(P, P.T, rtol=1e-10, atol=1e-12 * max(np.abs(P).max(), 1e-300)):
+            raise ValueError("prior: P must be symmetric")
+        return 0.5 * (P + P.T), q, c
+    raise ValueError(f"prior: expected a fitted PCAPrior, a (P, q) tuple or None, got {type(prior).__name__}")

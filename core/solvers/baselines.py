@@ -20,8 +20,9 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from core.prior import alpha_for_units
-from core.solvers.spacetime import AUTO_RIDGE, _as_basis, _as_sequence, _as_valid, _prior_quadratic, _zero_filled
+from core.prior import alpha_for_units, prior_quadratic
+from core.solvers.inputs import as_basis, as_sequence, as_valid, zero_filled
+from core.solvers.spacetime import AUTO_RIDGE
 
 __all__ = ["no_const", "range_pf", "prior_pf", "box_lsq"]
 
@@ -38,11 +39,11 @@ def _groups(valid: np.ndarray):
 
 
 def _setup(B, S, valid):
-    Bm = _as_basis(B)
+    Bm = as_basis(B)
     M = Bm.shape[0] // 3
-    S3 = _as_sequence(S, M)
-    valid = _as_valid(valid, S3)
-    return Bm, _zero_filled(S3, valid), valid
+    S3 = as_sequence(S, M)
+    valid = as_valid(valid, S3)
+    return Bm, zero_filled(S3, valid), valid
 
 
 def no_const(B, S, valid=None, rcond: float = 1e-7) -> np.ndarray:
@@ -99,7 +100,7 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
     K = Bm.shape[1]
     a = alpha_for_units(alpha, alpha_units)
     if a > 0:
-        P, q, _ = _prior_quadratic(prior, Bm, K)
+        P, q, _ = prior_quadratic(prior, Bm, K)
     else:
         P, q = np.zeros((K, K)), np.zeros(K)
     W = np.zeros((len(Sz), K))

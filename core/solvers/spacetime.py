@@ -7,6 +7,8 @@ deltas ``S`` (T, M, 3)::
          + alpha * sum_t E_prior(w_t)                                  PCA prior (§5, eq. 4)
          + sum_t beta * f_t * ||Gamma^1/2 (B w_t - s_t)||^2            Sobolev position term (§7.1)
          + rho * sum_t ||w_t||^2                                       ridge, only when B is rank deficient
+         + sum_t sum_{k named} gamma_k (w_tk - n_tk)^2                 name term: pull toward namesake curves
+        (+ sum_tk l1_k |w_tk|,  lower_k <= w_tk <= upper_k)            bounded solver, see below
 
 subject to known entries of ``W`` (boundary frames, user poses, partial poses; §4, §6).
 ``f_t`` are per-frame and ``Gamma = diag(gamma_m)`` per-marker Sobolev weights. Missing samples
@@ -20,15 +22,22 @@ With ``A = B^T B``, ``P`` the prior quadratic (:class:`core.prior.PCAPrior`),
 ``G = B^T Gamma B``, the path-graph Laplacian ``L = D^T D`` (tridiagonal; Seol's appendix) and
 ``vec`` stacking the frames' weight vectors (= the paper's ``vec(W)`` of its K x T ``W``)::
 
-    (L (x) A + I (x) alpha P + diag(beta f) (x) G + rho I) vec(W) = r                      (*)
+    (L (x) A + I (x) (alpha P + Gn) + diag(beta f) (x) G + rho I) vec(W) = r               (*)
+
+with ``Gn = diag(gamma_k [shape k has a namesake])``.
 
 Known frames delete rows/columns of ``L`` (the unknown frames' ``L_uu`` stays tridiagonal and
 falls apart into independent segments between known frames); their values move to ``r``.
 
 Fast path (simultaneous diagonalisation), used when there is no missing sample and either the
 marker weights are uniform (``G = c A``) or the frame weights are (``f = const``). Then (*) is
-``L' (x) A + I (x) C`` with ``L' = L_uu + diag(beta f c)`` and ``C = alpha P + rho I`` (or
-``L' = L_uu`` and ``C = alpha P + beta f G + rho I``). The generalised symmetric eigenproblem of
+``L' (x) A + I (x) C`` with ``L' = L_uu + diag(beta f c)`` and ``C = alpha P + Gn + rho I`` (or
+``L' = L_uu`` and ``C = alpha P + Gn + beta f G + rho I``). The name term keeps this form: ``Gn``
+is not a multiple of ``I`` (only some shapes have a namesake) and is not diagonalised by the
+``U`` of ``(A, alpha P)``, but it is the same K x K matrix in every frame, so it simply joins
+``C`` before the pencil below is diagonalised (``name_weight = 0`` gives today's ``C`` exactly).
+A namesake curve with gaps (some frames NaN) would make ``Gn`` vary per frame; it is refused.
+The generalised symmetric eigenproblem of
 the pencil ``(A, A + C)``, ``A U = (A + C) U diag(mu)``, ``U^T (A + C) U = I``, gives
 ``U^T A U = diag(mu)``, ``U^T C U = diag(1 - mu)`` with ``0 <= mu <= 1``; it needs only
 ``A + C`` positive definite (not ``A``), so rank-deficient ``B`` with a prior, or shapes the
@@ -38,9 +47,19 @@ by LAPACK ``pttrf/pttrs``. Cost ``O(K^3)`` once per solver, ``O(T M K + T K^2)``
 
 Partial known weights (some shapes of a frame fixed) are exact constraints ``E^T x = c`` on the
 fast system ``H0`` where those frames are free: ``x = H0^-1 (r - E lam)`` with the capacitance
-system ``(E^T H0^-1 E) lam = E^T H0^-1 r - c``. ``E^T H0^-1 E`` is assembled from the columns of
-the K tridiagonal inverses at the constrained frames: cost ``O(T K F + p^2 K + p^3)`` for ``p``
-constrained entries on ``F`` frames.
+system ``(E^T H0^-1 E) lam = E^T H0^-1 r - c``. The inverse of each SPD tridiagonal is
+semiseparable, so ``E^T H0^-1 E`` sorted by frame is quasiseparable with K x K diagonal
+transitions and is factorised block by block without ever being formed
+(:func:`_capacitance_solve`): ``O(p (32 + K) K)`` for ``p`` constrained entries, plus one more
+banded solve. :class:`RangeSystem` packages this equality-constrained solve; the bounded
+solver calls it once per active-set step.
+
+Bounds and sparsity (:mod:`core.solvers.bounded_spacetime`): with ``lower``/``upper`` (scalars
+or per shape) or ``l1 > 0`` the same energy plus ``l1 ||W||_1`` is minimised subject to the
+bounds, exactly to the KKT tolerance ``tol * ||B^T B||_2 * max(1, max |W|)`` (default
+:data:`KKT_RTOL` = 1e-9): a primal-dual active-set method whose inner solve is the
+``RangeSystem`` solve above (the fast path when it applies), restarted from ADMM iterates when
+it cycles. Edits (§6) re-solve their windows the same way.
 
 General path (block tridiagonal), used with missing samples or per-frame *and* per-marker
 weights: (*) is block tridiagonal with K x K blocks (each difference's and frame's own mask),
@@ -49,86 +68,44 @@ known entries are eliminated symmetrically, and a block Cholesky-Thomas sweep so
 
 Units: ``B`` and ``S`` in metres (the library convention). ``alpha`` is given for lengths in
 ``alpha_units`` (default cm, see :func:`core.prior.alpha_for_units`) and used internally as
-``alpha * s**2``. ``beta`` is scale-free (both terms are squared lengths).
+``alpha * s**2``. ``beta`` is scale-free (both terms are squared lengths). ``ridge``, ``l1`` and
+``name_weight`` are relative to ``sigma_max(B)^2`` (a weight costs ``sigma_max(B)^2`` per unit
+squared in the data term of the most visible shape combination), so they do not depend on the
+rig's size either; the absolute values are ``ridge_``, ``l1_``, ``name_weight_``.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import NamedTuple, Optional, Sequence
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg
-from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs
+from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs, dtrtrs
 
-from core.model import flatten
-from core.prior import PCAPrior, alpha_for_units
+from core.prior import PCAPrior, alpha_for_units, prior_quadratic
+from core.solvers.inputs import as_basis, as_sequence, as_valid, zero_filled
 
 __all__ = [
-    "SpacetimeSolver", "solve_spacetime", "spacetime_reference", "Edit", "SpacetimeEnergy",
-    "known_matrix", "known_rows",
+    "SpacetimeSolver", "solve_spacetime", "spacetime_reference", "kronecker_system", "KroneckerSystem",
+    "RangeSystem", "Edit", "SpacetimeEnergy", "known_matrix", "known_rows", "KKT_RTOL",
 ]
+
+#: Deprecated alias kept only while core/stages.py (being redesigned) imports it from here;
+#: use :func:`core.prior.prior_quadratic`.
+_prior_quadratic = prior_quadratic
 
 #: relative ridge used by ``ridge="auto"`` when ``B`` is rank deficient (times sigma_max(B)^2)
 AUTO_RIDGE = 1e-9
 
-
-# -- input normalisation (shared with baselines and metrics) ------------------------------------
-def _as_basis(B, name: str = "B") -> np.ndarray:
-    """(K, M, 3) marker deltas or the paper's (3M, K) matrix -> (3M, K) float64."""
-    B = np.asarray(B, dtype=np.float64)
-    if B.ndim == 3:
-        if B.shape[2] != 3:
-            raise ValueError(f"{name}: expected (K, M, 3) marker deltas or a (3M, K) matrix, got {B.shape}")
-        B = flatten(B).T
-    elif B.ndim != 2 or B.shape[0] % 3:
-        raise ValueError(f"{name}: expected (K, M, 3) marker deltas or a (3M, K) matrix, got {B.shape}")
-    if not np.isfinite(B).all():
-        raise ValueError(f"{name}: contains NaN/inf")
-    return np.ascontiguousarray(B)
-
-
-def _as_sequence(S, M: int, name: str = "S") -> np.ndarray:
-    """(T, M, 3) source marker deltas -> float64 (T, M, 3) (NaN kept for missing samples)."""
-    S = np.asarray(S, dtype=np.float64)
-    if S.ndim != 3 or S.shape[1:] != (M, 3):
-        raise ValueError(f"{name}: expected (T, {M}, 3) source marker deltas, got {S.shape}")
-    if len(S) < 1:
-        raise ValueError(f"{name}: needs at least one frame")
-    return S
-
-
-def _as_valid(valid, S3: np.ndarray, name: str = "valid") -> np.ndarray:
-    """(T, M) bool mask: given, or where ``S`` is finite. Valid samples must be finite."""
-    with np.errstate(all="ignore"):
-        all_finite = bool(np.isfinite(np.add.reduce(S3, axis=None)))  # one pass, no temporaries
-    finite = np.ones(S3.shape[:2], bool) if all_finite else np.isfinite(S3).all(-1)
-    if valid is None:
-        return finite
-    v = np.asarray(valid)
-    if v.shape != finite.shape:
-        raise ValueError(f"{name}: expected shape {finite.shape} (frames, markers), got {v.shape}")
-    v = v.astype(bool)
-    bad = v & ~finite
-    if bad.any():
-        t, m = np.argwhere(bad)[0]
-        raise ValueError(f"{name}: sample (frame {t}, marker {m}) is marked valid but is NaN/inf")
-    return v
-
-
-def _zero_filled(S3: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(T, 3M) with missing samples set to 0 (they are masked out of every term).
-
-    Without missing samples this is a read-only view of ``S3`` (no copy of a long take).
-    """
-    if valid.all():
-        v = S3.reshape(len(S3), -1).view()
-        v.flags.writeable = False
-        return v
-    return np.where(valid[:, :, None], S3, 0.0).reshape(len(S3), -1)
+#: KKT tolerance of the bounded solver, relative: the largest violation of the optimality
+#: conditions (see :meth:`SpacetimeSolver.kkt_residual`) must be at most
+#: ``KKT_RTOL * ||B^T B||_2 * max(1, max |W|)``
+KKT_RTOL = 1e-9
 
 
 def _nonneg(x, shape, name) -> np.ndarray:
@@ -138,6 +115,59 @@ def _nonneg(x, shape, name) -> np.ndarray:
     if not np.isfinite(x).all() or (x < 0).any():
         raise ValueError(f"{name}: must be finite and >= 0")
     return x
+
+
+def _per_shape(x, K: int, name: str, allow_inf: bool = False) -> np.ndarray:
+    """A scalar or (K,) setting -> (K,) float64 (finite and >= 0 unless ``allow_inf``)."""
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a number or ({K},) numbers, got {x!r}") from None
+    if a.ndim == 0:
+        a = np.full(K, float(a))
+    if a.shape != (K,):
+        raise ValueError(f"{name}: expected a number or ({K},) per-shape values, got shape {a.shape}")
+    if np.isnan(a).any() or (not allow_inf and not np.isfinite(a).all()) or (not allow_inf and (a < 0).any()):
+        raise ValueError(f"{name}: must be finite and >= 0, got {x!r}")
+    return a.copy()
+
+
+def _bounds(lower, upper, K: int):
+    """(K,) lower and upper bounds from scalars, (K,) arrays or None (unbounded)."""
+    lo = _per_shape(-np.inf if lower is None else lower, K, "lower", allow_inf=True)
+    hi = _per_shape(np.inf if upper is None else upper, K, "upper", allow_inf=True)
+    if (lo == np.inf).any() or (hi == -np.inf).any():
+        raise ValueError("lower must be < inf and upper > -inf")
+    if (lo > hi).any():
+        k = int(np.flatnonzero(lo > hi)[0])
+        raise ValueError(f"lower must be <= upper for every shape: shape {k} has lower={lo[k]:g} > upper={hi[k]:g}")
+    return lo, hi
+
+
+def _name_term(target, weight, T: int, K: int):
+    """``(W_named zero-filled (T, K) or None, gamma (K,))`` of the name term (relative gamma)."""
+    gam = _per_shape(weight, K, "name_weight")
+    if target is None:
+        if (gam > 0).any():
+            raise ValueError("name_weight > 0 needs name_target, the (T, K) namesake curves (NaN = no namesake)")
+        return None, np.zeros(K)
+    Wn = np.asarray(target, dtype=np.float64)
+    if Wn.shape != (T, K):
+        raise ValueError(f"name_target: expected ({T}, {K}) namesake curves (NaN = no namesake), got {Wn.shape}")
+    has = np.isfinite(Wn)
+    mixed = has.any(0) & ~has.all(0)
+    if mixed.any():
+        k = int(np.flatnonzero(mixed)[0])
+        raise ValueError(
+            f"name_target: column {k} mixes numbers and NaN; a shape has a namesake curve on every frame "
+            "(all finite) or none (all NaN); fill the gaps of that curve or drop it"
+        )
+    if np.isinf(Wn).any():
+        raise ValueError("name_target: contains inf")
+    gam = np.where(has.all(0), gam, 0.0)
+    if not (gam > 0).any():
+        return None, np.zeros(K)
+    return np.where(has, Wn, 0.0), gam
 
 
 def known_rows(known, T: int, K: int, boundary="neutral", name: str = "known") -> dict:
@@ -198,33 +228,17 @@ def known_matrix(known, T: int, K: int, boundary="neutral", name: str = "known")
     return Kn
 
 
-def _prior_quadratic(prior, Bm: np.ndarray, K: int):
-    """(P, q, c) for the solver's B from a PCAPrior, a (P, q[, c]) tuple, or None (fit on B)."""
-    if prior is None:
-        prior = PCAPrior().fit(Bm.T.reshape(K, -1, 3))
-    if isinstance(prior, PCAPrior):
-        return prior.quadratic(Bm)
-    if isinstance(prior, (tuple, list)) and len(prior) in (2, 3):
-        P = np.asarray(prior[0], dtype=np.float64)
-        q = np.asarray(prior[1], dtype=np.float64)
-        c = float(prior[2]) if len(prior) == 3 else 0.0
-        if P.shape != (K, K) or q.shape != (K,):
-            raise ValueError(f"prior: expected (P (K, K), q (K,)) with K={K}, got {P.shape}, {q.shape}")
-        if not np.allclose(P, P.T, rtol=1e-10, atol=1e-12 * max(np.abs(P).max(), 1e-300)):
-            raise ValueError("prior: P must be symmetric")
-        return 0.5 * (P + P.T), q, c
-    raise ValueError(f"prior: expected a fitted PCAPrior, a (P, q) tuple or None, got {type(prior).__name__}")
-
-
 # -- the energy -------------------------------------------------------------------------------
 class SpacetimeEnergy(NamedTuple):
-    """Terms of the spacetime energy (internal units: metres squared)."""
+    """Terms of the spacetime energy (internal units: metres squared); ``total`` is their sum."""
 
     match: float
     prior: float
     position: float
     ridge: float
     total: float
+    name: float = 0.0  # gamma ||W - W_named||^2 over the shapes with a namesake
+    l1: float = 0.0  # l1 ||W||_1
 
 
 @dataclass(frozen=True)
@@ -251,15 +265,448 @@ class Edit:
     window: Optional[tuple] = None
 
 
+# -- the fast path's building blocks --------------------------------------------------------
+class _Tridiagonals:
+    """The K independent SPD tridiagonal systems ``(mu_j L' + nu_j I) z_j = r_j`` of the fast path.
+
+    ``L'`` is given on the unknown frames of a range by its diagonal ``dL`` (n,) and
+    off-diagonal ``eL`` (n-1,) (0 where known frames split the range into segments).
+    :meth:`solve` works in the transposed layout (K, n), one contiguous row per direction.
+    Without :meth:`factor` each solve runs LAPACK ``ptsv`` direction by direction in place
+    (no stored factor: the memory of a 36,000-frame take stays that of its right-hand side);
+    :meth:`factor` runs one ``pttrf`` on the K systems concatenated into a single tridiagonal
+    of size K n (zero couplings between directions) and keeps what the capacitance solve needs:
+    ``inv_diag`` (K, n), the diagonal of each inverse, and ``ratio`` (K, n), the ratios
+    ``T_j^-1[c, b] / T_j^-1[c + 1, b]`` for ``c < b`` (the same for every column ``b``, see
+    :func:`_capacitance_solve`).
+    """
+
+    def __init__(self, mu, nu, dL, eL, where: str):
+        self.mu, self.nu, self.dL, self.eL = mu, nu, dL, eL
+        self.K, self.n = len(mu), len(dL)
+        self.where = where
+        self._f = None
+
+    def _singular(self):
+        return ValueError(
+            f"the spacetime system for {self.where} is singular: nothing fixes the weights' "
+            "level (no known frame, alpha = beta = 0?); add a boundary frame, alpha > 0 or beta > 0"
+        )
+
+    def factor(self) -> "_Tridiagonals":
+        if self._f is not None:
+            return self
+        K, n = self.K, self.n
+        d = (self.mu[:, None] * self.dL[None, :] + self.nu[:, None]).ravel()
+        e = np.zeros((K, n))
+        if n > 1:
+            e[:, :-1] = self.mu[:, None] * self.eL[None, :]
+        e = e.ravel()[:-1]
+        if d.size == 1:  # LAPACK's wrappers reject the empty off-diagonal
+            if not d[0] > 0:
+                raise self._singular()
+            df, ef, db = d, e, d
+        else:
+            df, ef, info = dpttrf(d, e)
+            if info != 0:
+                raise self._singular()
+            db, _, info = dpttrf(d[::-1].copy(), e[::-1].copy())  # pivots of the reversed order
+            db = db[::-1]
+        # diag of the inverse from forward and backward pivots: 1 / (d~_b + d^_b - d_b)
+        self.inv_diag = (1.0 / (df + db - d)).reshape(K, n)
+        ratio = np.zeros(K * n)
+        ratio[:-1] = -ef  # l_c = e_c / d~_c; T^-1[c, b] = -l_c T^-1[c + 1, b] for c < b
+        self.ratio = ratio.reshape(K, n)
+        self.inv_diag_t = np.ascontiguousarray(self.inv_diag.T)  # (n, K): rows gathered by frame
+        self.ratio_t = np.ascontiguousarray(self.ratio.T)
+        self._f = (df, ef)
+        return self
+
+    def solve(self, Z, overwrite: bool = False) -> np.ndarray:
+        """``T_j^-1 Z_j`` for every direction: Z (K, n) -> (K, n)."""
+        K, n = self.K, self.n
+        if self._f is not None:
+            df, ef = self._f
+            if df.size == 1:
+                return Z / df[0]
+            x, info = dpttrs(df, ef, np.ascontiguousarray(Z).ravel(), overwrite_b=1 if overwrite else 0)
+            return x.reshape(K, n)
+        out = Z if overwrite else np.array(Z)
+        for j in range(K):
+            d = self.mu[j] * self.dL + self.nu[j]
+            if n == 1:
+                if not d[0] > 0:
+                    raise self._singular()
+                out[j] /= d[0]
+                continue
+            _, _, x, info = dptsv(d, self.mu[j] * self.eL, out[j][:, None], overwrite_b=1)
+            if info != 0:
+                raise self._singular()
+            out[j] = x[:, 0]
+        return out
+
+
+#: entries per block of the capacitance solve (see :func:`_capacitance_solve`)
+CAPACITANCE_BLOCK = 32
+#: ratio products below exp(-36) (< eps / 2) are taken as exp(-36) inside a block (see below)
+_LOG_TINY = -36.0
+#: largest block: its log products span at most 36 (block - 1) <= 2 * 700 (no overflow)
+_MAX_BLOCK = 39
+
+
+def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shapes: np.ndarray,
+                       rhs: np.ndarray, block: int = CAPACITANCE_BLOCK, presorted: bool = False) -> np.ndarray:
+    """``lam`` with ``(E^T H^-1 E) lam = rhs`` for the fast path's ``H^-1 = U diag_j(T_j^-1) U^T``.
+
+    ``E`` selects the ``p`` entries ``(rows[a], shapes[a])`` (frame in the range's unknown
+    frames, shape); ``T_j`` are the factorised tridiagonals ``tri``. The capacitance matrix is
+    ``C[a, b] = sum_j U[k_a, j] U[k_b, j] T_j^-1[t_a, t_b]``. The inverse of an irreducible
+    SPD tridiagonal is semiseparable: ``T^-1[s, t] = T^-1[t, t] prod_{s <= c < t} theta_c`` for
+    ``s <= t``, with ``theta_c`` the negated multipliers of its LDL^T factorisation (all in
+    [0, 1) for these diagonally dominant systems, 0 across a known frame). Sorted by frame,
+    ``C`` is therefore *quasiseparable* with diagonal K x K transitions, and its block Cholesky
+    factor inherits the structure: with entries in blocks of ``block``,
+
+        C_li = Q_l Phi_{i->l} P_i^T  (l > i),   L_li = Q_l Phi_{i->l} N_i,
+        L_ii L_ii^T = C_ii - Q_i W_i Q_i^T,     L_ii N_i^T = P_i - Q_i W_i Psi_i,
+        W_{i+1} = Phi_i (Psi_i W_i Psi_i + N_i N_i^T) Phi_i
+
+    where ``P`` (``Q``) are the entries' rows of ``U`` (times ``diag T^-1``) carried to the
+    block's last (from its first) entry, ``Psi_i`` the transition across block ``i`` and
+    ``Phi_i`` from block ``i`` to ``i + 1``: products of ratios <= 1, no division across blocks,
+    no overflow. The dense diagonal blocks are one batched product ``(U e^-l) (Q e^l)^T`` with
+    ``l`` the block-local log ratio products (centred), each ratio floored at ``exp(-36)``
+    (< eps / 2) so that blocks of up to 39 entries cannot overflow; the floor changes an
+    entry by less than rounding.
+    Cost ``O(p (block + K) K)`` time and ``O(p (block + K))`` memory instead of the dense
+    ``O(p^3)``.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        The capacitance system is numerically not positive definite.
+    """
+    p = len(rows)
+    if p == 0:
+        return np.zeros(0)
+    K = U.shape[1]
+    order = None if presorted else np.lexsort((shapes, rows))
+    if order is not None:
+        rows, shapes, rhs = rows[order], shapes[order], rhs[order]
+    bs = int(max(1, min(block, p, _MAX_BLOCK)))
+    nb = -(-p // bs)
+    P = nb * bs
+    # ratio products from each entry to the next (1 within a frame)
+    frames = np.unique(rows)
+    step = np.ones((P, K))
+    if len(frames) > 1:
+        seg = np.multiply.reduceat(tri.ratio_t, frames, axis=0)[:-1]  # (F - 1, K): frames[i] -> frames[i+1]
+        nxt = np.flatnonzero(rows[1:] > rows[:-1])
+        step[nxt] = seg[np.searchsorted(frames, rows[nxt])]
+    Ue = np.zeros((P, K))
+    np.take(U, shapes, axis=0, out=Ue[:p])
+    Qg = np.zeros((P, K))
+    np.multiply(Ue[:p], tri.inv_diag_t[rows], out=Qg[:p])
+    Ue, Qg, step = Ue.reshape(nb, bs, K), Qg.reshape(nb, bs, K), step.reshape(nb, bs, K)
+    Phi = step[:, -1].copy()  # (nb, K): last entry of block i -> first of i + 1
+    lp = np.zeros((nb, bs, K))  # block-local log products from the block's first entry
+    with np.errstate(divide="ignore"):
+        np.log(step[:, :-1], out=lp[:, 1:])
+    np.maximum(lp[:, 1:], _LOG_TINY, out=lp[:, 1:])
+    np.cumsum(lp[:, 1:], axis=1, out=lp[:, 1:])
+    # diagonal blocks: C_ii[x, y] = sum_k U_xk Qg_yk e^(l_y - l_x) for x <= y (upper triangle kept);
+    # l centred per block and direction: e^(l - mid) stays within e^(+-36 (block - 1) / 2), no overflow
+    mid = 0.5 * lp[:, -1:]
+    E1 = np.exp(lp - mid)
+    Pg = Ue / E1  # U e^(mid - l)
+    Cd = np.matmul(Pg, np.transpose(Qg * E1, (0, 2, 1)))
+    iu = np.tril_indices(bs, -1)
+    Cd[:, iu[0], iu[1]] = Cd[:, iu[1], iu[0]]
+    em = np.exp(mid)
+    Pg *= em  # carried to the block's last entry: U e^(l_last - l), l_last = 2 mid
+    E1 *= em  # e^l: carried from the block's first entry
+    Qg *= E1
+    Psi = E1[:, -1]  # (nb, K) first -> last entry of each block
+    c = np.zeros(P)
+    c[:p] = rhs
+    c = c.reshape(nb, bs)
+    if P > p:  # padding entries: decoupled identity rows
+        k = np.arange(bs - (P - p), bs)
+        Cd[-1, k, k] = 1.0
+    a = Psi * Phi
+    Wa = a[:, :, None] * a[:, None, :]  # transitions of the accumulated W
+    Wf = Phi[:, :, None] * Phi[:, None, :]
+    Wv = np.zeros((K, K + 1))  # [W | v]: the recursion's state, propagated in one product
+    Ls, Ns = [], []
+    rhs_i = np.empty((bs, K + 1), order="F")
+    for i in range(nb):
+        Qi = Qg[i]
+        QWv = Qi @ Wv
+        QW = QWv[:, :K]
+        np.multiply(QW, Psi[i], out=rhs_i[:, :K])
+        np.subtract(Pg[i], rhs_i[:, :K], out=rhs_i[:, :K])
+        np.subtract(c[i], QWv[:, K], out=rhs_i[:, K])
+        Lii, info = dpotrf(Cd[i] - QW @ Qi.T, lower=1, clean=1)
+        if info != 0:
+            raise np.linalg.LinAlgError("capacitance system not positive definite")
+        sol, _ = dtrtrs(Lii, rhs_i, lower=1)  # [N_i^T | y_i]
+        Ls.append(Lii)
+        Ns.append(sol)
+        if i < nb - 1:
+            G = sol[:, :K].T @ sol  # [N N^T | N y]
+            Wv[:, :K] *= Wa[i]
+            Wv[:, :K] += G[:, :K] * Wf[i]
+            Wv[:, K] *= a[i]
+            Wv[:, K] += G[:, K] * Phi[i]
+    lam = np.empty((nb, bs))
+    z = np.zeros(K)
+    for i in range(nb - 1, -1, -1):
+        lam[i] = dtrtrs(Ls[i], Ns[i][:, K] - Ns[i][:, :K] @ z, lower=1, trans=1)[0]
+        if i:
+            z = (z * Psi[i] + Qg[i].T @ lam[i]) * Phi[i - 1]
+    if order is None:
+        return lam.ravel()[:p].copy()
+    out = np.empty(p)
+    out[order] = lam.ravel()[:p]
+    return out
+
+
+class RangeSystem:
+    """The normal equations (*) of frames ``lo..hi`` with their known entries, ready for repeated
+    solves with more entries fixed: the building block of the bounded solver
+    (:mod:`core.solvers.bounded_spacetime`) and of :meth:`SpacetimeSolver.solve` itself.
+
+    Made by :meth:`SpacetimeSolver.range_system`. Only the energy terms inside the range are
+    used (exact when frames ``lo`` and ``hi`` are known or are the take's ends).
+
+    Attributes
+    ----------
+    lo, hi, n, K : int      the range (inclusive) and its size
+    fixed : (n, K) bool     entries known in the range (constraints of every solve)
+    values : (n, K) float   their values (0 elsewhere; made on first use)
+    path : str              "fast" (diagonalised tridiagonals + capacitance) or "block"
+    scale : float           ``||B^T B||_2``, the scale KKT residuals are measured in
+    curvature : (K,) float  ``2 diag(2 A + C)``, a per-shape curvature for active-set steps
+    """
+
+    def __init__(self, solver: "SpacetimeSolver", lo: int, hi: int, rows: dict, path: str):
+        self.solver, self.lo, self.hi = solver, lo, hi
+        self.n, self.K = hi - lo + 1, solver.K
+        self.path = path
+        n, K = self.n, self.K
+        self._rows = rows
+        self.fixed = np.zeros((n, K), bool)
+        for t, w in rows.items():
+            self.fixed[t] = np.isfinite(w)
+        self.full = self.fixed.all(1)
+        self._values = None
+        self.scale = solver.scale_
+        self.curvature = 2.0 * (2.0 * np.diag(solver._A) + np.diag(solver._C))
+        self._Z0 = None
+        if path == "fast":
+            self._setup_fast()
+
+    @property
+    def values(self) -> np.ndarray:
+        """(n, K) known values, 0 where not known (made on first use)."""
+        if self._values is None:
+            v = np.zeros((self.n, self.K))
+            for t, w in self._rows.items():
+                m = np.isfinite(w)
+                v[t, m] = w[m]
+            self._values = v
+        return self._values
+
+    def _put_known(self, X):
+        """Known entries into ``X`` exactly, row by row (no dense (n, K) values array)."""
+        for t, w in self._rows.items():
+            m = np.isfinite(w)
+            X[t, m] = w[m]
+
+    # -- the fast path ------------------------------------------------------------------------
+    def _setup_fast(self):
+        s, lo, hi, n, K = self.solver, self.lo, self.hi, self.n, self.K
+        full = self.full
+        Sr = s._S[lo:hi + 1]
+        Y = s._BU.T @ Sr.T  # (K, n): U^T B^T s_t
+        rz = np.empty((K, n))  # (L Y)_t = sum over t's differences, + alpha U^T q (+ name term)
+        rz[:] = (s.alpha_ * s._Uq)[:, None]
+        if n > 1:
+            dY = np.diff(Y, axis=1)
+            rz[:, 1:] += dY
+            rz[:, :-1] -= dY
+            del dY
+        lt = s._lt[lo:hi + 1]
+        if s._mode == "frame":
+            if lt.any():
+                rz += lt * Y
+        elif s._bt[0] > 0:
+            rz += s._bt[0] * (s._GBU.T @ Sr.T)
+        del Y
+        if s._named is not None:
+            rz += ((s.name_weight_ * s._named[lo:hi + 1]) @ s._U).T
+        # known full frames: their velocity coupling A w_k moves to the neighbours' rhs
+        for t in np.flatnonzero(full):
+            for nb in (t - 1, t + 1):
+                if 0 <= nb < n and not full[nb]:
+                    rz[:, nb] += self._rows[t] @ s._AU
+        contiguous = not full[1:-1].any()  # only the range ends may be known
+        if contiguous:
+            u0, u1 = int(full[0]), n - int(full[-1])
+            uidx = np.arange(u0, u1)
+            rz = rz[:, u0:u1]  # a view: each row stays contiguous
+        else:
+            uidx = np.flatnonzero(~full)
+            rz = rz[:, uidx]
+        deg = np.full(n, 2.0)
+        deg[0] -= 1
+        deg[-1] -= 1
+        self._uidx, self._contiguous = uidx, contiguous
+        self._rz = rz
+        self._tri = _Tridiagonals(s._mu, s._nu, deg[uidx] + lt[uidx], np.where(np.diff(uidx) == 1, -1.0, 0.0),
+                                  f"frames {lo}..{hi}")
+
+    def solve(self, fixed=None, values=None, linear=None, *, _consume=False):
+        """Minimise the range energy ``- 2 <linear, X>`` subject to ``X[fixed] = values[fixed]``.
+
+        Parameters
+        ----------
+        fixed : (n, K) bool, optional
+            Entries to fix, in addition to :attr:`fixed` (the known ones always are).
+        values : (n, K) float, optional
+            Their values (read only where ``fixed``).
+        linear : (n, K) float, optional
+            A linear term (the L1 term of a sign pattern in the bounded solver).
+
+        Returns
+        -------
+        X : (n, K) float, the constrained minimiser (fixed entries exactly their values)
+        g : (n, K) float, the range energy's gradient ``dE/dX`` at ``X`` (without the linear
+            term): ``2 linear`` on the free entries up to rounding, the constraint forces on
+            the fixed ones, NaN on fully known frames.
+
+        On the fast path the fixed entries are exact constraints through the capacitance
+        system (:func:`_capacitance_solve`): ``X = H^-1 (r + linear - E lam)``,
+        ``(E^T H^-1 E) lam = E^T H^-1 (r + linear) - values``, so ``g = 2 (linear - E lam)``
+        comes with the solve. The block path eliminates them and evaluates ``g`` literally.
+        """
+        n, K = self.n, self.K
+        if fixed is None:
+            fx, val = self.fixed, None  # only the known entries: no dense values needed
+        else:
+            fx = self.fixed | np.asarray(fixed, bool)
+            val = np.where(self.fixed, self.values, values)
+        if self.path == "block":
+            return self._solve_block(fx, self.values if val is None else val, linear)
+        s = self.solver
+        uidx, U, tri = self._uidx, s._U, self._tri
+        rows, ks = np.nonzero(fx[uidx])  # constrained entries on the unknown frames
+        if linear is None and self._Z0 is not None:
+            Z = self._Z0
+        else:
+            rz = self._rz if linear is None else self._rz + (np.asarray(linear)[uidx] @ U).T
+            if len(rows):
+                tri.factor()
+            Z = tri.solve(rz, overwrite=_consume and linear is None)
+            if linear is None and not _consume:
+                self._Z0 = Z
+        lam = None
+        if len(rows):
+            tri.factor()
+            x0 = np.einsum("ja,aj->a", Z[:, rows], U[ks])
+            vf = (self.values if val is None else val)[uidx[rows], ks]
+            try:  # np.nonzero's entries come sorted by frame, as the recursion wants them
+                lam = _capacitance_solve(tri, U, rows, ks, x0 - vf, presorted=True)
+            except np.linalg.LinAlgError:  # numerically singular capacitance: eliminate directly
+                return self._solve_block(fx, self.values if val is None else val, linear)
+            first = np.r_[True, rows[1:] != rows[:-1]]
+            dr = rows[first]  # frames with constrained entries
+            Ld = np.zeros((len(dr), K))
+            Ld[np.cumsum(first) - 1, ks] = lam
+            Vu = np.zeros((K, len(uidx)))
+            Vu[:, dr] = (Ld @ U).T  # U^T E lam, nonzero only on those frames
+            Z = Z - tri.solve(Vu, overwrite=True)
+            s.method_ = "fast+capacitance"
+        else:
+            s.method_ = "fast"
+        X = np.empty((n, K))
+        if self._contiguous and len(uidx):
+            np.matmul(Z.T, U.T, out=X[uidx[0]:uidx[-1] + 1])
+        elif len(uidx):
+            X[uidx] = Z.T @ U.T
+        # constraints hold exactly (they already do to rounding)
+        self._put_known(X)
+        if len(rows):
+            X[uidx[rows], ks] = vf
+        if _consume:
+            return X, None
+        g = np.zeros((n, K)) if linear is None else 2.0 * np.asarray(linear, dtype=np.float64)
+        if lam is not None:
+            g[uidx[rows], ks] -= 2.0 * lam
+        g[self.full] = np.nan
+        return X, g
+
+    def shifted(self, rho) -> "Callable":
+        """A solver for ``(H + diag(rho) / 2) X = r + extra`` on the range's free entries (known
+        entries fixed): the W-update of ADMM with the per-shape penalty ``rho`` (K,).
+
+        ``diag(rho)`` is the same K x K matrix in every frame, so it joins ``C`` in the pencil
+        ``(A, A + C + diag(rho) / 2)``: a new ``O(K^3)`` generalised eigendecomposition (the
+        ``U`` of ``(A, A + C)`` does not diagonalise it), then K tridiagonals as for the solve
+        itself. Returns ``solve(extra (n, K)) -> X (n, K)``.
+        """
+        rho = np.broadcast_to(np.asarray(rho, dtype=np.float64), (self.K,))
+        s, n, K = self.solver, self.n, self.K
+        known, vals, full = self.fixed, self.values, self.full
+        if self.path == "block":
+            def solve_block(extra):
+                return s._block_range(self.lo, self.hi, np.where(known, vals, np.nan), known, extra, 0.5 * rho)
+            return solve_block
+        Mp = s._Mp + np.diag(0.5 * rho)
+        mu, U2 = scipy.linalg.eigh(s._A, Mp)
+        mu = np.clip(mu, 0.0, 1.0)
+        tri = self._tri
+        tri2 = _Tridiagonals(mu, 1.0 - mu, tri.dL, tri.eL, tri.where).factor()
+        uidx = self._uidx
+        Rw = (self._rz.T @ s._U.T) @ s._Mp  # weight coordinates: r_t = Mp U (U^T r_t)
+
+        def solve_fast(extra):
+            rhs = Rw + extra[uidx]
+            Z = tri2.solve(U2.T @ rhs.T, overwrite=True)
+            X = np.empty((n, K))
+            X[full] = vals[full]
+            X[uidx] = Z.T @ U2.T
+            return X
+
+        return solve_fast
+
+    def _solve_block(self, fx, val, linear):
+        Kn = np.where(fx, val, np.nan)
+        X = self.solver._block_range(self.lo, self.hi, Kn, fx, linear)
+        g = self.gradient(X)
+        g[self.full] = np.nan
+        return X, g
+
+    def gradient(self, X) -> np.ndarray:
+        """The range energy's gradient ``dE/dX`` (n, K) written out term by term (no linear term)."""
+        return self.solver._gradient_range(np.asarray(X, dtype=np.float64), self.lo)
+
+    def energy(self, X) -> float:
+        """The range energy (its smooth terms) at ``X`` (n, K), written out term by term."""
+        return self.solver._energy_range(np.asarray(X, dtype=np.float64), self.lo).total
+
+
 # -- the solver -------------------------------------------------------------------------------
 class SpacetimeSolver:
     """Precomputed spacetime retargeting problem (Seol et al. 2012, eq. 2, 4, 5 and §7.1).
 
     Minimises ``||D(BW)^T - DS^T||^2 + alpha sum_t E_prior(w_t) + beta sum_t f_t
-    ||Gamma^1/2 (B w_t - s_t)||^2 (+ rho ||W||^2)`` subject to known weights; see the module
-    docstring for the energy, the normal equations and the two exact solution paths.
+    ||Gamma^1/2 (B w_t - s_t)||^2 (+ rho ||W||^2 + gamma ||W - W_named||^2)`` subject to known
+    weights, and with ``lower``/``upper``/``l1`` subject to the bounds with the L1 term; see the
+    module docstring for the energy, the normal equations and the exact solution paths.
     Construction does the ``O(K^3)`` work (prior quadratic, simultaneous diagonalisation);
-    :meth:`solve` and :meth:`edit` are ``O(T M K + T K^2)`` on the fast path.
+    :meth:`solve` and :meth:`edit` are ``O(T M K + T K^2)`` on the fast path, times the few
+    active-set steps (each ``O(T K^2 + p (32 + K) K)`` for ``p`` weights on a bound) when bounded.
 
     Parameters
     ----------
@@ -294,6 +741,20 @@ class SpacetimeSolver:
         Shape names, so edits may name shapes.
     method : {"auto", "fast", "block"}
         Solution path; "auto" takes the fast path whenever it is exact for the inputs.
+    lower, upper : float or (K,) float, optional (keyword only)
+        Weight bounds (None: unbounded). Known weights (boundary frames included) must lie
+        inside them; edit values outside are clipped with a warning.
+    l1 : float or (K,) float >= 0 (keyword only)
+        Relative L1 weight: ``l1 * sigma_max(B)^2 * ||W||_1`` is added (a linear term for
+        non-negative bounds). 0: none.
+    name_target : (T, K) float, optional (keyword only)
+        Namesake curves ``W_named``: for each shape the curve of the source channel with the
+        same (canonical) name; a column of NaN = no namesake, no term for that shape.
+    name_weight : float or (K,) float >= 0 (keyword only)
+        Relative ``gamma``: ``gamma * sigma_max(B)^2 ||W - W_named||^2`` over the named shapes.
+        0 (default): today's energy exactly.
+    tol : float > 0 (keyword only)
+        Relative KKT tolerance of the bounded solver (default :data:`KKT_RTOL`).
 
     Attributes
     ----------
@@ -302,24 +763,33 @@ class SpacetimeSolver:
     known_ : (T, K) float     the known weights, NaN = free
     P_, q_ : prior quadratic for ``B``
     fast_ : bool              whether the fast path is available for these inputs
-    method_ : str             the path the last solve used
+    method_ : str             the path the last solve used ("fast", "fast+capacitance", "block",
+                              "fast+bounded", "block+bounded", "known")
+    scale_ : float            ``sigma_max(B)^2 = ||B^T B||_2``, the scale of the relative settings
+    lower_, upper_ : (K,)     bounds (-inf/inf where none)
+    l1_, name_weight_ : (K,)  absolute L1 and name weights (m^2)
+    bounded_ : bool           whether solves go through the bounded solver
+    info_ : dict              the bounded solver's report of the last solve (iterations, active,
+                              kkt, converged; see :func:`core.solvers.bounded_spacetime.solve_bounded`)
 
     Raises
     ------
     ValueError
-        Shapes/values of any argument (naming it), or a singular problem.
+        Shapes/values of any argument (naming it), known weights outside the bounds, a
+        namesake curve with gaps, or a singular problem.
     """
 
     def __init__(self, B, S, alpha: float = 0.01, beta: float = 0.0, prior=None, known=None,
                  boundary="neutral", valid=None, marker_weights=None, frame_weights=None,
-                 alpha_units: str = "cm", ridge="auto", names=None, method: str = "auto"):
-        Bm = _as_basis(B)
+                 alpha_units: str = "cm", ridge="auto", names=None, method: str = "auto", *,
+                 lower=None, upper=None, l1=0.0, name_target=None, name_weight=0.0, tol: float = KKT_RTOL):
+        Bm = as_basis(B)
         n3, K = Bm.shape
         M = n3 // 3
-        S3 = _as_sequence(S, M)
+        S3 = as_sequence(S, M)
         T = len(S3)
-        self.valid_ = _as_valid(valid, S3)
-        self._S = _zero_filled(S3, self.valid_)
+        self.valid_ = as_valid(valid, S3)
+        self._S = zero_filled(S3, self.valid_)
         self._holes = not self.valid_.all()
         self.T, self.K, self.M = T, K, M
         self._B = Bm
@@ -345,7 +815,7 @@ class SpacetimeSolver:
         A = Bm.T @ Bm
         self._A = A
         if self.alpha_ > 0:
-            self.P_, self.q_, self._c = _prior_quadratic(prior, Bm, K)
+            self.P_, self.q_, self._c = prior_quadratic(prior, Bm, K)
         else:
             self.P_, self.q_, self._c = np.zeros((K, K)), np.zeros(K), 0.0
         self._G = Bm.T @ (self._gamma3[:, None] * Bm)
@@ -363,21 +833,45 @@ class SpacetimeSolver:
                 raise ValueError(f"ridge must be 'auto' or a number >= 0, got {ridge!r}")
             self.ridge_ = r * smax2
 
-        # directions no per-frame term pins (null space of alpha P + rho I): with no known frame
-        # and no position term, a constant offset along them leaves the energy unchanged
-        lam, vec = np.linalg.eigh(self.alpha_ * self.P_ + self.ridge_ * np.eye(K))
+        self.scale_ = smax2
+        # bounds, L1 and the name term: the options of the bounded solver (and gamma of the fast path)
+        self.lower_, self.upper_ = _bounds(lower, upper, K)
+        self.l1_ = _per_shape(l1, K, "l1") * smax2
+        self._named, self.name_weight_ = _name_term(name_target, name_weight, T, K)
+        self.name_weight_ = self.name_weight_ * smax2
+        tol = float(tol)
+        if not (np.isfinite(tol) and tol > 0):
+            raise ValueError(f"tol must be a finite number > 0, got {tol}")
+        self.tol = tol
+        self.bounded_ = bool(np.isfinite(self.lower_).any() or np.isfinite(self.upper_).any() or (self.l1_ > 0).any())
+        for t, w in self._known.items():
+            out = np.isfinite(w) & ((w < self.lower_) | (w > self.upper_))
+            if out.any():
+                k = int(np.flatnonzero(out)[0])
+                hint = " (boundary='neutral' fixes frames 0 and T-1 to zero)" if boundary == "neutral" and t in (0, T - 1) else ""
+                raise ValueError(
+                    f"known[{t}][{k}] = {w[k]:g}{hint} is outside the bounds [{self.lower_[k]:g}, {self.upper_[k]:g}]; "
+                    "widen the bounds or give known poses inside them"
+                )
+        # per-frame terms other than the data: C = alpha P + rho I + diag(gamma_name)
+        Cf = self.alpha_ * self.P_ + self.ridge_ * np.eye(K) + np.diag(self.name_weight_)
+        self._C = Cf
+
+        # directions no per-frame term pins (null space of alpha P + rho I + diag(gamma)): with no
+        # known frame and no position term, a constant offset along them leaves the energy unchanged
+        lam, vec = np.linalg.eigh(Cf)
         top = max(np.linalg.norm(A, 2), lam[-1], 1e-300)
         self._free_dirs = vec[:, lam <= 1e-12 * top]
 
         # Which Kronecker-sum form (*) takes, if any.
         if np.ptp(gam) == 0:
-            self._mode = "frame"  # G = gamma0 A: L' = L_uu + diag(beta f gamma0), C = alpha P + rho I
+            self._mode = "frame"  # G = gamma0 A: L' = L_uu + diag(beta f gamma0), C = alpha P + rho I + Gn
             self._lt = self._bt * gam[0]
-            C = self.alpha_ * self.P_ + self.ridge_ * np.eye(K)
+            C = Cf
         elif np.ptp(fw) == 0:
-            self._mode = "uniform"  # L' = L_uu, C = alpha P + beta f G + rho I
+            self._mode = "uniform"  # L' = L_uu, C = alpha P + beta f G + rho I + Gn
             self._lt = np.zeros(T)
-            C = self.alpha_ * self.P_ + self._bt[0] * self._G + self.ridge_ * np.eye(K)
+            C = Cf + self._bt[0] * self._G
         else:
             self._mode = None
         self.fast_ = self._mode is not None and not self._holes
@@ -387,6 +881,7 @@ class SpacetimeSolver:
         if self._mode is not None:
             Mp = A + C
             Mp = 0.5 * (Mp + Mp.T)
+            self._Mp = Mp  # the pencil's metric: U^T Mp U = I
             try:
                 mu, U = scipy.linalg.eigh(A, Mp)
             except np.linalg.LinAlgError:
@@ -403,6 +898,7 @@ class SpacetimeSolver:
             if self._mode == "uniform":
                 self._GBU = (self._gamma3[:, None] * Bm) @ U
         self.method_ = None
+        self.info_ = {}
 
     # -- public API ---------------------------------------------------------------------------
     @property
@@ -433,6 +929,11 @@ class SpacetimeSolver:
         re-solved; without, the whole sequence is re-solved. Several edits are applied
         together: overlapping windows merge into one range whose ends keep ``W``; an edit
         without window makes the range the whole sequence.
+
+        A solver with bounds, L1 or the name term re-solves with them (the bounded solver on
+        the range): every re-solved weight stays inside its bounds, and an edit value outside
+        them is clipped to them with a ``UserWarning`` (the window's end frames keep ``W``'s
+        values as they are). Outside the ranges the result is ``W`` itself.
 
         Parameters
         ----------
@@ -484,6 +985,17 @@ class SpacetimeSolver:
                 raise ValueError(f"edits[{i}].weights: expected ({self.K},) or ({len(idx)},) values, got {w.shape}")
             if not np.isfinite(vals).all():
                 raise ValueError(f"edits[{i}].weights: must be finite")
+            lo_i, hi_i = self.lower_[idx], self.upper_[idx]
+            out_of = (vals < lo_i) | (vals > hi_i)
+            if out_of.any():  # the bounds are the animator's declared range: a pose past them is clipped
+                k = int(np.flatnonzero(out_of)[0])
+                name = self.names[idx[k]] if self.names is not None else f"shape {idx[k]}"
+                warnings.warn(
+                    f"edits[{i}]: {int(out_of.sum())} weight(s) outside the solver's bounds are clipped to them "
+                    f"(e.g. {name} = {vals[k]:g} -> {np.clip(vals[k], lo_i[k], hi_i[k]):g} at frame {f})",
+                    UserWarning, stacklevel=2,
+                )
+                vals = np.clip(vals, lo_i, hi_i)
             rows.setdefault(f, np.full(self.K, np.nan))[idx] = vals
             set_mask.setdefault(f, np.zeros(self.K, bool))[idx] = True
             if e.window is None:
@@ -516,47 +1028,99 @@ class SpacetimeSolver:
 
     def energy(self, W) -> SpacetimeEnergy:
         """The energy terms at ``W`` (T, K), evaluated literally (metres squared)."""
-        W = np.asarray(W, dtype=np.float64)
-        if W.shape != (self.T, self.K):
-            raise ValueError(f"W: expected ({self.T}, {self.K}) weights, got {W.shape}")
-        X = W @ self._B.T - self._S  # (T, 3M); masked entries are multiplied out below
-        v3 = np.repeat(self.valid_, 3, axis=1)
-        ve = v3[:-1] & v3[1:]
-        dX = (X[1:] - X[:-1]) * ve
-        match = float((dX**2).sum())
-        prior = float(self.alpha_ * (np.einsum("tk,kl,tl->", W, self.P_, W) - 2 * (W @ self.q_).sum() + self.T * self._c))
-        position = float((self._bt[:, None] * self._gamma3 * v3 * X**2).sum())
-        ridge = float(self.ridge_ * (W**2).sum())
-        return SpacetimeEnergy(match, prior, position, ridge, match + prior + position + ridge)
+        return self._energy_range(self._check_weights(W), 0, l1=True)
 
     def gradient(self, W) -> np.ndarray:
-        """``dE/dW`` (T, K) of :meth:`energy`, written out term by term.
+        """``dE/dW`` (T, K) of :meth:`energy`'s smooth terms (all but the L1 term), term by term.
 
-        At a solution it vanishes on the free weights (to rounding): a backward-error check
-        that does not depend on how the system was solved.
+        At an unbounded solution it vanishes on the free weights (to rounding): a backward-error
+        check that does not depend on how the system was solved.
         """
-        W = np.asarray(W, dtype=np.float64)
-        if W.shape != (self.T, self.K):
-            raise ValueError(f"W: expected ({self.T}, {self.K}) weights, got {W.shape}")
-        Bm = self._B
-        v3 = np.repeat(self.valid_, 3, axis=1)
-        X = W @ Bm.T - self._S
-        R = (X[1:] - X[:-1]) * (v3[:-1] & v3[1:]) @ Bm
-        g = self.alpha_ * (W @ self.P_ - self.q_) + ((self._bt[:, None] * self._gamma3 * v3) * X) @ Bm + self.ridge_ * W
-        g[1:] += R
-        g[:-1] -= R
-        return 2 * g
+        return self._gradient_range(self._check_weights(W), 0)
 
     def kkt_residual(self, W) -> float:
-        """``max |dE/dW|`` over the free weights, relative to ``||B^T B|| max(1, max |W|)``."""
+        """Largest violation of the optimality conditions at ``W``, relative to
+        ``||B^T B||_2 max(1, max |W|)``.
+
+        With ``g = dE/dW`` (:meth:`gradient`) and ``h(w) = l1 |w|`` on ``[lower, upper]``, a
+        free weight must have ``-g`` in the subdifferential of ``h`` at ``w``: ``|g + l1 sign(w)|``
+        inside the bounds, ``max(0, -(g + h'(lower+)))`` at a lower bound, ``max(0, g + h'(upper-))``
+        at an upper one, ``max(0, |g| - l1)`` at zero between them; a weight outside its bounds
+        counts as ``||B^T B||_2`` times its distance. Known weights are exempt. Without bounds
+        and L1 this is ``max |g|`` over the free weights. The bounded solver stops when this is
+        at most ``tol`` (default :data:`KKT_RTOL`).
+        """
+        from core.solvers.bounded_spacetime import kkt_violation
+
+        W = self._check_weights(W)
         g = self.gradient(W)
         free = np.ones(g.shape, bool)
         for t, w in self._known.items():
             free[t] = np.isnan(w)
-        scale = np.linalg.norm(self._A, 2) * max(1.0, float(np.abs(W).max()))
-        return float(np.abs(g[free]).max() / scale) if free.any() else 0.0
+        v = kkt_violation(W, g, self.lower_, self.upper_, self.l1_, self.scale_)
+        scale = self.scale_ * max(1.0, float(np.abs(W).max()))
+        return float(v[free].max() / scale) if free.any() else 0.0
+
+    def range_system(self, lo: int = 0, hi: Optional[int] = None, rows: Optional[dict] = None,
+                     method: Optional[str] = None) -> RangeSystem:
+        """The normal equations of frames ``lo..hi`` as a :class:`RangeSystem`.
+
+        ``rows`` = ``{frame - lo: (K,) known row, NaN free}``; default the solver's own known
+        rows inside the range. ``method`` as :meth:`solve`.
+        """
+        hi = self.T - 1 if hi is None else int(hi)
+        if not 0 <= lo <= hi < self.T:
+            raise ValueError(f"range_system: expected 0 <= lo <= hi < {self.T}, got {lo}, {hi}")
+        if rows is None:
+            rows = {t - lo: w for t, w in self._known.items() if lo <= t <= hi}
+        method = method or self.method
+        rows = {t: w for t, w in rows.items() if not np.isnan(w).all()}
+        full = np.zeros(hi - lo + 1, bool)
+        partial = {}
+        for t, w in rows.items():
+            if np.isfinite(w).all():
+                full[t] = True
+            else:
+                partial[t] = w
+        needs_elimination = not full.all() and self._check_determined(lo, hi, full, partial)  # raises if singular
+        use_fast = self.fast_ and method != "block" and not full.all() and not needs_elimination
+        return RangeSystem(self, lo, hi, rows, "fast" if use_fast else "block")
 
     # -- internals ---------------------------------------------------------------------------
+    def _check_weights(self, W) -> np.ndarray:
+        W = np.asarray(W, dtype=np.float64)
+        if W.shape != (self.T, self.K):
+            raise ValueError(f"W: expected ({self.T}, {self.K}) weights, got {W.shape}")
+        return W
+
+    def _energy_range(self, X: np.ndarray, lo: int, l1: bool = False) -> SpacetimeEnergy:
+        """Energy terms of frames ``lo .. lo + len(X) - 1`` (the L1 term only with ``l1``)."""
+        sl = slice(lo, lo + len(X))
+        R = X @ self._B.T - self._S[sl]  # (n, 3M); masked entries are multiplied out below
+        v3 = np.repeat(self.valid_[sl], 3, axis=1)
+        dR = (R[1:] - R[:-1]) * (v3[:-1] & v3[1:])
+        match = float((dR**2).sum())
+        prior = float(self.alpha_ * (np.einsum("tk,kl,tl->", X, self.P_, X) - 2 * (X @ self.q_).sum() + len(X) * self._c))
+        position = float((self._bt[sl, None] * self._gamma3 * v3 * R**2).sum())
+        ridge = float(self.ridge_ * (X**2).sum())
+        name = float((self.name_weight_ * (X - self._named[sl]) ** 2).sum()) if self._named is not None else 0.0
+        lone = float((self.l1_ * np.abs(X)).sum()) if l1 else 0.0
+        return SpacetimeEnergy(match, prior, position, ridge, match + prior + position + ridge + name + lone, name, lone)
+
+    def _gradient_range(self, X: np.ndarray, lo: int) -> np.ndarray:
+        """Gradient of the energy terms of frames ``lo .. lo + len(X) - 1`` (smooth terms)."""
+        sl = slice(lo, lo + len(X))
+        Bm = self._B
+        v3 = np.repeat(self.valid_[sl], 3, axis=1)
+        R = X @ Bm.T - self._S[sl]
+        Re = (R[1:] - R[:-1]) * (v3[:-1] & v3[1:]) @ Bm
+        g = self.alpha_ * (X @ self.P_ - self.q_) + ((self._bt[sl, None] * self._gamma3 * v3) * R) @ Bm + self.ridge_ * X
+        if self._named is not None:
+            g += self.name_weight_ * (X - self._named[sl])
+        g[1:] += Re
+        g[:-1] -= Re
+        return 2 * g
+
     def _shape_index(self, shapes, what) -> np.ndarray:
         if shapes is None:
             return np.arange(self.K)
@@ -584,7 +1148,8 @@ class SpacetimeSolver:
         """Solve frames lo..hi (inclusive); ``rows`` = {frame - lo: (K,) known row, NaN free}.
 
         Only the energy terms inside the range are used, which is exact when frames ``lo``
-        and ``hi`` are known or are the sequence ends.
+        and ``hi`` are known or are the sequence ends. With bounds or L1 the bounded solver
+        (:func:`core.solvers.bounded_spacetime.solve_bounded`) runs on the range's system.
         """
         if method not in ("auto", "fast", "block"):
             raise ValueError(f"method must be 'auto', 'fast' or 'block', got {method!r}")
@@ -592,27 +1157,17 @@ class SpacetimeSolver:
             raise ValueError("method='fast' is not exact for these inputs (missing samples, or both per-frame and per-marker weights)")
         n = hi - lo + 1
         rows = {t: w for t, w in rows.items() if not np.isnan(w).all()}
-        full = np.zeros(n, bool)
-        partial = {}
-        for t, w in rows.items():
-            if np.isfinite(w).all():
-                full[t] = True
-            else:
-                partial[t] = w
-        if full.all():
+        if len(rows) == n and all(np.isfinite(w).all() for w in rows.values()):
             self.method_ = "known"
             return np.array([rows[t] for t in range(n)])
-        needs_elimination = self._check_determined(lo, hi, full, partial)
-        use_fast = self.fast_ and method != "block" and not needs_elimination
-        p = sum(int(np.isfinite(w).sum()) for w in partial.values())
-        if use_fast and p and method == "auto" and float(p) ** 3 > 8.0 * n * float(self.K) ** 3:
-            use_fast = False  # the capacitance system would cost more than the block sweep
-        if use_fast:
-            return self._fast_range(lo, hi, rows, full, partial)
-        Kn = np.full((n, self.K), np.nan)
-        for t, w in rows.items():
-            Kn[t] = w
-        return self._block_range(lo, hi, Kn, np.isfinite(Kn))
+        system = self.range_system(lo, hi, rows, method)
+        if self.bounded_:
+            from core.solvers.bounded_spacetime import solve_bounded
+
+            X, self.info_ = solve_bounded(system, self.lower_, self.upper_, self.l1_, tol=self.tol)
+            self.method_ = system.path + "+bounded"
+            return X
+        return system.solve(_consume=True)[0]
 
     def _check_determined(self, lo, hi, full, partial):
         """Refuse a range whose solution is not unique; True when only partial constraints
@@ -638,113 +1193,9 @@ class SpacetimeSolver:
             "energy; add a boundary frame, beta > 0, or a prior fitted on more examples"
         )
 
-    def _fast_range(self, lo, hi, rows, full, partial):
-        # Works in the transposed layout (K, n): each eigen-direction j is a contiguous row,
-        # which is what the per-direction LAPACK tridiagonal solves want.
-        K = self.K
-        n = hi - lo + 1
-        Sr = self._S[lo:hi + 1]
-        Y = self._BU.T @ Sr.T  # (K, n): U^T B^T s_t
-        rz = np.empty((K, n))  # (L Y)_t = sum over t's differences, + alpha U^T q
-        rz[:] = (self.alpha_ * self._Uq)[:, None]
-        if n > 1:
-            dY = np.diff(Y, axis=1)
-            rz[:, 1:] += dY
-            rz[:, :-1] -= dY
-            del dY
-        lt = self._lt[lo:hi + 1]
-        if self._mode == "frame":
-            if lt.any():
-                rz += lt * Y
-        elif self._bt[0] > 0:
-            rz += self._bt[0] * (self._GBU.T @ Sr.T)
-        del Y
-        # known full frames: their velocity coupling A w_k moves to the neighbours' rhs
-        for t in np.flatnonzero(full):
-            for nb in (t - 1, t + 1):
-                if 0 <= nb < n and not full[nb]:
-                    rz[:, nb] += rows[t] @ self._AU
-        unk = ~full
-        contiguous = not full[1:-1].any()  # only the range ends may be known
-        if contiguous:
-            u0 = int(full[0])
-            u1 = n - int(full[-1])
-            u = slice(u0, u1)
-            uidx = np.arange(u0, u1)
-        else:
-            uidx = np.flatnonzero(unk)
-            u = uidx
-        nu = len(uidx)
-        deg = np.full(n, 2.0)
-        deg[0] -= 1
-        deg[-1] -= 1
-        dL = deg[u] + lt[u]
-        eL = np.where(np.diff(uidx) == 1, -1.0, 0.0)
-        if not contiguous:
-            rz = rz[:, u]  # rows stay contiguous either way
-        # partial frames: exact constraints through the capacitance system
-        pf = sorted(partial)
-        prow = np.searchsorted(uidx, pf)  # rows (in u) with constrained entries
-        cr = np.concatenate([np.full(int(np.isfinite(partial[t]).sum()), i) for i, t in enumerate(pf)]).astype(int) if pf else np.zeros(0, int)
-        ck = np.concatenate([np.flatnonzero(np.isfinite(partial[t])) for t in pf]).astype(int) if pf else np.zeros(0, int)
-        cval = np.concatenate([partial[t][np.isfinite(partial[t])] for t in pf]) if pf else np.zeros(0)
-        cr_u = prow[cr]  # constrained entries' rows in u
-        F = len(pf)
-        Gf = np.empty((K, F, F))
-        facs = []
-        zv = rz[:, u] if contiguous else rz  # (K, nu) view; each row contiguous
-        for j in range(K):
-            d = self._mu[j] * dL + self._nu[j]
-            e = self._mu[j] * eL
-            if nu == 1:  # LAPACK's wrappers reject the empty off-diagonal
-                info = 0 if d[0] > 0 else 1
-                x = np.column_stack([zv[j], np.ones((1, F))]) / d[0] if info == 0 else None
-                if F and info == 0:
-                    Gf[j] = x[prow, 1:]
-                    facs.append((d, None))
-            elif not F:
-                d, e, x, info = dptsv(d, e, zv[j][:, None], overwrite_b=1)
-            else:
-                d, e, info = dpttrf(d, e)
-                if info == 0:
-                    rhs = np.zeros((nu, F + 1), order="F")
-                    rhs[:, 0] = zv[j]
-                    rhs[prow, 1 + np.arange(F)] = 1.0
-                    x, info = dpttrs(d, e, rhs)
-                    Gf[j] = x[prow, 1:]
-                    facs.append((d, e))
-            if info != 0:
-                raise ValueError(
-                    f"the spacetime system for frames {lo}..{hi} is singular: nothing fixes the weights' "
-                    "level (no known frame, alpha = beta = 0?); add a boundary frame, alpha > 0 or beta > 0"
-                )
-            zv[j] = x[:, 0]
-        z = zv  # (K, nu), solved in place
-        if F:
-            Uk = self._U[ck]  # (p, K)
-            x0 = (z[:, cr_u].T * Uk).sum(1)
-            Cc = np.einsum("ij,lj,jil->il", Uk, Uk, Gf[:, cr][:, :, cr])
-            lam = scipy.linalg.solve(0.5 * (Cc + Cc.T), x0 - cval, assume_a="pos")
-            rc = np.zeros((nu, K))
-            np.add.at(rc, cr_u, lam[:, None] * Uk)
-            for j in range(K):
-                d, e = facs[j]
-                x = rc[:, j:j + 1] / d[0] if nu == 1 else dpttrs(d, e, rc[:, j:j + 1])[0]
-                z[j] -= x[:, 0]
-            self.method_ = "fast+capacitance"
-        else:
-            self.method_ = "fast"
-        out = np.empty((n, K))
-        for t in np.flatnonzero(full):
-            out[t] = rows[t]
-        if contiguous:
-            np.matmul(z.T, self._U.T, out=out[u])
-        else:
-            out[u] = z.T @ self._U.T
-        out[uidx[cr_u], ck] = cval  # constraints hold exactly (they already do to rounding)
-        return out
-
-    def _block_range(self, lo, hi, Kn, kmask):
+    def _block_range(self, lo, hi, Kn, kmask, linear=None, shift=None):
+        """Exact block-tridiagonal solve of frames lo..hi with the entries ``kmask`` fixed to
+        ``Kn``; ``linear`` (n, K) adds to the right-hand side, ``shift`` (K,) to the diagonal."""
         K = self.K
         n = hi - lo + 1
         Bm = self._B
@@ -754,8 +1205,12 @@ class SpacetimeSolver:
         g3 = self._gamma3
         A = self._A
         Dg = np.empty((n, K, K))
-        Dg[:] = self.alpha_ * self.P_ + self.ridge_ * np.eye(K)
+        Dg[:] = self._C if shift is None else self._C + np.diag(shift)  # alpha P + rho I + diag(gamma_name)
         r = np.tile(self.alpha_ * self.q_, (n, 1))
+        if self._named is not None:
+            r += self.name_weight_ * self._named[lo:hi + 1]
+        if linear is not None:
+            r += linear
         # position term: G_t = B^T diag(gamma * valid_t) B
         holes_t = ~V3.all(1)
         Gt = np.broadcast_to(self._G, (n, K, K)).copy()
@@ -824,21 +1279,34 @@ class SpacetimeSolver:
 
 def solve_spacetime(B, S, alpha: float = 0.01, beta: float = 0.0, prior=None, known=None,
                     boundary="neutral", valid=None, marker_weights=None, frame_weights=None,
-                    alpha_units: str = "cm", ridge="auto", method: str = "auto") -> np.ndarray:
+                    alpha_units: str = "cm", ridge="auto", method: str = "auto", **options) -> np.ndarray:
     """Spacetime expression cloning in one call: ``SpacetimeSolver(...).solve()``.
 
     Minimises ``||D(BW)^T - DS^T||_F^2 + alpha sum_t E_prior(w_t) + beta sum_t f_t
     ||Gamma^1/2 (B w_t - s_t)||^2`` (Seol et al. 2012, eq. 2, 4 and §7.1) subject to known
-    weights. Parameters as :class:`SpacetimeSolver`; returns weights (T, K).
+    weights. Parameters as :class:`SpacetimeSolver` (``options``: its keyword-only ``lower``,
+    ``upper``, ``l1``, ``name_target``, ``name_weight``, ``tol``); returns weights (T, K).
     """
     return SpacetimeSolver(B, S, alpha, beta, prior, known, boundary, valid, marker_weights,
-                           frame_weights, alpha_units, ridge, method=method).solve()
+                           frame_weights, alpha_units, ridge, method=method, **options).solve()
 
 
-def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, boundary="neutral",
-                        valid=None, marker_weights=None, frame_weights=None, alpha_units: str = "cm",
-                        ridge: float = 0.0) -> np.ndarray:
-    """Slow, literal reference: the paper's sparse Kronecker system solved by ``spsolve``.
+class KroneckerSystem(NamedTuple):
+    """The literal normal equations over all ``T K`` weights: ``E = x^T H x - 2 r^T x + const``.
+
+    ``x = vec(W)`` stacks the frames' weight vectors; ``known`` (T K,) holds the known entries
+    (NaN = free).
+    """
+
+    H: sp.csc_matrix
+    r: np.ndarray
+    known: np.ndarray
+
+
+def kronecker_system(B, S, alpha: float, beta: float, prior, known, *, boundary="neutral",
+                     valid=None, marker_weights=None, frame_weights=None, alpha_units: str = "cm",
+                     ridge: float = 0.0, name_target=None, name_weight=0.0) -> KroneckerSystem:
+    """The paper's sparse Kronecker system, assembled literally (the slow references' core).
 
     Stacks the least-squares rows of Seol et al. 2012 eq. 5 and §5, §7.1 with
     ``scipy.sparse.kron`` (``vec(W)`` stacks the frames' weight vectors)::
@@ -847,10 +1315,10 @@ def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, bounda
         J_prior = sqrt(alpha) (I_T (x) Lambda^-1/2 E^T B),  y_prior = sqrt(alpha) (1_T (x) Lambda^-1/2 E^T mean)
         J_pos   = diag(sqrt(beta f_t gamma_m valid_tm)) (I_T (x) B),  y_pos = ... vec(S)
         J_ridge = sqrt(rho) I
+        J_name  = diag(sqrt(gamma_k) [column k has a namesake]) (per frame),  y_name = ... vec(W_named)
 
-    and solves ``J_u^T J_u x_u = J_u^T (y - J_k x_k)`` for the free entries with
-    :func:`scipy.sparse.linalg.spsolve`. With a (P, q) prior the term ``alpha (I (x) P)`` is
-    added to the normal equations instead.
+    and returns ``H = J^T J``, ``r = J^T y`` (with a (P, q) prior ``alpha (I (x) P)`` and
+    ``alpha (1 (x) q)`` are added instead of its rows).
 
     Parameters
     ----------
@@ -858,18 +1326,18 @@ def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, bounda
         As :class:`SpacetimeSolver` (``prior`` None = PCA of ``B``'s shapes).
     ridge : float
         Absolute ridge ``rho`` (m^2); use ``SpacetimeSolver(...).ridge_`` to compare.
-
-    Returns
-    -------
-    (T, K) float
+    name_target : (T, K) float, optional
+        Namesake curves, NaN columns = no namesake (as :class:`SpacetimeSolver`).
+    name_weight : float or (K,) float
+        Absolute name weight ``gamma`` (m^2); use ``SpacetimeSolver(...).name_weight_``.
     """
-    Bm = _as_basis(B)
+    Bm = as_basis(B)
     n3, K = Bm.shape
     M = n3 // 3
-    S3 = _as_sequence(S, M)
+    S3 = as_sequence(S, M)
     T = len(S3)
-    valid = _as_valid(valid, S3)
-    Sz = _zero_filled(S3, valid)
+    valid = as_valid(valid, S3)
+    Sz = zero_filled(S3, valid)
     a = alpha_for_units(alpha, alpha_units)
     gam = np.ones(M) if marker_weights is None else _nonneg(marker_weights, (M,), "marker_weights")
     fw = np.ones(T) if frame_weights is None else _nonneg(frame_weights, (T,), "frame_weights")
@@ -892,7 +1360,7 @@ def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, bounda
             blocks.append(np.sqrt(a) * sp.kron(sp.identity(T), sp.csr_matrix(R), format="csr"))
             rhs.append(np.sqrt(a) * np.tile(m, T))
         else:
-            P, q, _ = _prior_quadratic(prior, Bm, K)
+            P, q, _ = prior_quadratic(prior, Bm, K)
             Pextra = (a * sp.kron(sp.identity(T), sp.csr_matrix(P), format="csr"), a * np.tile(q, T))
     wpos = np.sqrt(beta * fw[:, None] * np.repeat(gam, 3)[None, :] * np.repeat(valid, 3, axis=1)).ravel()
     if beta > 0:
@@ -902,20 +1370,48 @@ def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, bounda
     if ridge > 0:
         blocks.append(np.sqrt(ridge) * sp.identity(T * K, format="csr"))
         rhs.append(np.zeros(T * K))
+    if name_target is not None:
+        Wn = np.asarray(name_target, dtype=np.float64)
+        has = np.isfinite(Wn).all(0)
+        gn = np.broadcast_to(np.asarray(name_weight, dtype=np.float64), (K,)) * has
+        if (gn > 0).any():
+            wn = np.tile(np.sqrt(gn), T)
+            blocks.append(sp.diags(wn, format="csr"))
+            rhs.append(wn * np.where(has, Wn, 0.0).ravel())
     J = sp.vstack(blocks, format="csc")
     y = np.concatenate(rhs)
-    xk = Kn.ravel()
+    H = (J.T @ J).tocsc()
+    r = J.T @ y
+    if Pextra is not None:
+        H = (H + Pextra[0]).tocsc()
+        r = r + Pextra[1]
+    return KroneckerSystem(H, np.asarray(r).ravel(), Kn.ravel())
+
+
+def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, boundary="neutral",
+                        valid=None, marker_weights=None, frame_weights=None, alpha_units: str = "cm",
+                        ridge: float = 0.0, name_target=None, name_weight=0.0) -> np.ndarray:
+    """Slow, literal reference: the paper's sparse Kronecker system solved by ``spsolve``.
+
+    :func:`kronecker_system`, then ``H_uu x_u = r_u - H_uk x_k`` for the free entries with
+    :func:`scipy.sparse.linalg.spsolve`.
+
+    Parameters
+    ----------
+    As :func:`kronecker_system`.
+
+    Returns
+    -------
+    (T, K) float
+    """
+    T, K = len(np.asarray(S)), as_basis(B).shape[1]
+    H, r, xk = kronecker_system(B, S, alpha, beta, prior, known, boundary=boundary, valid=valid,
+                                marker_weights=marker_weights, frame_weights=frame_weights,
+                                alpha_units=alpha_units, ridge=ridge, name_target=name_target,
+                                name_weight=name_weight)
     kn = np.isfinite(xk)
     fr = ~kn
-    Ju, Jk = J[:, fr], J[:, kn]
-    N = (Ju.T @ Ju).tocsc()
-    b = Ju.T @ (y - Jk @ xk[kn])
-    if Pextra is not None:
-        H, qq = Pextra
-        H = H.tocsc()
-        N = N + H[fr][:, fr]
-        b = b + qq[fr] - H[fr][:, kn] @ xk[kn]
     x = xk.copy()
     if fr.any():
-        x[fr] = scipy.sparse.linalg.spsolve(N.tocsc(), b)
+        x[fr] = scipy.sparse.linalg.spsolve(H[fr][:, fr].tocsc(), r[fr] - H[fr][:, kn] @ xk[kn])
     return x.reshape(T, K)

@@ -1,0 +1,392 @@
+"""Bounded, sparse spacetime retargeting (bounds, L1, name term, edits under bounds).
+
+Every bounded solve is compared with a general QP solver on the literal Kronecker system
+(:func:`bounded_spacetime_reference`: Clarabel at tight tolerance) and, for box constraints, with
+SciPy's bounded least squares (BVLS, an exact active-set method) on the dense Cholesky factor;
+on small random problems and on the bundled ICT -> Rocketbox take. Properties: bounds hold
+exactly, the KKT residual is below the stated tolerance, the unbounded limit is
+``SpacetimeSolver.solve``, the energy is not above the clipped unbounded solution's, a hand-derived
+one-unknown case.
+"""
+
+import warnings
+
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.optimize
+
+from core.prior import PCAPrior
+from core.solvers.bounded_spacetime import bounded_spacetime_reference, kkt_violation, solve_bounded
+from core.solvers.spacetime import (KKT_RTOL, SpacetimeSolver, _capacitance_solve, _Tridiagonals, kronecker_system,
+                                    spacetime_reference)
+from datapaths import PERFORMANCES, RIGS
+
+pytest.importorskip("clarabel")
+
+
+def random_problem(T=40, M=8, K=6, seed=0, scale=1.6):
+    """Weights that leave [0, 1] on both sides, so both bounds become active."""
+    rng = np.random.default_rng(seed)
+    B = rng.normal(size=(K, M, 3)) * 0.01
+    W = np.cumsum(rng.normal(size=(T, K)) * 0.15, axis=0)
+    S = np.einsum("tk,kmc->tmc", W, B) * scale + rng.normal(size=(T, M, 3)) * 1e-3
+    return B, S, rng
+
+
+def reference_kw(s: SpacetimeSolver, kw: dict) -> dict:
+    """The solver's settings as the references take them (absolute ridge, name weight, l1)."""
+    out = {k: kw[k] for k in ("boundary", "valid", "marker_weights", "frame_weights") if k in kw}
+    out["ridge"] = s.ridge_
+    if kw.get("name_target") is not None:
+        out["name_target"] = kw["name_target"]
+        out["name_weight"] = s.name_weight_
+    return out
+
+
+def qp_reference(B, S, s, kw):
+    W, info = bounded_spacetime_reference(B, S, kw.get("alpha", 0.01), kw.get("beta", 0.0), kw.get("prior"),
+                                          kw.get("known"), lower=s.lower_, upper=s.upper_, l1=s.l1_, tol=1e-12,
+                                          **reference_kw(s, kw))
+    assert "Solved" in info["status"], info
+    return W
+
+
+def bvls_reference(B, S, s, kw):
+    """Box QP (L1 only as a linear term, lower >= 0) as bounded least squares on the Cholesky factor."""
+    H, r, xk = kronecker_system(B, S, kw.get("alpha", 0.01), kw.get("beta", 0.0), kw.get("prior"), kw.get("known"),
+                                **reference_kw(s, kw))
+    kn = np.isfinite(xk)
+    fr = ~kn
+    Hd = H.toarray()
+    Hf = Hd[np.ix_(fr, fr)]
+    rf = r[fr] - Hd[np.ix_(fr, kn)] @ xk[kn] - 0.5 * np.tile(s.l1_, s.T)[fr]
+    L = np.linalg.cholesky(Hf)
+    y = scipy.linalg.solve_triangular(L, rf, lower=True)
+    lo, hi = np.tile(s.lower_, s.T)[fr], np.tile(s.upper_, s.T)[fr]
+    x = scipy.optimize.lsq_linear(L.T, y, bounds=(lo, hi), method="bvls", tol=1e-15, max_iter=20000).x
+    out = xk.copy()
+    out[fr] = x
+    return out.reshape(s.T, s.K)
+
+
+def check_solution(s: SpacetimeSolver, W):
+    """Bounds hold exactly, known weights exact, KKT residual within the stated tolerance."""
+    assert (W >= s.lower_).all() and (W <= s.upper_).all()
+    kn = s.known_
+    k = np.isfinite(kn)
+    assert np.array_equal(W[k], kn[k])
+    assert s.kkt_residual(W) <= s.tol
+    assert s.info_["converged"] and s.info_["kkt"] <= s.tol
+
+
+def F(s, W):
+    return s.energy(W).total
+
+
+CASES = {
+    "box": dict(lower=0.0, upper=1.0),
+    "box_alpha_beta": dict(alpha=30.0, beta=0.2, lower=0.0, upper=1.0),
+    "box_per_shape": dict(alpha=30.0, lower=np.linspace(-0.3, 0.0, 6), upper=np.linspace(0.5, 1.2, 6)),
+    "box_l1": dict(alpha=30.0, lower=0.0, upper=1.0, l1=0.05),
+    "l1_across_zero": dict(alpha=30.0, lower=-0.4, upper=1.0, l1=0.05),
+    "l1_only": dict(alpha=30.0, l1=0.05),
+    "box_known": dict(alpha=30.0, lower=0.0, upper=1.0, known={13: np.r_[0.7, [np.nan] * 5], 20: np.full(6, 0.5),
+                                                               27: np.r_[[np.nan] * 5, 0.0]}),
+    "box_name": dict(alpha=30.0, lower=0.0, upper=1.0, name_weight=0.3),
+    "box_mask": dict(alpha=30.0, beta=0.1, lower=0.0, upper=0.6),
+    "box_fw_mw_l1": dict(alpha=30.0, beta=0.2, lower=0.0, upper=1.0, l1=0.02),
+    "box_nobnd": dict(alpha=30.0, beta=0.3, lower=0.4, upper=0.5, boundary="none"),
+}
+
+
+def _setup(name):
+    B, S, rng = random_problem(seed=list(CASES).index(name))
+    kw = dict(CASES[name])
+    T, K, M = len(S), B.shape[0], B.shape[1]
+    if "name" in name:
+        Wn = np.full((T, K), np.nan)
+        Wn[:, [1, 4]] = rng.uniform(0, 1, (T, 2))
+        kw["name_target"] = Wn
+    if "mask" in name:
+        v = rng.random((T, M)) > 0.15
+        v[T // 4] = False
+        kw["valid"] = v
+        ex = np.einsum("tk,kmc->tmc", rng.uniform(0, 1, (60, K)), B) + rng.normal(size=(60, M, 3)) * 1e-3
+        kw["prior"] = PCAPrior().fit(ex, basis=B)
+    if "fw_mw" in name:
+        kw["frame_weights"] = rng.uniform(0, 3, T)
+        kw["marker_weights"] = rng.uniform(0, 3, M)
+    if "nobnd" in name:
+        ex = np.einsum("tk,kmc->tmc", rng.uniform(0, 1, (60, K)), B) + rng.normal(size=(60, M, 3)) * 1e-3
+        kw["prior"] = PCAPrior().fit(ex, basis=B)
+    return B, S, kw
+
+
+# -- against general QP solvers -------------------------------------------------------------
+@pytest.mark.parametrize("name", list(CASES))
+def test_random_matches_general_qp(name):
+    B, S, kw = _setup(name)
+    s = SpacetimeSolver(B, S, **kw)
+    W = s.solve()
+    check_solution(s, W)
+    expect_block = "mask" in name or "fw_mw" in name
+    assert s.method_ == ("block+bounded" if expect_block else "fast+bounded")
+    assert s.info_["active"] > 0  # the bounds (or L1 zeros) do bind
+    R = qp_reference(B, S, s, kw)
+    # Clarabel is an interior-point method: its answer is accurate to its tolerance, ours is the
+    # exact KKT point; ours must not be worse and both must agree closely
+    assert F(s, W) <= F(s, np.clip(R, s.lower_, s.upper_)) * (1 + 1e-12)
+    assert np.abs(W - R).max() <= 1e-5
+    if "across" not in name and "only" not in name:  # box (L1 linear): the exact active-set BVLS
+        Rb = bvls_reference(B, S, s, kw)
+        assert np.abs(W - Rb).max() <= 1e-8 * max(1.0, np.abs(Rb).max())
+
+
+def test_hand_derived_single_unknown():
+    """T = 3, K = 1, frames 0 and 2 neutral, alpha = 0: E(w) = 2 ||b w - s||^2 + l1 |w|, so the
+    answer is the soft-thresholded, clipped w* = b^T s / b^T b."""
+    b = np.array([[[0.01, -0.02, 0.005], [0.0, 0.01, 0.02]]])  # (K=1, M=2, 3)
+    s1 = 0.8 * b[0] + np.array([[1e-3, 0, 0], [0, -1e-3, 0]])
+    S = np.stack([np.zeros_like(s1), s1, np.zeros_like(s1)])
+    bb = float((b**2).sum())
+    wstar = float((b[0] * s1).sum()) / bb
+    for lower, upper, l1 in [(0.0, 1.0, 0.0), (0.0, 0.5, 0.0), (-1.0, 0.3, 0.0), (-1.0, 1.0, 0.1), (-1, 1, 2.0)]:
+        sol = SpacetimeSolver(b, S, alpha=0.0, lower=lower, upper=upper, l1=l1)
+        lam = sol.l1_[0]
+        expect = np.clip(np.sign(wstar) * max(abs(wstar) - lam / (4 * bb), 0.0), lower, upper)
+        W = sol.solve()
+        assert W[1, 0] == pytest.approx(expect, rel=1e-12, abs=1e-15)
+        assert W[0, 0] == W[2, 0] == 0.0
+
+
+# -- properties -------------------------------------------------------------------------------
+def test_unbounded_limit_is_the_unbounded_solver():
+    B, S, rng = random_problem(seed=3)
+    K = B.shape[0]
+    known = {10: np.r_[0.5, [np.nan] * (K - 1)]}
+    ref = SpacetimeSolver(B, S, alpha=30.0, beta=0.1, known=known)
+    W0 = ref.solve()
+    # infinite bounds and l1 = 0 are the unbounded problem: the same code path, bit for bit
+    s = SpacetimeSolver(B, S, alpha=30.0, beta=0.1, known=known, lower=-np.inf, upper=np.full(K, np.inf), l1=0.0)
+    assert not s.bounded_
+    np.testing.assert_array_equal(s.solve(), W0)
+    # finite bounds that never bind: the bounded solver returns the unbounded solution to rounding
+    s = SpacetimeSolver(B, S, alpha=30.0, beta=0.1, known=known, lower=-1e3, upper=1e3)
+    W = s.solve()
+    assert s.bounded_ and s.info_["active"] == 0
+    assert np.abs(W - W0).max() <= 1e-12 * np.abs(W0).max()
+
+
+@pytest.mark.parametrize("name", ["box", "box_l1", "l1_across_zero", "box_mask"])
+def test_energy_not_above_clipped_unbounded(name):
+    B, S, kw = _setup(name)
+    s = SpacetimeSolver(B, S, **kw)
+    W = s.solve()
+    unb = {k: v for k, v in kw.items() if k not in ("lower", "upper", "l1")}
+    W0 = SpacetimeSolver(B, S, **unb).solve()
+    assert F(s, W) <= F(s, np.clip(W0, s.lower_, s.upper_))
+    rng = np.random.default_rng(1)
+    free = np.isnan(s.known_)
+    for _ in range(5):  # feasible perturbations only raise the energy
+        Wp = np.clip(W + rng.normal(size=W.shape) * 1e-3 * free, s.lower_, s.upper_)
+        assert F(s, Wp) >= F(s, W)
+
+
+@pytest.mark.parametrize("max_iter", [0, 1])
+def test_admm_restarts_reach_the_same_answer(max_iter):
+    """With the active-set runs cut short, ADMM (whose W-update is the banded solve with the
+    re-diagonalised pencil) carries the solve; the answer is the same KKT point."""
+    B, S, kw = _setup("l1_across_zero")
+    s = SpacetimeSolver(B, S, **kw)
+    W = s.solve()
+    sys_ = s.range_system()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        W2, info = solve_bounded(sys_, s.lower_, s.upper_, s.l1_, tol=s.tol, max_iter=max_iter)
+    assert info["admm"] > 0 and info["converged"]
+    assert np.abs(W2 - W).max() <= 1e-7
+
+
+def test_kkt_violation_cases():
+    lo, hi, l1 = np.array([0.0, -1.0, -1.0]), np.array([1.0, 1.0, 1.0]), np.array([0.0, 0.5, 0.5])
+    W = np.array([[0.0, 0.0, 0.3], [1.0, -1.0, 1.5]])
+    g = np.array([[2.0, 0.2, -0.5], [-3.0, 0.7, 0.0]])
+    v = kkt_violation(W, g, lo, hi, l1, scale=10.0)
+    # at lower with g >= 0: fine; at the kink |g| <= l1: fine; free: |g + l1 sign w| = 0
+    np.testing.assert_allclose(v[0], [0.0, 0.0, 0.0])
+    # at upper with g < 0: fine; at lower -1 with g - l1 = 0.2 >= 0: fine; 0.5 outside: 10 * 0.5
+    np.testing.assert_allclose(v[1], [0.0, 0.0, 5.0])
+    v = kkt_violation(W, -g, lo, hi, l1, scale=10.0)
+    np.testing.assert_allclose(v[0], [2.0, 0.0, 1.0])
+
+
+# -- the exact inner solve --------------------------------------------------------------------
+@pytest.mark.parametrize("block", [1, 3, 16, 64])
+def test_capacitance_solve_matches_dense(block):
+    """The quasiseparable block Cholesky of E^T H^-1 E against the dense matrix, with a split
+    (known frame), a direction whose ratios underflow (prior-dominated) and padding."""
+    rng = np.random.default_rng(block)
+    K, n = 5, 70
+    mu = rng.uniform(0, 1, K)
+    mu[0], mu[1] = 1.0, 1e-9
+    nu = 1.0 - mu
+    nu[0] = 1e-3
+    dL = np.full(n, 2.0)
+    dL[[0, -1]] = 1.0
+    eL = -np.ones(n - 1)
+    eL[30] = 0.0
+    tri = _Tridiagonals(mu, nu, dL, eL, "test").factor()
+    U = np.linalg.qr(rng.normal(size=(K, K)))[0] * rng.uniform(0.5, 2.0, K)
+    G = [np.linalg.inv(np.diag(mu[j] * dL + nu[j]) + np.diag(mu[j] * eL, 1) + np.diag(mu[j] * eL, -1)) for j in range(K)]
+    np.testing.assert_allclose(tri.inv_diag, [np.diag(g) for g in G], rtol=1e-12)
+    key = np.unique(rng.integers(0, n * K, 90))
+    rows, ks = key // K, key % K
+    C = np.einsum("aj,bj,jab->ab", U[ks], U[ks], np.array([g[np.ix_(rows, rows)] for g in G]))
+    c = rng.normal(size=len(rows))
+    perm = rng.permutation(len(rows))
+    lam = _capacitance_solve(tri, U, rows[perm], ks[perm], c[perm], block=block)
+    ref = np.linalg.solve(C, c)
+    assert np.abs(lam - ref[perm]).max() <= 1e-10 * np.abs(ref).max()
+
+
+# -- the name term ----------------------------------------------------------------------------
+def test_name_term():
+    B, S, rng = random_problem(seed=5)
+    T, K = len(S), B.shape[0]
+    Wn = np.full((T, K), np.nan)
+    Wn[:, [0, 3]] = rng.uniform(0, 1, (T, 2))
+    base = SpacetimeSolver(B, S, alpha=30.0).solve()
+    # gamma = 0 (or no namesake at all) is today's behaviour exactly
+    np.testing.assert_array_equal(SpacetimeSolver(B, S, alpha=30.0, name_target=Wn, name_weight=0.0).solve(), base)
+    np.testing.assert_array_equal(SpacetimeSolver(B, S, alpha=30.0, name_target=np.full((T, K), np.nan),
+                                                  name_weight=1.0).solve(), base)
+    # gamma I on a subset of shapes is the same matrix every frame: it joins C of the pencil and
+    # the fast path stays exact (measured against the Kronecker system)
+    err = []
+    for gamma in (0.01, 1.0, 100.0):
+        s = SpacetimeSolver(B, S, alpha=30.0, name_target=Wn, name_weight=gamma)
+        W = s.solve()
+        assert s.method_ == "fast"
+        R = spacetime_reference(B, S, 30.0, 0.0, None, None, name_target=Wn, name_weight=s.name_weight_)
+        assert np.abs(W - R).max() <= 1e-8 * np.abs(R).max()
+        np.testing.assert_allclose(s.solve(method="block"), R, atol=1e-8 * np.abs(R).max())
+        err.append(np.abs(W[1:-1, [0, 3]] - Wn[1:-1, [0, 3]]).mean())
+        assert np.abs(s.gradient(W)[1:-1]).max() <= 1e-10 * s.scale_
+    assert err[0] > err[1] > err[2]  # a larger gamma pulls harder toward the namesakes
+    # per-frame gaps in a namesake curve are refused (that column would not be one matrix per frame)
+    Wbad = Wn.copy()
+    Wbad[5, 0] = np.nan
+    with pytest.raises(ValueError, match="column 0 mixes"):
+        SpacetimeSolver(B, S, name_target=Wbad, name_weight=1.0)
+    with pytest.raises(ValueError, match="needs name_target"):
+        SpacetimeSolver(B, S, name_weight=1.0)
+
+
+# -- edits under bounds -----------------------------------------------------------------------
+def test_bounded_edit_matches_reference():
+    B, S, _ = _setup("box_alpha_beta")
+    K = B.shape[0]
+    s = SpacetimeSolver(B, S, alpha=30.0, beta=0.2, lower=0.0, upper=1.0, names=[f"s{k}" for k in range(K)])
+    W = s.solve()
+    a, b, f = 12, 30, 20
+    with pytest.warns(UserWarning, match="clipped"):
+        W2 = s.edit(W, f, [1.4, 0.2], shapes=["s2", "s4"], window=(a, b))
+    np.testing.assert_array_equal(W2[:a + 1], W[:a + 1])
+    np.testing.assert_array_equal(W2[b:], W[b:])
+    assert W2[f, 2] == 1.0 and W2[f, 4] == 0.2
+    assert (W2 >= 0).all() and (W2 <= 1).all()
+    row = np.full(K, np.nan)
+    row[[2, 4]] = [1.0, 0.2]
+    known = {0: W[a], f - a: row, b - a: W[b]}
+    R, _ = bounded_spacetime_reference(B, S[a:b + 1], 30.0, 0.2, None, known, lower=0.0, upper=1.0, boundary="none",
+                                       tol=1e-12, ridge=s.ridge_)
+    Rb = np.clip(R, 0, 1)
+    sw = SpacetimeSolver(B, S[a:b + 1], alpha=30.0, beta=0.2, known=known, boundary="none", lower=0.0, upper=1.0)
+    assert F(sw, W2[a:b + 1]) <= F(sw, Rb) * (1 + 1e-12)
+    assert np.abs(W2[a:b + 1] - R).max() <= 1e-5
+
+
+def test_known_outside_bounds_is_refused():
+    B, S, _ = random_problem()
+    with pytest.raises(ValueError, match="boundary='neutral'"):
+        SpacetimeSolver(B, S, lower=0.1, upper=1.0)
+    with pytest.raises(ValueError, match=r"known\[5\]\[0\] = 2"):
+        SpacetimeSolver(B, S, lower=0.0, upper=1.0, known={5: np.r_[2.0, [np.nan] * 5]})
+    with pytest.raises(ValueError, match="lower must be <= upper"):
+        SpacetimeSolver(B, S, lower=1.0, upper=0.0)
+    with pytest.raises(ValueError, match=r"upper: expected a number or \(6,\)"):
+        SpacetimeSolver(B, S, upper=np.ones(3))
+    with pytest.raises(ValueError, match="l1"):
+        SpacetimeSolver(B, S, l1=-1.0)
+
+
+# -- real data: the bundled ICT -> Rocketbox take, the pipeline's marker problem -------------------
+FILES = dict(source=str(PERFORMANCES / "livelinkface_take_s07.csv"), source_rig=str(RIGS / "ict_facekit.glb"),
+             target_rig=str(RIGS / "rocketbox_female_adult_02.glb"))
+
+
+@pytest.fixture(scope="module")
+def rocketbox_problem():
+    """B (51 ARKit shapes the markers see, 41 markers) and S (2028 frames) as the pipeline builds them."""
+    from core.pipeline import Pipeline, StageCache
+
+    pipe = Pipeline(cache=StageCache(), method="spacetime", target_shapes="arkit", **FILES)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "1 target shapes move no marker" (the tongue)
+        res = pipe.results(["calibrate", "personalize", "stabilize"])
+    st = res["stabilize"]["source"]
+    return np.asarray(res["personalize"]["deltas"]), np.asarray(st.deltas), np.asarray(st.valid), list(res["calibrate"]["rig"].names)
+
+
+def test_real_matches_general_qp(rocketbox_problem):
+    B, S, valid, names = rocketbox_problem
+    S = S[300:420]
+    kw = dict(alpha=0.01, ridge=1e-5, lower=0.0, upper=1.0)
+    s = SpacetimeSolver(B, S, **kw)
+    W = s.solve()
+    check_solution(s, W)
+    assert s.info_["active"] > 100
+    R = qp_reference(B, S, s, kw)
+    assert F(s, W) <= F(s, np.clip(R, 0, 1)) * (1 + 1e-12)
+    # the rig is ill-conditioned (nearly interchangeable shapes): weights agree only to Clarabel's
+    # own accuracy, while our energy is the lower one (checked above)
+    assert np.abs(W - R).max() <= 1e-3
+    # unbounded, the same take leaves [0, 1]
+    W0 = SpacetimeSolver(B, S, alpha=0.01, ridge=1e-5).solve()
+    assert W0.min() < -0.05
+    assert F(s, W) < F(s, np.clip(W0, 0, 1))
+
+
+def test_real_edit_stays_in_bounds(rocketbox_problem):
+    """The issue's case: AK_25_JawOpen = 1.39 at frame 437, half-window 12, bounds [0, 1]."""
+    from core.solvers.baselines import range_pf
+
+    B, S, valid, names = rocketbox_problem
+    W = range_pf(B, S, 0.0, 1.0, valid, ridge=1e-5)  # the pipeline's default 'bounded' solution
+    known = {0: W[0], len(W) - 1: W[-1]}
+    f, h = 437, 12
+    unb = SpacetimeSolver(B, S, alpha=0.01, known=known, valid=valid, names=names)
+    W_unb = unb.edit(W, f, [1.39], shapes=["AK_25_JawOpen"], window=(f - h, f + h))
+    assert W_unb.min() < -1 or W_unb.max() > 2  # what the issue saw
+    s = SpacetimeSolver(B, S, alpha=0.01, known=known, valid=valid, names=names, lower=0.0, upper=1.0)
+    with pytest.warns(UserWarning, match="AK_25_JawOpen = 1.39 -> 1"):
+        W2 = s.edit(W, f, [1.39], shapes=["AK_25_JawOpen"], window=(f - h, f + h))
+    assert (W2 >= 0).all() and (W2 <= 1).all()
+    np.testing.assert_array_equal(W2[:f - h + 1], W[:f - h + 1])
+    np.testing.assert_array_equal(W2[f + h:], W[f + h:])
+    assert W2[f, names.index("AK_25_JawOpen")] == 1.0
+    assert s.info_["converged"] and s.info_["kkt"] <= KKT_RTOL
+    assert np.abs(W2[f - h + 1:f + h] - W[f - h + 1:f + h]).max() > 1e-3  # the edit did propagate
+
+
+def test_osqp_reference_agrees():
+    pytest.importorskip("osqp")
+    B, S, kw = _setup("box_l1")
+    s = SpacetimeSolver(B, S, **kw)
+    W = s.solve()
+    R, info = bounded_spacetime_reference(B, S, kw["alpha"], 0.0, None, None, lower=s.lower_, upper=s.upper_,
+                                          l1=s.l1_, solver="osqp", tol=1e-9, ridge=s.ridge_)
+    assert "solved" in info["status"].lower()
+    assert F(s, W) <= F(s, np.clip(R, s.lower_, s.upper_)) * (1 + 1e-12)
+    assert np.abs(W - R).max() <= 1e-4
