@@ -1,6 +1,7 @@
 """``face-retarget``: the command line.
 
     face-retarget retarget --source take.csv --source-rig ict.glb --target-rig other.glb --out r.glb
+    face-retarget evaluate --source take.csv --source-rig ict.glb --target-rig other.glb --json r.json --html r.html
     face-retarget layout --from data/layouts/ict_facekit.json --rig new.glb --out new.json
     face-retarget serve [--port N] [--address A] [--show]
     face-retarget info FILE...
@@ -33,18 +34,24 @@ _CACHE = None
 OUTPUT_OPTIONS = ("func", "out", "weights_csv", "quiet", "command", "shot", "save_shot", "csv_precision")
 
 
-def _pipeline(args):
-    """The pipeline of a ``retarget`` run: the shot (``--shot``) with the flags given on top."""
+def _cache():
     global _CACHE
-    from .pipeline import Pipeline, StageCache
+    from .pipeline import StageCache
 
     if _CACHE is None:
         _CACHE = StageCache(max_entries=64)
+    return _CACHE
+
+
+def _pipeline(args):
+    """The pipeline of a ``retarget`` run: the shot (``--shot``) with the flags given on top."""
+    from .pipeline import Pipeline
+
     settings = {k: v for k, v in vars(args).items() if k not in OUTPUT_OPTIONS}
     if getattr(args, "shot", None):
-        pipe = Pipeline.from_shot(args.shot, cache=_CACHE, **settings)
+        pipe = Pipeline.from_shot(args.shot, cache=_cache(), **settings)
     else:
-        pipe = Pipeline(cache=_CACHE, **settings)
+        pipe = Pipeline(cache=_cache(), **settings)
     if getattr(args, "save_shot", None):
         pipe.shot().to_json(args.save_shot)
     return pipe
@@ -140,6 +147,45 @@ def _retarget(args) -> int:
     return 0
 
 
+def _evaluate(args) -> int:
+    """``face-retarget evaluate``: score methods on one source + rig pair (core.report)."""
+    from .progress import StderrBar
+    from .report import evaluate_methods, ranking, write_html, write_json
+    from .stages.methods import METHODS as REGISTRY
+
+    methods = [m.strip() for m in args.methods.split(",")] if args.methods else [n for n, m in REGISTRY.items() if not m.dense]
+    unknown = [m for m in methods if m not in REGISTRY or REGISTRY[m].dense]
+    if unknown:
+        raise ValueError(f"--methods: unknown or dense methods {unknown}; choose from "
+                         f"{[n for n, m in REGISTRY.items() if not m.dense]}")
+    settings = {k: v for k, v in vars(args).items() if k not in OUTPUT_OPTIONS + ("methods", "json", "html", "method")}
+    if getattr(args, "shot", None):
+        from .pipeline import Pipeline
+
+        base = Pipeline.from_shot(args.shot, **settings).shot()
+        settings = {**{k: v for st in base.settings.values() for k, v in st.items()},
+                    **{k: base.resolve(k) for k in base.files}}
+        settings.pop("method", None)
+    report = evaluate_methods(settings, methods, progress=None if args.quiet else StderrBar("evaluate"), cache=_cache())
+    if args.json:
+        write_json(report, args.json)
+    if args.html:
+        write_html(report, args.html)
+    cols = ("mean_mm", "p95_mm", "curve_rmse", "marker_mean_mm", "velocity_error", "weight_min", "weight_max",
+            "active_per_frame", "seconds")
+    print(f"{'method':10s} " + " ".join(f"{c:>15s}" for c in cols))
+    for m in ranking(report):
+        r = report["methods"][m]
+        if "error" in r:
+            print(f"{m:10s} failed: {r['error']}")
+            continue
+        print(f"{m:10s} " + " ".join(f"{'-' if r.get(c) is None else format(r[c], '15.4f')}" for c in cols))
+    print(("ground truth: the target driven by the source's own curves" if report["ground_truth"] else
+           "no ground truth for this pair (marker error only)")
+          + (f"\nwrote {args.json}" if args.json else "") + (f"\nwrote {args.html}" if args.html else ""))
+    return 0
+
+
 def _layout(args) -> int:
     from .registration import layout_command
 
@@ -219,6 +265,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="decimals of the CSV weights, or 'full' for round-trip exact values (default: 6)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_retarget)
+
+    ev = sub.add_parser("evaluate", help="score methods on a source + rigs: JSON and a self-contained HTML report")
+    add_cli_arguments(ev)
+    ev.add_argument("--methods", help="comma-separated methods (default: every solve method)")
+    ev.add_argument("--shot", help="a shot whose files and settings to evaluate (the flags given override it)")
+    ev.add_argument("--json", help="output JSON: {methods: {method: {metric: value}}}")
+    ev.add_argument("--html", help="output HTML report (self-contained: plots and renders inline)")
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    ev.set_defaults(func=_evaluate)
 
     lay = sub.add_parser("layout", help="transfer a marker layout to a rig of any topology (non-rigid ICP)")
     lay.add_argument("--from", dest="from_", required=True, help="layout JSON to transfer")

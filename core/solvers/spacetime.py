@@ -95,10 +95,6 @@ __all__ = [
     "RangeSystem", "Edit", "SpacetimeEnergy", "known_matrix", "known_rows", "KKT_RTOL",
 ]
 
-#: Deprecated alias kept only while core/stages.py (being redesigned) imports it from here;
-#: use :func:`core.prior.prior_quadratic`.
-_prior_quadratic = prior_quadratic
-
 #: relative ridge used by ``ridge="auto"`` when ``B`` is rank deficient (times sigma_max(B)^2)
 AUTO_RIDGE = 1e-9
 

@@ -5,9 +5,11 @@ stage's ``method`` choices, its cache key (``relevant``), the CLI's ``--method``
 optional stages run (``prior``, ``segment``) and which widgets the dashboard shows all derive
 from these declarations — nothing else lists the methods.
 
-A method's function takes the solve stage's inputs (``stabilize``, ``personalize``, ``shapes``,
-``segment``, ``prior``) and its frozen settings ``s`` and returns ``{"weights": (T, K), "info":
-{...}}`` for the solver's K shapes. ``dense`` methods (Xu 2014 transfer) do not solve for the
+A method's function takes the solve stage's inputs (``load``, ``frames``, ``stabilize``,
+``personalize``, ``shapes``, ``segment``, ``prior``) and its frozen settings ``s`` and returns
+``{"weights": (T, K), "info": {...}, "edit": {...}}`` for the solver's K shapes; ``edit`` holds
+the options a later spacetime edit (Seol 2012 §6) is solved with — the method's own bounds and
+regularisers (:func:`edit_options`), so an edit of a bounded result stays inside its bounds. ``dense`` methods (Xu 2014 transfer) do not solve for the
 target's shapes at all: the dense stages (:mod:`core.stages.dense`) compute a new rig instead.
 """
 
@@ -54,6 +56,37 @@ def method_of(cfg) -> Method:
     return METHODS[cfg.solve.method]
 
 
+def edit_options(s, alpha=None, lower=None, upper=None, l1=0.0, name_weight=0.0, beta=0.0) -> dict:
+    """The spacetime options an edit of this method's result is solved with: its prior weight
+    (the default alpha for methods without one), Sobolev weight, ridge, bounds (None: unbounded),
+    L1 and name weight."""
+    return {"alpha": float(s.alpha if alpha is None else alpha), "beta": float(beta),
+            "ridge": float(s.ridge) if s.ridge > 0 else "auto", "lower": lower, "upper": upper,
+            "l1": float(l1), "name_weight": float(name_weight)}
+
+
+def named_target(inputs) -> "np.ndarray | None":
+    """``W_named`` (T, K_solver): each solver shape's namesake source curve (canonical ARKit name,
+    :meth:`core.names.NameMap.automatic`), NaN for shapes without one; gaps (tracking loss) filled
+    as everywhere (:mod:`core.gaps`). None unless the source is weight curves with a namesake."""
+    from ..names import NameMap
+
+    src = inputs["load"]["source"]
+    if src.kind != "curves":
+        return None
+    rig = inputs["shapes"]["rig"]
+    G = NameMap.automatic(src.names, rig.names).matrix(src.names, rig.names)  # (K, C)
+    named = np.abs(G).sum(1) > 0
+    if not named.any():
+        return None
+    fr = inputs["frames"]
+    part = src.frames(fr["first"], fr["stop"])
+    valid = part.valid.all(1)
+    W = fill_gaps(np.where(part.valid, part.data, 0.0) @ G.T, valid)
+    W[:, ~named] = np.nan
+    return W
+
+
 def _prior(inputs):
     return inputs["prior"]["prior"] if inputs.get("prior") else None
 
@@ -69,7 +102,7 @@ def _lsq(inputs, s):
     from ..solvers import baselines
 
     B, S, valid = _markers(inputs)
-    return {"weights": baselines.no_const(B, S, valid)}
+    return {"weights": baselines.no_const(B, S, valid), "edit": edit_options(s, alpha=0.01)}
 
 
 @solve_method("bounded", params=("lower", "upper", "ridge"))
@@ -78,7 +111,8 @@ def _bounded(inputs, s):
     from ..solvers import baselines
 
     B, S, valid = _markers(inputs)
-    return {"weights": baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge)}
+    return {"weights": baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge),
+            "edit": edit_options(s, alpha=0.01, lower=s.lower, upper=s.upper)}
 
 
 @solve_method("range_pf", params=("ridge",))
@@ -87,7 +121,8 @@ def _range_pf(inputs, s):
     from ..solvers import baselines
 
     B, S, valid = _markers(inputs)
-    return {"weights": baselines.range_pf(B, S, valid=valid, ridge=s.ridge)}
+    return {"weights": baselines.range_pf(B, S, valid=valid, ridge=s.ridge),
+            "edit": edit_options(s, alpha=0.01, lower=-0.5, upper=1.5)}
 
 
 @solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",))
@@ -96,24 +131,38 @@ def _prior_pf(inputs, s):
     from ..solvers import baselines
 
     B, S, valid = _markers(inputs)
-    return {"weights": baselines.prior_pf(B, S, s.alpha, _prior(inputs), valid, ridge=s.ridge)}
+    return {"weights": baselines.prior_pf(B, S, s.alpha, _prior(inputs), valid, ridge=s.ridge), "edit": edit_options(s)}
 
 
-@solve_method("spacetime", params=("alpha", "beta", "boundary", "ridge"), needs=("prior",))
+@solve_method("spacetime", params=("alpha", "beta", "boundary", "ridge", "spacetime_bounds", "lower", "upper", "l1",
+                                   "name_weight"), needs=("prior",))
 def _spacetime(inputs, s):
-    """Seol 2012 movement matching + PCA prior (+ Sobolev), the whole take at once."""
+    """Seol 2012 movement matching + PCA prior (+ Sobolev), the whole take at once; by default
+    within ``lower <= w <= upper`` (exact bounded solve), optionally with L1 sparsity and a pull
+    towards the namesake source curves (``name_weight``)."""
     from ..solvers import baselines
     from ..solvers.spacetime import SpacetimeSolver
 
     B, S, valid = _markers(inputs)
+    lo, hi = (s.lower, s.upper) if s.spacetime_bounds else (None, None)
+    named = named_target(inputs) if s.name_weight > 0 else None
     known = None
     if s.boundary == "perframe":
         ends = baselines.prior_pf(B, S[[0, -1]], s.alpha, _prior(inputs), valid[[0, -1]], ridge=s.ridge)
+        if lo is not None:  # the end frames are known values: inside the bounds too
+            ends = np.clip(ends, lo, hi)
         known = {0: ends[0], len(S) - 1: ends[1]}
     solver = SpacetimeSolver(B, S, alpha=s.alpha, beta=s.beta, prior=_prior(inputs), known=known,
                              boundary="none" if s.boundary == "none" else "neutral", valid=valid,
-                             ridge=s.ridge if s.ridge > 0 else "auto")
-    return {"weights": solver.solve(), "info": {"path": solver.method_}}
+                             ridge=s.ridge if s.ridge > 0 else "auto", lower=lo, upper=hi, l1=s.l1,
+                             name_target=named, name_weight=s.name_weight if named is not None else 0.0)
+    W = solver.solve()
+    info = {"path": solver.method_}
+    if getattr(solver, "info_", None):
+        info["bounded"] = dict(solver.info_)
+    return {"weights": W, "info": info,
+            "edit": edit_options(s, lower=lo, upper=hi, l1=s.l1, name_weight=s.name_weight if named is not None else 0.0,
+                                 beta=s.beta)}
 
 
 @solve_method("local", params=("constraint", "local_temporal", "alpha", "beta", "sigma"), needs=("segment",))
@@ -137,7 +186,8 @@ def _local(inputs, s):
     W = blend_weights(U, seg["masks"])
     # eq. 3 at the markers: what the mask-blended meshes show (the blended curves are a summary)
     predicted = reconstruct_markers(np.zeros_like(st.neutral), B, U, seg["marker_masks"])
-    return {"weights": W, "info": {"region_weights": U, "masks": seg["masks"], "predicted": predicted}}
+    return {"weights": W, "info": {"region_weights": U, "masks": seg["masks"], "predicted": predicted},
+            "edit": edit_options(s, lower=0.0, upper=1.0, beta=s.beta)}
 
 
 @solve_method("geometric", params=("geometric_prior", "mu", "lam"), needs=("prior",))
@@ -146,12 +196,12 @@ def _geometric(inputs, s):
     from ..model import flatten
     from ..solvers import baselines
     from ..solvers.geometric import GeometricSolver
-    from ..solvers.spacetime import _prior_quadratic
+    from ..prior import prior_quadratic
 
     B, S, valid = _markers(inputs)
     kw = {"rig": inputs["shapes"]["rig"]} if s.geometric_prior == "geometric" else {}
     if s.geometric_prior == "pca":
-        P, q, _ = _prior_quadratic(_prior(inputs), flatten(B).T, len(B))
+        P, q, _ = prior_quadratic(_prior(inputs), flatten(B).T, len(B))
         kw = {"gram": P, "linear": -q}
     frames = S
     if not valid.all():  # the L1 solver needs complete frames: fill gaps with the No Const fit
@@ -159,7 +209,21 @@ def _geometric(inputs, s):
         frames = np.where(valid[..., None], S, fill)
         warnings.warn(f"geometric: {int((~valid).sum())} missing marker samples filled by the per-frame fit")
     sol = GeometricSolver(B, s.geometric_prior, mu=s.mu, lam=s.lam, **kw).solve(frames)
-    return {"weights": sol.weights, "info": {"iterations": sol.iterations}}
+    return {"weights": sol.weights, "info": {"iterations": sol.iterations}, "edit": edit_options(s, alpha=0.01)}
+
+
+@solve_method("names")
+def _names(inputs, s):
+    """Copy by canonical name: each target shape plays its namesake source curve (weight-curve
+    sources only; shapes without a namesake stay at zero). The baseline a solver must beat where
+    names do not match."""
+    W = named_target(inputs)
+    if W is None:
+        src = inputs["load"]["source"]
+        raise ValueError(f"the names method copies weight curves by name: {src.name!r} is "
+                         + ("markers" if src.kind == "markers" else "curves whose channels share no name with the target's shapes"))
+    return {"weights": np.nan_to_num(W), "info": {"named": int(np.isfinite(W).all(0).sum())},
+            "edit": edit_options(s, alpha=0.01, lower=0.0, upper=1.0)}
 
 
 @solve_method("transfer", dense=True)

@@ -327,7 +327,7 @@ class Solve(Stage):
     """The retargeting solver and its term weights. Each method is registered in
     :mod:`core.stages.methods` with the settings it reads and the stages it needs."""
 
-    deps = ("stabilize", "personalize", "shapes", "segment", "prior")
+    deps = ("load", "frames", "stabilize", "personalize", "shapes", "segment", "prior")
     group, title = "solve", "Solver"
     method = param.Selector(default="bounded", objects=list(METHODS), doc=(
         "lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
@@ -354,6 +354,14 @@ class Solve(Stage):
     geometric_prior = param.Selector(default="geometric", objects=["geometric", "pca", "l2", "none"], doc=(
         "Prior of the geometric method (Ribera 2017 Fig. 14): cotangent-Laplacian bending, Seol's PCA, plain L2, none"))
     sigma = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 5), doc="Gaussian temporal filter of the weights in frames (Liu 2011; 0: off)")
+    spacetime_bounds = param.Boolean(default=True, doc=(
+        "Spacetime within lower <= w <= upper (exact bounded solve: curves an animator can key); off = Seol 2012's "
+        "unbounded solve"))
+    l1 = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1e-3), doc=(
+        "L1 sparsity of the spacetime weights, relative to sigma_max(B)^2 like ridge: fewer shapes per frame"))
+    name_weight = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1e-2), doc=(
+        "Pull of each target shape towards its namesake source curve (same canonical ARKit name), relative to "
+        "sigma_max(B)^2; 0 = off. Only where the source is weight curves sharing names with the target"))
 
     def relevant(self, cfg):
         return ("method",) + method_of(cfg).params
@@ -364,18 +372,15 @@ class Solve(Stage):
     def run(self, inputs, s, progress=None):
         m = METHODS[s.method]
         out = m.run(inputs, s)
-        W = np.asarray(out.pop("weights"), dtype=np.float64)
-        # the prior/Sobolev weights later edits propagate with: this method's own when it has them
-        alpha = s.alpha if "alpha" in m.params else self.param.alpha.default
-        beta = s.beta if "beta" in m.params else 0.0
-        return {"weights": W, "method": m.name, "info": out.get("info", {}), "alpha": alpha, "beta": beta}
+        W = np.asarray(out["weights"], dtype=np.float64)
+        return {"weights": W, "method": m.name, "info": out.get("info", {}), "edit": out["edit"]}
 
 
 @register("edit")
 class Edit(Stage):
     """Spacetime edits (Seol 2012 §6) on top of any method's solution."""
 
-    deps = ("solve", "personalize", "stabilize", "prior", "shapes")
+    deps = ("solve", "personalize", "stabilize", "prior", "shapes", "load", "frames")
     edits = param.List(default=[], item_type=dict, doc="Edits: {frame, weights: {shape: value}, window: [a, b] or null}")
 
     def active(self, cfg):
@@ -396,9 +401,17 @@ class Edit(Stage):
             values = list(e["weights"].values()) if isinstance(e["weights"], dict) else e["weights"]
             edits.append(PoseEdit(int(e["frame"]), np.asarray(values, float), shapes, tuple(win) if win else None))
         sol = inputs["solve"]
+        opt = sol["edit"]
         prior = inputs["prior"]["prior"] if inputs.get("prior") else None
-        solver = SpacetimeSolver(inputs["personalize"]["deltas"], st.deltas, alpha=sol["alpha"], beta=sol["beta"], prior=prior,
-                                 known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["shapes"]["rig"].names)
+        named = None
+        if opt["name_weight"] > 0:
+            from .methods import named_target
+
+            named = named_target({"load": inputs["load"], "frames": inputs["frames"], "shapes": inputs["shapes"]})
+        solver = SpacetimeSolver(inputs["personalize"]["deltas"], st.deltas, alpha=opt["alpha"], beta=opt["beta"], prior=prior,
+                                 known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["shapes"]["rig"].names,
+                                 ridge=opt["ridge"], lower=opt["lower"], upper=opt["upper"], l1=opt["l1"],
+                                 name_target=named, name_weight=opt["name_weight"])
         return {"weights": solver.edit(W, edits=edits), "edits": list(s.edits)}
 
 

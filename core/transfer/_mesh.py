@@ -17,9 +17,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-# transitional: dashboard/transfer_view.py still imports weld from here; delete this line once
-# it imports core.geometry.weld (nothing in core, tests, scripts or benchmarks uses it)
-from ..geometry import weld  # noqa: F401
 
 
 def bbox_size(positions: np.ndarray) -> float:
