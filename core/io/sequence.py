@@ -174,7 +174,7 @@ def read_mesh_folder(folder, fps: Optional[float] = None, units: Optional[str] =
     first = min(numbers)
     try:
         return Performance.meshes(data, fps, faces=faces, valid=valid, units=units, name=folder.name,
-                                  extras={"files": names, "frame_numbers": np.arange(first, first + T)})
+                                  extras={"files": np.array(names), "frame_numbers": np.arange(first, first + T)})
     except ValueError as e:
         raise SequenceError(f"{folder}: {e}") from None
 

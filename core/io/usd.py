@@ -478,6 +478,12 @@ def _pick(path, prims: list, which: Optional[str], what: str):
     return prims[0]
 
 
+def has_blendshapes(path) -> bool:
+    """Whether a USD file holds a Mesh with UsdSkel blend shapes (a rig :func:`read_rig` reads)."""
+    stage, (Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, UsdUtils, Vt) = _open(path)
+    return bool(_blendshape_meshes(stage, UsdGeom, UsdSkel))
+
+
 def read_rig(path, mesh: Optional[str] = None) -> Rig:
     """Read a blendshape rig from a UsdSkel file (see the module docstring for what is read).
 
