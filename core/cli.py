@@ -267,7 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     lay = sub.add_parser("layout", help="transfer a marker layout to a rig of any topology (non-rigid ICP)")
     lay.add_argument("--from", dest="from_", required=True, help="layout JSON to transfer")
-    lay.add_argument("--rig", required=True, help="rig to place the markers on")
+    lay.add_argument("--rig", required=True, help="rig to place the markers on (GLB, USD, OBJ folder), or a mesh sequence "
+                                              "(folder of OBJ/PLY frames, USD mesh with time-sampled points): its first frame")
     lay.add_argument("--out", required=True, help="output layout JSON")
     lay.add_argument("--source-rig", default=None, help="rig the layout was made for (default: its 'rig' field in data/rigs)")
     lay.set_defaults(func=_layout)

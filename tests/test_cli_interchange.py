@@ -112,3 +112,24 @@ def test_transfer_writes_usdz_that_passes_the_checker(sequences):
     rig, anim = usd.read_rig(out), usd.read_animation(out)
     assert anim.names == rig.names == W.names
     np.testing.assert_allclose(anim.data, W.data.astype(np.float32), atol=1e-6)
+
+
+def test_layout_for_a_sequence_and_the_rig_path_agree(sequences, tmp_path, capsys):
+    """``face-retarget layout --rig <sequence>`` puts a layout on the sequence's first frame; the
+    sequence through it retargets as the curves through the source rig do (same take, same markers)."""
+    d, target, paths = sequences
+    lay = tmp_path / "seq.layout.json"
+    assert main(["layout", "--from", str(LAYOUTS / "jeeliz_tiger.json"), "--rig", str(paths["usd"]), "--out", str(lay)]) == 0
+    seq_csv, rig_csv = tmp_path / "seq.csv", tmp_path / "rig.csv"
+    assert main(["retarget", "--source", str(paths["usd"]), "--source-layout", str(lay), "--target-rig", str(target),
+                 "--method", "bounded", "--weights-csv", str(seq_csv), "--csv-precision", "full", "--quiet"]) == 0
+    rig = read_rig(RIGS / "jeeliz_tiger.glb")
+    from core.io.gltf import write_rig
+
+    W = np.vstack([np.zeros((1, rig.n_shapes)), tiger_weights(rig.n_shapes, 29)])
+    write_rig(tmp_path / "curves.glb", rig, weights=W, fps=30.0)
+    assert main(["retarget", "--source", str(tmp_path / "curves.glb"), "--source-rig", str(RIGS / "jeeliz_tiger.glb"),
+                 "--target-rig", str(target), "--method", "bounded", "--weights-csv", str(rig_csv), "--csv-precision", "full",
+                 "--quiet"]) == 0
+    np.testing.assert_allclose(read_curves_csv(seq_csv).data, read_curves_csv(rig_csv).data, rtol=0, atol=1e-5)
+    capsys.readouterr()
