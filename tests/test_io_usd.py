@@ -237,3 +237,13 @@ def test_ict_with_uvs_round_trips(tmp_path, ict):
     np.testing.assert_array_equal(back.deltas, ict.deltas)
     np.testing.assert_array_equal(back.uvs, ict.uvs.astype(np.float32))
     assert back.names == ict.names
+
+
+def test_the_checker_reports_a_noncompliant_file(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "bare.usda"))  # no defaultPrim, upAxis, metersPerUnit
+    UsdGeom.Mesh.Define(stage, "/M")
+    stage.Save()
+    report = usd.check_usd(tmp_path / "bare.usda")
+    assert report["errors"] and any("defaultPrim" in e or "default prim" in e.lower() for e in report["errors"])
