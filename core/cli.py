@@ -31,7 +31,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 #: share the rigs they load and the segmentations they compute
 _CACHE = None
 #: CLI options that are not pipeline settings
-OUTPUT_OPTIONS = ("func", "out", "weights_csv", "quiet", "command", "shot", "save_shot", "csv_precision")
+OUTPUT_OPTIONS = ("func", "out", "weights_csv", "livelink_csv", "quiet", "command", "shot", "save_shot", "csv_precision")
 
 
 def _cache():
@@ -57,15 +57,41 @@ def _pipeline(args):
     return pipe
 
 
+def _write_out(path, rig, weights, times, fps: float) -> None:
+    """``--out``: a GLB/glTF (morph targets + weight animation) or USD (UsdSkel, core.io.usd) by suffix."""
+    from .io.usd import SUFFIXES as USD_SUFFIXES
+
+    if Path(path).suffix.lower() in USD_SUFFIXES:
+        from .io.usd import write_rig as write_usd
+
+        write_usd(path, rig, weights=weights, times=times, fps=fps)
+    else:
+        from .io.gltf import write_rig
+
+        write_rig(path, rig, weights=weights, times=times)
+
+
+def _write_livelink(path, rig, weights, times, fps: float) -> str:
+    """``--livelink-csv``: the target's ARKit-named shapes as a Live Link Face CSV; returns a note."""
+    from .io.livelink import arkit_curves, write_livelink
+
+    perf, missing = arkit_curves(weights, rig.names, fps, times=times, name=rig.name)
+    write_livelink(path, perf, timecode_rate=60 if fps <= 60 else 120)
+    return f"wrote {path}" + (f" ({len(missing)} ARKit channels the target lacks written as 0: "
+                              f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''})" if missing else "")
+
+
 def _transfer(pipe, args) -> int:
     """``--method transfer``: dense transfer (Xu 2014) to a rig of new morph targets."""
     import numpy as np
 
     from .io.curves_csv import write_curves_csv
-    from .io.gltf import write_rig
     from .model import Rig
     from .progress import StderrBar
 
+    if args.livelink_csv:
+        raise ValueError("--livelink-csv: dense transfer makes a new rig of bases (xu_basis_*), which has no ARKit "
+                         "shapes to write; use a marker method (bounded, spacetime, ...) for Live Link output")
     t0 = time.perf_counter()
     res = pipe.results(["transfer", "transfer_edit", "detail_morphs"], progress=None if args.quiet else StderrBar("transfer"))
     tr, te, dm = res["transfer"], res["transfer_edit"], res["detail_morphs"]
@@ -84,7 +110,7 @@ def _transfer(pipe, args) -> int:
     times = tr["times"]
     frames = tr["first"] + np.arange(len(times))
     if args.out:
-        write_rig(args.out, rig, weights=weights, times=times)
+        _write_out(args.out, rig, weights, times, tr["fps"])
     if args.weights_csv:
         write_curves_csv(args.weights_csv, times, weights, rig.names, args.csv_precision, valid=tr["valid"], frames=frames)
     stages = " ".join(f"{k}={v:.1f}s" for k, v in pipe.timings.items() if v > 0.05)
@@ -98,7 +124,6 @@ def _retarget(args) -> int:
     import numpy as np
 
     from .io.curves_csv import write_curves_csv
-    from .io.gltf import write_rig
     from .progress import StderrBar
     from .stages.methods import METHODS as REGISTRY
 
@@ -116,8 +141,10 @@ def _retarget(args) -> int:
     frames = res["frames"]["first"] + np.arange(len(times))
     out = []
     if args.out:
-        write_rig(args.out, rig, weights=W, times=times)
+        _write_out(args.out, rig, W, times, st.fps)
         out.append(f"wrote {args.out}")
+    if args.livelink_csv:
+        out.append(_write_livelink(args.livelink_csv, rig, W, times, st.fps))
     if args.weights_csv:
         write_curves_csv(args.weights_csv, times, W, rig.names, args.csv_precision, valid=valid, frames=frames)
         out.append(f"wrote {args.weights_csv}")
@@ -199,13 +226,28 @@ def _serve(args) -> int:
     return serve(port=args.port, address=args.address, show=args.show, allow_websocket_origin=args.allow_websocket_origin)
 
 
+def _is_rig(p: Path) -> bool:
+    """A rig file or folder (vs a performance): GLB/glTF, an OBJ rig folder (neutral.obj), a USD
+    file with UsdSkel blend shapes."""
+    suffix = p.suffix.lower()
+    if p.is_dir():
+        return (p / "neutral.obj").exists()
+    if suffix in (".glb", ".gltf"):
+        return True
+    if suffix in (".usd", ".usda", ".usdc", ".usdz"):
+        from .io.usd import has_blendshapes
+
+        return has_blendshapes(p)
+    return False
+
+
 def _info(args) -> int:
     from .io.performance import read_performance
     from .io.rigs import load_rig
 
     for f in args.files:
         p = Path(f)
-        if p.is_dir() or p.suffix.lower() in (".glb", ".gltf"):
+        if _is_rig(p):
             r = load_rig(p)
             print(f"{p}: rig {r.name}: {r.n_vertices} vertices, {len(r.faces)} triangles, {r.n_shapes} shapes, "
                   f"size {r.size * 100:.1f} cm, uvs={'yes' if r.uvs is not None else 'no'}")
@@ -225,7 +267,7 @@ def _names(args) -> int:
     from .names import NameMap
 
     src = Path(args.source)
-    source_names = load_rig(src).names if src.is_dir() or src.suffix.lower() in (".glb", ".gltf") else read_performance(src).names
+    source_names = load_rig(src).names if _is_rig(src) else read_performance(src).names
     target = load_rig(args.target_rig)
     nm = NameMap.automatic(source_names, target.names)
     missing = nm.unmapped(target.names)
@@ -259,8 +301,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--shot", help="shot JSON to reproduce (from --save-shot or the dashboard's download); the other "
                                   "flags given override it")
     r.add_argument("--save-shot", help="write the shot of this run (files with content hashes, every setting) as JSON")
-    r.add_argument("--out", help="output GLB: the target rig with a morph-weight animation")
+    r.add_argument("--out", help="output GLB/glTF (the target rig with a morph-weight animation) or USD .usda/.usdc/.usdz "
+                                 "(UsdSkel blend shapes + SkelAnimation; needs face-retarget[usd])")
     r.add_argument("--weights-csv", help="output CSV: time_s, frame, valid (0 = no data, filled), one column per target shape")
+    r.add_argument("--livelink-csv", help="output Live Link Face CSV of the target's ARKit-named shapes (MetaHuman, "
+                                          "Unreal Live Link); ARKit channels the target lacks are 0")
     r.add_argument("--csv-precision", default=6, type=lambda v: v if v == "full" else int(v),
                    help="decimals of the CSV weights, or 'full' for round-trip exact values (default: 6)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -277,7 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     lay = sub.add_parser("layout", help="transfer a marker layout to a rig of any topology (non-rigid ICP)")
     lay.add_argument("--from", dest="from_", required=True, help="layout JSON to transfer")
-    lay.add_argument("--rig", required=True, help="rig to place the markers on")
+    lay.add_argument("--rig", required=True, help="rig to place the markers on (GLB, USD, OBJ folder), or a mesh sequence "
+                                              "(folder of OBJ/PLY frames, USD mesh with time-sampled points): its first frame")
     lay.add_argument("--out", required=True, help="output layout JSON")
     lay.add_argument("--source-rig", default=None, help="rig the layout was made for (default: its 'rig' field in data/rigs)")
     lay.set_defaults(func=_layout)

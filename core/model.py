@@ -247,9 +247,14 @@ class Performance:
         ``data``; they are never zeroed.
     times : (T,) float seconds from the first sample.
     units : str the file declared (data is in metres).
-    extras : dict, e.g. ``{"head_rotation": (T, 3)}``, ``{"faces": (F, 3)}`` for meshes; readers
-        put what they know about the file here, e.g. Live Link Face's ``tracking_loss`` (T,) bool
-        (frames the app lost the face; :meth:`frames` slices it with the data).
+    extras : dict, e.g. ``{"head_rotation": (T, 3)}``; readers put what they know about the file
+        here, e.g. Live Link Face's ``tracking_loss`` (T,) bool (frames the app lost the face;
+        :meth:`frames` slices it with the data).
+        A mesh sequence's topology lives in ``extras["faces"]`` (F, 3) int: one set of triangles
+        shared by every frame (the mesh-sequence readers of :mod:`core.io.sequence` check that each
+        frame has the same vertex count and faces, and put them here; :meth:`meshes` takes them as
+        ``faces=``; :meth:`frames` never slices them). Without it a sequence needs the source rig
+        whose topology it has.
     """
 
     kind: str

@@ -378,6 +378,21 @@ def _landmarks(landmarks, layout: MarkerLayout, target: Rig):
 
 
 # ---------------------------------------------------------------------------------------------
+def _layout_target(path: Path):
+    """The rig a layout is made for: a rig file/folder, or a mesh sequence's own topology (a folder
+    of per-frame meshes, a USD mesh with time-sampled points), so ``--source-layout`` can be made
+    for a dense sequence source."""
+    from .io.rigs import load_rig
+    from .io.sequence import read_mesh_sequence, topology_rig
+
+    is_seq = path.is_dir() and not (path / "neutral.obj").exists()
+    if not is_seq and path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):
+        from .io.usd import has_blendshapes
+
+        is_seq = not has_blendshapes(path)
+    return topology_rig(read_mesh_sequence(path)) if is_seq else load_rig(path)
+
+
 def layout_command(from_path, rig_path, out_path, source_rig_path=None, steps=None) -> str:
     """File-level transfer for the CLI: ``face-retarget layout --from A.json --rig B.glb --out C.json``.
 
@@ -390,8 +405,8 @@ def layout_command(from_path, rig_path, out_path, source_rig_path=None, steps=No
     ------
     FileNotFoundError when the source rig cannot be found (the message lists where it looked).
     """
-    from .io.gltf import read_rig
     from .io.layout import layouts_dir, read_layout, write_layout
+    from .io.rigs import load_rig as read_rig
 
     from_path, rig_path, out_path = Path(from_path), Path(rig_path), Path(out_path)
     src_layout = read_layout(from_path)
@@ -405,7 +420,7 @@ def layout_command(from_path, rig_path, out_path, source_rig_path=None, steps=No
             )
     source = read_rig(source_rig_path)
     src_layout = read_layout(from_path, rig=source)
-    target = read_rig(rig_path)
+    target = _layout_target(rig_path)
     new, info = transfer_layout(src_layout, source, target, steps=steps, target_layout_name=rig_path.name)
     write_layout(out_path, new, rig_path.name)
     med, p90, mx = info["residual_mm"]

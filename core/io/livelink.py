@@ -474,3 +474,45 @@ def write_livelink(path, perf: Performance, timecode_start: str = "00:00:00:00.0
     out += [tc + "," + TRACKING_LOST_COUNT if gone else tc + "," + count + "," + ",".join(row)
             for tc, row, gone in zip(tcs, strs.tolist(), lost.tolist())]
     path.write_text("\n".join(out) + "\n")
+
+
+def arkit_curves(weights, names, fps: float, times=None, name: str = "arkit") -> tuple:
+    """The 52 ARKit channels of weights on a rig's shapes, for :func:`write_livelink`.
+
+    ``arkit = W @ G.T`` with ``G`` the automatic name map from the rig's shapes to the ARKit names
+    (:meth:`core.names.NameMap.automatic`: same canonical name, ``AK_09_EyeBlinkLeft`` or
+    ``eyeBlink_L`` -> ``eyeBlinkLeft``; a sideless ARKit channel such as ``browInnerUp`` is the
+    mean of a rig's split pair ``browInnerUp_L`` / ``_R``). An ARKit channel no shape maps to is 0
+    (the rig has no such shape, so a Live Link consumer must not move it) and is listed.
+
+    Parameters
+    ----------
+    weights : (T, K) float, finite
+    names : K shape names of the rig
+    fps : float; times : (T,) seconds, optional (default ``arange(T) / fps``)
+
+    Returns
+    -------
+    (Performance of kind "curves" with the 52 ARKit channels, list of the ARKit channels no
+    shape drives)
+
+    Raises
+    ------
+    ValueError
+        ``weights`` not (T, K) or not finite, or no shape has an ARKit name.
+    """
+    from core.names import NameMap
+
+    W = np.asarray(weights, dtype=np.float64)
+    names = [str(n) for n in names]
+    if W.ndim != 2 or W.shape[1] != len(names):
+        raise ValueError(f"weights: expected (T, {len(names)}) for the {len(names)} shapes, got {W.shape}")
+    if not np.isfinite(W).all():
+        raise ValueError("weights: NaN/inf; fill the gaps first (core.gaps.fill_gaps)")
+    nm = NameMap.automatic(names, ARKIT_NAMES)
+    if not nm.entries:
+        raise ValueError(f"none of the {len(names)} shapes has an ARKit name (e.g. {names[:3]}); "
+                         "a Live Link Face CSV holds the 52 ARKit channels")
+    G = nm.matrix(names, ARKIT_NAMES)
+    perf = Performance.curves(W @ G.T, ARKIT_NAMES, fps, times=times, name=name)
+    return perf, nm.unmapped(ARKIT_NAMES)

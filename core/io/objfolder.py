@@ -181,6 +181,23 @@ def _read_text(path: Path) -> str:
         raise ObjFolderError(f"{path}: not a text OBJ file (not UTF-8)") from None
 
 
+def read_obj(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """One OBJ file as ``(positions (V, 3), faces (F, 3), uvs (V, 2) or None)``, vertex order kept.
+
+    The parser of this module (every ``v`` line in file order, polygons fan-triangulated, one UV
+    per vertex or none); :mod:`core.io.sequence` reads per-frame OBJ files with it.
+
+    Raises
+    ------
+    FileNotFoundError; ObjFolderError naming the file (and line) that cannot be parsed.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    positions, faces, texcoords, fvt = _parse_obj(path)
+    return positions, faces, _per_vertex_uvs(path, len(positions), faces, texcoords, fvt)
+
+
 def read_obj_folder(folder, units: str = "m") -> Rig:
     """Read a rig from ``folder/neutral.obj`` and one ``<shape name>.obj`` per shape.
 

@@ -7,11 +7,13 @@ from typing import Optional
 
 from ..model import MarkerLayout, Rig
 
-RIG_FORMATS = ".glb, .gltf, or a folder of OBJs (neutral.obj + one OBJ per shape)"
+RIG_FORMATS = (".glb, .gltf, .usd/.usda/.usdc/.usdz (UsdSkel blend shapes), or a folder of OBJs "
+               "(neutral.obj + one OBJ per shape)")
 
 
 def load_rig(path) -> Rig:
-    """Read a rig from a GLB/glTF file or an OBJ folder; ValueError names the accepted formats."""
+    """Read a rig from a GLB/glTF file, a UsdSkel USD file or an OBJ folder; ValueError names the
+    accepted formats (ImportError naming the ``[usd]`` extra for USD without usd-core)."""
     path = Path(path)
     if path.is_dir():
         from .objfolder import read_obj_folder
@@ -23,6 +25,12 @@ def load_rig(path) -> Rig:
         from .gltf import read_rig
 
         return read_rig(path)
+    from .usd import SUFFIXES as USD_SUFFIXES
+
+    if path.suffix.lower() in USD_SUFFIXES:
+        from .usd import read_rig as read_usd_rig
+
+        return read_usd_rig(path)
     raise ValueError(f"{path}: unsupported rig format {path.suffix!r}; expected {RIG_FORMATS}")
 
 

@@ -2,12 +2,13 @@
 
 Importing this package registers them: the retargeting stages (:mod:`.retarget`), whose solve
 stage dispatches to the registered methods (:mod:`.methods`), the dense-transfer stages of
-Xu 2014 (:mod:`.dense`) and the normal-map stages of Liu 2011 §5 (:mod:`.normalmap`).
+Xu 2014 (:mod:`.dense`), a mesh-sequence source's own face (:mod:`.sequence`) and the normal-map stages of Liu 2011 §5 (:mod:`.normalmap`).
 """
 
 from .methods import METHODS, Method, method_of, solve_method  # noqa: F401
 from . import retarget  # noqa: F401  (registers)
 from . import dense  # noqa: F401
+from . import sequence  # noqa: F401  (a mesh sequence's own source face)
 from . import normalmap  # noqa: F401
 from .retarget import INVISIBLE, solver_shapes  # noqa: F401
 

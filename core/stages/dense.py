@@ -23,6 +23,7 @@ import param
 
 from ..progress import report
 from ..stage import Stage, register
+from .sequence import source_face
 
 
 def _settings(**fields):
@@ -64,16 +65,18 @@ class DenseSource(Stage):
 
 @register("weld")
 class Weld(Stage):
-    """The source rig welded at UV seams (:func:`core.transfer.weld_source`)."""
+    """The source rig welded at UV seams (:func:`core.transfer.weld_source`); for a mesh sequence
+    without a source rig, its own topology (first frame with data, :mod:`.sequence`)."""
 
-    deps = ("source_face",)
+    deps = ("source_face", "sequence_face")
 
     def run(self, inputs, s, progress=None):
         from ..transfer import weld_source
 
-        rig = inputs["source_face"]["source_rig"]
+        rig, _ = source_face(inputs)
         if rig is None:
-            raise ValueError("transfer needs the source rig (--source-rig): its topology carries the dense sequence")
+            raise ValueError("transfer needs a source topology: the source rig (--source-rig) that weight curves drive, "
+                             "or a mesh-sequence source (which carries its own)")
         return {"welded": weld_source(rig.neutral, rig.faces)}
 
 
@@ -82,7 +85,7 @@ class Register(Stage):
     """§3: the target reference in the source topology, by landmarks (the markers both layouts
     share) + non-rigid ICP + closest points. Depends on the rig pair only."""
 
-    deps = ("source_face", "target_face", "weld")
+    deps = ("source_face", "target_face", "weld", "sequence_face")
     group, title = "dense", "Dense transfer (Xu 2014)"
     transfer_crop = param.Selector(default="auto", objects=["auto", "face", "none"], doc=(
         "Which part of the source head the registration fits: auto = the face crop when the target lacks the rest of "
@@ -93,11 +96,16 @@ class Register(Stage):
         from ..transfer import register_target
         from ..transfer.performance import shared_landmarks
 
-        sf, tf = inputs["source_face"], inputs["target_face"]
-        rig, target = sf["source_rig"], tf["target_rig"]
-        landmarks = shared_landmarks(sf["source_layout"], tf["target_layout"], target.neutral)
+        tf = inputs["target_face"]
+        (_, layout), target = source_face(inputs), tf["target_rig"]
+        welded = inputs["weld"]["welded"]
+        same = len(target.neutral) == len(welded.neutral) and np.array_equal(target.faces, welded.source_faces)
+        if layout is None and not same:
+            raise ValueError("transfer: registering the target needs landmarks: give the source layout on the mesh "
+                             "sequence's topology (--source-layout)")
+        landmarks = shared_landmarks(layout, tf["target_layout"], target.neutral) if layout is not None else None
         cfg = _settings(landmarks=landmarks, crop=s.transfer_crop, icp=s.transfer_icp)
-        Tw0, reg = register_target(inputs["weld"]["welded"], target.neutral, target.faces, cfg, progress)
+        Tw0, reg = register_target(welded, target.neutral, target.faces, cfg, progress)
         return {"target_welded": Tw0, "registration": reg, "landmarks": landmarks}
 
 
@@ -138,7 +146,7 @@ class Bases(Stage):
 class Deform(Stage):
     """Eq. 9-11: feature-preserving deformation transfer of the bases."""
 
-    deps = ("weld", "decompose", "bases", "register", "source_face")
+    deps = ("weld", "decompose", "bases", "register", "source_face", "sequence_face")
     group, title = "dense", "Dense transfer (Xu 2014)"
     transfer_alpha = param.Number(default=100.0, bounds=(0, None), softbounds=(0, 1000), doc="Weight α of the eye and mouth feature lines in eq. 9 (100 in the paper)")
     transfer_feature_lines = param.Boolean(default=True, doc="Feature lines from the rims near the source layout's eye and mouth markers (eq. 9)")
@@ -150,8 +158,8 @@ class Deform(Stage):
         from ..transfer import transfer_bases
         from ..transfer.performance import default_feature_lines
 
-        sf = inputs["source_face"]
-        lines = default_feature_lines(sf["source_rig"], sf["source_layout"]) if s.transfer_feature_lines else None
+        rig, layout = source_face(inputs)
+        lines = default_feature_lines(rig, layout) if s.transfer_feature_lines else None
         report(progress, 0.2, f"deformation transfer of {len(inputs['bases']['source_bases'])} bases")
         bt = transfer_bases(inputs["weld"]["welded"], inputs["decompose"]["decomposition"], inputs["bases"]["source_bases"],
                             inputs["register"]["target_welded"], _settings(feature_lines=lines, alpha=s.transfer_alpha))

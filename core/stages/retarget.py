@@ -34,11 +34,18 @@ INVISIBLE = 1e-3
 
 @register("take")
 class Take(Stage):
-    """The source performance file."""
+    """The source performance file (or folder of per-frame meshes)."""
 
     files = ("source",)
     group, title = "files", "Source performance"
-    source = param.String(default="", doc="Source performance: Live Link Face CSV, marker CSV/TRC/C3D, or a GLB with a weight animation")
+    source = param.String(default="", doc=(
+        "Source performance: Live Link Face CSV, marker CSV/TRC/C3D, a GLB or USD with a weight animation, or a mesh "
+        "sequence (a folder of per-frame OBJ/PLY files, a USD mesh with time-sampled points)"))
+    source_kind = param.Selector(default="auto", objects=["auto", "meshes"], doc=(
+        "What to read from the source: auto = what the file holds (weight curves for a GLB/UsdSkel animation); "
+        "meshes = a GLB's or UsdSkel file's animated mesh as a dense mesh sequence (no source rig needed)"))
+    source_fps = param.Number(default=0.0, bounds=(0, None), doc=(
+        "Frame rate of a mesh-sequence folder, GLB or USD source (0: the file's own, a folder's sequence.json, else 30)"))
 
     def run(self, inputs, s, progress=None):
         from ..io.performance import read_performance
@@ -46,7 +53,7 @@ class Take(Stage):
         if not s.source:
             raise ValueError("no source performance chosen (--source)")
         report(progress, 0.1, "reading source")
-        return {"source": read_performance(s.source)}
+        return {"source": read_performance(s.source, kind=s.source_kind, fps=s.source_fps or None)}
 
 
 def _with_default_layout(paths: dict, rig: str, layout: str) -> dict:
@@ -81,7 +88,8 @@ class SourceFace(Stage):
         rig = load_rig(s.source_rig) if s.source_rig else None
         layout = read_layout_for(s.source_layout, s.source_rig, rig) if rig is not None else None
         name_map = NameMap.from_json(s.name_map) if s.name_map else None
-        return {"source_rig": rig, "source_layout": layout, "name_map": name_map}
+        # without a rig the layout belongs to a mesh sequence's topology: read by sequence_face
+        return {"source_rig": rig, "source_layout": layout, "name_map": name_map, "source_layout_path": s.source_layout}
 
 
 @register("target_face")
@@ -108,15 +116,25 @@ class TargetFace(Stage):
 
 @register("load")
 class Load(Stage):
-    """The take and the rigs together, checked against each other."""
+    """The take and the rigs together, checked against each other. A mesh sequence without a
+    source rig brings its own source face (:mod:`.sequence`): its layout is the source layout."""
 
-    deps = ("take", "source_face", "target_face")
+    deps = ("take", "source_face", "target_face", "sequence_face")
 
     def run(self, inputs, s, progress=None):
         src = inputs["take"]["source"]
-        if src.kind == "curves" and inputs["source_face"]["source_rig"] is None:
-            raise ValueError(f"{src.name}: weight curves need the rig they drive (--source-rig)")
-        return {"source": src, **inputs["source_face"], **inputs["target_face"]}
+        rig = inputs["source_face"]["source_rig"]
+        if src.kind == "curves" and rig is None:
+            raise ValueError(f"{src.name}: weight curves need the rig they drive (--source-rig); a GLB or USD file whose "
+                             "animation drives its own mesh can be read as a mesh sequence with --source-kind meshes")
+        if src.kind == "meshes" and rig is not None and src.data.shape[1] != rig.n_vertices:
+            raise ValueError(f"{src.name}: the mesh sequence has {src.data.shape[1]} vertices, source rig {rig.name!r} "
+                             f"{rig.n_vertices}; give the rig whose topology it has, or no --source-rig")
+        out = {"source": src, **inputs["source_face"], **inputs["target_face"]}
+        sq = inputs.get("sequence_face")
+        if rig is None and sq and sq["source_layout"] is not None:
+            out["source_layout"] = sq["source_layout"]
+        return out
 
 
 @register("frames")

@@ -16,12 +16,15 @@ from ..progress import ProgressFn, report
 
 
 def dense_sequence(source: Performance, rig: Optional[Rig], name_map=None) -> tuple:
-    """``(meshes (T, V, 3), valid (T,))``: a mesh sequence as is, or weight curves driving
-    ``rig``. Frames without data (tracking loss) are gaps, filled by :func:`core.gaps.fill_gaps`
+    """``(meshes (T, V, 3), valid (T,))``: a mesh sequence as is (on ``rig``'s topology when a rig
+    is given, else its own), or weight curves driving ``rig``. Frames without data (tracking loss) are gaps, filled by :func:`core.gaps.fill_gaps`
     (interpolated, held at the ends — never a neutral face) and flagged in ``valid``."""
     from ..gaps import fill_gaps
 
     if source.kind == "meshes":
+        if rig is not None and source.data.shape[1] != rig.n_vertices:
+            raise ValueError(f"transfer: the mesh sequence {source.name!r} has {source.data.shape[1]} vertices, the source "
+                             f"rig {rig.name!r} {rig.n_vertices}; give the rig whose topology it has, or no source rig")
         valid = np.asarray(source.valid, dtype=bool).reshape(len(source.data), -1).all(1)
         return fill_gaps(source.data, valid), valid
     if source.kind == "curves":
