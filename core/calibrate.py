@@ -38,15 +38,16 @@ class RBFWarp:
         self.smoothing = smoothing
 
     def fit(self, centers, values) -> "RBFWarp":
-        """Solve [[Phi, P], [P^T, 0]] [w; a] = [values; 0] for (M, 3) centres/values.
+        """Solve [[Phi, P], [P^T, 0]] [w; a] = [values; 0] for (M, 3) centres and (M, C) values
+        (C = 3 for a warp; any C interpolates C fields at once with one factorisation).
 
         Raises ValueError on shape mismatch, fewer than 4 centres, or coplanar centres
         (the affine part is then undetermined).
         """
         c = np.asarray(centers, dtype=np.float64)
         v = np.asarray(values, dtype=np.float64)
-        if c.ndim != 2 or c.shape[1] != 3 or c.shape != v.shape:
-            raise ValueError(f"RBFWarp.fit: centers and values must both be (M, 3), got {c.shape} and {v.shape}")
+        if c.ndim != 2 or c.shape[1] != 3 or v.ndim != 2 or len(v) != len(c):
+            raise ValueError(f"RBFWarp.fit: centers must be (M, 3) and values (M, C), got {c.shape} and {v.shape}")
         M = len(c)
         if M < 4:
             raise ValueError(f"RBFWarp.fit: need at least 4 corresponding markers, got {M}")
@@ -63,7 +64,7 @@ class RBFWarp:
         A[:M, :M] = Phi
         A[:M, M:] = P
         A[M:, :M] = P.T
-        rhs = np.vstack([v, np.zeros((4, 3))])
+        rhs = np.vstack([v, np.zeros((4, v.shape[1]))])
         sol = np.linalg.solve(A, rhs)
         self.centers_ = c
         self.weights_ = sol[:M]
@@ -71,12 +72,12 @@ class RBFWarp:
         return self
 
     def __call__(self, x) -> np.ndarray:
-        """Warp points (..., 3) -> (..., 3)."""
+        """Warp points (..., 3) -> (..., C)."""
         x = np.asarray(x, dtype=np.float64)
         flat = x.reshape(-1, 3)
         r = np.linalg.norm(flat[:, None] - self.centers_[None], axis=2)
         out = r @ self.weights_ + self.affine_[0] + flat @ self.affine_[1:]
-        return out.reshape(x.shape)
+        return out.reshape(x.shape[:-1] + (self.weights_.shape[1],))
 
 
 def calibrate_deltas(target_neutral, target_deltas, source_neutral, smoothing: float = 0.0):

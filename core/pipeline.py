@@ -360,7 +360,7 @@ class Pipeline:
     def _run(self, targets: list, progress: Optional[ProgressFn] = None) -> dict:
         with self._lock:
             cfg = self.config()
-            order = self._order(*targets)
+            order = self._order(*targets, cfg=cfg)
             memo: dict = {}
             results: dict = {}
             self.timings = {}
@@ -407,16 +407,20 @@ class Pipeline:
         res = self._run(names, progress)
         return {n: res[n] for n in names}
 
-    def _order(self, *targets: str) -> list:
+    def _order(self, *targets: str, cfg=None) -> list:
+        """The stages ``targets`` need, in dependency order. An inactive stage needs nothing:
+        its inputs are not computed for it (they run only if an active stage needs them)."""
         for t in targets:
             if t not in self.stages:
                 raise KeyError(f"no stage {t!r}; stages are {list(self.stages)}")
+        cfg = cfg if cfg is not None else self.config()
         need, stack = set(), list(targets)
         while stack:
             n = stack.pop()
             if n not in need:
                 need.add(n)
-                stack.extend(self.stages[n].deps)
+                if self.stages[n].active(cfg):
+                    stack.extend(self.stages[n].deps)
         return [n for n in self.stages if n in need]
 
 

@@ -92,8 +92,25 @@ def _prior(inputs):
 
 
 def _markers(inputs):
+    """``(B (K, M, 3), S (T, M, 3), valid (T, M))`` the solvers fit."""
     st = inputs["stabilize"]["source"]
     return inputs["personalize"]["deltas"], st.deltas, st.valid
+
+
+def _marker_weights(inputs):
+    """(M,) per-point weights of dense correspondence (how well the registration fits there), or None."""
+    return inputs["shapes"].get("weights")
+
+
+def _weighted(inputs):
+    """``_markers`` with each point's rows scaled by the square root of its weight: the weighted
+    least-squares data term ``Σ_m w_m ||B_m x - s_m||²`` for the solvers that take plain rows."""
+    B, S, valid = _markers(inputs)
+    w = _marker_weights(inputs)
+    if w is None:
+        return B, S, valid
+    r = np.sqrt(w)[:, None]
+    return B * r[None], S * r[None], valid
 
 
 @solve_method("lsq")
@@ -101,7 +118,7 @@ def _lsq(inputs, s):
     """Per-frame least squares, unbounded (a diagnostic: no regulariser keeps it in range)."""
     from ..solvers import baselines
 
-    B, S, valid = _markers(inputs)
+    B, S, valid = _weighted(inputs)
     return {"weights": baselines.no_const(B, S, valid), "edit": edit_options(s, alpha=0.01)}
 
 
@@ -110,7 +127,7 @@ def _bounded(inputs, s):
     """Per-frame least squares with ``lower <= w <= upper`` (batched exact active set)."""
     from ..solvers import baselines
 
-    B, S, valid = _markers(inputs)
+    B, S, valid = _weighted(inputs)
     return {"weights": baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge),
             "edit": edit_options(s, alpha=0.01, lower=s.lower, upper=s.upper)}
 
@@ -120,18 +137,30 @@ def _range_pf(inputs, s):
     """Seol 2012 §7 Range PF: per frame, -0.5 <= w <= 1.5."""
     from ..solvers import baselines
 
-    B, S, valid = _markers(inputs)
+    B, S, valid = _weighted(inputs)
     return {"weights": baselines.range_pf(B, S, valid=valid, ridge=s.ridge),
             "edit": edit_options(s, alpha=0.01, lower=-0.5, upper=1.5)}
+
+
+def _prior_pf_frames(inputs, s, frames):
+    """Prior PF (the weighted data term, the unweighted markers' prior) on a few frames."""
+    from ..model import flatten
+    from ..prior import prior_quadratic
+    from ..solvers import baselines
+
+    B, S, valid = _weighted(inputs)
+    prior = _prior(inputs)
+    if _marker_weights(inputs) is not None and prior is not None:
+        B0 = _markers(inputs)[0]
+        P, q, _ = prior_quadratic(prior, flatten(B0).T, len(B0))
+        prior = (P, q)
+    return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge)
 
 
 @solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",))
 def _prior_pf(inputs, s):
     """Seol 2012 §7 Prior PF: per frame with the PCA prior."""
-    from ..solvers import baselines
-
-    B, S, valid = _markers(inputs)
-    return {"weights": baselines.prior_pf(B, S, s.alpha, _prior(inputs), valid, ridge=s.ridge), "edit": edit_options(s)}
+    return {"weights": _prior_pf_frames(inputs, s, slice(None)), "edit": edit_options(s)}
 
 
 @solve_method("spacetime", params=("alpha", "beta", "boundary", "ridge", "spacetime_bounds", "lower", "upper", "l1",
@@ -144,17 +173,18 @@ def _spacetime(inputs, s):
     from ..solvers.spacetime import SpacetimeSolver
 
     B, S, valid = _markers(inputs)
+    mw = _marker_weights(inputs)
     lo, hi = (s.lower, s.upper) if s.spacetime_bounds else (None, None)
     named = named_target(inputs) if s.name_weight > 0 else None
     known = None
     if s.boundary == "perframe":
-        ends = baselines.prior_pf(B, S[[0, -1]], s.alpha, _prior(inputs), valid[[0, -1]], ridge=s.ridge)
+        ends = _prior_pf_frames(inputs, s, [0, len(S) - 1])
         if lo is not None:  # the end frames are known values: inside the bounds too
             ends = np.clip(ends, lo, hi)
         known = {0: ends[0], len(S) - 1: ends[1]}
     solver = SpacetimeSolver(B, S, alpha=s.alpha, beta=s.beta, prior=_prior(inputs), known=known,
                              boundary="none" if s.boundary == "none" else "neutral", valid=valid,
-                             ridge=s.ridge if s.ridge > 0 else "auto", lower=lo, upper=hi, l1=s.l1,
+                             ridge=s.ridge if s.ridge > 0 else "auto", lower=lo, upper=hi, l1=s.l1, marker_weights=mw,
                              name_target=named, name_weight=s.name_weight if named is not None else 0.0)
     W = solver.solve()
     info = {"path": solver.method_}
@@ -173,14 +203,15 @@ def _local(inputs, s):
     B, S, valid = _markers(inputs)
     st = inputs["stabilize"]["source"]
     seg = inputs["segment"]
-    problem = local_precompute(np.zeros_like(st.neutral), B, seg["marker_weights"], constraint=s.constraint)
+    mw = seg["marker_weights"] if _marker_weights(inputs) is None else seg["marker_weights"] * _marker_weights(inputs)[None]
+    problem = local_precompute(np.zeros_like(st.neutral), B, mw, constraint=s.constraint)
     has = valid.any(1)  # frames without a marker sample (tracking loss) are gaps: filled, flagged by synthesize
     U = np.empty((len(S), len(seg["masks"]), len(B)))
     U[has] = problem.solve(S[has], valid[has])  # (T, R, K) regional weights, eq. 2
     if not has.all():
         U = fill_gaps(U, has)
     if s.local_temporal == "spacetime":  # movement matching per region, ends from the QP
-        U = local_spacetime(B, S, seg["marker_weights"], U, s.alpha, s.beta, valid)
+        U = local_spacetime(B, S, mw, U, s.alpha, s.beta, valid)
     if s.sigma > 0:
         U = smooth_weights(U, s.sigma)
     W = blend_weights(U, seg["masks"])
@@ -198,10 +229,11 @@ def _geometric(inputs, s):
     from ..solvers.geometric import GeometricSolver
     from ..prior import prior_quadratic
 
-    B, S, valid = _markers(inputs)
+    B, S, valid = _weighted(inputs)
     kw = {"rig": inputs["shapes"]["rig"]} if s.geometric_prior == "geometric" else {}
     if s.geometric_prior == "pca":
-        P, q, _ = prior_quadratic(_prior(inputs), flatten(B).T, len(B))
+        B0 = _markers(inputs)[0]  # the prior is the unweighted markers'
+        P, q, _ = prior_quadratic(_prior(inputs), flatten(B0).T, len(B0))
         kw = {"gram": P, "linear": -q}
     frames = S
     if not valid.all():  # the L1 solver needs complete frames: fill gaps with the No Const fit

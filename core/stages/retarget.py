@@ -137,6 +137,67 @@ class Load(Stage):
         return out
 
 
+@register("dense_correspondence")
+class DenseCorrespondence(Stage):
+    """The source rig's face points in farthest-point order (up to 20,000), each carried onto the
+    target by the rig pair's registration (:func:`core.correspondence.rig_correspondence`), with
+    its weight: computed once per rig pair; ``correspond`` takes the first ``dense_points``
+    (a prefix of a farthest-point order is the farthest-point sample of that size). Runs only
+    for ``correspondence = dense`` with a source rig (a capture is densified by ``correspond``)."""
+
+    deps = ("source_face", "target_face", "weld", "register")
+
+    def active(self, cfg):
+        return cfg.correspond.correspondence == "dense" and bool(cfg.source_face.source_rig)
+
+    def run(self, inputs, s, progress=None):
+        from ..correspondence import MAX_POINTS, rig_correspondence
+
+        sf, tf, reg = inputs["source_face"], inputs["target_face"], inputs["register"]
+        report(progress, 0.5, "dense correspondence: face points onto the target")
+        src, tgt, w = rig_correspondence(sf["source_rig"], sf["source_layout"], inputs["weld"]["welded"],
+                                         reg["registration"], tf["target_rig"], MAX_POINTS)
+        return {"source_layout": src, "target_layout": tgt, "weights": w}
+
+
+@register("correspond")
+class Correspond(Stage):
+    """The points both faces are compared at: the 41-marker layouts, or dense correspondence
+    (:mod:`core.correspondence`): ``dense_points`` face points, weighted by how well the rig
+    pair's registration fits there — for a marker capture, through the RBF of its layout."""
+
+    deps = ("load", "dense_correspondence")
+    group, title = "calibrate", "Source & calibration"
+    correspondence = param.Selector(default="markers", objects=["markers", "dense"], doc=(
+        "What the solvers fit: markers = the layouts' 41 markers; dense = many points on the face, carried to the "
+        "target by the registration dense transfer computes (the first time per rig pair takes tens of seconds)"))
+    dense_points = param.Integer(default=1000, bounds=(10, 20000), doc="Number of face points of dense correspondence")
+
+    def relevant(self, cfg):
+        return ("correspondence", "dense_points") if cfg.correspond.correspondence == "dense" else ("correspondence",)
+
+    def run(self, inputs, s, progress=None):
+        ld = inputs["load"]
+        out = {"source": ld["source"], "source_layout": ld["source_layout"], "target_layout": ld["target_layout"],
+               "weights": None, "kind": s.correspondence}
+        if s.correspondence == "markers":
+            return out
+        dc = inputs.get("dense_correspondence")
+        if dc is not None:
+            names = dc["source_layout"].names[:s.dense_points]
+            out.update(source_layout=dc["source_layout"].select(names), target_layout=dc["target_layout"].select(names),
+                       weights=dict(zip(names, dc["weights"][:len(names)])))
+            return out
+        if ld["source"].kind != "markers":
+            raise ValueError("dense correspondence needs the source rig the curves drive (--source-rig) or a marker capture")
+        from ..correspondence import capture_correspondence
+
+        report(progress, 0.3, "densifying the capture's markers (RBF of the layout)")
+        perf, tgt = capture_correspondence(ld["source"], ld["target_rig"], ld["target_layout"], s.dense_points)
+        out.update(source=perf, source_layout=None, target_layout=tgt)
+        return out
+
+
 @register("frames")
 class Frames(Stage):
     """The frame range of the take that is retargeted."""
@@ -176,16 +237,16 @@ class Shapes(Stage):
     neutral frame and the calibration do not change it (so segmentation does not re-run).
     """
 
-    deps = ("load",)
+    deps = ("load", "correspond")
     group, title = "calibrate", "Source & calibration"
     target_shapes = param.String(default="", doc=(
         "Target shapes the solvers may use: empty = all; 'arkit' = the shapes with an ARKit name (all when the rig has "
         "none); or comma-separated shape names. The others stay at zero"))
 
     def run(self, inputs, s, progress=None):
-        ld = inputs["load"]
-        rig, layout = ld["target_rig"], ld["target_layout"]
-        names = tuple(common_markers(source_marker_names(ld["source"], ld["source_layout"]), layout))
+        ld, cor = inputs["load"], inputs["correspond"]
+        rig, layout = ld["target_rig"], cor["target_layout"]
+        names = tuple(common_markers(source_marker_names(cor["source"], cor["source_layout"]), layout))
         idx = solver_shapes(rig, s.target_shapes)
         # shapes that move no marker (tongue, eyeball-only, empty shapes) cannot be determined from
         # markers: solving for them only injects noise (weights of 1e3 through near-null modes)
@@ -197,7 +258,9 @@ class Shapes(Stage):
                           + ", ".join(rig.names[i] for i in unseen[:8]) + (" ..." if len(unseen) > 8 else ""))
             idx = [i for i in idx if i not in set(unseen)]
         solver_rig = rig.subset([rig.names[i] for i in idx]) if len(idx) < rig.n_shapes else rig
-        return {"names": names, "shape_index": np.asarray(idx), "rig": solver_rig, "layout": sub,
+        w = cor["weights"]
+        weights = None if w is None else np.array([w[n] for n in names])
+        return {"names": names, "shape_index": np.asarray(idx), "rig": solver_rig, "layout": sub, "weights": weights,
                 "unseen": [rig.names[i] for i in unseen]}
 
 
@@ -205,17 +268,17 @@ class Shapes(Stage):
 class Stabilize(Stage):
     """Source markers over the frame range: rigid head-motion removal (Seol 2012 §3.1)."""
 
-    deps = ("load", "frames", "shapes")
+    deps = ("load", "correspond", "frames", "shapes")
     group, title = "source", "Frame range"
     head_motion = param.Selector(default="auto", objects=["auto", "remove", "keep"], doc="Remove rigid head motion from captured markers (auto: captures only)")
     neutral_frame = param.Integer(default=0, bounds=(0, None), doc="Frame of a captured take that shows the neutral face")
 
     def run(self, inputs, s, progress=None):
-        ld, fr = inputs["load"], inputs["frames"]
-        src = ld["source"]
+        ld, cor, fr = inputs["load"], inputs["correspond"], inputs["frames"]
+        src = cor["source"]
         if fr["first"] or fr["stop"] != src.n_frames:
             src = src.frames(fr["first"], fr["stop"])
-        sm = source_markers(src, ld["source_rig"], ld["source_layout"], ld["name_map"], s.head_motion,
+        sm = source_markers(src, ld["source_rig"], cor["source_layout"], ld["name_map"], s.head_motion,
                             min(s.neutral_frame, src.n_frames - 1))
         names = inputs["shapes"]["names"]
         idx = [sm.names.index(n) for n in names]
@@ -237,7 +300,7 @@ class Calibrate(Stage):
 
     def run(self, inputs, s, progress=None):
         sh, st = inputs["shapes"], inputs["stabilize"]
-        tm = target_markers(sh["rig"], inputs["load"]["target_layout"], st["names"], st["source"].neutral, s.calibrate,
+        tm = target_markers(sh["rig"], sh["layout"], st["names"], st["source"].neutral, s.calibrate,
                             s.rbf_smoothing)
         return {"target": tm, "deltas": tm.calibrated, "shape_index": sh["shape_index"], "rig": sh["rig"],
                 "unseen": sh["unseen"]}
@@ -251,7 +314,7 @@ class Personalize(Stage):
     actor (its markers are matched by name and stabilised the same way).
     """
 
-    deps = ("load", "stabilize", "calibrate")
+    deps = ("load", "correspond", "stabilize", "calibrate")
     files = ("rom",)
     group, title = "personalize", "Actor personalisation (Ribera 2017)"
     personalize = param.Boolean(default=False, doc="Align the target's marker blendshapes to the actor's range of motion")
@@ -274,8 +337,11 @@ class Personalize(Stage):
         if s.rom:
             from ..io.performance import read_performance
 
-            ld = inputs["load"]
-            rom = source_markers(read_performance(s.rom), ld["source_rig"], ld["source_layout"], ld["name_map"])
+            ld, cor = inputs["load"], inputs["correspond"]
+            if cor["kind"] == "dense" and cor["source_layout"] is None:
+                raise ValueError("a range-of-motion take with dense correspondence needs a source rig (the capture's "
+                                 "dense points are interpolated per take); use correspondence = markers")
+            rom = source_markers(read_performance(s.rom), ld["source_rig"], cor["source_layout"], ld["name_map"])
             missing = [n for n in st["names"] if n not in rom.names]
             if missing:
                 raise ValueError(f"{s.rom}: the range-of-motion take lacks markers {missing}")
@@ -429,7 +495,8 @@ class Edit(Stage):
         solver = SpacetimeSolver(inputs["personalize"]["deltas"], st.deltas, alpha=opt["alpha"], beta=opt["beta"], prior=prior,
                                  known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["shapes"]["rig"].names,
                                  ridge=opt["ridge"], lower=opt["lower"], upper=opt["upper"], l1=opt["l1"],
-                                 name_target=named, name_weight=opt["name_weight"])
+                                 marker_weights=inputs["shapes"].get("weights"), name_target=named,
+                                 name_weight=opt["name_weight"])
         return {"weights": solver.edit(W, edits=edits), "edits": list(s.edits)}
 
 
