@@ -2,6 +2,7 @@
 
     face-retarget retarget --source take.csv --source-rig ict.glb --target-rig other.glb --out r.glb
     face-retarget evaluate --source take.csv --source-rig ict.glb --target-rig other.glb --json r.json --html r.html
+    face-retarget batch shots/ --out results/ [--template shot.json] [--workers N] [--scheduler tcp://host:8786]
     face-retarget layout --from data/layouts/ict_facekit.json --rig new.glb --out new.json
     face-retarget serve [--port N] [--address A] [--show]
     face-retarget info FILE...
@@ -106,6 +107,35 @@ def _evaluate(args) -> int:
            "no ground truth for this pair (marker error only)")
           + (f"\nwrote {args.json}" if args.json else "") + (f"\nwrote {args.html}" if args.html else ""))
     return 0
+
+
+def _batch(args) -> int:
+    """``batch``: many shots on Dask (:func:`core.batch.run_batch`); the CLI only parses."""
+    from .batch import collect_shots, run_batch, zip_results
+    from .progress import StderrBar
+
+    jobs = collect_shots(args.inputs, template=args.template)
+    if not jobs:
+        raise ValueError("no shots to run")
+    say = (lambda line: print(f"\r{line}".ljust(100), file=sys.stderr, flush=True))  # over the bar's line
+    bar = None if args.quiet else StderrBar("batch")
+    try:
+        results = run_batch(jobs, args.out, client=args.scheduler, progress=bar, workers=args.workers, files=args.files,
+                            csv_precision=args.csv_precision, force=args.force, log=say,
+                            dashboard_address=args.dashboard_address)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: finished shots are in {args.out}; run the same command again to resume", file=sys.stderr)
+        return 130
+    counts = {s: sum(r.status == s for r in results) for s in ("ok", "skipped", "failed", "pending")}
+    for r in results:
+        if r.status == "failed":
+            print(f"failed: {r.name}: {r.error.splitlines()[0] if r.error else ''} (see {r.folder}/log.txt)", file=sys.stderr)
+    print(f"{len(results)} shots: {counts['ok']} computed, {counts['skipped']} already done, {counts['failed']} failed"
+          + (f", {counts['pending']} not run" if counts["pending"] else "")
+          + f"\nwrote {Path(args.out) / 'summary.csv'} and {Path(args.out) / 'summary.html'}")
+    if args.zip:
+        print(f"wrote {zip_results(args.out, args.zip)}")
+    return 1 if counts["failed"] or counts["pending"] else 0
 
 
 def _layout(args) -> int:
@@ -214,6 +244,30 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--html", help="output HTML report (self-contained: plots and renders inline)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_evaluate)
+
+    bt = sub.add_parser("batch", help="retarget many shots on Dask (a local cluster, or --scheduler)",
+                        description="Retarget many shots on Dask distributed: one output folder per shot (GLB, CSV, "
+                                    "evaluation.json, log.txt, manifest.json) and summary.csv/.html. Finished shots "
+                                    "(same shot content) are skipped, so an interrupted batch resumes. See docs/batch.md.")
+    bt.add_argument("inputs", nargs="+", metavar="INPUT",
+                    help="shot files, folders of shot files, list files (.txt: one path per line) or globs; "
+                         "captures (any other file) need --template")
+    bt.add_argument("--out", required=True, help="output folder")
+    bt.add_argument("--template", help="shot JSON whose rigs and settings are applied to each capture (its source replaced)")
+    bt.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
+    bt.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler (tcp://host:8786) "
+                                                      "instead of a local cluster")
+    bt.add_argument("--files", choices=("auto", "shared", "scatter"), default="auto",
+                    help="how input files reach workers: shared (read the recorded paths), scatter (sent once from "
+                         "here); auto: shared on the local cluster, scatter on --scheduler (default: auto)")
+    bt.add_argument("--csv-precision", default=6, type=lambda v: v if v == "full" else int(v),
+                    help="decimals of the CSV weights, or 'full' (default: 6)")
+    bt.add_argument("--force", action="store_true", help="recompute shots that are already done")
+    bt.add_argument("--zip", default=None, metavar="FILE.zip", help="also zip the output folder into FILE.zip")
+    bt.add_argument("--dashboard-address", default=":8787",
+                    help="local cluster's dashboard address (default :8787; :0 a free port)")
+    bt.add_argument("--quiet", action="store_true", help="no progress bar")
+    bt.set_defaults(func=_batch)
 
     lay = sub.add_parser("layout", help="transfer a marker layout to a rig of any topology (non-rigid ICP)")
     lay.add_argument("--from", dest="from_", required=True, help="layout JSON to transfer")
