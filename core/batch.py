@@ -336,7 +336,8 @@ def run_shot(job: dict, blobs: Optional[dict] = None) -> dict:
     -------
     dict: ``name``, ``status`` ("ok" / "failed"), ``content_hash``, ``error`` (one line),
     ``log`` (text), ``files`` ({file name: bytes}), ``evaluation`` (:func:`core.evaluate.summarize`),
-    ``started``, ``finished``, ``seconds``, ``worker``, ``host``, ``pid``. Never raises for a
+    ``started``, ``finished``, ``seconds`` (wall), ``cpu_seconds`` (this process's CPU time),
+    ``worker``, ``host``, ``pid``. Never raises for a
     bad shot: the error is the result.
     """
     from .evaluate import summarize
@@ -344,7 +345,7 @@ def run_shot(job: dict, blobs: Optional[dict] = None) -> dict:
     from .pipeline import Pipeline
 
     name = job["name"]
-    started, t0 = _now(), time.perf_counter()
+    started, t0, c0 = _now(), time.perf_counter(), time.process_time()
     out = {"name": name, "status": "failed", "content_hash": "", "error": "", "files": {}, "evaluation": None,
            "worker": _where(), "host": socket.gethostname(), "pid": os.getpid(), "started": started}
     lines = []
@@ -370,7 +371,7 @@ def run_shot(job: dict, blobs: Optional[dict] = None) -> dict:
             lines.append(f"error: {out['error']}\n{traceback.format_exc()}")
     for w in caught:
         lines.append(f"warning: {w.message}")
-    out["finished"], out["seconds"] = _now(), time.perf_counter() - t0
+    out["finished"], out["seconds"], out["cpu_seconds"] = _now(), time.perf_counter() - t0, time.process_time() - c0
     out["log"] = "\n".join(lines)
     return out
 
@@ -490,6 +491,7 @@ def write_result(out_dir, job: BatchShot, result: dict, options: dict) -> ShotRe
     """Write one task's result (:func:`run_shot`) as ``out_dir/<name>/`` (atomically) and
     return its :class:`ShotResult`."""
     out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     previous = _manifest_result(out_dir / job.name)
     runs = (previous.runs if previous else 0) + 1
     files = dict(result.get("files") or {})
@@ -512,7 +514,8 @@ def write_result(out_dir, job: BatchShot, result: dict, options: dict) -> ShotRe
     manifest = {"format": OUTPUT_FORMAT, "name": job.name, "status": result["status"],
                 "content_hash": result.get("content_hash", ""), "options": options, "runs": runs,
                 "started": result.get("started", ""), "finished": result.get("finished", ""),
-                "seconds": float(result.get("seconds", 0.0)), "worker": result.get("worker", ""),
+                "seconds": float(result.get("seconds", 0.0)), "cpu_seconds": float(result.get("cpu_seconds", 0.0)),
+                "worker": result.get("worker", ""),
                 "host": result.get("host", ""), "pid": result.get("pid", ""), "face_retarget": _version(),
                 "origin": job.origin, "error": result.get("error", ""), "metrics": metrics, "files": listing}
     files[MANIFEST] = _json(manifest)
