@@ -51,10 +51,10 @@ def shots(folder: Path) -> list:
 
 
 def loop(jobs, out: Path) -> float:
-    batch._WORKER_CACHE = None  # cold, like a new worker
+    batch.worker_cache(fresh=True)  # cold, like a new worker
     t0 = time.perf_counter()
     for j in jobs:
-        r = batch.write_result(out, j, batch.run_shot(batch.job_payload(j)), batch._options(6))
+        r = batch.write_result(out, j, batch.run_shot(batch.job_payload(j)), batch.output_options())
         assert r.status == "ok", r.error
     return time.perf_counter() - t0
 

@@ -223,7 +223,7 @@ def collect_shots(inputs: Iterable, template=None) -> list:
 
 
 def _unique(jobs: list) -> list:
-    out, used = [], set()
+    out, used = [], {"summary.csv", "summary.html"}  # the folder's own files
     for j in jobs:
         stem = _SAFE.sub("_", j.name).strip("._") or "shot"
         name, n = stem, 1
@@ -261,13 +261,14 @@ _WORKER_CACHE = None
 _CACHE_LOCK = threading.Lock()
 
 
-def worker_cache():
-    """The stage cache of this process (one per worker: rigs load once per worker)."""
+def worker_cache(fresh: bool = False):
+    """The stage cache of this process (one per worker: rigs load once per worker); ``fresh``
+    starts a new, empty one (a cold start, as in a new worker)."""
     global _WORKER_CACHE
     from .pipeline import StageCache
 
     with _CACHE_LOCK:
-        if _WORKER_CACHE is None:
+        if _WORKER_CACHE is None or fresh:
             _WORKER_CACHE = StageCache(max_entries=64)
         return _WORKER_CACHE
 
@@ -283,12 +284,17 @@ def _file_store() -> Path:
 
 def _materialise(blobs: dict) -> dict:
     """Write scattered files (``{sha: (file name, bytes or {name: bytes})}``) once per machine
-    under their content hash; return ``{sha: path}``. The caller's :meth:`Shot.resolve`
-    checks each against its hash."""
+    under their content hash; return ``{sha: path}``. A stored copy whose content no longer
+    hashes to its name is written again; the caller's :meth:`Shot.resolve` checks each file
+    against the shot's hash as it does any input."""
+    from .pipeline import file_key
+
     paths = {}
     for sha, (name, data) in blobs.items():
         folder = _file_store() / sha
         target = folder / name
+        if target.exists() and file_key(str(target)) != sha:
+            shutil.rmtree(target, ignore_errors=True) if target.is_dir() else target.unlink(missing_ok=True)
         if not target.exists():
             folder.mkdir(parents=True, exist_ok=True)
             tmp = folder / f".{name}.{os.getpid()}.{uuid.uuid4().hex[:6]}.tmp"
@@ -334,7 +340,7 @@ def run_shot(job: dict, blobs: Optional[dict] = None) -> dict:
 
     Returns
     -------
-    dict: ``name``, ``status`` ("ok" / "failed"), ``content_hash``, ``error`` (one line),
+    dict: ``name``, ``status`` ("ok" / "failed"), ``content_hash``, ``error`` (``"Type: message"``),
     ``log`` (text), ``files`` ({file name: bytes}), ``evaluation`` (:func:`core.evaluate.summarize`),
     ``started``, ``finished``, ``seconds`` (wall), ``cpu_seconds`` (this process's CPU time),
     ``worker``, ``host``, ``pid``. Never raises for a
@@ -438,8 +444,9 @@ def read_results(out_dir) -> dict:
     return out
 
 
-def _options(csv_precision) -> dict:
-    """The output options a finished shot must have been written with to be skipped."""
+def output_options(csv_precision=6) -> dict:
+    """The output options a finished shot must have been written with to be skipped (recorded
+    in its manifest; the argument of :func:`write_result`)."""
     return {"csv_precision": csv_precision, "format": OUTPUT_FORMAT}
 
 
@@ -790,7 +797,7 @@ def run_batch(shots, out_dir, client=None, progress: Optional[ProgressFn] = None
     jobs = _as_jobs(shots)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    options = _options(csv_precision)
+    options = output_options(csv_precision)
     results: dict = {}
     with _Lock(out_dir):
         _clean_leftovers(out_dir)

@@ -132,7 +132,7 @@ def test_written_results_are_atomic_zip_and_lock(tmp_path, monkeypatch):
     job = BatchShot("s1", Shot(), origin="test")
     res = {"name": "s1", "status": "ok", "content_hash": "abc", "files": {"s1.csv": b"time_s\n"}, "evaluation": {"frames": 1},
            "worker": "w", "host": "h", "pid": 1, "started": "t0", "finished": "t1", "seconds": 0.5, "log": "fine"}
-    r = write_result(out, job, res, batch._options(6))
+    r = write_result(out, job, res, batch.output_options(6))
     assert r.status == "ok" and r.runs == 1 and complete(out / "s1")
     # a Ctrl-C while the folder is being replaced: the earlier result stays whole, nothing half-written
     real = os.rename
@@ -144,11 +144,11 @@ def test_written_results_are_atomic_zip_and_lock(tmp_path, monkeypatch):
 
     monkeypatch.setattr(batch.os, "rename", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        write_result(out, job, {**res, "files": {"s1.csv": b"other\n"}}, batch._options(6))
+        write_result(out, job, {**res, "files": {"s1.csv": b"other\n"}}, batch.output_options(6))
     monkeypatch.setattr(batch.os, "rename", real)
     assert (out / "s1" / "s1.csv").read_bytes() == b"time_s\n" and complete(out / "s1")
     assert [p.name for p in out.iterdir()] == ["s1"]  # the temporary folder is gone
-    assert write_result(out, job, res, batch._options(6)).runs == 2
+    assert write_result(out, job, res, batch.output_options(6)).runs == 2
     # killed between the two renames (the older folder moved aside): the next run puts it back
     os.rename(out / "s1", out / ".s1.old-1234abcd")
     (out / ".s2.tmp-1234abcd").mkdir()
