@@ -306,11 +306,15 @@ def test_existing_scheduler_with_two_dask_workers(client, tmp_path, capsys):
     sched_file = tmp_path / "scheduler.json"
     env = {**os.environ, "PYTHONPATH": CODE_ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
            "FACE_RETARGET_BATCH_FILES": str(tmp_path / "worker_files")}
+    # the scheduler needs only dask: there `import core` finds a package that refuses to import
+    (tmp_path / "no_core" / "core").mkdir(parents=True)
+    (tmp_path / "no_core" / "core" / "__init__.py").write_text('raise ImportError("the scheduler imported core")\n')
+    sched_env = {**os.environ, "PYTHONPATH": str(tmp_path / "no_core")}
     procs = []
     try:  # random free ports: port 0, the scheduler writes its address into the scheduler file
         procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
                                        "--port", "0", "--dashboard-address", "127.0.0.1:0", "--scheduler-file",
-                                       str(sched_file)], cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
+                                       str(sched_file)], cwd=tmp_path, env=sched_env, stdout=subprocess.DEVNULL,
                                       stderr=subprocess.DEVNULL))
         t0 = time.time()
         while not sched_file.exists() or not sched_file.read_text().strip():
