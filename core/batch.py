@@ -79,9 +79,9 @@ LIST_SUFFIXES = (".txt", ".lst", ".list")
 #: small matrices; threads only add contention when every core already runs a worker)
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 #: the columns of summary.csv / summary.html (metrics from :func:`core.evaluate.summarize`)
-SUMMARY_COLUMNS = ("shot", "status", "seconds", "frames", "frames_without_data", "marker_error_mm_mean",
-                   "marker_error_mm_p95", "marker_error_mm_max", "velocity_error_mm_mean", "velocity_error_mm_p95",
-                   "velocity_error_mm_max", "weight_min", "weight_max", "shapes_active_mean", "runs", "worker",
+SUMMARY_COLUMNS = ("shot", "status", "seconds", "frames", "frames_without_data", "marker_mean_mm",
+                   "marker_p95_mm", "marker_max_mm", "velocity_error", "velocity_error_p95",
+                   "velocity_error_max", "weight_min", "weight_max", "active_per_frame", "runs", "worker",
                    "finished", "content_hash", "error")
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
@@ -637,7 +637,7 @@ tr.skipped td.status{{color:#666}} tr.ok td.status{{color:#17692b}}
 <h1>face-retarget batch</h1>
 <p>{len(results)} shots: {counts['ok']} computed, {counts['skipped']} already done, {counts['failed']} failed, {counts['pending']} not run;
 compute {compute:.1f} s{f", wall {wall_seconds:.1f} s" if wall_seconds is not None else ""}; written {html.escape(_now())}.
-Errors in mm; velocity error per marker per frame (Seol 2012 eq. 2); shapes active: |w| &gt; 0.01.</p>
+Errors in mm; velocity error per marker per frame (Seol 2012 eq. 2); active per frame: shapes with |w| &gt; 0.05.</p>
 <table><thead><tr>{head}</tr></thead><tbody>
 {chr(10).join(body)}
 </tbody></table></body></html>

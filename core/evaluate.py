@@ -82,21 +82,20 @@ def marker_error_field(rig, layout, per_marker_error, k: int = 3) -> np.ndarray:
     return (w * e[ok][i]).sum(1) / w.sum(1)
 
 
-#: a shape is "active" in a frame when its weight's magnitude exceeds this (weights are 0..1 fractions)
-ACTIVE_WEIGHT = 0.01
-
-
-def _stats(x, prefix: str) -> dict:
+def _stats(x) -> tuple:
     """mean / p95 / max of the finite values of ``x`` as plain floats (None when there are none)."""
     x = np.asarray(x, dtype=np.float64)
     x = x[np.isfinite(x)]
     if not x.size:
-        return {f"{prefix}_mean": None, f"{prefix}_p95": None, f"{prefix}_max": None}
-    return {f"{prefix}_mean": float(x.mean()), f"{prefix}_p95": float(np.percentile(x, 95)), f"{prefix}_max": float(x.max())}
+        return None, None, None
+    return float(x.mean()), float(np.percentile(x, 95)), float(x.max())
 
 
-def summarize(ev, W, valid=None, names=None, active: float = ACTIVE_WEIGHT) -> dict:
+def summarize(ev, W, valid=None, names=None, active=None) -> dict:
     """One solution's diagnostics as plain numbers (JSON, a row of a batch's summary table).
+
+    The keys :func:`core.report.method_metrics` also reports mean the same there (``face-retarget
+    evaluate``); this adds the maxima and needs no mesh, so it costs nothing beside the solve.
 
     Parameters
     ----------
@@ -106,17 +105,21 @@ def summarize(ev, W, valid=None, names=None, active: float = ACTIVE_WEIGHT) -> d
     valid : (T,) bool frames with data (default: every frame); the others are left out of every
         statistic, as in :func:`evaluate`
     names : (K,) shape names, for the per-shape weight ranges
-    active : a shape counts as active in a frame where ``|w| > active``
+    active : a shape is used in a frame where ``|w| > active`` (default :data:`core.report.ACTIVE`)
 
     Returns
     -------
     dict of floats/ints (None where a statistic has no frame to use): ``frames``, ``frames_without_data``,
-    ``marker_error_mm_{mean,p95,max}`` (per-frame RMS over the markers, mm), ``velocity_error_mm_{mean,p95,max}``
-    (per-frame RMS per marker of Seol 2012 eq. 2, mm), ``velocity_error_total_mm2``, ``jitter_mean``,
-    ``weight_min``, ``weight_max``, ``outside_01`` (fraction of weights outside [0, 1]),
-    ``shapes_active_{mean,max}`` (shapes with ``|w| > active`` per frame), ``active_threshold`` and
+    ``marker_mean_mm`` / ``marker_p95_mm`` / ``marker_max_mm`` (over frames of the per-frame RMS over
+    the markers, mm), ``velocity_error`` / ``velocity_error_p95`` / ``velocity_error_max`` (per frame,
+    the RMS per marker of Seol 2012 eq. 2, mm), ``velocity_error_total_mm2``, ``jitter``, ``weight_min``,
+    ``weight_max``, ``outside_01`` (fraction of weights outside [0, 1]), ``active_per_frame`` /
+    ``active_per_frame_max`` (shapes with ``|w| > active``), ``active_threshold`` and
     ``weight_range_per_shape`` ({name: [min, max]}).
     """
+    from .report import ACTIVE
+
+    active = ACTIVE if active is None else float(active)
     W = np.asarray(W, dtype=np.float64)
     T, K = W.shape
     fv = np.ones(T, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
@@ -126,20 +129,20 @@ def summarize(ev, W, valid=None, names=None, active: float = ACTIVE_WEIGHT) -> d
     Wv = W[fv]
     out = {"frames": int(T), "frames_without_data": int(T - fv.sum())}
     if ev is not None:
-        out.update(_stats(ev["marker_error_mm"], "marker_error_mm"))
-        out.update(_stats(ev["velocity_error_mm"], "velocity_error_mm"))
+        out["marker_mean_mm"], out["marker_p95_mm"], out["marker_max_mm"] = _stats(ev["marker_error_mm"])
+        out["velocity_error"], out["velocity_error_p95"], out["velocity_error_max"] = _stats(ev["velocity_error_mm"])
         total = float(ev["velocity_error_total"])
         out["velocity_error_total_mm2"] = total if np.isfinite(total) else None
         jit = np.asarray(ev["jitter"], dtype=np.float64)
-        out["jitter_mean"] = float(np.nanmean(jit)) if np.isfinite(jit).any() else None
+        out["jitter"] = float(np.nanmean(jit)) if np.isfinite(jit).any() else None
     n_active = (np.abs(Wv) > active).sum(1) if len(Wv) else np.zeros(0)
     out.update({
         "weight_min": float(Wv.min()) if Wv.size else None,
         "weight_max": float(Wv.max()) if Wv.size else None,
         "outside_01": float(((Wv < 0) | (Wv > 1)).mean()) if Wv.size else None,
-        "shapes_active_mean": float(n_active.mean()) if len(n_active) else None,
-        "shapes_active_max": int(n_active.max()) if len(n_active) else None,
-        "active_threshold": float(active),
+        "active_per_frame": float(n_active.mean()) if len(n_active) else None,
+        "active_per_frame_max": int(n_active.max()) if len(n_active) else None,
+        "active_threshold": active,
     })
     names = list(names) if names is not None else [str(k) for k in range(K)]
     out["weight_range_per_shape"] = ({n: [float(a), float(b)] for n, a, b in zip(names, Wv.min(0), Wv.max(0))}

@@ -113,17 +113,17 @@ def test_summarize_by_hand():
     ev = {"frame_valid": np.array([True, True, False]), "marker_error_mm": np.array([1.0, 3.0, np.nan]),
           "velocity_error_mm": np.array([0.0, 2.0, np.nan]), "velocity_error_total": 8.0,
           "jitter": np.array([np.nan, np.nan, np.nan])}
-    s = summarize(ev, W, np.array([True, True, False]), ["a", "b"])
+    s = summarize(ev, W, np.array([True, True, False]), ["a", "b"], active=0.01)
     assert s["frames"] == 3 and s["frames_without_data"] == 1
-    assert s["marker_error_mm_mean"] == 2.0 and s["marker_error_mm_max"] == 3.0
-    assert s["marker_error_mm_p95"] == pytest.approx(1.0 + 0.95 * 2.0)
-    assert s["velocity_error_total_mm2"] == 8.0 and s["jitter_mean"] is None
+    assert s["marker_mean_mm"] == 2.0 and s["marker_max_mm"] == 3.0
+    assert s["marker_p95_mm"] == pytest.approx(1.0 + 0.95 * 2.0)
+    assert s["velocity_error_total_mm2"] == 8.0 and s["jitter"] is None
     assert s["weight_min"] == 0.0 and s["weight_max"] == 1.2 and s["outside_01"] == 0.25
-    assert s["shapes_active_mean"] == 1.5 and s["shapes_active_max"] == 2  # |w| > 0.01: b in frame 0, both in frame 1
+    assert s["active_per_frame"] == 1.5 and s["active_per_frame_max"] == 2  # |w| > 0.01: b in frame 0, both in frame 1
     assert s["weight_range_per_shape"] == {"a": [0.0, 0.02], "b": [0.5, 1.2]}
     json.dumps(s, allow_nan=False)  # plain numbers
     dense = summarize(None, W[:2])  # dense transfer: no markers, weight statistics only
-    assert "marker_error_mm_mean" not in dense and dense["frames_without_data"] == 0
+    assert "marker_mean_mm" not in dense and dense["frames_without_data"] == 0
 
 
 def test_written_results_are_atomic_zip_and_lock(tmp_path, monkeypatch):
@@ -213,13 +213,13 @@ def test_local_cluster_runs_captures_x_rigs_from_a_thread_and_a_broken_file_fail
         assert complete(folder)
         ev = json.loads((folder / "evaluation.json").read_text())
         assert ev["frames"] == 60 and ev["frames_without_data"] == 0
-        assert 0 < ev["marker_error_mm_mean"] <= ev["marker_error_mm_p95"] <= ev["marker_error_mm_max"] < 50
-        assert 0 <= ev["weight_min"] <= ev["weight_max"] <= 1 and ev["shapes_active_mean"] >= 0
+        assert 0 < ev["marker_mean_mm"] <= ev["marker_p95_mm"] <= ev["marker_max_mm"] < 50
+        assert 0 <= ev["weight_min"] <= ev["weight_max"] <= 1 and ev["active_per_frame"] >= 0
     # the summary: every shot, its status and metrics; the HTML is self-contained
     rows = list(csv.DictReader(open(out / "summary.csv")))
     assert [r["shot"] for r in rows] == [j.name for j in jobs]
     assert {r["shot"]: r["status"] for r in rows}["broken"] == "failed"
-    assert float(rows[0]["marker_error_mm_mean"]) == by[rows[0]["shot"]].metrics["marker_error_mm_mean"]
+    assert float(rows[0]["marker_mean_mm"]) == by[rows[0]["shot"]].metrics["marker_mean_mm"]
     page = (out / "summary.html").read_text()
     assert "<table>" in page and "broken" in page
     assert not re.search(r"""(src|href)\s*=\s*["']?(https?:)?//""", page) and "<script" not in page and "@import" not in page
