@@ -124,6 +124,12 @@ def _is_pattern(s: str) -> bool:
     return any(c in s for c in "*?[")
 
 
+def _is_sequence(folder: Path) -> bool:
+    from .io.sequence import FRAME_SUFFIXES
+
+    return any(c.suffix.lower() in FRAME_SUFFIXES for c in folder.iterdir() if c.is_file())
+
+
 def _expand(item, base: Optional[Path] = None, _seen=None) -> list:
     """Paths an input names: itself, a folder's shot files, a list file's lines, a glob's matches."""
     seen = set() if _seen is None else _seen
@@ -137,9 +143,11 @@ def _expand(item, base: Optional[Path] = None, _seen=None) -> list:
             raise FileNotFoundError(f"{s}: no file matches this pattern")
         return [Path(f) for f in found]
     if p.is_dir():
+        if _is_sequence(p):  # a mesh-sequence capture (one OBJ/PLY per frame), not a folder of shots
+            return [p]
         found = sorted(p.glob("*.json"))
         if not found:
-            raise FileNotFoundError(f"{p}: folder holds no shot files (*.json)")
+            raise FileNotFoundError(f"{p}: folder holds no shot files (*.json) and no mesh frames")
         return found
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such shot file, capture or list file")
@@ -183,7 +191,8 @@ def collect_shots(inputs: Iterable, template=None) -> list:
     inputs : paths or patterns: a shot file (``.json``), a folder (its ``*.json`` shot files), a
         list file (``.txt``/``.lst``/``.list``: one input per line, ``#`` comments, paths relative
         to the list file) or a glob (``"takes/*.csv"``; quote it so the shell does not expand it,
-        or let it: both work). Any other file is a capture.
+        or let it: both work). Any other file is a capture, and so is a folder of per-frame
+        OBJ/PLY meshes (a mesh sequence).
     template : a shot (or its path) applied to every capture (:func:`shot_from_capture`);
         needed when there are captures.
 

@@ -104,6 +104,12 @@ def test_collect_shots_from_folders_lists_globs_and_a_template(tmp_path):
     names = [j.name for j in got]
     assert names == sorted(names[:3]) + names[3:] and len(set(n.lower() for n in names)) == len(names)
     assert names[3:] == [f"{jobs[0].name}-2", f"{CAPTURES[0].stem}-3"]  # jobs[0] is CAPTURES[0]'s shot
+    seq = tmp_path / "take_0042"  # a mesh-sequence capture: a folder of frames, not of shots
+    seq.mkdir()
+    (seq / "frame_0001.obj").write_text("v 0 0 0\n")
+    (seq / "sequence.json").write_text('{"fps": 24}')
+    (job,) = collect_shots([str(seq)], template=t)
+    assert job.name == "take_0042" and Path(job.shot.files["source"].path) == seq.resolve()
     bad = next(j for j in got if j.name == "corrupt")
     assert bad.shot is None and "not a shot file" in bad.error  # reported as a failed shot, not raised
 
