@@ -2,6 +2,7 @@
 
     face-retarget retarget --source take.csv --source-rig ict.glb --target-rig other.glb --out r.glb
     face-retarget evaluate --source take.csv --source-rig ict.glb --target-rig other.glb --json r.json --html r.html
+    face-retarget batch shots/ --out results/ [--template shot.json] [--workers N] [--scheduler tcp://host:8786]
     face-retarget layout --from data/layouts/ict_facekit.json --rig new.glb --out new.json
     face-retarget serve [--port N] [--address A] [--show]
     face-retarget info FILE...
@@ -16,7 +17,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -57,120 +57,16 @@ def _pipeline(args):
     return pipe
 
 
-def _write_out(path, rig, weights, times, fps: float) -> None:
-    """``--out``: a GLB/glTF (morph targets + weight animation) or USD (UsdSkel, core.io.usd) by suffix."""
-    from .io.usd import SUFFIXES as USD_SUFFIXES
-
-    if Path(path).suffix.lower() in USD_SUFFIXES:
-        from .io.usd import write_rig as write_usd
-
-        write_usd(path, rig, weights=weights, times=times, fps=fps)
-    else:
-        from .io.gltf import write_rig
-
-        write_rig(path, rig, weights=weights, times=times)
-
-
-def _write_livelink(path, rig, weights, times, fps: float) -> str:
-    """``--livelink-csv``: the target's ARKit-named shapes as a Live Link Face CSV; returns a note."""
-    from .io.livelink import arkit_curves, write_livelink
-
-    perf, missing = arkit_curves(weights, rig.names, fps, times=times, name=rig.name)
-    write_livelink(path, perf, timecode_rate=60 if fps <= 60 else 120)
-    return f"wrote {path}" + (f" ({len(missing)} ARKit channels the target lacks written as 0: "
-                              f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''})" if missing else "")
-
-
-def _transfer(pipe, args) -> int:
-    """``--method transfer``: dense transfer (Xu 2014) to a rig of new morph targets."""
-    import numpy as np
-
-    from .io.curves_csv import write_curves_csv
-    from .model import Rig
-    from .progress import StderrBar
-
-    if args.livelink_csv:
-        raise ValueError("--livelink-csv: dense transfer makes a new rig of bases (xu_basis_*), which has no ARKit "
-                         "shapes to write; use a marker method (bounded, spacetime, ...) for Live Link output")
-    t0 = time.perf_counter()
-    res = pipe.results(["transfer", "transfer_edit", "detail_morphs"], progress=None if args.quiet else StderrBar("transfer"))
-    tr, te, dm = res["transfer"], res["transfer_edit"], res["detail_morphs"]
-    r = tr["result"]
-    target = pipe.results(["target_face"])["target_face"]["target_rig"]
-    rig = Rig(r.neutral, r.faces, te["deltas"], r.to_rig().names, None, "m", f"{target.name}_transfer")
-    weights = te["weights"]
-    detail_note = ""
-    if dm["basis"] is not None:
-        # the per-frame details as extra morph targets: a GLB then plays the whole transfer
-        B = dm["basis"]
-        rig = Rig(rig.neutral, rig.faces, np.concatenate([rig.deltas, B]),
-                  list(rig.names) + [f"xu_detail_{j:02d}" for j in range(len(B))], None, "m", rig.name)
-        weights = np.hstack([weights, dm["coeffs"]])
-        detail_note = f"; details as {len(B)} morph targets (largest error {dm['max_error'] * 1000:.3f} mm)"
-    times = tr["times"]
-    frames = tr["first"] + np.arange(len(times))
-    if args.out:
-        _write_out(args.out, rig, weights, times, tr["fps"])
-    if args.weights_csv:
-        write_curves_csv(args.weights_csv, times, weights, rig.names, args.csv_precision, valid=tr["valid"], frames=frames)
-    stages = " ".join(f"{k}={v:.1f}s" for k, v in pipe.timings.items() if v > 0.05)
-    print(f"transferred {len(weights)} frames to {target.name}: {r.n_bases} bases on {rig.n_vertices} vertices "
-          f"(source topology fitted to the target){detail_note} in {time.perf_counter() - t0:.1f}s; stages: {stages}"
-          + (f"\nwrote {args.out}" if args.out else "") + (f"\nwrote {args.weights_csv}" if args.weights_csv else ""))
-    return 0
-
-
 def _retarget(args) -> int:
-    import numpy as np
-
-    from .io.curves_csv import write_curves_csv
+    from .outputs import write_outputs
     from .progress import StderrBar
     from .stages.methods import METHODS as REGISTRY
 
     pipe = _pipeline(args)
-    if REGISTRY[pipe.solve.method].dense:
-        return _transfer(pipe, args)
-    bar = None if args.quiet else StderrBar("retarget")
-    t0 = time.perf_counter()
-    res = pipe.results(["load", "frames", "stabilize", "calibrate", "solve", "synthesize", "evaluate"], progress=bar)
-    ld, st, ev = res["load"], res["stabilize"]["source"], res["evaluate"]
-    syn = res["synthesize"]
-    W, valid = syn["weights"], syn["valid"]
-    rig = ld["target_rig"]
-    times = st.times - st.times[0]
-    frames = res["frames"]["first"] + np.arange(len(times))
-    out = []
-    if args.out:
-        _write_out(args.out, rig, W, times, st.fps)
-        out.append(f"wrote {args.out}")
-    if args.livelink_csv:
-        out.append(_write_livelink(args.livelink_csv, rig, W, times, st.fps))
-    if args.weights_csv:
-        write_curves_csv(args.weights_csv, times, W, rig.names, args.csv_precision, valid=valid, frames=frames)
-        out.append(f"wrote {args.weights_csv}")
-        U = res["solve"]["info"].get("region_weights")
-        if U is not None:  # Liu 2011 §6.4: the regional curves an animator edits
-            from .gaps import fill_gaps
-            from .solvers.local import region_curves
-
-            # U holds the shapes the solver used (--target-shapes, minus shapes no marker sees)
-            curves = region_curves(fill_gaps(U, valid), res["calibrate"]["rig"].names)
-            path = Path(args.weights_csv).with_name(Path(args.weights_csv).stem + "_regions.csv")
-            write_curves_csv(path, times, np.column_stack(list(curves.values())), list(curves), args.csv_precision,
-                             valid=valid, frames=frames)
-            out.append(f"wrote {path} (per-region curves <shape>@r<k>; {args.weights_csv} holds their mask-area blend)")
-    if args.save_shot:
-        out.append(f"wrote {args.save_shot}")
-    gaps = int((~valid).sum())
-    timings = " ".join(f"{k}={v * 1e3:.0f}ms" for k, v in pipe.timings.items() if v)
-    print(
-        f"retargeted {len(W)} frames at {st.fps:g} fps, {len(st.names)} markers -> {rig.name} ({rig.n_shapes} shapes) "
-        f"with {pipe.solve.method} in {time.perf_counter() - t0:.1f}s\n"
-        f"marker error: median {np.nanmedian(ev['marker_error_mm']):.2f} mm, max {np.nanmax(ev['marker_error_mm']):.2f} mm; "
-        f"weights in [{np.nanmin(W):.3f}, {np.nanmax(W):.3f}]"
-        + (f"; {gaps} frames without data (tracking loss) filled from their neighbours, flagged valid=0" if gaps else "")
-        + f"\nstage timings: {timings}\n" + "\n".join(out)
-    )
+    label = "transfer" if REGISTRY[pipe.solve.method].dense else "retarget"
+    out = write_outputs(pipe, args.out, args.weights_csv, args.csv_precision, livelink_csv=args.livelink_csv,
+                        progress=None if args.quiet else StderrBar(label))
+    print(out.text([f"wrote {args.save_shot}"] if args.save_shot else []))
     return 0
 
 
@@ -211,6 +107,35 @@ def _evaluate(args) -> int:
            "no ground truth for this pair (marker error only)")
           + (f"\nwrote {args.json}" if args.json else "") + (f"\nwrote {args.html}" if args.html else ""))
     return 0
+
+
+def _batch(args) -> int:
+    """``batch``: many shots on Dask (:func:`core.batch.run_batch`); the CLI only parses."""
+    from .batch import collect_shots, run_batch, zip_results
+    from .progress import StderrBar
+
+    jobs = collect_shots(args.inputs, template=args.template)
+    if not jobs:
+        raise ValueError("no shots to run")
+    say = (lambda line: print(f"\r{line}".ljust(100), file=sys.stderr, flush=True))  # over the bar's line
+    bar = None if args.quiet else StderrBar("batch")
+    try:
+        results = run_batch(jobs, args.out, client=args.scheduler, progress=bar, workers=args.workers, files=args.files,
+                            csv_precision=args.csv_precision, force=args.force, log=say,
+                            dashboard_address=args.dashboard_address)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: finished shots are in {args.out}; run the same command again to resume", file=sys.stderr)
+        return 130
+    counts = {s: sum(r.status == s for r in results) for s in ("ok", "skipped", "failed", "pending")}
+    for r in results:
+        if r.status == "failed":
+            print(f"failed: {r.name}: {r.error.splitlines()[0] if r.error else ''} (see {r.folder}/log.txt)", file=sys.stderr)
+    print(f"{len(results)} shots: {counts['ok']} computed, {counts['skipped']} already done, {counts['failed']} failed"
+          + (f", {counts['pending']} not run" if counts["pending"] else "")
+          + f"\nwrote {Path(args.out) / 'summary.csv'} and {Path(args.out) / 'summary.html'}")
+    if args.zip:
+        print(f"wrote {zip_results(args.out, args.zip)}")
+    return 1 if counts["failed"] or counts["pending"] else 0
 
 
 def _layout(args) -> int:
@@ -319,6 +244,30 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--html", help="output HTML report (self-contained: plots and renders inline)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_evaluate)
+
+    bt = sub.add_parser("batch", help="retarget many shots on Dask (a local cluster, or --scheduler)",
+                        description="Retarget many shots on Dask distributed: one output folder per shot (GLB, CSV, "
+                                    "evaluation.json, log.txt, manifest.json) and summary.csv/.html. Finished shots "
+                                    "(same shot content) are skipped, so an interrupted batch resumes. See docs/batch.md.")
+    bt.add_argument("inputs", nargs="+", metavar="INPUT",
+                    help="shot files, folders of shot files, list files (.txt: one path per line) or globs; "
+                         "captures (any other file) need --template")
+    bt.add_argument("--out", required=True, help="output folder")
+    bt.add_argument("--template", help="shot JSON whose rigs and settings are applied to each capture (its source replaced)")
+    bt.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
+    bt.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler (tcp://host:8786) "
+                                                      "instead of a local cluster")
+    bt.add_argument("--files", choices=("auto", "shared", "scatter"), default="auto",
+                    help="how input files reach workers: shared (read the recorded paths), scatter (sent once from "
+                         "here); auto: shared on the local cluster, scatter on --scheduler (default: auto)")
+    bt.add_argument("--csv-precision", default=6, type=lambda v: v if v == "full" else int(v),
+                    help="decimals of the CSV weights, or 'full' (default: 6)")
+    bt.add_argument("--force", action="store_true", help="recompute shots that are already done")
+    bt.add_argument("--zip", default=None, metavar="FILE.zip", help="also zip the output folder into FILE.zip")
+    bt.add_argument("--dashboard-address", default=":8787",
+                    help="local cluster's dashboard address (default :8787; :0 a free port)")
+    bt.add_argument("--quiet", action="store_true", help="no progress bar")
+    bt.set_defaults(func=_batch)
 
     lay = sub.add_parser("layout", help="transfer a marker layout to a rig of any topology (non-rigid ICP)")
     lay.add_argument("--from", dest="from_", required=True, help="layout JSON to transfer")

@@ -80,3 +80,71 @@ def marker_error_field(rig, layout, per_marker_error, k: int = 3) -> np.ndarray:
     d, i = d.reshape(len(rig.neutral), k), i.reshape(len(rig.neutral), k)
     w = 1.0 / np.maximum(d, 1e-6 * rig.size) ** 2
     return (w * e[ok][i]).sum(1) / w.sum(1)
+
+
+def _stats(x) -> tuple:
+    """mean / p95 / max of the finite values of ``x`` as plain floats (None when there are none)."""
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return None, None, None
+    return float(x.mean()), float(np.percentile(x, 95)), float(x.max())
+
+
+def summarize(ev, W, valid=None, names=None, active=None) -> dict:
+    """One solution's diagnostics as plain numbers (JSON, a row of a batch's summary table).
+
+    The keys :func:`core.report.method_metrics` also reports mean the same there (``face-retarget
+    evaluate``); this adds the maxima and needs no mesh, so it costs nothing beside the solve.
+
+    Parameters
+    ----------
+    ev : dict from :func:`evaluate` (the pipeline's ``evaluate`` stage), or None (dense transfer:
+        no markers to score, only the weight statistics)
+    W : (T, K) the written weights
+    valid : (T,) bool frames with data (default: every frame); the others are left out of every
+        statistic, as in :func:`evaluate`
+    names : (K,) shape names, for the per-shape weight ranges
+    active : a shape is used in a frame where ``|w| > active`` (default :data:`core.report.ACTIVE`)
+
+    Returns
+    -------
+    dict of floats/ints (None where a statistic has no frame to use): ``frames``, ``frames_without_data``,
+    ``marker_mean_mm`` / ``marker_p95_mm`` / ``marker_max_mm`` (over frames of the per-frame RMS over
+    the markers, mm), ``velocity_error`` / ``velocity_error_p95`` / ``velocity_error_max`` (per frame,
+    the RMS per marker of Seol 2012 eq. 2, mm), ``velocity_error_total_mm2``, ``jitter``, ``weight_min``,
+    ``weight_max``, ``outside_01`` (fraction of weights outside [0, 1]), ``active_per_frame`` /
+    ``active_per_frame_max`` (shapes with ``|w| > active``), ``active_threshold`` and
+    ``weight_range_per_shape`` ({name: [min, max]}).
+    """
+    from .report import ACTIVE
+
+    active = ACTIVE if active is None else float(active)
+    W = np.asarray(W, dtype=np.float64)
+    T, K = W.shape
+    fv = np.ones(T, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    if ev is not None:
+        fv = fv & np.asarray(ev["frame_valid"], dtype=bool)
+    fv &= np.isfinite(W).all(1)
+    Wv = W[fv]
+    out = {"frames": int(T), "frames_without_data": int(T - fv.sum())}
+    if ev is not None:
+        out["marker_mean_mm"], out["marker_p95_mm"], out["marker_max_mm"] = _stats(ev["marker_error_mm"])
+        out["velocity_error"], out["velocity_error_p95"], out["velocity_error_max"] = _stats(ev["velocity_error_mm"])
+        total = float(ev["velocity_error_total"])
+        out["velocity_error_total_mm2"] = total if np.isfinite(total) else None
+        jit = np.asarray(ev["jitter"], dtype=np.float64)
+        out["jitter"] = float(np.nanmean(jit)) if np.isfinite(jit).any() else None
+    n_active = (np.abs(Wv) > active).sum(1) if len(Wv) else np.zeros(0)
+    out.update({
+        "weight_min": float(Wv.min()) if Wv.size else None,
+        "weight_max": float(Wv.max()) if Wv.size else None,
+        "outside_01": float(((Wv < 0) | (Wv > 1)).mean()) if Wv.size else None,
+        "active_per_frame": float(n_active.mean()) if len(n_active) else None,
+        "active_per_frame_max": int(n_active.max()) if len(n_active) else None,
+        "active_threshold": active,
+    })
+    names = list(names) if names is not None else [str(k) for k in range(K)]
+    out["weight_range_per_shape"] = ({n: [float(a), float(b)] for n, a, b in zip(names, Wv.min(0), Wv.max(0))}
+                                     if len(Wv) else {n: [None, None] for n in names})
+    return out

@@ -1,0 +1,204 @@
+"""One shot's output files: the rig with its animation (GLB/glTF, or USD by suffix), the weight
+CSV and the Live Link Face CSV.
+
+:func:`write_outputs` runs what a pipeline needs for them and writes them; ``face-retarget
+retarget`` and ``face-retarget batch`` (:mod:`core.batch`) both call it, so a shot gives the
+same bytes whichever way it is run. It returns the stage results it used (the batch reads the
+``evaluate`` metrics from them) and the human summary the CLI prints.
+
+Two kinds of result:
+
+* marker methods (every method but ``transfer``): the target rig with its weight animation;
+  with ``--method local`` also ``<csv stem>_regions.csv``, the per-region curves (Liu 2011 §6.4);
+  optionally the target's ARKit-named shapes as a Live Link Face CSV;
+* dense transfer (Xu 2014): a rig of transferred bases (+ the fine details as extra morph
+  targets) with their weights (no Live Link output: the bases have no ARKit names).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from .progress import ProgressFn
+
+#: the stages a marker method's outputs read
+MARKER_STAGES = ("load", "frames", "stabilize", "calibrate", "solve", "synthesize", "evaluate")
+
+
+@dataclass
+class ShotOutputs:
+    """What :func:`write_outputs` computed and wrote.
+
+    Attributes
+    ----------
+    dense : True for dense transfer (no ``evaluate`` result then)
+    results : stage name -> result, for the stages the outputs read
+    weights : (T, K) the written weights, ``names`` (K,) their shapes, ``valid`` (T,) frames with data
+    summary : the human summary (what was retargeted, errors, stage timings)
+    written : one ``wrote <path>`` line per file written
+    paths : the files written, in order
+    """
+
+    dense: bool
+    results: dict
+    weights: np.ndarray
+    names: list
+    valid: np.ndarray
+    summary: str
+    written: list = field(default_factory=list)
+    paths: list = field(default_factory=list)
+
+    @property
+    def evaluation(self) -> Optional[dict]:
+        """The pipeline's ``evaluate`` result (None for dense transfer)."""
+        return self.results.get("evaluate")
+
+    def text(self, extra=()) -> str:
+        """The summary followed by the ``wrote`` lines (and any ``extra`` lines)."""
+        return self.summary + "".join("\n" + line for line in [*self.written, *extra])
+
+
+def write_outputs(pipe, out=None, weights_csv=None, csv_precision=6, progress: Optional[ProgressFn] = None,
+                  livelink_csv=None) -> ShotOutputs:
+    """Compute ``pipe``'s result and write its rig with animation (``out``), weight CSV
+    (``weights_csv``) and Live Link Face CSV (``livelink_csv``).
+
+    Parameters
+    ----------
+    pipe : core.pipeline.Pipeline
+    out : path to write, or None: ``.glb``/``.gltf`` (morph targets + weight animation) or a USD
+        suffix (UsdSkel, :mod:`core.io.usd`)
+    weights_csv : path of the CSV to write, or None (``time_s, frame, valid``, one column per shape)
+    csv_precision : decimals of the CSV weights, or ``"full"`` (round-trip exact)
+    progress : ``progress(fraction, message)`` for the pipeline run
+    livelink_csv : path of a Live Link Face CSV of the target's ARKit-named shapes, or None
+
+    Raises
+    ------
+    ValueError
+        ``livelink_csv`` with dense transfer; and whatever the pipeline raises for bad inputs
+        (ValueError / FileNotFoundError naming the file).
+    """
+    from .stages.methods import METHODS
+
+    if METHODS[pipe.solve.method].dense:
+        if livelink_csv:
+            raise ValueError("--livelink-csv: dense transfer makes a new rig of bases (xu_basis_*), which has no ARKit "
+                             "shapes to write; use a marker method (bounded, spacetime, ...) for Live Link output")
+        return _write_transfer(pipe, out, weights_csv, csv_precision, progress)
+    return _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv)
+
+
+def write_animation(path, rig, weights, times, fps: float) -> None:
+    """``rig`` with a weight animation: GLB/glTF (morph targets) or USD (UsdSkel, core.io.usd) by suffix."""
+    from .io.usd import SUFFIXES as USD_SUFFIXES
+
+    if Path(path).suffix.lower() in USD_SUFFIXES:
+        from .io.usd import write_rig as write_usd
+
+        write_usd(path, rig, weights=weights, times=times, fps=fps)
+    else:
+        from .io.gltf import write_rig
+
+        write_rig(path, rig, weights=weights, times=times)
+
+
+def _write_livelink(path, rig, weights, times, fps: float) -> str:
+    """The target's ARKit-named shapes as a Live Link Face CSV; returns the ``wrote`` line."""
+    from .io.livelink import arkit_curves, write_livelink
+
+    perf, missing = arkit_curves(weights, rig.names, fps, times=times, name=rig.name)
+    write_livelink(path, perf, timecode_rate=60 if fps <= 60 else 120)
+    return f"wrote {path}" + (f" ({len(missing)} ARKit channels the target lacks written as 0: "
+                              f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''})" if missing else "")
+
+
+def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv=None) -> ShotOutputs:
+    from .io.curves_csv import write_curves_csv
+
+    t0 = time.perf_counter()
+    res = pipe.results(list(MARKER_STAGES), progress=progress)
+    ld, st, ev = res["load"], res["stabilize"]["source"], res["evaluate"]
+    syn = res["synthesize"]
+    W, valid = syn["weights"], syn["valid"]
+    rig = ld["target_rig"]
+    times = st.times - st.times[0]
+    frames = res["frames"]["first"] + np.arange(len(times))
+    written, paths = [], []
+    if out:
+        write_animation(out, rig, W, times, st.fps)
+        written.append(f"wrote {out}")
+        paths.append(Path(out))
+    if livelink_csv:
+        written.append(_write_livelink(livelink_csv, rig, W, times, st.fps))
+        paths.append(Path(livelink_csv))
+    if weights_csv:
+        write_curves_csv(weights_csv, times, W, rig.names, csv_precision, valid=valid, frames=frames)
+        written.append(f"wrote {weights_csv}")
+        paths.append(Path(weights_csv))
+        U = res["solve"]["info"].get("region_weights")
+        if U is not None:  # Liu 2011 §6.4: the regional curves an animator edits
+            from .gaps import fill_gaps
+            from .solvers.local import region_curves
+
+            # U holds the shapes the solver used (--target-shapes, minus shapes no marker sees)
+            curves = region_curves(fill_gaps(U, valid), res["calibrate"]["rig"].names)
+            path = Path(weights_csv).with_name(Path(weights_csv).stem + "_regions.csv")
+            write_curves_csv(path, times, np.column_stack(list(curves.values())), list(curves), csv_precision,
+                             valid=valid, frames=frames)
+            written.append(f"wrote {path} (per-region curves <shape>@r<k>; {weights_csv} holds their mask-area blend)")
+            paths.append(path)
+    gaps = int((~valid).sum())
+    timings = " ".join(f"{k}={v * 1e3:.0f}ms" for k, v in pipe.timings.items() if v)
+    summary = (
+        f"retargeted {len(W)} frames at {st.fps:g} fps, {len(st.names)} markers -> {rig.name} ({rig.n_shapes} shapes) "
+        f"with {pipe.solve.method} in {time.perf_counter() - t0:.1f}s\n"
+        f"marker error: median {np.nanmedian(ev['marker_error_mm']):.2f} mm, max {np.nanmax(ev['marker_error_mm']):.2f} mm; "
+        f"weights in [{np.nanmin(W):.3f}, {np.nanmax(W):.3f}]"
+        + (f"; {gaps} frames without data (tracking loss) filled from their neighbours, flagged valid=0" if gaps else "")
+        + f"\nstage timings: {timings}"
+    )
+    return ShotOutputs(False, res, W, list(rig.names), valid, summary, written, paths)
+
+
+def _write_transfer(pipe, out, weights_csv, csv_precision, progress) -> ShotOutputs:
+    """``--method transfer``: dense transfer (Xu 2014) to a rig of new morph targets."""
+    from .io.curves_csv import write_curves_csv
+    from .model import Rig
+
+    t0 = time.perf_counter()
+    # target_face in the same run: a second run would reset pipe.timings to its own stages
+    res = pipe.results(["target_face", "transfer", "transfer_edit", "detail_morphs"], progress=progress)
+    tr, te, dm = res["transfer"], res["transfer_edit"], res["detail_morphs"]
+    r = tr["result"]
+    target = res["target_face"]["target_rig"]
+    rig = Rig(r.neutral, r.faces, te["deltas"], r.to_rig().names, None, "m", f"{target.name}_transfer")
+    weights = te["weights"]
+    detail_note = ""
+    if dm["basis"] is not None:
+        # the per-frame details as extra morph targets: a GLB then plays the whole transfer
+        B = dm["basis"]
+        rig = Rig(rig.neutral, rig.faces, np.concatenate([rig.deltas, B]),
+                  list(rig.names) + [f"xu_detail_{j:02d}" for j in range(len(B))], None, "m", rig.name)
+        weights = np.hstack([weights, dm["coeffs"]])
+        detail_note = f"; details as {len(B)} morph targets (largest error {dm['max_error'] * 1000:.3f} mm)"
+    times = tr["times"]
+    frames = tr["first"] + np.arange(len(times))
+    written, paths = [], []
+    if out:
+        write_animation(out, rig, weights, times, tr["fps"])
+        written.append(f"wrote {out}")
+        paths.append(Path(out))
+    if weights_csv:
+        write_curves_csv(weights_csv, times, weights, rig.names, csv_precision, valid=tr["valid"], frames=frames)
+        written.append(f"wrote {weights_csv}")
+        paths.append(Path(weights_csv))
+    stages = " ".join(f"{k}={v:.1f}s" for k, v in pipe.timings.items() if v > 0.05)
+    summary = (f"transferred {len(weights)} frames to {target.name}: {r.n_bases} bases on {rig.n_vertices} vertices "
+               f"(source topology fitted to the target){detail_note} in {time.perf_counter() - t0:.1f}s; stages: {stages}")
+    return ShotOutputs(True, res, weights, list(rig.names), np.asarray(tr["valid"], dtype=bool), summary, written, paths)
