@@ -1,0 +1,491 @@
+"""Box-constrained QPs along a sequence of frames: a batched parametric active-set method.
+
+The problem
+-----------
+For every frame t and chain c (a region, or the single global problem)::
+
+    min_u  1/2 u^T H_{idx[t,c]} u + f_{t,c}^T u      s.t.   0 <= u <= 1                  (1)
+
+with symmetric positive-definite Hessians ``H`` (a small table indexed per problem) and linear
+terms that change slowly from frame to frame. :func:`core.solvers.baselines.range_pf` (per-frame
+bounded least squares, ``H = B_v^T B_v``) and the box form of Liu et al. 2011 eq. 2
+(:class:`core.solvers.local.LocalProblem`) are both (1) after ``w = lower + (upper - lower) u``.
+
+The method (parametric active set, "online active set strategy")
+----------------------------------------------------------------
+Let ``u*`` be optimal for ``f_0`` with working set (lower / upper / free) ``W`` and multipliers
+``lambda = H u* + f_0`` (``>= 0`` at lower bounds, ``<= 0`` at upper, ``0`` on the free set).
+Along ``f(tau) = f_0 + tau (f_1 - f_0)``, ``tau`` in [0, 1], the optimum is piecewise linear in
+``tau``: while ``W`` holds, ``du/dtau = -H_FF^-1 (f_1 - f_0)_F`` on the free set ``F`` and the
+multipliers move linearly. The next breakpoint is the smallest step at which a free variable
+reaches a bound (it joins the bound) or a multiplier reaches zero (its variable is freed). One
+index changes per breakpoint, so ``H_FF^-1`` is kept as an explicit inverse and updated by a
+rank-one (bordering / Schur complement) formula in ``O(|F|^2)`` instead of refactorised [1, 2].
+Starting a frame from the previous frame's solution costs 1 + (number of active-set changes)
+segments; ``tau = 1`` reached means the frame is solved. This is the warm start of the issue
+("the active set of frame t-1 is usually right for frame t: try it first"): a frame whose set
+did not change costs one product with the stored inverse.
+
+Any feasible ``u`` with sign-clamped multipliers is an exact optimum of *some* ``f_0``
+(``f_0 = lambda - H u``), so every start is consistent: the previous frame (warm), ``u = 0`` with
+positive multipliers (cold), or another lane's solution (work stealing, below).
+
+Batching
+--------
+Frames are cut into *lanes* of consecutive frames of one chain; every lane starts cold and walks
+forward. All lanes advance one breakpoint per round in a handful of numpy calls on stacked
+arrays (inverses ``(lanes, b, b)`` padded with zeros to the largest free set ``b``). After a lane
+finishes a frame it checks the next ``lookahead`` frames against its current set with one
+product (frames whose set does not change are accepted at once). Lanes that run out of frames
+take the second half of the longest remaining run of another lane, starting from that lane's
+latest solution (a short homotopy between two nearby frames instead of a cold start).
+
+Exactness
+---------
+Every frame is accepted only after its KKT conditions are checked with a freshly computed
+gradient ``g = H u + f``: ``|g_F| <= eps_l``, ``-eps_u <= u_F <= 1 + eps_u``, ``g_L >= -eps_l``,
+``g_U <= eps_l`` with ``eps_u = 1e-11`` and ``eps_l = 1e-11 (mean diag H + max |f|)`` (the tests
+of :func:`core.solvers.local.solve_qp_batch`). The updated inverses drift in ill-conditioned
+problems; they are refreshed from scratch every ``refresh`` updates, the point is refined by one
+step of iterative refinement before the check, and a frame that still fails (or a lane stuck in
+degenerate breakpoints) is finished by primal-dual active-set steps from its current set and the
+finite primal active-set method of :func:`core.solvers.local._primal_active_set` (counted in
+``info["fallback"]``). The answer is therefore the optimum to rounding, as before, not to an
+iteration tolerance.
+
+References
+----------
+.. [1] M. J. Best, "An algorithm for the solution of the parametric quadratic programming
+       problem", in Applied Mathematics and Parallel Computing, 1996, pp. 57-76.
+.. [2] H. J. Ferreau, H. G. Bock, M. Diehl, "An online active set strategy to overcome the
+       limitations of explicit MPC", Int. J. Robust Nonlinear Control 18(8), 2008 (qpOASES).
+.. [3] M. Hintermueller, K. Ito, K. Kunisch, "The primal-dual active set strategy as a semismooth
+       Newton method", SIAM J. Optim. 13(3), 2003 (the fallback's first steps).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["solve_box_sequence"]
+
+EPS_U = 1e-11  # primal tolerance in unit-box coordinates
+EPS_L = 1e-11  # dual tolerance relative to mean diag H + max |f|
+_MEMORY = 64e6  # bytes allowed for the stacked inverses (caps the number of lanes)
+
+
+class _Lanes:
+    """Per-lane state, arrays with one row per lane (a lane = a run of frames of one chain)."""
+
+    FIELDS = ("t", "c", "end", "h", "u", "g", "delta", "tau", "lower", "upper", "perm", "nfree", "inv",
+              "nupd", "seg", "last", "active")
+
+    def take(self, keep):
+        for name in self.FIELDS:
+            setattr(self, name, getattr(self, name)[keep])
+
+
+def _hmul(H, h, X):
+    """``H[h[n]] @ X[n]`` for X (n, K), or ``X[n] @ H[h[n]]`` for X (n, m, K); H symmetric."""
+    if len(H) == 1:
+        return (X.reshape(-1, H.shape[1]) @ H[0]).reshape(X.shape)
+    if X.ndim == 2:
+        return np.einsum("nij,nj->ni", H[h], X)
+    return X @ H[h]
+
+
+def _inverse(H, h, perm, nfree, b):
+    """Fresh inverses of the free blocks, zero-padded to (n, b, b)."""
+    live = np.arange(b)[None] < nfree[:, None]
+    p = perm[:, :b]
+    A = H[h[:, None, None], p[:, :, None], p[:, None, :]]
+    pair = live[:, :, None] & live[:, None, :]
+    return np.where(pair, np.linalg.inv(np.where(pair, A, np.eye(b)[None])), 0.0)
+
+
+def _free_first(lower, upper):
+    free = ~(lower | upper)
+    return np.argsort(~free, axis=1, kind="stable"), free.sum(1)
+
+
+def _kkt_ok(u, g, lower, upper, eps_l):
+    """Rows of (n, ..., K) arrays that satisfy the box KKT conditions at tolerance (see module)."""
+    free = ~(lower | upper)
+    bad = (free & ((u < -EPS_U) | (u > 1 + EPS_U) | (np.abs(g) > eps_l))) | (lower & (g < -eps_l)) | (upper & (g > eps_l))
+    return ~bad.any(-1)
+
+
+def _finish(H, f, h, lower, upper, eps_l, pdas_steps=6):
+    """Exact solutions for the (few) frames the homotopy could not certify.
+
+    Primal-dual active-set steps [3] from the lane's (nearly right) working set, then the finite
+    primal active-set method for whatever has not settled.
+    """
+    from .local import _eqp, _primal_active_set
+
+    n = len(f)
+    u = np.zeros_like(f)
+    todo = np.arange(n)
+    lower, upper = lower.copy(), upper.copy()
+    ut = np.zeros_like(f)
+    same = np.zeros(0, bool)
+    for _ in range(pdas_steps):
+        lo, up = lower[todo], upper[todo]
+        ut, _ = _eqp(H, f[todo], h[todo], lo, up, np.zeros(len(todo), bool))
+        g = _hmul(H, h[todo], ut) + f[todo]
+        el = eps_l[todo][:, None]
+        new_up = np.where(up, g <= el, ut > 1 + EPS_U)
+        new_lo = np.where(lo, g >= -el, ut < -EPS_U) & ~new_up
+        same = (new_lo == lo).all(1) & (new_up == up).all(1)
+        u[todo[same]] = ut[same]
+        lower[todo], upper[todo] = new_lo, new_up
+        todo = todo[~same]
+        if not len(todo):
+            return np.clip(u, 0.0, 1.0)
+    start = np.clip(ut[~same], 0.0, 1.0)
+    u[todo], _ = _primal_active_set(H, f[todo], h[todo], False, EPS_U, eps_l[todo], init=start)
+    return np.clip(u, 0.0, 1.0)
+
+
+def solve_box_sequence(H, f, idx=None, block: int = 64, lanes=None, lookahead: int = 4, refresh: int = 32,
+                       steal: int = 6, return_info: bool = False):
+    """Solve (1) of the module docstring for every frame, warm-started along the frames.
+
+    ``min_u 1/2 u^T H_{idx[t,c]} u + f[t,c]^T u``  s.t. ``0 <= u <= 1``, exactly (KKT conditions
+    checked at ``1e-11`` relative tolerances for every frame).
+
+    Parameters
+    ----------
+    H : (P, K, K) float
+        Symmetric positive-definite Hessians.
+    f : (T, K) or (T, C, K) float
+        Linear terms; axis 0 is time (consecutive frames are similar), C independent chains.
+    idx : (T,) or (T, C) int, optional
+        Which Hessian each problem uses; default 0 (then P must be 1).
+    block : int
+        Frames per lane at the start (each lane starts cold).
+    lanes : int, optional
+        Lanes advanced together (default: the initial lanes plus as many idle ones for work
+        stealing, capped by memory). The result does not depend on ``block``, ``lanes``,
+        ``lookahead`` or ``steal``; only the time does.
+    lookahead : int
+        Frames checked against a lane's current active set after each solved frame (0: off).
+    refresh : int
+        Rank-one updates of an inverse before it is recomputed from scratch.
+    steal : int
+        A lane with at least this many frames left gives the second half to an idle lane.
+    return_info : bool
+
+    Returns
+    -------
+    U : same shape as ``f``, float64, in [0, 1]
+    info : dict (when ``return_info``): ``rounds`` (batched steps), ``segments`` (lane steps),
+        ``lookahead`` (frames accepted by the look-ahead check), ``steals``, ``refreshes``,
+        ``fallback`` (frames finished by the exact fallback).
+
+    Raises
+    ------
+    ValueError
+        Shapes that disagree, or ``idx`` out of range.
+    """
+    H = np.asarray(H, dtype=np.float64)
+    f = np.asarray(f, dtype=np.float64)
+    if H.ndim != 3 or H.shape[1] != H.shape[2]:
+        raise ValueError(f"H: expected (P, K, K), got {H.shape}")
+    K = H.shape[1]
+    squeeze = f.ndim == 2
+    if squeeze:
+        f = f[:, None]
+    if f.ndim != 3 or f.shape[2] != K:
+        raise ValueError(f"f: expected (T, {K}) or (T, C, {K}), got {f.shape}")
+    T, C = f.shape[:2]
+    if idx is None:
+        if len(H) != 1:
+            raise ValueError(f"idx omitted: H must hold one Hessian, got {len(H)}")
+        idx = np.zeros((T, C), np.int64)
+    idx = np.asarray(idx, dtype=np.int64).reshape(T, -1) if np.ndim(idx) else np.full((T, C), int(idx))
+    if idx.shape != (T, C) or (idx.size and (idx.min() < 0 or idx.max() >= len(H))):
+        raise ValueError(f"idx: expected ({T}, {C}) ints in [0, {len(H)}), got shape {np.shape(idx)}")
+    info = dict(rounds=0, segments=0, lookahead=0, steals=0, refreshes=0, fallback=0)
+    U = np.zeros((T, C, K))
+    if T == 0 or C == 0 or K == 0:
+        return (U[:, 0] if squeeze else U, info) if return_info else (U[:, 0] if squeeze else U)
+    eps_all = EPS_L * (np.einsum("pii->p", H)[idx] / K + np.abs(f).max(2))  # (T, C)
+
+    # ---- lanes: blocks of `block` frames per chain, plus idle slots for work stealing
+    block = max(1, int(block))
+    starts = np.arange(0, T, block)
+    n0 = len(starts) * C
+    cap_lanes = max(n0, int(_MEMORY // (8.0 * K * K)))
+    nl = int(min(cap_lanes, max(n0, lanes if lanes is not None else 2 * n0)))
+    L = _Lanes()
+    L.c = np.zeros(nl, np.int64)
+    L.t = np.zeros(nl, np.int64)
+    L.end = np.zeros(nl, np.int64)
+    L.c[:n0] = np.repeat(np.arange(C), len(starts))
+    L.t[:n0] = np.tile(starts, C)
+    L.end[:n0] = np.minimum(L.t[:n0] + block, T)
+    L.active = np.zeros(nl, bool)
+    L.active[:n0] = True
+    L.h = idx[L.t, L.c]
+    # cold start: u = 0 is the exact optimum of f_0 = max(f, 0) + margin (every lower bound binds)
+    ft = f[L.t, L.c]
+    L.g = np.maximum(ft, 0.0) + 1e-3 * np.abs(ft).max(1, keepdims=True) + 1e-300
+    L.delta = ft - L.g
+    L.u = np.zeros((nl, K))
+    L.tau = np.zeros(nl)
+    L.lower = np.ones((nl, K), bool)
+    L.upper = np.zeros((nl, K), bool)
+    L.perm = np.tile(np.arange(K), (nl, 1))
+    L.nfree = np.zeros(nl, np.int64)
+    L.nupd = np.zeros(nl, np.int64)
+    L.seg = np.zeros(nl, np.int64)
+    L.last = np.full(nl, -1)
+    cap = min(K, 8)
+    L.inv = np.zeros((nl, cap, cap))
+    max_seg = 4 * K + 20
+    k_look = max(0, int(lookahead))
+    rows = np.arange(nl)
+
+    while L.active.any():
+        info["rounds"] += 1
+        info["segments"] += int(L.active.sum())
+        nl = len(L.t)
+        if len(rows) != nl:
+            rows = np.arange(nl)
+        b = int(min(K, L.nfree.max() + 1))  # room for one more free variable
+        if b > cap:
+            cap = min(K, max(2 * cap, b))
+            grown = np.zeros((nl, cap, cap))
+            grown[:, :L.inv.shape[1], :L.inv.shape[2]] = L.inv
+            L.inv = grown
+        # -- fresh inverses (and a fresh point on the path) where the updates have piled up
+        ref = np.flatnonzero(L.active & (L.nupd >= refresh))
+        if len(ref):
+            info["refreshes"] += len(ref)
+            Mi = _inverse(H, L.h[ref], L.perm[ref], L.nfree[ref], b)
+            L.inv[ref] = 0.0
+            L.inv[ref, :b, :b] = Mi
+            f_tau = f[L.t[ref], L.c[ref]] - (1.0 - L.tau[ref])[:, None] * L.delta[ref]
+            ur = L.upper[ref].astype(np.float64)
+            p = L.perm[ref, :b]
+            x = (Mi @ -np.take_along_axis(f_tau + _hmul(H, L.h[ref], ur), p, 1)[:, :, None])[:, :, 0]
+            live = np.arange(b)[None] < L.nfree[ref][:, None]
+            np.put_along_axis(ur, p, np.where(live, x, np.take_along_axis(ur, p, 1)), 1)
+            L.u[ref] = ur
+            L.g[ref] = _hmul(H, L.h[ref], ur) + f_tau
+            L.nupd[ref] = 0
+        # -- direction of the current segment: du/dtau on the free set, dg/dtau everywhere
+        flat = (rows * K)[:, None] + L.perm[:, :b]
+        x = (L.inv[:, :b, :b] @ -np.take(L.delta, flat)[:, :, None])[:, :, 0]  # 0 beyond nfree
+        d = np.zeros((nl, K))
+        np.put(d, flat, x)
+        gam = _hmul(H, L.h, d) + L.delta
+        # -- ratio test: first free variable to hit a bound / first multiplier to reach zero
+        free = ~(L.lower | L.upper)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            num = np.where(free, np.where(d < 0, L.u, 1.0 - L.u), np.where(L.lower, L.g, -L.g))
+            den = np.where(free, np.abs(d), np.where(L.lower, -gam, gam))
+            s = np.where(den > 0, np.maximum(num, 0.0) / den, np.inf)
+        back = np.flatnonzero(L.last >= 0)  # no immediate zero-length reversal of the last move
+        back = back[s[back, L.last[back]] <= 1e-13]
+        s[back, L.last[back]] = np.inf
+        j = np.argmin(s, axis=1)
+        sj = s[rows, j]
+        rem = 1.0 - L.tau
+        done = (sj >= rem) & L.active
+        step = np.minimum(sj, rem)
+        L.u += step[:, None] * d
+        L.g += step[:, None] * gam
+        L.tau += step
+        stuck = L.active & ~done & (L.seg >= max_seg)
+        move = np.flatnonzero(L.active & ~done & ~stuck)
+        fin = np.flatnonzero(done | stuck)
+        if len(fin):
+            go, Hu = _finish_frames(H, f, idx, eps_all, L, fin, free[fin], stuck[fin], b, U, info, k_look, refresh)
+            if k_look and info.get("_look_tried"):
+                rate = info.pop("_look_ok") / info.pop("_look_tried")
+                k_look = max(1, k_look // 2) if rate < 0.15 else min(int(lookahead), 2 * k_look) if rate > 0.5 else k_look
+            if steal:
+                _steal(H, f, idx, L, go, Hu, steal, info)
+        if len(move):
+            _move(H, L, move, j[move], free[move, j[move]], d[move, j[move]], b)
+        if L.active.sum() < 0.6 * len(L.t) and len(L.t) > 8 and (not steal or ((L.end - L.t)[L.active] < 2 * steal).all()):
+            L.take(np.flatnonzero(L.active))
+    U = np.clip(U, 0.0, 1.0)
+    if squeeze:
+        U = U[:, 0]
+    return (U, info) if return_info else U
+
+
+def _finish_frames(H, f, idx, eps_all, L, fin, free, stuck, b, U, info, k_look, refresh):
+    """Lanes that reached tau = 1 (or got stuck): certify, store, look ahead, start the next frame.
+
+    Returns the lanes that continue and ``H u`` at their new starting points (for stealing).
+    """
+    K = H.shape[1]
+    t, c, h = L.t[fin], L.c[fin], L.h[fin]
+    f1 = f[t, c]
+    lo, up = L.lower[fin], L.upper[fin]
+    u1 = np.where(free, L.u[fin], up.astype(np.float64))
+    g1 = _hmul(H, h, u1) + f1
+    el = eps_all[t, c][:, None]
+    # one step of iterative refinement where the stationarity residual is not tiny
+    need = np.flatnonzero((free & (np.abs(g1) > 0.1 * el)).any(1))
+    if len(need):
+        p = L.perm[fin[need], :b]
+        du = (L.inv[fin[need], :b, :b] @ -np.take_along_axis(g1[need], p, 1)[:, :, None])[:, :, 0]
+        un = u1[need]
+        np.put_along_axis(un, p, np.take_along_axis(un, p, 1) + du, 1)
+        u1[need] = np.where(free[need], un, u1[need])
+        g1[need] = _hmul(H, h[need], u1[need]) + f1[need]
+    bad = np.flatnonzero(~_kkt_ok(u1, g1, lo, up, el) | stuck)
+    if len(bad):
+        info["fallback"] += len(bad)
+        ub = _finish(H, f1[bad], h[bad], lo[bad], up[bad], el[bad, 0])
+        u1[bad] = ub
+        g1[bad] = _hmul(H, h[bad], ub) + f1[bad]
+        fb = fin[bad]
+        L.lower[fb], L.upper[fb] = ub <= 0.0, ub >= 1.0
+        L.perm[fb], L.nfree[fb] = _free_first(L.lower[fb], L.upper[fb])
+        L.nupd[fb] = refresh  # the stored inverse belongs to another set now
+    U[t, c] = u1
+    # -- look ahead: the same working set for the next frames, one product with the inverse each
+    if k_look:
+        T = len(f)
+        ok_lane = np.flatnonzero((L.nupd[fin] < refresh) & (t + 1 < L.end[fin]))
+        if len(ok_lane):
+            ln = fin[ok_lane]
+            tt = t[ok_lane, None] + 1 + np.arange(k_look)[None]
+            tc = np.minimum(tt, T - 1)
+            cc = c[ok_lane, None]
+            df = f[tc, cc] - f1[ok_lane, None, :]  # (n, k, K)
+            p = L.perm[ln, :b]
+            x = -np.take_along_axis(df, p[:, None, :], axis=2) @ L.inv[ln, :b, :b]  # inverse symmetric
+            du = np.zeros(df.shape)
+            np.put_along_axis(du, np.broadcast_to(p[:, None, :], x.shape), x, axis=2)
+            Uk = u1[ok_lane, None, :] + du
+            Gk = g1[ok_lane, None, :] + df + _hmul(H, L.h[ln], du)
+            okk = _kkt_ok(Uk, Gk, L.lower[ln, None, :], L.upper[ln, None, :], eps_all[tc, cc][:, :, None])
+            okk &= (tt < L.end[ln, None]) & (idx[tc, cc] == L.h[ln, None])
+            n_ok = np.argmin(np.concatenate([okk, np.zeros((len(ln), 1), bool)], axis=1), axis=1)  # accepted prefix
+            info["_look_tried"] = len(ln) * k_look
+            info["_look_ok"] = int(n_ok.sum())
+            hit = np.flatnonzero(n_ok > 0)
+            if len(hit):
+                info["lookahead"] += int(n_ok[hit].sum())
+                r, k = np.nonzero(np.arange(k_look)[None] < n_ok[hit, None])
+                U[tt[hit][r, k], cc[hit, 0][r]] = Uk[hit][r, k]
+                pos = ok_lane[hit]
+                last = n_ok[hit] - 1
+                u1[pos], g1[pos] = Uk[hit, last], Gk[hit, last]
+                t[pos] = tt[hit, last]
+                f1[pos] = f[t[pos], c[pos]]
+                L.t[fin[pos]] = t[pos]
+    # -- next frame: start from this one's solution (exact optimum of f_0 = lambda - H u1)
+    nxt = t + 1
+    cont = nxt < L.end[fin]
+    L.active[fin[~cont]] = False
+    go = fin[cont]
+    if not len(go):
+        return go, None
+    L.t[go] = nxt[cont]
+    hn = idx[L.t[go], L.c[go]]
+    new_h = hn != L.h[go]
+    L.h[go] = hn
+    gg = g1[cont]
+    lam = np.where(L.lower[go], np.maximum(gg, 0.0), np.where(L.upper[go], np.minimum(gg, 0.0), 0.0))
+    Hu = gg - f1[cont]
+    if new_h.any():
+        Hu[new_h] = _hmul(H, hn[new_h], u1[cont][new_h])
+        L.nupd[go[new_h]] = refresh
+    L.delta[go] = f[L.t[go], L.c[go]] - lam + Hu
+    L.g[go] = lam
+    L.u[go] = u1[cont]
+    L.tau[go] = 0.0
+    L.seg[go] = 0
+    L.last[go] = -1
+    return go, Hu
+
+
+def _steal(H, f, idx, L, go, Hu, steal, info):
+    """Idle lanes take the second half of the longest remaining runs of the lanes ``go`` that
+    have just started a frame from an exact solution (module docstring)."""
+    idle = np.flatnonzero(~L.active)
+    if not len(idle) or not len(go):
+        return
+    left = L.end[go] - L.t[go]
+    cand = np.flatnonzero(left >= steal)
+    if not len(cand):
+        return
+    cand = cand[np.argsort(-left[cand], kind="stable")][:len(idle)]
+    v = go[cand]
+    th = idle[:len(cand)]
+    m = L.t[v] + left[cand] // 2
+    info["steals"] += len(v)
+    L.end[th] = L.end[v]
+    L.end[v] = m
+    L.t[th] = m
+    L.c[th] = L.c[v]
+    for name in ("lower", "upper", "perm", "nfree", "inv", "u", "g", "nupd"):
+        getattr(L, name)[th] = getattr(L, name)[v]
+    hth = idx[m, L.c[v]]
+    hu = Hu[cand]
+    other = hth != L.h[v]
+    if other.any():
+        hu[other] = _hmul(H, hth[other], L.u[v][other])
+        L.nupd[th[other]] = 10 ** 9  # refresh at the next round
+    L.h[th] = hth
+    L.delta[th] = f[m, L.c[v]] - L.g[v] + hu
+    L.tau[th] = 0.0
+    L.seg[th] = 0
+    L.last[th] = -1
+    L.active[th] = True
+
+
+def _move(H, L, mv, j, was_free, dj, b):
+    """Apply the breakpoint of each moving lane: index j joins a bound or leaves it."""
+    L.seg[mv] += 1
+    L.last[mv] = j
+    L.nupd[mv] += 1
+    rm, jr, to_up = mv[was_free], j[was_free], dj[was_free] > 0
+    if len(rm):  # free -> bound: delete row/column of the inverse (downdate), swap the last in
+        L.lower[rm, jr] = ~to_up
+        L.upper[rm, jr] = to_up
+        L.u[rm, jr] = to_up.astype(np.float64)
+        p = np.argmax(L.perm[rm, :b] == jr[:, None], axis=1)
+        q = L.nfree[rm] - 1
+        a = np.arange(len(rm))
+        Mr = L.inv[rm, :b, :b]
+        col = Mr[a, :, p]
+        Mr -= col[:, :, None] * (Mr[a, p, :] / Mr[a, p, p][:, None])[:, None, :]
+        Mr[a, p, :] = Mr[a, q, :]
+        Mr[a, :, p] = Mr[a, :, q]
+        Mr[a, q, :] = 0.0
+        Mr[a, :, q] = 0.0
+        L.inv[rm, :b, :b] = Mr
+        L.perm[rm, p] = L.perm[rm, q]
+        L.perm[rm, q] = jr
+        L.nfree[rm] -= 1
+    ad, ja = mv[~was_free], j[~was_free]
+    if len(ad):  # bound -> free: border the inverse with the Schur complement
+        L.lower[ad, ja] = False
+        L.upper[ad, ja] = False
+        L.g[ad, ja] = 0.0
+        q = L.nfree[ad]
+        a = np.arange(len(ad))
+        live = np.arange(b)[None] < q[:, None]
+        hcol = H[L.h[ad][:, None], L.perm[ad, :b], ja[:, None]] * live
+        Ma = L.inv[ad, :b, :b]
+        v = np.einsum("nij,nj->ni", Ma, hcol)
+        schur = H[L.h[ad], ja, ja] - np.einsum("ni,ni->n", hcol, v)
+        w = v / schur[:, None]
+        Ma += v[:, :, None] * w[:, None, :]
+        Ma[a, q, :] = -w
+        Ma[a, :, q] = -w
+        Ma[a, q, q] = 1.0 / schur
+        L.inv[ad, :b, :b] = Ma
+        pj = np.argmax(L.perm[ad] == ja[:, None], axis=1)
+        L.perm[ad, pj] = L.perm[ad, q]
+        L.perm[ad, q] = ja
+        L.nfree[ad] += 1
