@@ -100,7 +100,9 @@ def _inverse(H, h, perm, nfree, b):
     p = perm[:, :b]
     A = H[h[:, None, None], p[:, :, None], p[:, None, :]]
     pair = live[:, :, None] & live[:, None, :]
-    return np.where(pair, np.linalg.inv(np.where(pair, A, np.eye(b)[None])), 0.0)
+    M = np.linalg.inv(np.where(pair, A, np.eye(b)[None]))
+    # symmetric to rounding: the rank-one updates below assume M = M^T
+    return np.where(pair, 0.5 * (M + M.transpose(0, 2, 1)), 0.0)
 
 
 def _free_first(lower, upper):
@@ -147,7 +149,7 @@ def _finish(H, f, h, lower, upper, eps_l, pdas_steps=6):
     return np.clip(u, 0.0, 1.0)
 
 
-def solve_box_sequence(H, f, idx=None, block: int = 64, lanes=None, lookahead: int = 4, refresh: int = 32,
+def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 4, refresh: int = 32,
                        steal: int = 6, return_info: bool = False):
     """Solve (1) of the module docstring for every frame, warm-started along the frames.
 
@@ -162,8 +164,11 @@ def solve_box_sequence(H, f, idx=None, block: int = 64, lanes=None, lookahead: i
         Linear terms; axis 0 is time (consecutive frames are similar), C independent chains.
     idx : (T,) or (T, C) int, optional
         Which Hessian each problem uses; default 0 (then P must be 1).
-    block : int
-        Frames per lane at the start (each lane starts cold).
+    block : int, optional
+        Frames per lane at the start (each lane starts cold). Default 128 for K <= 64 and 64
+        above: a cold start costs O(K) breakpoints, so small problems afford longer lanes
+        (measured on the two benchmark cases, ``benchmarks/bench_pipeline.py`` and
+        ``bench_local.py``).
     lanes : int, optional
         Lanes advanced together (default: the initial lanes plus as many idle ones for work
         stealing, capped by memory). The result does not depend on ``block``, ``lanes``,
@@ -213,7 +218,7 @@ def solve_box_sequence(H, f, idx=None, block: int = 64, lanes=None, lookahead: i
     eps_all = EPS_L * (np.einsum("pii->p", H)[idx] / K + np.abs(f).max(2))  # (T, C)
 
     # ---- lanes: blocks of `block` frames per chain, plus idle slots for work stealing
-    block = max(1, int(block))
+    block = (128 if K <= 64 else 64) if block is None else max(1, int(block))
     starts = np.arange(0, T, block)
     n0 = len(starts) * C
     cap_lanes = max(n0, int(_MEMORY // (8.0 * K * K)))
@@ -444,48 +449,56 @@ def _steal(H, f, idx, L, go, Hu, steal, info):
 
 
 def _move(H, L, mv, j, was_free, dj, b):
-    """Apply the breakpoint of each moving lane: index j joins a bound or leaves it."""
+    """Apply the breakpoint of each moving lane: index j joins a bound or leaves the free set.
+
+    Both cases are one symmetric rank-one change of the stored inverse ``M = H_FF^-1``,
+    applied to all lanes at once (no gathers): with ``x = M z``,
+
+    * j leaves (position p): ``z = e_p``, ``M <- M - x x^T / x_p``, then row/column p is
+      replaced by the last free one (the block stays compact);
+    * j joins (new position q = nfree): ``z = H_Fj``, Schur complement ``s = H_jj - z^T x``,
+      ``M <- M + x x^T / s`` and row/column q = ``-x / s``, ``M_qq = 1 / s``.
+    """
     L.seg[mv] += 1
     L.last[mv] = j
     L.nupd[mv] += 1
+    nl = len(L.t)
+    Mv = L.inv[:, :b, :b]  # a view: updated in place
     rm, jr, to_up = mv[was_free], j[was_free], dj[was_free] > 0
-    if len(rm):  # free -> bound: delete row/column of the inverse (downdate), swap the last in
+    ad, ja = mv[~was_free], j[~was_free]
+    p = np.argmax(L.perm[rm, :b] == jr[:, None], axis=1)  # compact position of a leaving index
+    q_ad = L.nfree[ad]
+    Z = np.zeros((nl, b))
+    Z[rm, p] = 1.0
+    live = np.arange(b)[None] < q_ad[:, None]
+    Z[ad] = H[L.h[ad][:, None], L.perm[ad, :b], ja[:, None]] * live
+    X = (Mv @ Z[:, :, None])[:, :, 0]
+    coef = np.zeros(nl)
+    coef[rm] = -1.0 / X[rm, p]
+    schur = H[L.h[ad], ja, ja] - np.einsum("ni,ni->n", Z[ad], X[ad])
+    coef[ad] = 1.0 / schur
+    Mv += X[:, :, None] * (coef[:, None] * X)[:, None, :]
+    if len(rm):  # free -> bound
         L.lower[rm, jr] = ~to_up
         L.upper[rm, jr] = to_up
         L.u[rm, jr] = to_up.astype(np.float64)
-        p = np.argmax(L.perm[rm, :b] == jr[:, None], axis=1)
         q = L.nfree[rm] - 1
-        a = np.arange(len(rm))
-        Mr = L.inv[rm, :b, :b]
-        col = Mr[a, :, p]
-        Mr -= col[:, :, None] * (Mr[a, p, :] / Mr[a, p, p][:, None])[:, None, :]
-        Mr[a, p, :] = Mr[a, q, :]
-        Mr[a, :, p] = Mr[a, :, q]
-        Mr[a, q, :] = 0.0
-        Mr[a, :, q] = 0.0
-        L.inv[rm, :b, :b] = Mr
+        Mv[rm, p, :] = Mv[rm, q, :]
+        Mv[rm, :, p] = Mv[rm, :, q]
+        Mv[rm, q, :] = 0.0
+        Mv[rm, :, q] = 0.0
         L.perm[rm, p] = L.perm[rm, q]
         L.perm[rm, q] = jr
         L.nfree[rm] -= 1
-    ad, ja = mv[~was_free], j[~was_free]
-    if len(ad):  # bound -> free: border the inverse with the Schur complement
+    if len(ad):  # bound -> free
         L.lower[ad, ja] = False
         L.upper[ad, ja] = False
         L.g[ad, ja] = 0.0
-        q = L.nfree[ad]
-        a = np.arange(len(ad))
-        live = np.arange(b)[None] < q[:, None]
-        hcol = H[L.h[ad][:, None], L.perm[ad, :b], ja[:, None]] * live
-        Ma = L.inv[ad, :b, :b]
-        v = np.einsum("nij,nj->ni", Ma, hcol)
-        schur = H[L.h[ad], ja, ja] - np.einsum("ni,ni->n", hcol, v)
-        w = v / schur[:, None]
-        Ma += v[:, :, None] * w[:, None, :]
-        Ma[a, q, :] = -w
-        Ma[a, :, q] = -w
-        Ma[a, q, q] = 1.0 / schur
-        L.inv[ad, :b, :b] = Ma
+        w = X[ad] * coef[ad, None]
+        Mv[ad, q_ad, :] = -w
+        Mv[ad, :, q_ad] = -w
+        Mv[ad, q_ad, q_ad] = coef[ad]
         pj = np.argmax(L.perm[ad] == ja[:, None], axis=1)
-        L.perm[ad, pj] = L.perm[ad, q]
-        L.perm[ad, q] = ja
+        L.perm[ad, pj] = L.perm[ad, q_ad]
+        L.perm[ad, q_ad] = ja
         L.nfree[ad] += 1
