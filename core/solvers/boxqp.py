@@ -211,7 +211,7 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     idx = np.asarray(idx, dtype=np.int64).reshape(T, -1) if np.ndim(idx) else np.full((T, C), int(idx))
     if idx.shape != (T, C) or (idx.size and (idx.min() < 0 or idx.max() >= len(H))):
         raise ValueError(f"idx: expected ({T}, {C}) ints in [0, {len(H)}), got shape {np.shape(idx)}")
-    info = dict(rounds=0, segments=0, lookahead=0, steals=0, refreshes=0, fallback=0)
+    info = dict(rounds=0, segments=0, lookahead=0, steals=0, refreshes=0, repairs=0, fallback=0)
     U = np.zeros((T, C, K))
     if T == 0 or C == 0 or K == 0:
         return (U[:, 0] if squeeze else U, info) if return_info else (U[:, 0] if squeeze else U)
@@ -307,7 +307,7 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
         move = np.flatnonzero(L.active & ~done & ~stuck)
         fin = np.flatnonzero(done | stuck)
         if len(fin):
-            go, Hu = _finish_frames(H, f, idx, eps_all, L, fin, free[fin], stuck[fin], b, U, info, k_look, refresh)
+            go, Hu = _finish_frames(H, f, idx, eps_all, L, fin, free[fin], stuck[fin], b, U, info, k_look, refresh, max_seg)
             if k_look and info.get("_look_tried"):
                 rate = info.pop("_look_ok") / info.pop("_look_tried")
                 k_look = max(1, k_look // 2) if rate < 0.15 else min(int(lookahead), 2 * k_look) if rate > 0.5 else k_look
@@ -323,7 +323,7 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     return (U, info) if return_info else U
 
 
-def _finish_frames(H, f, idx, eps_all, L, fin, free, stuck, b, U, info, k_look, refresh):
+def _finish_frames(H, f, idx, eps_all, L, fin, free, stuck, b, U, info, k_look, refresh, max_seg):
     """Lanes that reached tau = 1 (or got stuck): certify, store, look ahead, start the next frame.
 
     Returns the lanes that continue and ``H u`` at their new starting points (for stealing).
@@ -344,7 +344,32 @@ def _finish_frames(H, f, idx, eps_all, L, fin, free, stuck, b, U, info, k_look, 
         np.put_along_axis(un, p, np.take_along_axis(un, p, 1) + du, 1)
         u1[need] = np.where(free[need], un, u1[need])
         g1[need] = _hmul(H, h[need], u1[need]) + f1[need]
-    bad = np.flatnonzero(~_kkt_ok(u1, g1, lo, up, el) | stuck)
+    ok = _kkt_ok(u1, g1, lo, up, el)
+    hard = ~ok & (stuck | (L.seg[fin] >= max_seg))
+    fix = np.flatnonzero(~ok & ~hard)
+    if len(fix):
+        # repair at tau = 1 with the lane's own inverse (the updates drift where H_FF is badly
+        # conditioned): the worst violator moves -- a free variable outside [0, 1] joins its
+        # bound, a negative multiplier frees its variable -- and the frame is certified again in
+        # the next round (the refinement step above is then the Newton step to the new set's
+        # minimiser); a stationarity residual alone asks for a fresh inverse
+        info["repairs"] += len(fix)
+        fr, uf, gf, e = free[fix], u1[fix], g1[fix], el[fix]
+        score = np.maximum(np.where(fr, np.maximum(-uf, uf - 1.0) / EPS_U, 0.0),
+                           np.where(lo[fix], -gf, np.where(up[fix], gf, 0.0)) / e)
+        j = np.argmax(score, axis=1)
+        movable = score[np.arange(len(fix)), j] > 1.0
+        lanes = fin[fix]
+        L.u[lanes], L.g[lanes] = uf, gf
+        m = np.flatnonzero(movable)
+        if len(m):
+            _move(H, L, lanes[m], j[m], fr[m, j[m]], np.where(uf[m, j[m]] > 1.0, 1.0, -1.0), b)
+        L.nupd[lanes[~movable]] = refresh
+        keep = np.ones(len(fin), bool)
+        keep[fix] = False
+        fin, t, c, h, f1, lo, up, u1, g1, free, el, hard = (
+            x[keep] for x in (fin, t, c, h, f1, lo, up, u1, g1, free, el, hard))
+    bad = np.flatnonzero(hard)
     if len(bad):
         info["fallback"] += len(bad)
         ub = _finish(H, f1[bad], h[bad], lo[bad], up[bad], el[bad, 0])
