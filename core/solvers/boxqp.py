@@ -77,8 +77,8 @@ _MEMORY = 64e6  # bytes allowed for the stacked inverses (caps the number of lan
 class _Lanes:
     """Per-lane state, arrays with one row per lane (a lane = a run of frames of one chain)."""
 
-    FIELDS = ("t", "c", "end", "h", "Hl", "u", "g", "delta", "tau", "lower", "upper", "perm", "nfree", "inv",
-              "nupd", "seg", "last", "active")
+    FIELDS = ("t", "c", "end", "h", "Hl", "u", "g", "d", "fresh", "delta", "tau", "lower", "upper", "perm", "nfree",
+              "inv", "nupd", "seg", "last", "active")
 
     def take(self, keep):
         for name in self.FIELDS:
@@ -99,8 +99,14 @@ def _lmul(H, L, rows, X):
     ``L.Hl`` when there are several (a batched matmul, 2-3x faster than gathering per call)."""
     if len(H) == 1:
         return (X.reshape(-1, H.shape[1]) @ H[0]).reshape(X.shape)
-    Hl = L.Hl if rows is None else L.Hl[rows]
+    Hl = L.Hl if rows is None else np.take(L.Hl, rows, axis=0)
     return (Hl @ X[..., None])[..., 0] if X.ndim == 2 else X @ Hl
+
+
+def _blocks(L, rows, b):
+    """The lanes' inverses, (n, b, b): whole blocks copied with ``np.take`` (a memcpy per lane;
+    ``L.inv[rows, :b, :b]`` gathers element by element and cost 3x more)."""
+    return np.take(L.inv, rows, axis=0)[:, :b, :b]
 
 
 def _set_h(H, L, rows, h):
@@ -261,6 +267,8 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     L.g = np.maximum(ft, 0.0) + 1e-3 * np.abs(ft).max(1, keepdims=True) + 1e-300
     L.delta = ft - L.g
     L.u = np.zeros((nl, K))
+    L.d = np.zeros((nl, K))  # du/dtau of the current segment
+    L.fresh = np.ones(nl, bool)  # d must be recomputed from the inverse (new frame, new inverse, new set)
     L.tau = np.zeros(nl)
     L.lower = np.ones((nl, K), bool)
     L.upper = np.zeros((nl, K), bool)
@@ -295,8 +303,9 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
         if len(ref):
             info["refreshes"] += len(ref)
             Mi = _inverse(H, L.h[ref], L.perm[ref], L.nfree[ref], b)
-            L.inv[ref] = 0.0
-            L.inv[ref, :b, :b] = Mi
+            blk = np.zeros((len(ref),) + L.inv.shape[1:])
+            blk[:, :b, :b] = Mi
+            L.inv[ref] = blk
             f_tau = f[L.t[ref], L.c[ref]] - (1.0 - L.tau[ref])[:, None] * L.delta[ref]
             ur = L.upper[ref].astype(np.float64)
             p = L.perm[ref, :b]
@@ -306,11 +315,18 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
             L.u[ref] = ur
             L.g[ref] = _lmul(H, L, ref, ur) + f_tau
             L.nupd[ref] = 0
-        # -- direction of the current segment: du/dtau on the free set, dg/dtau everywhere
-        flat = (rows * K)[:, None] + L.perm[:, :b]
-        x = (L.inv[:, :b, :b] @ -np.take(L.delta, flat)[:, :, None])[:, :, 0]  # 0 beyond nfree
-        d = np.zeros((nl, K))
-        np.put(d, flat, x)
+            L.fresh[ref] = True
+        # -- direction of the current segment: du/dtau on the free set (kept up to date by the
+        #    rank-one updates, recomputed after a new frame or inverse), dg/dtau everywhere
+        new = np.flatnonzero(L.fresh & L.active)
+        if len(new):
+            p = L.perm[new, :b]
+            x = (_blocks(L, new, b) @ -np.take_along_axis(L.delta[new], p, 1)[:, :, None])[:, :, 0]  # 0 beyond nfree
+            dn = np.zeros((len(new), K))
+            np.put_along_axis(dn, p, x, 1)
+            L.d[new] = dn
+            L.fresh[new] = False
+        d = L.d
         gam = _lmul(H, L, None, d) + L.delta
         # -- ratio test: first free variable to hit a bound / first multiplier to reach zero
         free = ~(L.lower | L.upper)
@@ -340,7 +356,7 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
             if steal:
                 _steal(H, f, idx, L, go, Hu, steal, info)
         if len(move):
-            _move(H, L, move, j[move], free[move, j[move]], d[move, j[move]], b)
+            _move(H, L, move, j[move], free[move, j[move]], d[move, j[move]], gam[move, j[move]], b)
         if L.active.sum() < 0.6 * len(L.t) and len(L.t) > 8 and (not steal or ((L.end - L.t)[L.active] < 2 * steal).all()):
             L.take(np.flatnonzero(L.active))
     U = np.clip(U, 0.0, 1.0)
@@ -386,7 +402,7 @@ def _pdas_start(H, f, idx, eps_all, L, lanes, iters, U, info, refresh):
                 Hu[new_h] = _hmul(H, hn[new_h], ug[new_h])
             L.delta[gl] = f[L.t[gl], L.c[gl]] - lam + Hu
             L.g[gl], L.u[gl] = lam, ug
-            L.nupd[gl] = refresh  # fresh inverses in the first round
+            L.nupd[gl] = refresh  # fresh inverses (and directions) in the first round
         el_t = el[todo][~ok]
         new_up = np.where(up[~ok], g[~ok] <= el_t, ut[~ok] > 1 + EPS_U)
         new_lo = np.where(lo[~ok], g[~ok] >= -el_t, ut[~ok] < -EPS_U) & ~new_up
@@ -412,7 +428,7 @@ def _finish_frames(H, f, idx, eps_all, L, fin, free, stuck, b, U, info, k_look, 
     need = np.flatnonzero((free & (np.abs(g1) > 0.1 * el)).any(1))
     if len(need):
         p = L.perm[fin[need], :b]
-        du = (L.inv[fin[need], :b, :b] @ -np.take_along_axis(g1[need], p, 1)[:, :, None])[:, :, 0]
+        du = (_blocks(L, fin[need], b) @ -np.take_along_axis(g1[need], p, 1)[:, :, None])[:, :, 0]
         un = u1[need]
         np.put_along_axis(un, p, np.take_along_axis(un, p, 1) + du, 1)
         u1[need] = np.where(free[need], un, u1[need])
@@ -436,7 +452,8 @@ def _finish_frames(H, f, idx, eps_all, L, fin, free, stuck, b, U, info, k_look, 
         L.u[lanes], L.g[lanes] = uf, gf
         m = np.flatnonzero(movable)
         if len(m):
-            _move(H, L, lanes[m], j[m], fr[m, j[m]], np.where(uf[m, j[m]] > 1.0, 1.0, -1.0), b)
+            _move(H, L, lanes[m], j[m], fr[m, j[m]], np.where(uf[m, j[m]] > 1.0, 1.0, -1.0), np.zeros(len(m)), b)
+        L.fresh[lanes] = True
         L.nupd[lanes[~movable]] = refresh
         keep = np.ones(len(fin), bool)
         keep[fix] = False
@@ -464,7 +481,7 @@ def _finish_frames(H, f, idx, eps_all, L, fin, free, stuck, b, U, info, k_look, 
             cc = c[ok_lane, None]
             df = f[tc, cc] - f1[ok_lane, None, :]  # (n, k, K)
             p = L.perm[ln, :b]
-            x = -np.take_along_axis(df, p[:, None, :], axis=2) @ L.inv[ln, :b, :b]  # inverse symmetric
+            x = -np.take_along_axis(df, p[:, None, :], axis=2) @ _blocks(L, ln, b)  # inverse symmetric
             du = np.zeros(df.shape)
             np.put_along_axis(du, np.broadcast_to(p[:, None, :], x.shape), x, axis=2)
             Uk = u1[ok_lane, None, :] + du
@@ -509,6 +526,7 @@ def _finish_frames(H, f, idx, eps_all, L, fin, free, stuck, b, U, info, k_look, 
     L.tau[go] = 0.0
     L.seg[go] = 0
     L.last[go] = -1
+    L.fresh[go] = True
     return go, Hu
 
 
@@ -544,60 +562,78 @@ def _steal(H, f, idx, L, go, Hu, steal, info):
     L.tau[th] = 0.0
     L.seg[th] = 0
     L.last[th] = -1
+    L.fresh[th] = True
     L.active[th] = True
 
 
-def _move(H, L, mv, j, was_free, dj, b):
+def _move(H, L, mv, j, was_free, dj, gj, b):
     """Apply the breakpoint of each moving lane: index j joins a bound or leaves the free set.
 
-    Both cases are one symmetric rank-one change of the stored inverse ``M = H_FF^-1``,
-    applied to all lanes at once (no gathers): with ``x = M z``,
+    Both cases are one symmetric rank-one change of the stored inverse ``M = H_FF^-1`` and of
+    the direction ``d = -M delta_F`` (so the next segment needs no product with M): with
+    ``x = M z``,
 
-    * j leaves (position p): ``z = e_p``, ``M <- M - x x^T / x_p``, then row/column p is
-      replaced by the last free one (the block stays compact);
-    * j joins (new position q = nfree): ``z = H_Fj``, Schur complement ``s = H_jj - z^T x``,
-      ``M <- M + x x^T / s`` and row/column q = ``-x / s``, ``M_qq = 1 / s``.
+    * j leaves (compact position p): ``z = e_p``, ``M <- M - x x^T / x_p``,
+      ``d <- d - x d_p / x_p``, then row/column p is replaced by the last free one;
+    * j joins (position q = nfree): ``z = H_Fj``, Schur complement ``s = H_jj - z^T x``,
+      ``M <- M + x x^T / s``, row/column q = ``-x / s``, ``M_qq = 1 / s``;
+      ``d_F <- d_F + x gamma_j / s``, ``d_j = -gamma_j / s`` (``gamma_j`` = dg_j/dtau).
     """
     L.seg[mv] += 1
     L.last[mv] = j
     L.nupd[mv] += 1
-    nl = len(L.t)
-    Mv = L.inv[:, :b, :b]  # a view: updated in place
-    rm, jr, to_up = mv[was_free], j[was_free], dj[was_free] > 0
-    ad, ja = mv[~was_free], j[~was_free]
-    p = np.argmax(L.perm[rm, :b] == jr[:, None], axis=1)  # compact position of a leaving index
-    q_ad = L.nfree[ad]
-    Z = np.zeros((nl, b))
+    n = len(mv)
+    a = np.arange(n)
+    full = np.take(L.inv, mv, axis=0)  # whole blocks: a memcpy per lane, not an element-wise gather
+    Ms = full[:, :b, :b]
+    perm = L.perm[mv]
+    nfree = L.nfree[mv]
+    d = L.d[mv]
+    rm = np.flatnonzero(was_free)
+    ad = np.flatnonzero(~was_free)
+    p = np.argmax(perm[rm, :b] == j[rm, None], axis=1)  # compact position of a leaving index
+    Z = np.zeros((n, b))
     Z[rm, p] = 1.0
-    live = np.arange(b)[None] < q_ad[:, None]
-    Z[ad] = H[L.h[ad][:, None], L.perm[ad, :b], ja[:, None]] * live
-    X = (Mv @ Z[:, :, None])[:, :, 0]
-    coef = np.zeros(nl)
+    live = np.arange(b)[None] < nfree[ad, None]
+    Z[ad] = H[L.h[mv[ad]][:, None], perm[ad, :b], j[ad, None]] * live
+    X = (Ms @ Z[:, :, None])[:, :, 0]
+    coef = np.empty(n)
     coef[rm] = -1.0 / X[rm, p]
-    schur = H[L.h[ad], ja, ja] - np.einsum("ni,ni->n", Z[ad], X[ad])
+    schur = H[L.h[mv[ad]], j[ad], j[ad]] - np.einsum("ni,ni->n", Z[ad], X[ad])
     coef[ad] = 1.0 / schur
-    Mv += X[:, :, None] * (coef[:, None] * X)[:, None, :]
+    Ms += X[:, :, None] * (coef[:, None] * X)[:, None, :]
+    # direction, in the old compact order (before the permutation changes below)
+    scale = np.empty(n)
+    scale[rm] = -d[rm, j[rm]] / X[rm, p]
+    scale[ad] = gj[ad] / schur
+    np.put_along_axis(d, perm[:, :b], np.take_along_axis(d, perm[:, :b], 1) + scale[:, None] * X, 1)
+    d[rm, j[rm]] = 0.0
+    d[ad, j[ad]] = -gj[ad] / schur
     if len(rm):  # free -> bound
-        L.lower[rm, jr] = ~to_up
-        L.upper[rm, jr] = to_up
-        L.u[rm, jr] = to_up.astype(np.float64)
-        q = L.nfree[rm] - 1
-        Mv[rm, p, :] = Mv[rm, q, :]
-        Mv[rm, :, p] = Mv[rm, :, q]
-        Mv[rm, q, :] = 0.0
-        Mv[rm, :, q] = 0.0
-        L.perm[rm, p] = L.perm[rm, q]
-        L.perm[rm, q] = jr
-        L.nfree[rm] -= 1
+        ln, jr, to_up = mv[rm], j[rm], dj[rm] > 0
+        L.lower[ln, jr] = ~to_up
+        L.upper[ln, jr] = to_up
+        L.u[ln, jr] = to_up.astype(np.float64)
+        q = nfree[rm] - 1
+        Ms[rm, p, :] = Ms[rm, q, :]
+        Ms[rm, :, p] = Ms[rm, :, q]
+        Ms[rm, q, :] = 0.0
+        Ms[rm, :, q] = 0.0
+        perm[rm, p] = perm[rm, q]
+        perm[rm, q] = jr
+        nfree[rm] -= 1
     if len(ad):  # bound -> free
-        L.lower[ad, ja] = False
-        L.upper[ad, ja] = False
-        L.g[ad, ja] = 0.0
+        ln, ja, q = mv[ad], j[ad], nfree[ad]
+        L.lower[ln, ja] = False
+        L.upper[ln, ja] = False
+        L.g[ln, ja] = 0.0
         w = X[ad] * coef[ad, None]
-        Mv[ad, q_ad, :] = -w
-        Mv[ad, :, q_ad] = -w
-        Mv[ad, q_ad, q_ad] = coef[ad]
-        pj = np.argmax(L.perm[ad] == ja[:, None], axis=1)
-        L.perm[ad, pj] = L.perm[ad, q_ad]
-        L.perm[ad, q_ad] = ja
-        L.nfree[ad] += 1
+        Ms[ad, q, :] = -w
+        Ms[ad, :, q] = -w
+        Ms[ad, q, q] = coef[ad]
+        pj = np.argmax(perm[ad] == ja[:, None], axis=1)
+        perm[ad, pj] = perm[ad, q]
+        perm[ad, q] = ja
+        nfree[ad] += 1
+    L.inv[mv] = full
+    L.perm[mv], L.nfree[mv], L.d[mv] = perm, nfree, d
