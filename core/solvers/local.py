@@ -42,7 +42,8 @@ and the Python call overhead alone is ~10–50 µs per problem), hence the hand-
 The box form goes through :func:`core.solvers.boxqp.solve_box_sequence` instead: a batched
 parametric active-set method along the frames of every region (each frame starts from the
 previous frame's solution and active set, one rank-one update per set change, KKT conditions
-verified per frame), 2-4x faster than the block-warm-started PDAS above on real takes.
+verified per frame): 0.20 s instead of 0.37 s for the 24,000 QPs of ``bench_local.py``'s box
+case, measured back to back on the same machine.
 
 Synthesis (eq. 3) blends the regional results with the masks: ``x = n + Σ_k B_k D̄ u_k``.
 """
