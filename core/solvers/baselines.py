@@ -159,50 +159,90 @@ def _smax2(Bm) -> float:
     return float(np.linalg.norm(Bm, 2) ** 2) if Bm.size else 0.0
 
 
-def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: float = 0.0) -> np.ndarray:
+def _bounds(lower, upper, K: int, name: str):
+    """(K,) float bounds from scalars or per-shape arrays, validated."""
+    try:
+        lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,))
+        hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,))
+    except ValueError:
+        raise ValueError(f"{name}: lower and upper must be scalars or ({K},) per-shape arrays, "
+                         f"got shapes {np.shape(lower)} and {np.shape(upper)}") from None
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise ValueError(f"{name}: bounds must be finite (use a large number for 'no bound'), got {lower}, {upper}")
+    if (lo > hi).any():
+        bad = np.flatnonzero(lo > hi)[:5].tolist()
+        raise ValueError(f"{name}: lower must be <= upper, violated for shapes {bad}")
+    return lo, hi
+
+
+def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: float = 0.0, return_info: bool = False):
     """"Range PF" (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2  s.t. lower <= w <= upper``.
 
-    Batched primal-dual active-set solve (:func:`box_lsq`) per mask pattern, checked against
-    ``scipy.optimize.lsq_linear`` in the tests. The paper's range is [-0.5, 1.5].
+    With ``w = lower + D u``, ``D = diag(upper - lower)``, every frame is the unit-box QP
+    ``min_u 1/2 u^T (D H D) u + (D (H lower - B_v^T s_t))^T u``, ``0 <= u <= 1``, ``H = B_v^T B_v``
+    (``B_v``: the frame's valid rows). All frames are solved together by the batched parametric
+    active-set method of :func:`core.solvers.boxqp.solve_box_sequence`, each frame warm-started
+    from the previous one (one Hessian per mask pattern, so frames with missing samples stay in
+    the sequence); every frame's KKT conditions are checked, so the result is the exact
+    optimum, as SciPy's BVLS (``lsq_linear(method="bvls")``) in the tests. The paper's range is
+    [-0.5, 1.5].
 
     Parameters
     ----------
     B, S, valid
         As :func:`no_const`.
     lower, upper : float or (K,) float
-        Weight bounds, ``lower <= upper``.
+        Weight bounds, finite, ``lower <= upper`` (per shape when arrays). A shape with
+        ``lower == upper`` is fixed at that value.
+    ridge : float >= 0
+        Adds ``ridge * sigma_max(B)^2 ||w||^2`` (a relative Tikhonov term, 0 = the paper's
+        method). When ``B`` restricted to a frame's valid markers is rank deficient the fit is
+        not unique; a ridge ``1e-9 * lambda_max(B_v^T B_v) ||w||^2`` (the spacetime solver's
+        ``ridge="auto"``) is then added to make it so.
+    return_info : bool
+        Also return the solver's counters (see :func:`core.solvers.boxqp.solve_box_sequence`).
 
     Returns
     -------
-    (T, K) float
-
-    ``ridge`` adds ``ridge * sigma_max(B)^2 ||w||^2`` (a relative Tikhonov term, 0 = the
-    paper's method). When ``B`` restricted to a frame's valid markers is rank deficient the fit is not unique;
-    a ridge ``1e-9 * lambda_max(B^T B) ||w||^2`` (the spacetime solver's ``ridge="auto"``) is
-    then added to make it so.
+    (T, K) float, and ``info`` when ``return_info``.
 
     Raises
     ------
     ValueError
-        ``lower > upper``.
+        ``lower > upper``, non-finite bounds, bounds of the wrong shape.
     """
+    from core.solvers.boxqp import solve_box_sequence
+
     Bm, Sz, valid = _setup(B, S, valid)
     K = Bm.shape[1]
-    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,))
-    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,))
-    if (lo > hi).any():
-        raise ValueError(f"range_pf: lower must be <= upper, got {lower}, {upper}")
-    W = np.zeros((len(Sz), K))
+    lo, hi = _bounds(lower, upper, K, "range_pf")
+    T = len(Sz)
+    W = np.broadcast_to(np.clip(0.0, lo, hi), (T, K)).copy()  # frames without any valid marker
+    info = {"fallback": 0}
     rho = ridge * _smax2(Bm)
-    for pat, frames in _groups(valid):
-        rows = np.repeat(pat, 3)
-        Bv = Bm[rows]
-        H = Bv.T @ Bv + rho * np.eye(K)
-        try:
-            np.linalg.cholesky(H)
-        except np.linalg.LinAlgError:
-            # rank-deficient B on these markers: the bounded fit is not unique; the same
-            # relative ridge as the spacetime solver's "auto" picks the smallest-norm-ish one
-            H = H + AUTO_RIDGE * max(np.linalg.eigvalsh(H)[-1], 1e-300) * np.eye(K)
-        W[frames] = box_lsq(H, Sz[frames][:, rows] @ Bv, lo, hi)[0]
-    return W
+    sol = np.flatnonzero(hi > lo)  # shapes to solve for; the others are pinned at lower
+    if len(sol):
+        pats, inv = (valid[:1], np.zeros(T, np.int64)) if valid.all() else np.unique(valid, axis=0, return_inverse=True)
+        inv = np.asarray(inv).ravel()
+        d = (hi - lo)[sol]
+        R = Sz @ Bm  # (T, K): B_v^T s_t for every frame (missing samples are zero-filled)
+        Htab, lin = [], []
+        for pat in pats:
+            rows = np.repeat(pat, 3)
+            Bv = Bm[rows]
+            H = Bv.T @ Bv + rho * np.eye(K)
+            try:
+                np.linalg.cholesky(H)
+            except np.linalg.LinAlgError:
+                # rank-deficient B on these markers: the bounded fit is not unique; the same
+                # relative ridge as the spacetime solver's "auto" picks the smallest-norm-ish one
+                H = H + AUTO_RIDGE * max(np.linalg.eigvalsh(H)[-1], 1e-300) * np.eye(K)
+            Htab.append(H[np.ix_(sol, sol)] * d[:, None] * d[None, :])
+            lin.append((lo @ H)[sol])
+        has = pats.any(1)[inv]  # frames with at least one valid marker
+        fr = np.flatnonzero(has)
+        if len(fr):
+            f = (np.asarray(lin)[inv[fr]] - R[fr][:, sol]) * d
+            u, info = solve_box_sequence(np.asarray(Htab), f, inv[fr], return_info=True)
+            W[np.ix_(fr, sol)] = np.clip(lo[sol] + u * d, lo[sol], hi[sol])
+    return (W, info) if return_info else W
