@@ -83,3 +83,23 @@ def test_dense_correspondence_of_a_marker_capture_through_the_cli(tmp_path, caps
                  "300", "--last-frame", "59", "--weights-csv", str(out), "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "300 markers" in text and out.exists()
+
+
+def test_rom_motion_scale_maps_the_actors_range_onto_the_characters():
+    """motion_scale = rom: each point's motion is scaled by the target's range over the source's,
+    so the fitted motion's range per point equals the target shapes' range."""
+    pipe = Pipeline(cache=StageCache(), target_rig=str(RIGS / "rocketbox_female_adult_02.glb"), method="bounded",
+                    last_frame=119, target_shapes="arkit", **CURVES)
+    raw = pipe.results(["calibrate"])["calibrate"]
+    assert raw["source_scale"] is None
+    pipe.configure(motion_scale="rom")
+    cal = pipe.results(["calibrate"])["calibrate"]
+    s = cal["source_scale"]
+    st = pipe.results(["stabilize"])["stabilize"]["source"]
+    np.testing.assert_allclose(cal["source"].deltas, st.deltas * s[None, :, None])
+    rom_t = np.linalg.norm(cal["deltas"], axis=2).max(0)
+    load = pipe.results(["load", "correspond"])
+    rom_s = np.linalg.norm(load["correspond"]["source_layout"].select(st.names).points(load["load"]["source_rig"].deltas),
+                           axis=2).max(0)
+    np.testing.assert_allclose(s, np.clip(rom_t / rom_s, 0.1, 10))
+    assert np.median(s) < 0.8  # Rocketbox's ARKit shapes move less than ICT's

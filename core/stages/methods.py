@@ -92,8 +92,9 @@ def _prior(inputs):
 
 
 def _markers(inputs):
-    """``(B (K, M, 3), S (T, M, 3), valid (T, M))`` the solvers fit."""
-    st = inputs["stabilize"]["source"]
+    """``(B (K, M, 3), S (T, M, 3), valid (T, M))`` the solvers fit (the source's motion as the
+    calibrate stage passes it on: range-of-motion scaled or not)."""
+    st = inputs["calibrate"]["source"]
     return inputs["personalize"]["deltas"], st.deltas, st.valid
 
 
@@ -201,7 +202,7 @@ def _local(inputs, s):
     from ..solvers.local import blend_weights, local_precompute, local_spacetime, reconstruct_markers, smooth_weights
 
     B, S, valid = _markers(inputs)
-    st = inputs["stabilize"]["source"]
+    st = inputs["calibrate"]["source"]
     seg = inputs["segment"]
     mw = seg["marker_weights"] if _marker_weights(inputs) is None else seg["marker_weights"] * _marker_weights(inputs)[None]
     problem = local_precompute(np.zeros_like(st.neutral), B, mw, constraint=s.constraint)

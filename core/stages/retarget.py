@@ -288,22 +288,52 @@ class Stabilize(Stage):
 
 @register("calibrate")
 class Calibrate(Stage):
-    """Scale-proportion matching of the target's marker blendshapes (Seol 2012 §3.2)."""
+    """Scale-proportion matching of the target's marker blendshapes (Seol 2012 §3.2), and,
+    optionally, range-of-motion matching of the source's motion (``motion_scale``).
 
-    deps = ("load", "shapes", "stabilize")
+    ``motion_scale = "rom"`` maps the actor's range of motion onto the character's, point by
+    point: each source point's motion is scaled by ``s(p) = ROM_target(p) / ROM_source(p)``,
+    ``ROM(p)`` the largest displacement any of the rig's shapes gives the point (the target's
+    solver shapes, calibrated; the source rig's shapes — or, for a capture, the 99th percentile
+    of the take's own motion), clipped to [0.1, 10]. An actor whose full jaw drop moves the chin
+    twice as far as the character's full jaw drop then drives the character's full jaw drop, not
+    a clipped one. The result's ``source`` is the motion the solvers fit (scaled or not).
+    """
+
+    deps = ("load", "correspond", "shapes", "stabilize")
     group, title = "calibrate", "Source & calibration"
     calibrate = param.Boolean(default=True, doc="Warp the target's marker blendshapes into the actor's proportions with an RBF")
     rbf_smoothing = param.Number(default=0.0, bounds=(0, 1), softbounds=(0, 0.1), doc="RBF ridge relative to the mean marker distance (0: exact interpolation)")
+    motion_scale = param.Selector(default="none", objects=["none", "rom"], doc=(
+        "Match the actor's range of motion to the character's, point by point (rom: an actor's full jaw drop drives "
+        "the character's full jaw drop); none = the actor's motion as captured"))
 
     def relevant(self, cfg):
-        return ("calibrate", "rbf_smoothing") if cfg.calibrate.calibrate else ("calibrate",)
+        c = cfg.calibrate
+        return ("calibrate", "motion_scale") + (("rbf_smoothing",) if c.calibrate else ())
 
     def run(self, inputs, s, progress=None):
         sh, st = inputs["shapes"], inputs["stabilize"]
-        tm = target_markers(sh["rig"], sh["layout"], st["names"], st["source"].neutral, s.calibrate,
-                            s.rbf_smoothing)
+        src = st["source"]
+        tm = target_markers(sh["rig"], sh["layout"], st["names"], src.neutral, s.calibrate, s.rbf_smoothing)
+        scale = None
+        if s.motion_scale == "rom":
+            scale = rom_scale(tm.calibrated, src, inputs["load"]["source_rig"], inputs["correspond"]["source_layout"],
+                              st["names"])
+            src = replace(src, deltas=src.deltas * scale[None, :, None])
         return {"target": tm, "deltas": tm.calibrated, "shape_index": sh["shape_index"], "rig": sh["rig"],
-                "unseen": sh["unseen"]}
+                "unseen": sh["unseen"], "source": src, "source_scale": scale}
+
+
+def rom_scale(target_deltas, source, source_rig=None, source_layout=None, names=None) -> np.ndarray:
+    """(M,) ``ROM_target / ROM_source`` per point, clipped to [0.1, 10] (see :class:`Calibrate`)."""
+    rom_t = np.linalg.norm(np.asarray(target_deltas), axis=2).max(0)
+    if source_rig is not None and source_layout is not None:
+        rom_s = np.linalg.norm(source_layout.select(list(names)).points(source_rig.deltas), axis=2).max(0)
+    else:
+        d = np.linalg.norm(np.where(source.valid[..., None], source.deltas, 0.0), axis=2)
+        rom_s = np.percentile(d, 99, axis=0)
+    return np.clip(rom_t / np.maximum(rom_s, 1e-12), 0.1, 10.0)
 
 
 @register("personalize")
@@ -332,7 +362,7 @@ class Personalize(Stage):
         from ..personalize import personalize
 
         st = inputs["stabilize"]
-        src = st["source"]
+        src = cal["source"]
         rom_deltas, rom_valid = src.deltas, src.valid
         if s.rom:
             from ..io.performance import read_performance
@@ -347,6 +377,8 @@ class Personalize(Stage):
                 raise ValueError(f"{s.rom}: the range-of-motion take lacks markers {missing}")
             idx = [rom.names.index(n) for n in st["names"]]
             rom_deltas, rom_valid = rom.deltas[:, idx], rom.valid[:, idx]
+            if cal["source_scale"] is not None:  # the ROM take in the character's range, as the take
+                rom_deltas = rom_deltas * cal["source_scale"][None, :, None]
         out = personalize(rom_deltas, cal["deltas"], src.neutral, names=st["names"], rig_deltas=cal["target"].deltas,
                           valid=rom_valid, beta=s.align_beta, gamma=s.align_gamma)
         return {"deltas": out.deltas, "personalized": True, "diagnostics": out}
@@ -411,7 +443,7 @@ class Solve(Stage):
     """The retargeting solver and its term weights. Each method is registered in
     :mod:`core.stages.methods` with the settings it reads and the stages it needs."""
 
-    deps = ("load", "frames", "stabilize", "personalize", "shapes", "segment", "prior")
+    deps = ("load", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior")
     group, title = "solve", "Solver"
     method = param.Selector(default="bounded", objects=list(METHODS), doc=(
         "lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
@@ -464,7 +496,7 @@ class Solve(Stage):
 class Edit(Stage):
     """Spacetime edits (Seol 2012 §6) on top of any method's solution."""
 
-    deps = ("solve", "personalize", "stabilize", "prior", "shapes", "load", "frames")
+    deps = ("solve", "personalize", "calibrate", "prior", "shapes", "load", "frames")
     edits = param.List(default=[], item_type=dict, doc="Edits: {frame, weights: {shape: value}, window: [a, b] or null}")
 
     def active(self, cfg):
@@ -477,7 +509,7 @@ class Edit(Stage):
         from ..solvers.spacetime import Edit as PoseEdit
         from ..solvers.spacetime import SpacetimeSolver
 
-        st = inputs["stabilize"]["source"]
+        st = inputs["calibrate"]["source"]  # the motion the solve fitted
         edits = []
         for e in s.edits:
             win = e.get("window")
@@ -535,7 +567,7 @@ class Evaluate(Stage):
     """Diagnostics (marker error, Seol 2012 Fig. 11 velocity error, weight range, jitter);
     frames without data (``synthesize["valid"]`` False) are excluded from every statistic."""
 
-    deps = ("stabilize", "personalize", "solve", "edit", "synthesize")
+    deps = ("calibrate", "personalize", "solve", "edit", "synthesize")
     group, title = "source", "Frame range"
     jitter_window = param.Integer(default=1, bounds=(1, 10), doc="Frame step of the jitter measure")
 
@@ -545,7 +577,7 @@ class Evaluate(Stage):
     def run(self, inputs, s, progress=None):
         from ..evaluate import evaluate
 
-        st = inputs["stabilize"]["source"]
+        st = inputs["calibrate"]["source"]  # the motion the solve fitted
         predicted = inputs["solve"]["info"].get("predicted") if not inputs["edit"]["edits"] else None
         return evaluate(inputs["personalize"]["deltas"], inputs["edit"]["weights"], st.deltas, st.valid, step=s.jitter_window,
                         predicted=predicted, frame_valid=inputs["synthesize"]["valid"])
