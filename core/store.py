@@ -590,13 +590,14 @@ def _next_note_id(taken) -> str:
 
 
 def _apply(shot: Shot, ch: dict, author: str, at: float, file_name: Callable[[str], str] = lambda sha: "") -> tuple:
-    """Apply a parsed change to a copy of ``shot``: ``(new shot, change as recorded, effects)``.
+    """Apply a parsed change to ``shot`` *in place* (callers pass a document they just parsed and
+    drop it when this raises): ``(shot, change as recorded, effects)``.
 
     Effects are the rows of the derived tables: ``settings`` [(stage, setting, old, new)],
     ``edits`` [(editor, op, position, edit)], ``notes`` [note], ``files`` [(role, sha or None, path)].
     Deterministic given the recorded change (note ids, file paths and indices are in it), so
     the changes log replays. Raises ValueError when the change cannot apply to this shot."""
-    new = copy.deepcopy(shot)
+    new = shot
     rec = copy.deepcopy(ch)
     fx: dict = {"settings": [], "edits": [], "notes": [], "files": []}
     kind = ch["kind"]
@@ -1128,7 +1129,7 @@ class Store:
             row = db.execute("SELECT doc, version FROM shots WHERE id = ?", (shot_id,)).fetchone()
         if row is None:
             raise UnknownShot(f"no shot {shot_id!r} in the review store {self.root}")
-        return Shot.from_dict(json.loads(row[0])), row[1]
+        return Shot.from_dict(json.loads(row[0]), copy=False), row[1]
 
     def info(self, shot_id: str) -> dict:
         """``{"id", "title", "created", "updated", "version", "content_hash"}`` of a shot."""
@@ -1149,7 +1150,7 @@ class Store:
         row = db.execute("SELECT version, doc FROM shots WHERE id = ?", (shot_id,)).fetchone()
         if row is None:
             raise UnknownShot(f"no shot {shot_id!r} in the review store {self.root}")
-        return row[0], Shot.from_dict(json.loads(row[1]))
+        return row[0], Shot.from_dict(json.loads(row[1]), copy=False)
 
     def _file_name(self, db) -> Callable[[str], str]:
         def name(sha):
@@ -1217,7 +1218,7 @@ class Store:
 
     def _commit_change(self, db, shot_id, version, base_version, author, at, rec, new: Shot, fx) -> None:
         cur = db.execute("UPDATE shots SET version = ?, updated = ?, doc = ?, content_hash = ? WHERE id = ? AND version = ?",
-                         (version, at, _dumps(new.to_dict()), new.content_hash(), shot_id, version - 1))
+                         (version, at, _dumps(new.to_dict(copy=False)), new.content_hash(), shot_id, version - 1))
         if cur.rowcount != 1:
             raise RuntimeError(f"shot {shot_id}: version {version - 1} is not the head")
         db.execute("INSERT INTO changes (shot_id, version, base_version, author, at, kind, change) VALUES (?, ?, ?, ?, ?, ?, ?)",
