@@ -20,10 +20,10 @@ from core.store import Store  # noqa: E402
 
 def main(data, shot_id, label, count, wait=False):
     store = Store(data)
+    _, version = store.get(shot_id)  # read before the start: two waiting writers begin from the same version
     print(f"READY {label}", flush=True)
     if wait and not sys.stdin.readline():
         return
-    _, version = store.get(shot_id)
     for i in range(count):
         edit = {"frame": i, "weights": {"jawOpen": 0.5}, "writer": label, "i": i}
         version = store.apply(shot_id, {"kind": "edit", "editor": "spacetime", "op": "add", "edit": edit}, version, label).version
