@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 SCHEMA_VERSION = 1
+_deepcopy = copy.deepcopy  # the methods' ``copy`` arguments shadow the module
 #: the editors whose edit lists a shot holds, and the stage setting each list is
 EDITORS = {"spacetime": "edits", "transfer": "transfer_edits", "detail": "detail_edits"}
 
@@ -105,10 +106,13 @@ class EditHistory:
         return {"done": copy.deepcopy(self.done), "undone": copy.deepcopy(self.undone)}
 
     @classmethod
-    def from_dict(cls, d) -> "EditHistory":
+    def from_dict(cls, d, copy: bool = True) -> "EditHistory":
+        """From ``{"done": [...], "undone": [...]}`` (or a bare done list); ``copy=False`` takes
+        over the lists' items instead of copying them."""
+        dup = _deepcopy if copy else (lambda x: x)
         if isinstance(d, list):  # a bare list is the done list
-            return cls(copy.deepcopy(d), [])
-        return cls(copy.deepcopy(list(d.get("done", []))), copy.deepcopy(list(d.get("undone", []))))
+            return cls(dup(list(d)), [])
+        return cls(dup(list(d.get("done", []))), dup(list(d.get("undone", []))))
 
 
 @dataclass
@@ -124,26 +128,34 @@ class Shot:
     schema_version: int = SCHEMA_VERSION
 
     # -- plain data ------------------------------------------------------------------------
-    def to_dict(self) -> dict:
+    def to_dict(self, copy: bool = True) -> dict:
+        """The shot as plain data. ``copy=False`` shares the settings, edit lists and notes
+        with the shot instead of copying them (for serialising at once, e.g. the review store's
+        writes, where the deep copies were most of the time); do not modify that dict."""
+        dup = _deepcopy if copy else (lambda x: x)
         return {
             "schema_version": self.schema_version,
             "files": {k: {"path": v.path, "sha": v.sha} for k, v in sorted(self.files.items())},
-            "settings": copy.deepcopy(self.settings),
-            "edits": {k: self.edits[k].to_dict() if k in self.edits else EditHistory().to_dict() for k in EDITORS},
+            "settings": dup(self.settings),
+            "edits": {k: ({"done": dup(self.edits[k].done), "undone": dup(self.edits[k].undone)} if k in self.edits
+                          else EditHistory().to_dict()) for k in EDITORS},
             "frame": int(self.frame),
-            "notes": copy.deepcopy(self.notes),
+            "notes": dup(self.notes),
         }
 
     @classmethod
-    def from_dict(cls, doc: dict) -> "Shot":
+    def from_dict(cls, doc: dict, copy: bool = True) -> "Shot":
         """A shot from its plain-data form, migrated from an older schema when needed.
+        ``copy=False`` lets the shot take over ``doc``'s lists and dicts instead of copying them
+        (for a document just parsed from JSON that nothing else holds).
 
         Raises
         ------
         ValueError
             Not a shot, a newer schema than this program knows, or malformed fields (named).
         """
-        doc = migrate(doc)
+        if copy or not isinstance(doc, dict) or type(doc.get("schema_version")) is not int or doc["schema_version"] != SCHEMA_VERSION:
+            doc = migrate(doc)
         files = {}
         for role, ref in doc.get("files", {}).items():
             if not isinstance(ref, dict) or "path" not in ref:
@@ -152,11 +164,14 @@ class Shot:
         settings = doc.get("settings", {})
         if not isinstance(settings, dict) or not all(isinstance(v, dict) for v in settings.values()):
             raise ValueError("shot: settings: expected {stage: {setting: value}}")
-        edits = {k: EditHistory.from_dict(doc.get("edits", {}).get(k, {})) for k in EDITORS}
+        edits = {k: EditHistory.from_dict(doc.get("edits", {}).get(k, {}), copy=False) for k in EDITORS}  # doc is ours
         unknown = set(doc.get("edits", {})) - set(EDITORS)
         if unknown:
             raise ValueError(f"shot: edits: unknown editors {sorted(unknown)}; expected {sorted(EDITORS)}")
-        return cls(files, copy.deepcopy(settings), edits, int(doc.get("frame", 0)), copy.deepcopy(list(doc.get("notes", []))))
+        notes = doc.get("notes", [])
+        if not isinstance(notes, list):
+            raise ValueError(f"shot: notes: expected a list, got {type(notes).__name__}")
+        return cls(files, settings, edits, int(doc.get("frame", 0)), notes)
 
     def to_json(self, path=None, indent: int = 1) -> str:
         """The shot as JSON text (written to ``path`` when given)."""
