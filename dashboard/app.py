@@ -276,6 +276,11 @@ class DashboardApp(pn.viewable.Viewer):
     def _sync_edit_value(self):
         snap = self.s.snapshot
         shape = self.w_edit_shape.value
+        if snap:
+            lo, hi = snap.get("edit_bounds", (None, None))
+            lo, hi = (-0.5 if lo is None else float(np.min(lo))), (1.5 if hi is None else float(np.max(hi)))
+            if (self.w_edit_value.start, self.w_edit_value.end) != (lo, hi):
+                self.w_edit_value.param.update(start=lo, end=hi, value=float(np.clip(self.w_edit_value.value, lo, hi)))
         if snap and shape in snap["target_names"]:
             w = snap["weights"][min(self.w_frame.value, len(snap["weights"]) - 1), snap["target_names"].index(shape)]
             self.w_edit_value.value = float(np.clip(np.nan_to_num(w), self.w_edit_value.start, self.w_edit_value.end))

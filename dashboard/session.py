@@ -238,6 +238,8 @@ class Session(param.Parameterized):
             "solver_names": list(res["calibrate"]["rig"].names),
             "source_neutral": st.neutral,  # the shapes of the (K_solver, M, 3) deltas
             "solve_info": res["solve"]["info"], "warnings": warnings_,
+            # an edit is solved under the method's own bounds: the edit slider spans them
+            "edit_bounds": (res["solve"]["edit"]["lower"], res["solve"]["edit"]["upper"]),
         }
 
     def _status_line(self) -> str:

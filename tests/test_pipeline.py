@@ -245,3 +245,25 @@ def test_method_registry_is_the_one_source_of_method_knowledge():
     assert set(PRIOR_METHODS) == {n for n, m in REGISTRY.items() if "prior" in m.needs}
     pipe = Pipeline(method="local")
     assert pipe.segment.active(pipe.config()) and not pipe.prior.active(pipe.config())
+
+
+def test_an_edit_stays_inside_the_methods_bounds_and_its_window():
+    """The issue's own case: "Set pose at this frame" with AK_25_JawOpen = 1.39 at frame 437
+    (half-window 12) on the bounded result turned 0..1 into -29.2..75.5; now the edit is solved
+    under the method's bounds and regularisers: every weight stays in [0, 1] and the other
+    shapes change only inside the window."""
+    pipe = Pipeline(cache=StageCache(), method="bounded", last_frame=599, target_shapes="arkit", **FILES)
+    before = pipe.results(["synthesize"])["synthesize"]["weights"].copy()
+    names = pipe.results(["load"])["load"]["target_rig"].names
+    jaw = names.index("AK_25_JawOpen")
+    with pytest.warns(UserWarning, match="clipped"):
+        pipe.add_edit("spacetime", {"frame": 437, "weights": {"AK_25_JawOpen": 1.39}, "window": [425, 449]})
+        after = pipe.results(["synthesize"])["synthesize"]["weights"]
+    assert after.min() >= -1e-9 and after.max() <= 1 + 1e-9
+    outside = np.r_[0:425, 450:600]
+    np.testing.assert_array_equal(after[outside], before[outside])
+    assert after[437, jaw] == pytest.approx(1.0)  # the pose, clipped to the shape's bound
+    for method in ("spacetime", "local"):
+        pipe.configure(method=method)
+        W = pipe.results(["synthesize"])["synthesize"]["weights"]
+        assert W.min() >= -1e-9 and W.max() <= 1 + 1e-9, method
