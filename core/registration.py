@@ -393,6 +393,62 @@ def _layout_target(path: Path):
     return topology_rig(read_mesh_sequence(path)) if is_seq else load_rig(path)
 
 
+def place_markers(rig: Rig, from_layout=None, source_rig: Optional[Rig] = None, progress=None):
+    """Markers on a rig that has no layout, automatically, and a check of where they landed.
+
+    The bundled ICT layout (or ``from_layout`` on ``source_rig``) is transferred by
+    :func:`transfer_layout` (similarity + non-rigid ICP + closest point). A marker is flagged
+    when it lands
+
+    * **off the face**: it moves on the source (more than 10 % of the source markers' largest
+      move) but none of the rig's shapes moves its triangle (more than 1 % of the largest move) —
+      on a stylised or animal head the ears, scalp or frill rather than the brow or muzzle (a
+      marker that is still on the source too, e.g. the bridge of the nose, is fine);
+    * **off the surface**: its registered point was more than 2 % of the rig's size from the
+      surface it was snapped to.
+
+    Returns
+    -------
+    layout : MarkerLayout on ``rig``
+    report : dict — ``seconds``, ``residual_mm`` (median, p90, max), ``snap_mm`` {name: mm},
+        ``off_face`` [names], ``off_surface`` [names], ``message`` (plain words for the page)
+    """
+    from .correspondence import moving_vertices
+    from .io.layout import layouts_dir, read_layout
+    from .io.rigs import load_rig as read_rig
+    from .progress import report as say
+
+    if from_layout is None:
+        from_layout = layouts_dir() / "ict_facekit.json"
+        source_rig = source_rig or read_rig(layouts_dir().parent / "rigs" / "ict_facekit.glb")
+    layout = from_layout if isinstance(from_layout, MarkerLayout) else read_layout(from_layout, rig=source_rig)
+    if rig.n_shapes == 0:
+        raise ValueError(f"rig {rig.name!r} has no blend shapes: markers are placed where its shapes move the face")
+    say(progress, 0.05, f"placing {layout.n_markers} markers on {rig.name} (registration, a few seconds)")
+    out, info = transfer_layout(layout, source_rig, rig, target_layout_name=f"{rig.name}")
+    say(progress, 0.9, "checking where the markers landed")
+    moving = moving_vertices(rig)
+    src_move = np.linalg.norm(layout.points(source_rig.deltas), axis=2).max(0)
+    expressive = src_move > 0.1 * src_move.max()
+    off_face = [n for n, tri, e in zip(out.names, out.vertices, expressive) if e and not moving[tri].any()]
+    limit = 0.02 * rig.size * 1e3
+    snap = {n: float(d) for n, d in zip(out.names, info["snap_mm"])}
+    off_surface = [n for n, d in snap.items() if d > limit]
+    parts = [f"Placed {out.n_markers} markers on {rig.name} in {info['seconds']:.0f} s."]
+    if off_face:
+        parts.append(f"{len(off_face)} landed where none of the rig's shapes moves the face — they need a hand: "
+                     f"{', '.join(off_face)}. Drag each onto the part of the face it stands for (a muzzle, a beak, "
+                     f"the brows) before retargeting.")
+    if off_surface:
+        parts.append(f"{len(off_surface)} are far from where the registration put them (more than {limit:.0f} mm): "
+                     f"{', '.join(off_surface)}.")
+    if not off_face and not off_surface:
+        parts.append("All of them are on the moving face; check the eyes and mouth corners and drag any that are off.")
+    say(progress, 1.0, "markers placed")
+    return out, {"seconds": info["seconds"], "residual_mm": info["residual_mm"], "snap_mm": snap,
+                 "off_face": off_face, "off_surface": off_surface, "message": " ".join(parts)}
+
+
 def layout_command(from_path, rig_path, out_path, source_rig_path=None, steps=None) -> str:
     """File-level transfer for the CLI: ``face-retarget layout --from A.json --rig B.glb --out C.json``.
 

@@ -29,6 +29,7 @@ from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
 from dashboard.transfer_view import TransferView  # noqa: E402
 from dashboard.viewer import MeshViewer, error_colors  # noqa: E402
+from dashboard.widgets import param_widgets  # noqa: E402
 
 log = logging.getLogger("face_retarget.dashboard")
 
@@ -39,6 +40,7 @@ REGION_COLORS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 3
                           [152, 223, 138], [255, 152, 150], [197, 176, 213], [196, 156, 148]], dtype=np.float32) / 255
 VIEW_HEIGHT = 430
 CSS = """
+.fr-stale {opacity: 0.35; filter: grayscale(1);}
 .fr-title h1 {font-size: 1.35em; margin: 4px 0 0 0;}
 .fr-muted {color: #666; font-size: 0.86em;}
 .fr-status {font-size: 0.86em;}
@@ -48,8 +50,6 @@ CSS = """
 #: and which of their settings show is declared by the stages (core.stages), not here
 SIDEBAR_CARDS = [("Solver", ("solve",), False), ("Source & calibration", ("source", "calibrate"), True),
                  ("Actor personalisation (Ribera 2017)", ("personalize",), True)]
-#: tiny relative weights read better typed than on a slider that shows 1e-5 as "0"
-TYPED = {"ridge": pn.widgets.FloatInput, "rbf_smoothing": pn.widgets.FloatInput}
 
 
 def visible_settings(stage, cfg) -> list:
@@ -88,6 +88,8 @@ class DashboardApp(pn.viewable.Viewer):
         self.s = session or Session()
         self.pipe = self.s.pipeline
         self._viewer_keys = {"source": None, "target": None}
+        self._shown_files = ""
+        self._marker_report = None
         self._build_widgets()
         self.transfer_view = TransferView(self.s)
         self.normalmap_view = NormalMapView(self.pipe, active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
@@ -102,9 +104,9 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_source_rig = pn.widgets.Select.from_param(s.param.source_rig, name="Source rig (for weight curves)", sizing_mode="stretch_width")
         self.w_target = pn.widgets.Select.from_param(s.param.target_rig, name="Target rig", sizing_mode="stretch_width")
         self.w_upload = pn.widgets.FileInput(accept=".csv,.trc,.c3d,.glb,.gltf,.json", multiple=False, sizing_mode="stretch_width")
-        self.w_upload.param.watch(self._on_upload, "value")
+        self.w_upload.param.watch(self._on_upload, ["value", "filename"], onlychanged=False)
         self.settings_box = pn.Column(sizing_mode="stretch_width")
-        self.w_auto = pn.widgets.Checkbox.from_param(s.param.auto_update, name="Auto-update on every change")
+        self.w_auto = pn.widgets.Toggle.from_param(s.param.auto_update, name="Auto-update on every change", button_type="light", sizing_mode="stretch_width")
         self.w_apply = pn.widgets.Button(name="Apply", button_type="primary", sizing_mode="stretch_width")
         self.w_apply.on_click(lambda e: self.refresh())
         self.w_progress = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width", height=12, bar_color="primary")
@@ -138,6 +140,27 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_edits = pn.Column(sizing_mode="stretch_width")
         self.w_shot = pn.widgets.FileDownload(callback=self._shot_bytes, filename="shot.json", label="Download shot",
                                               button_type="light", sizing_mode="stretch_width")
+        # results out of the browser (a browser user cannot reach the server's disk)
+        self.w_glb = pn.widgets.FileDownload(callback=lambda: self._download("glb"), filename="result.glb",
+                                             label="Download GLB", button_type="light", width=140)
+        self.w_csv = pn.widgets.FileDownload(callback=lambda: self._download("csv"), filename="result.csv",
+                                             label="Download CSV", button_type="light", width=140)
+        # markers on a rig without a layout (a user's own character)
+        self.w_place = pn.widgets.Button(name="Place markers automatically", button_type="primary", sizing_mode="stretch_width")
+        self.w_place.on_click(lambda e: self.place_markers())
+        self.w_edit_markers = pn.widgets.Toggle(name="Move markers: click a marker, then where it goes", button_type="light",
+                                                sizing_mode="stretch_width")
+        self.w_edit_markers.param.watch(lambda e: self._marker_mode(), "value")
+        self.w_layout_dl = pn.widgets.FileDownload(callback=self._layout_bytes, filename="layout.json", label="Download layout",
+                                                   button_type="light", sizing_mode="stretch_width")
+        self.w_marker_progress = pn.indicators.Progress(value=0, max=100, height=10, sizing_mode="stretch_width", visible=False)
+        self.w_marker_info = pn.pane.Markdown("", sizing_mode="stretch_width", css_classes=["fr-status"])
+        self.marker_card = pn.Card(
+            pn.pane.Markdown("The 41 markers the solvers compare both faces at. A rig of your own needs them once: "
+                             "place them automatically, then move any that landed badly.", css_classes=["fr-muted"]),
+            self.w_place, self.w_marker_progress, self.w_marker_info, self.w_edit_markers, self.w_layout_dl,
+            title="Markers on the target rig", collapsed=True, sizing_mode="stretch_width")
+        self._marker_pick = None
         self.source_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
         self.target_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
         self.region_box = pn.Column(sizing_mode="stretch_width")
@@ -155,15 +178,106 @@ class DashboardApp(pn.viewable.Viewer):
 
         return io.BytesIO(self.s.shot().to_json().encode("utf-8"))
 
+    def _download(self, kind: str):
+        import io
+
+        try:
+            return io.BytesIO(self.s.result_bytes(kind))
+        except Exception as e:  # noqa: BLE001 - shown on the page
+            self._notify("error", self.s.readable(e))
+            return None
+
+    def _layout_bytes(self):
+        import io
+
+        try:
+            return io.BytesIO(self.s.layout_json())
+        except Exception as e:  # noqa: BLE001 - shown on the page
+            self._notify("error", self.s.readable(e))
+            return None
+
+    # -- markers on the target rig ----------------------------------------------------------
+    def place_markers(self, block: bool = False) -> None:
+        """Place the markers automatically on the chosen target rig (a worker thread unless
+        ``block``), with progress; the page recomputes with them."""
+        import threading
+
+        def job():
+            t0 = __import__("time").perf_counter()
+            self.w_marker_progress.param.update(visible=True, value=5)
+
+            def prog(f, m):
+                self.w_marker_progress.value = int(100 * min(max(f, 0.0), 1.0))
+                self.w_marker_info.object = html.escape(f"{m} ({__import__('time').perf_counter() - t0:.0f} s)")
+
+            try:
+                report = self.s.place_markers(progress=prog)
+                self.w_marker_info.object = html.escape(report["message"])
+                self._marker_report = report
+                # the redraw touches Bokeh models (the curve plot), which only the document's own
+                # thread may change: hand it to the event loop
+                if doc is not None and not block:
+                    doc.add_next_tick_callback(self.refresh)
+                else:
+                    self.refresh()
+            except Exception as e:  # noqa: BLE001 - shown on the page
+                log.warning("placing markers failed", exc_info=True)
+                self.w_marker_info.object = "⚠ " + html.escape(self.s.readable(e))
+            finally:
+                self.w_marker_progress.visible = False
+
+        doc = pn.state.curdoc
+        self.w_place.disabled = True
+        try:
+            if block:
+                job()
+            else:
+                threading.Thread(target=job, name="place-markers", daemon=True).start()
+        finally:
+            self.w_place.disabled = False
+
+    def _marker_mode(self):
+        v = getattr(self, "target_viewer", None)
+        if v is None:
+            return
+        v.pick_mode = "vertex" if self.w_edit_markers.value else "off"
+        self._marker_pick = None
+        if self.w_edit_markers.value:
+            self.w_marker_info.object = "Click a marker on the target, then the place it should be."
+
+    def _on_target_pick(self, event):
+        p = event.new
+        if not p or not self.w_edit_markers.value:
+            return
+        snap = self.s.snapshot
+        layout, rig = snap["target_layout"], snap["target_rig"]
+        v = int(p["vertex"])
+        if self._marker_pick is None:
+            pts = layout.points(rig.neutral)
+            i = int(np.argmin(np.linalg.norm(pts - rig.neutral[v], axis=1)))
+            if np.linalg.norm(pts[i] - rig.neutral[v]) > 0.05 * rig.size:
+                self.w_marker_info.object = "No marker there: click on one of the markers (the small spheres)."
+                return
+            self._marker_pick = layout.names[i]
+            self.target_viewer.set_highlight([v])
+            self.w_marker_info.object = f"Marker **{html.escape(self._marker_pick)}**: now click where it should be."
+            return
+        name, self._marker_pick = self._marker_pick, None
+        self.target_viewer.set_highlight([])
+        self.s.move_marker(name, v)
+        self.w_marker_info.object = f"Marker **{html.escape(name)}** moved to vertex {v}; the result follows."
+        self._viewer_keys["target"] = None  # the markers moved: a new target view
+        self.refresh()
+
     def _build_settings(self):
         """The sidebar's setting cards, generated from the stages' settings (only those that
         matter for the current method and switches)."""
         rom = {"(the source itself)": ""} | dict(self.s.files["performances"])
-        widgets = dict(TYPED, rom={"type": pn.widgets.Select, "options": rom})
+        extra = {"rom": {"type": pn.widgets.Select, "options": rom}}
         cards = []
         for title, groups, collapsed in SIDEBAR_CARDS:
-            panes = [pn.Param(st, parameters=names, widgets={k: v for k, v in widgets.items() if k in names},
-                              show_name=False, sizing_mode="stretch_width") for st, names in stage_params(self.pipe, groups)]
+            panes = [pn.Param(st, parameters=names, widgets=param_widgets(st, names, extra), show_name=False,
+                              sizing_mode="stretch_width") for st, names in stage_params(self.pipe, groups)]
             if title == "Solver":
                 cards.extend(panes)
             else:
@@ -178,8 +292,9 @@ class DashboardApp(pn.viewable.Viewer):
             pn.pane.Markdown("Transfer a captured face performance onto another character's blendshape rig. "
                              "Pick a capture and a target, press play, tune the solver.", css_classes=["fr-muted"]),
             self.w_source, self.w_source_rig, self.w_target,
-            pn.pane.Markdown("Upload a performance (.csv/.trc/.c3d), a rig (.glb) or a shot (.json)", css_classes=["fr-muted"], margin=(0, 10)),
+            pn.pane.Markdown("Upload a take (.csv/.trc/.c3d), a rig (.glb/.usd), or a .json shot, marker layout or name map", css_classes=["fr-muted"], margin=(0, 10)),
             self.w_upload,
+            self.marker_card,
             pn.layout.Divider(),
             pn.pane.Markdown("**Solver**"),
             self.settings_box,
@@ -207,6 +322,7 @@ class DashboardApp(pn.viewable.Viewer):
             self.w_alert,
             views,
             pn.Row(self.w_play, self.w_frame, self.w_heat, sizing_mode="stretch_width"),
+            pn.Row(self.w_glb, self.w_csv, sizing_mode="stretch_width"),
             self.w_summary,
             pn.Row(pn.Column(self.w_shapes, pn.pane.Bokeh(self.curves.fig, sizing_mode="stretch_width"),
                              pn.pane.Bokeh(self.diag.fig, sizing_mode="stretch_width"), sizing_mode="stretch_width"),
@@ -235,8 +351,8 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_progress.value = self.s.progress
         self.w_status.object = html.escape(self.s.status)
 
-    def _on_upload(self, event):
-        if not self.w_upload.value:
+    def _on_upload(self, *events):
+        if self.w_upload.value is None or not self.w_upload.filename:
             return
         try:
             msg = self.s.add_upload(self.w_upload.filename, self.w_upload.value)
@@ -320,14 +436,27 @@ class DashboardApp(pn.viewable.Viewer):
 
     # -- redraw -----------------------------------------------------------------------------
     def refresh(self):
-        """Recompute what is stale and redraw; errors become notifications."""
+        """Recompute what is stale and redraw; an error is shown once (the banner), and the views
+        say they belong to the last good result (greyed) until the next good one."""
         ok = self.s.recompute()
-        if ok:
-            self.w_alert.visible = False
+        needs = self.s.needs_layout
+        self.marker_card.collapsed = not needs and self.marker_card.collapsed
+        self.w_place.name = ("Place markers automatically" if needs else "Place the markers again (automatically)")
         if not ok:
             self._notify("error", self.s.error)
-            self.w_summary.object = f"⚠ {html.escape(self.s.error)}"
+            self.w_status.object = "error — see the message at the top of the page"
+            last = self._shown_files
+            self.w_summary.object = (f"The views show the last good result ({html.escape(last)}), not the current "
+                                     "selection." if last else "No result yet.")
+            for box in (self.source_box, self.target_box):
+                box.css_classes = ["fr-stale"]
+            if needs:
+                self.marker_card.collapsed = False
             return
+        self.w_alert.visible = False
+        for box in (self.source_box, self.target_box):
+            box.css_classes = []
+        self._shown_files = f"{self.s.source} → {self.s.target_rig}"
         self._draw()
 
     def _draw(self):
@@ -393,7 +522,9 @@ class DashboardApp(pn.viewable.Viewer):
         if key != self._viewer_keys["target"]:
             rig = snap["target_rig"]
             self.target_viewer = MeshViewer.from_rig(rig, track, fps=fps, layout=snap["target_layout"], label=rig.name,
-                                                     sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
+                                                     sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width",
+                                                     pick_mode="vertex" if self.w_edit_markers.value else "off")
+            self.target_viewer.param.watch(self._on_target_pick, "picked")
             self.target_box[:] = [self.target_viewer]
             self._viewer_keys["target"] = key
         else:

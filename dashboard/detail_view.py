@@ -62,9 +62,9 @@ class DetailPanel:
         self._build()
 
     def _build(self):
-        self.w_show = pn.widgets.Checkbox(name="Show fine details (paused frame)", value=True)
+        self.w_show = pn.widgets.Toggle(name="Show fine details (paused frame)", value=True, button_type="light")
         self.w_show.param.watch(lambda e: self.show_frame(), "value")
-        self.w_play = pn.widgets.Checkbox(name="Details while playing (extra morph targets)", value=False)
+        self.w_play = pn.widgets.Toggle(name="Details while playing (extra morph targets)", value=False, button_type="light")
         self.w_play.param.watch(lambda e: self._on_play_details(), "value")
         self.w_select = pn.widgets.RadioButtonGroup(name="Selection", options=["paint", "curve"], value="paint",
                                                     button_type="light")
@@ -79,15 +79,15 @@ class DetailPanel:
         self.w_angle = pn.widgets.FloatInput(name="Paste rotation (deg)", value=0.0, step=15.0, width=110)
         self.w_pscale = pn.widgets.FloatInput(name="Paste scale", value=1.0, start=0.1, step=0.1, width=90)
         self.w_pmode = pn.widgets.Select(name="Paste mode", options=["replace", "add"], value="replace", width=100)
-        self.w_mirror = pn.widgets.Checkbox(name="mirror (paste on the other side of the face)", value=False)
-        self.w_lam_l = pn.widgets.FloatInput(name="λ_l (eq. 17)", value=0.2, start=0.0, step=0.05, width=90)
+        self.w_mirror = pn.widgets.Toggle(name="Mirror: paste on the other side of the face", value=False, button_type="light")
+        self.w_lam_l = pn.widgets.FloatInput(name="λ_l — stiffness of a reshaped wrinkle (eq. 17)", value=0.2, start=0.0, step=0.05, sizing_mode="stretch_width")
         self.w_prop = pn.widgets.RadioButtonGroup(
             name="Propagation", options={"per frame (follows the details)": "per_frame", "eq. 18-21 (paper)": "eq18"},
             value="per_frame", button_type="light")
-        self.w_mu = pn.widgets.FloatInput(name="μ (window)", value=0.23, start=0.0, end=1.0, step=0.01, width=80)
-        self.w_lam_e = pn.widgets.FloatInput(name="λ_e", value=1.0, start=0.0, step=0.5, width=70)
-        self.w_lam_t = pn.widgets.FloatInput(name="λ_t", value=0.1, start=0.0, step=0.05, width=70)
-        self.w_lam_s = pn.widgets.FloatInput(name="λ_s", value=1.0, start=0.0, step=0.5, width=70)
+        self.w_mu = pn.widgets.FloatInput(name="μ — which frames an edit reaches", value=0.23, start=0.0, end=1.0, step=0.01, sizing_mode="stretch_width")
+        self.w_lam_e = pn.widgets.FloatInput(name="λ_e — follow the key frame", value=1.0, start=0.0, step=0.5, sizing_mode="stretch_width")
+        self.w_lam_t = pn.widgets.FloatInput(name="λ_t — smooth in time", value=0.1, start=0.0, step=0.05, sizing_mode="stretch_width")
+        self.w_lam_s = pn.widgets.FloatInput(name="λ_s — smooth on the skin", value=1.0, start=0.0, step=0.5, sizing_mode="stretch_width")
         self.w_apply = pn.widgets.Button(name="Apply detail edit", button_type="success", width=150)
         self.w_apply.on_click(lambda e: self.apply())
         self.w_clear = pn.widgets.Button(name="Clear selection", width=130)
@@ -108,7 +108,7 @@ class DetailPanel:
         self.card = pn.Card(
             help_, self.w_show, self.w_play, pn.Row(self.w_select, self.w_radius), self.w_op, self.w_factor,
             pn.Row(self.w_angle, self.w_pscale, self.w_pmode), self.w_mirror, self.w_lam_l,
-            self.w_prop, pn.Row(self.w_mu, self.w_lam_e, self.w_lam_t, self.w_lam_s), pn.Row(self.w_apply, self.w_clear),
+            self.w_prop, pn.Column(self.w_mu, self.w_lam_e, self.w_lam_t, self.w_lam_s, sizing_mode="stretch_width"), pn.Row(self.w_apply, self.w_clear),
             pn.Row(self.w_undo, self.w_redo), self.w_edits, self.w_info,
             title="Fine-scale details (Xu 2014 §5.2)", sizing_mode="stretch_width", collapsed=False)
 

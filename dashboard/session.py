@@ -90,34 +90,128 @@ class Session(param.Parameterized):
         self.param.target_rig.objects = list(self.files["rigs"])
 
     def add_upload(self, filename: str, data: bytes) -> str:
-        """Save an uploaded file and offer it in the right list; returns what it became.
+        """Store an uploaded file, check it with the program's readers (:func:`core.io.check.check_upload`)
+        and put it where it belongs: a take becomes the source, a rig joins the rig lists, a marker
+        layout applies to the chosen target rig, a name map to the source's channels, a shot is
+        opened. Returns what it became; raises ValueError in plain words (naming the file as it
+        was uploaded) and keeps nothing of a bad file."""
+        from core.io.check import check_upload
 
-        A ``.json`` upload is a shot (it has ``schema_version``) and is opened. Other files are
-        not parsed here: the load stage parses them and reports errors by name.
-        """
-        name = Path(filename).name
-        if not name or not data:
-            raise ValueError(f"{name or 'the upload'}: the file is empty")
+        name = Path(filename or "").name
+        if not name:
+            raise ValueError("the upload has no file name")
+        if not data:
+            raise ValueError(f"{name} is empty: upload the file again (the upload may have been cut off)")
         path = self.upload_dir / name
         path.write_bytes(data)
-        suffix = path.suffix.lower()
+        try:
+            info = check_upload(path, name, target_rig=self._target_rig_object() if name.lower().endswith(".json") else None)
+        except ValueError:
+            path.unlink(missing_ok=True)
+            raise
         label = UPLOAD + name
-        if suffix in (".glb", ".gltf"):
+        kind = info["kind"]
+        if kind == "rig":
             self.files["rigs"][label] = str(path)
             self._refresh_options()
-            return f"rig {name} added to the rig lists"
-        if suffix in (".csv", ".trc", ".c3d"):
+            return f"{info['summary']} — added to the rig lists"
+        if kind == "take":
             self.files["performances"][label] = str(path)
             self._refresh_options()
             self.source = label
-            return f"performance {name} selected as the source"
-        if suffix == ".json":
-            if b'"schema_version"' in data[:4096]:
-                self.open_shot(data.decode("utf-8-sig", errors="replace"), name=name)
-                return f"shot {name} opened"
-            return name  # layouts and name maps are applied by the caller
-        raise ValueError(f"{name}: unsupported file type {suffix!r}; upload a .csv/.trc/.c3d performance, a .glb/.gltf rig "
-                         f"or a .json shot")
+            return f"{info['summary']} — selected as the source"
+        if kind == "layout":
+            self.pipeline.configure(target_layout=str(path))
+            return f"{info['summary']} — the target rig's markers"
+        if kind == "name_map":
+            self.pipeline.configure(name_map=str(path))
+            return f"{info['summary']} — maps the source's channels to the source rig's shapes"
+        self.open_shot(data.decode("utf-8-sig", errors="replace"), name=name)
+        return f"shot {name} opened"
+
+    def _target_rig_object(self):
+        from core.io.rigs import load_rig
+
+        path = self.files["rigs"].get(self.target_rig, "")
+        try:
+            return load_rig(path) if path else None
+        except (ValueError, OSError):
+            return None
+
+    # -- markers on a rig without a layout ------------------------------------------------------
+    @property
+    def needs_layout(self) -> str:
+        """The name of the selected target rig when it has no marker layout (else "")."""
+        from core.io.layout import default_layout_path
+
+        rig = self.files["rigs"].get(self.target_rig, "")
+        if not rig or self.pipeline.target_face.target_layout or default_layout_path(rig) is not None:
+            return ""
+        return Path(rig).name
+
+    def layout_path(self) -> Path:
+        """Where the target rig's layout made or edited here is kept: beside an uploaded rig (its
+        sidecar, so the rig finds it by default), else in the upload folder."""
+        from core.io.layout import sidecar_layout_path
+
+        rig = Path(self.files["rigs"][self.target_rig])
+        return sidecar_layout_path(rig) if rig.parent == self.upload_dir else self.upload_dir / f"{rig.stem}.layout.json"
+
+    def place_markers(self, progress=None) -> dict:
+        """Place the 41 markers on the target rig automatically (:func:`core.registration.place_markers`),
+        keep them as the rig's layout; returns the report (its ``message`` says which markers need a hand)."""
+        from core.io.layout import write_layout
+        from core.io.rigs import load_rig
+        from core.registration import place_markers
+
+        path = self.files["rigs"][self.target_rig]
+        rig = load_rig(path)
+        layout, report = place_markers(rig, progress=progress)
+        out = self.layout_path()
+        write_layout(out, layout, Path(path).name, notes="placed by face-retarget (automatic), check the flagged markers")
+        self.pipeline.configure(target_layout=str(out))
+        return report
+
+    def move_marker(self, name: str, vertex: int) -> None:
+        """Put marker ``name`` of the target layout on ``vertex`` and keep the layout."""
+        import dataclasses
+
+        from core.io.layout import write_layout
+
+        ld = self.pipeline.results(["target_face"])["target_face"]
+        layout, rig = ld["target_layout"], ld["target_rig"]
+        i = layout.names.index(name)
+        V, W = layout.vertices.copy(), layout.weights.copy()
+        V[i], W[i] = int(vertex), (1.0, 0.0, 0.0)
+        out = self.layout_path()
+        write_layout(out, dataclasses.replace(layout, vertices=V, weights=W), Path(self.files["rigs"][self.target_rig]).name)
+        self.pipeline.configure(target_layout=str(out))
+
+    def layout_json(self) -> bytes:
+        """The target rig's current layout as JSON (a download)."""
+        import tempfile as _tf
+
+        from core.io.layout import write_layout
+
+        ld = self.pipeline.results(["target_face"])["target_face"]
+        with _tf.TemporaryDirectory() as d:
+            p = Path(d) / "layout.json"
+            write_layout(p, ld["target_layout"], Path(self.files["rigs"][self.target_rig]).name)
+            return p.read_bytes()
+
+    def result_bytes(self, kind: str) -> bytes:
+        """The current result as a file a browser user can download: ``"glb"`` (the target rig with
+        the animation), ``"csv"`` (the weight curves) or ``"shot"`` (the shot JSON)."""
+        import tempfile as _tf
+
+        from core.outputs import write_outputs
+
+        if kind == "shot":
+            return self.shot().to_json().encode("utf-8")
+        with _tf.TemporaryDirectory() as d:
+            p = Path(d) / f"result.{kind}"
+            write_outputs(self.pipeline, out=p if kind == "glb" else None, weights_csv=p if kind == "csv" else None)
+            return p.read_bytes()
 
     def _label_for(self, kind: str, path: str) -> str:
         """The list label of a file path, adding it to the list when it is not there yet."""
@@ -196,7 +290,7 @@ class Session(param.Parameterized):
             except Exception as e:  # shown as a notification; the trace goes to the log only
                 log.warning("recompute failed: %s", traceback.format_exc())
                 self.error = self.readable(e)
-                self.status = "error: " + self.error
+                self.status = "error — see the message at the top of the page"  # the message itself is shown once
                 return False
             finally:
                 self.busy, self.progress = False, 100
@@ -210,11 +304,23 @@ class Session(param.Parameterized):
         return res
 
     def readable(self, e: Exception) -> str:
-        """An exception as a message for the page: uploads by their own name, no server paths."""
+        """An exception as a message for the page: uploads by their own name, no server paths, no
+        command-line flags."""
+        from core.io.rigs import NoLayoutError
+
+        if isinstance(e, NoLayoutError):
+            return (f"{Path(e.rig_path).name} has no marker layout yet: press “Place markers automatically” in the "
+                    "Markers card, or upload the rig's layout (.json)")
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         if not isinstance(e, (ValueError, KeyError, FileNotFoundError)):
             msg = f"{type(e).__name__}: {msg}"
-        return msg.replace(str(self.upload_dir) + "/", "")
+        msg = msg.replace(str(self.upload_dir) + "/", "").replace(str(DATA) + "/", "")
+        # what the command line would say with a flag, the page says with its own controls
+        for flag, words in (("(--source-rig)", "(choose the rig the curves drive under Source rig)"),
+                            ("--source-rig", "the Source rig list"), ("--target-rig", "the Target rig list"),
+                            ("(--source)", "(choose a take under Source performance)")):
+            msg = msg.replace(flag, words)
+        return msg
 
     def _progress(self, fraction: float, message: str):
         self.progress = int(round(100 * min(max(fraction, 0), 1)))

@@ -36,14 +36,11 @@ import param
 
 from .detail_view import TOOLS, DetailPanel
 from .viewer import MeshViewer
+from .widgets import param_widgets
 
 log = logging.getLogger("face_retarget.dashboard")
 
 VIEW_HEIGHT = 460
-#: dense stage settings typed rather than slid
-TYPED = {"transfer_eps": pn.widgets.FloatInput, "transfer_alpha": pn.widgets.FloatInput,
-         "transfer_iterations": pn.widgets.IntInput, "transfer_max_bases": pn.widgets.IntInput,
-         "detail_tolerance": pn.widgets.FloatInput}
 #: settings with their own controls here (the frame range slider)
 RANGE = ("transfer_first_frame", "transfer_last_frame")
 
@@ -81,7 +78,7 @@ class TransferView(pn.viewable.Viewer):
         self.w_run.on_click(lambda e: self.run())
         settings = [pn.Param(st, parameters=[n for n in st.setting_names() if n not in RANGE and
                                              not isinstance(st.param[n], param.List)],
-                             widgets={k: v for k, v in TYPED.items() if k in st.setting_names()}, show_name=False,
+                             widgets=param_widgets(st, st.setting_names()), show_name=False,
                              sizing_mode="stretch_width")
                     for st in self.pipe.stages.values() if type(st).group == "dense" and
                     [n for n in st.setting_names() if n not in RANGE]]
@@ -94,10 +91,10 @@ class TransferView(pn.viewable.Viewer):
         self.w_play = pn.widgets.Toggle(name="▶ Play / ❚❚ Pause", button_type="success", width=150)
         self.w_mode = pn.widgets.RadioButtonGroup(name="Constraint", options=["point", "distance"], value="point", button_type="light")
         self.w_mode.param.watch(lambda e: self._clear_pair(), "value")
-        self.w_fixed = pn.widgets.Checkbox(name="fixed: a click pins the vertex where it is", value=False)
-        self.w_lam_b = pn.widgets.FloatInput(name="λ_b (bases, eq. 9)", value=1.0, start=0.0, step=0.1, width=100)
-        self.w_lam_w = pn.widgets.FloatInput(name="λ_w (weights, eq. 13)", value=1.0, start=0.0, step=0.1, width=100)
-        self.w_lam_e = pn.widgets.FloatInput(name="λ_e (constraints)", value=100.0, start=0.0, step=10.0, width=100)
+        self.w_fixed = pn.widgets.Toggle(name="Fixed: a click pins the vertex where it is", value=False, button_type="light")
+        self.w_lam_b = pn.widgets.FloatInput(name="λ_b — how far an edit spreads to similar expressions (bases)", value=1.0, start=0.0, step=0.1, sizing_mode="stretch_width")
+        self.w_lam_w = pn.widgets.FloatInput(name="λ_w — keep the timing of the curves (eq. 13)", value=1.0, start=0.0, step=0.1, sizing_mode="stretch_width")
+        self.w_lam_e = pn.widgets.FloatInput(name="λ_e — how closely to meet the constraints", value=100.0, start=0.0, step=10.0, sizing_mode="stretch_width")
         self.w_half = pn.widgets.IntInput(name="Window half-width (frames, 0: whole range)", value=15, start=0, sizing_mode="stretch_width")
         self.w_distance = pn.widgets.FloatInput(name="Distance (mm)", value=0.0, start=0.0, step=0.5, width=120, disabled=True)
         self.w_add_distance = pn.widgets.Button(name="Add distance constraint", disabled=True)
@@ -122,7 +119,7 @@ class TransferView(pn.viewable.Viewer):
             "zoom: wheel. λ_b > 0 edits the bases, which changes every frame that uses them; λ_b = 0 edits only "
             "the weights inside the window.", css_classes=["fr-muted"], sizing_mode="stretch_width")
         edit_card = pn.Card(
-            help_, self.w_mode, self.w_fixed, pn.Row(self.w_lam_b, self.w_lam_w, self.w_lam_e), self.w_half,
+            help_, self.w_mode, self.w_fixed, pn.Column(self.w_lam_b, self.w_lam_w, self.w_lam_e, sizing_mode="stretch_width"), self.w_half,
             pn.Row(self.w_distance, self.w_add_distance), self.w_pending,
             pn.Row(self.w_apply, self.w_clear), pn.Row(self.w_undo, self.w_redo), self.w_edits,
             title="Edit (Xu 2014 §4.3)", sizing_mode="stretch_width")

@@ -34,6 +34,15 @@ def load_rig(path) -> Rig:
     raise ValueError(f"{path}: unsupported rig format {path.suffix!r}; expected {RIG_FORMATS}")
 
 
+class NoLayoutError(FileNotFoundError):
+    """A rig has no marker layout (none chosen, no sidecar, none bundled). ``rig_path`` says which;
+    the CLI shows the message (how to make one), the dashboard offers to place the markers."""
+
+    def __init__(self, message: str, rig_path):
+        super().__init__(message)
+        self.rig_path = str(rig_path)
+
+
 def read_layout_for(layout_path: Optional[str], rig_path, rig: Rig) -> MarkerLayout:
     """The layout given, else the rig's default (its sidecar ``<rig>.layout.json``, else the bundled
     ``data/layouts/<rig stem>.json``, :func:`core.io.layout.default_layout_path`); checked against ``rig``.
@@ -46,8 +55,8 @@ def read_layout_for(layout_path: Optional[str], rig_path, rig: Rig) -> MarkerLay
         return read_layout(layout_path, rig=rig)
     default = default_layout_path(rig_path)
     if default is None:
-        raise FileNotFoundError(
+        raise NoLayoutError(
             f"no marker layout for rig {Path(rig_path).name}: pass --target-layout/--source-layout, or transfer one with "
-            f"`face-retarget layout --from data/layouts/ict_facekit.json --rig {rig_path} --out {sidecar_layout_path(rig_path)}`"
-        )
+            f"`face-retarget layout --from data/layouts/ict_facekit.json --rig {rig_path} --out {sidecar_layout_path(rig_path)}`",
+            rig_path)
     return read_layout(default, rig=rig)

@@ -41,8 +41,8 @@ class DenseSource(Stage):
 
     deps = ("take", "source_face", "frames")
     group, title = "dense", "Dense transfer (Xu 2014)"
-    transfer_first_frame = param.Integer(default=0, bounds=(0, None), doc="First frame of the take the dense transfer uses")
-    transfer_last_frame = param.Integer(default=-1, bounds=(-1, None), doc=(
+    transfer_first_frame = param.Integer(label='First frame of the transfer', default=0, bounds=(0, None), doc="First frame of the take the dense transfer uses")
+    transfer_last_frame = param.Integer(label='Last frame of the transfer', default=-1, bounds=(-1, None), doc=(
         "Last frame of the take the dense transfer uses (-1: the end); it runs on the frames in both this range and "
         "the retargeting range (a transfer of 2,000 ICT frames takes minutes)"))
 
@@ -87,10 +87,10 @@ class Register(Stage):
 
     deps = ("source_face", "target_face", "weld", "sequence_face")
     group, title = "dense", "Dense transfer (Xu 2014)"
-    transfer_crop = param.Selector(default="auto", objects=["auto", "face", "none"], doc=(
+    transfer_crop = param.Selector(label='Part of the source head fitted', default="auto", objects=["auto", "face", "none"], doc=(
         "Which part of the source head the registration fits: auto = the face crop when the target lacks the rest of "
         "the head (animal heads), face, or none (the whole head)"))
-    transfer_icp = param.Boolean(default=True, doc="Non-rigid ICP after the landmark similarity (off: similarity + closest points only)")
+    transfer_icp = param.Boolean(label='Fit the surface (non-rigid ICP)', default=True, doc="Non-rigid ICP after the landmark similarity (off: similarity + closest points only)")
 
     def run(self, inputs, s, progress=None):
         from ..transfer import register_target
@@ -115,7 +115,7 @@ class Decompose(Stage):
 
     deps = ("weld", "dense_source")
     group, title = "dense", "Dense transfer (Xu 2014)"
-    transfer_iterations = param.Integer(default=40, bounds=(0, 500), doc="Taubin smoothing iterations of the decomposition (about 40 in the paper)")
+    transfer_iterations = param.Integer(label='Smoothing of the large scale (Taubin iterations)', default=40, bounds=(0, 500), doc="Taubin smoothing iterations of the decomposition (about 40 in the paper)")
 
     def run(self, inputs, s, progress=None):
         from ..transfer import decompose_sequence
@@ -131,8 +131,8 @@ class Bases(Stage):
 
     deps = ("decompose",)
     group, title = "dense", "Dense transfer (Xu 2014)"
-    transfer_eps = param.Number(default=1e-3, bounds=(0, None), softbounds=(0, 0.01), doc="Basis selection stops below this relative residual energy ε (eq. 7)")
-    transfer_max_bases = param.Integer(default=30, bounds=(1, 200), doc="At most this many bases")
+    transfer_eps = param.Number(label='Basis accuracy (Xu ε)', default=1e-3, bounds=(0, None), softbounds=(0, 0.01), doc="Basis selection stops below this relative residual energy ε (eq. 7)")
+    transfer_max_bases = param.Integer(label='At most this many bases', default=30, bounds=(1, 200), doc="At most this many bases")
 
     def run(self, inputs, s, progress=None):
         from ..transfer import select_sequence_bases
@@ -148,8 +148,8 @@ class Deform(Stage):
 
     deps = ("weld", "decompose", "bases", "register", "source_face", "sequence_face")
     group, title = "dense", "Dense transfer (Xu 2014)"
-    transfer_alpha = param.Number(default=100.0, bounds=(0, None), softbounds=(0, 1000), doc="Weight α of the eye and mouth feature lines in eq. 9 (100 in the paper)")
-    transfer_feature_lines = param.Boolean(default=True, doc="Feature lines from the rims near the source layout's eye and mouth markers (eq. 9)")
+    transfer_alpha = param.Number(label='Keep eye and mouth rims (Xu α)', default=100.0, bounds=(0, None), softbounds=(0, 1000), doc="Weight α of the eye and mouth feature lines in eq. 9 (100 in the paper)")
+    transfer_feature_lines = param.Boolean(label='Eye and mouth feature lines', default=True, doc="Feature lines from the rims near the source layout's eye and mouth markers (eq. 9)")
 
     def relevant(self, cfg):
         return ("transfer_alpha", "transfer_feature_lines") if cfg.deform.transfer_feature_lines else ("transfer_feature_lines",)
@@ -172,7 +172,7 @@ class Details(Stage):
 
     deps = ("weld", "decompose", "bases", "register", "deform")
     group, title = "dense", "Dense transfer (Xu 2014)"
-    transfer_details = param.Selector(default="morphs", objects=["morphs", "none"], doc=(
+    transfer_details = param.Selector(label='Fine details (wrinkles)', default="morphs", objects=["morphs", "none"], doc=(
         "Fine-scale details: 'morphs' transfers them (and writes them as low-rank morph targets xu_detail_NN in the "
         "GLB), 'none' the large-scale bases only"))
 
@@ -250,7 +250,7 @@ class DetailMorphs(Stage):
 
     deps = ("detail_edit",)
     group, title = "dense", "Dense transfer (Xu 2014)"
-    detail_tolerance = param.Number(default=0.05, bounds=(0, 1), doc=(
+    detail_tolerance = param.Number(label='Detail morph-target accuracy', default=0.05, bounds=(0, 1), doc=(
         "Largest allowed error of the detail morph targets, relative to the largest detail"))
 
     def run(self, inputs, s, progress=None):

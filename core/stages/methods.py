@@ -37,15 +37,17 @@ class Method:
     needs: tuple = ()
     dense: bool = False
     doc: str = ""
+    label: str = ""
 
 
-def solve_method(name: str, params=(), needs=(), dense: bool = False):
-    """Decorator: register ``fn(inputs, s) -> {"weights", "info"}`` as method ``name``."""
+def solve_method(name: str, params=(), needs=(), dense: bool = False, label: str = ""):
+    """Decorator: register ``fn(inputs, s) -> {"weights", "info"}`` as method ``name``; ``label``
+    is what a person reads in the method list (plain words first, the paper after)."""
 
     def deco(fn):
         if name in METHODS:
             raise ValueError(f"solve method {name!r} registered twice")
-        METHODS[name] = Method(name, fn, tuple(params), tuple(needs), dense, (fn.__doc__ or "").strip())
+        METHODS[name] = Method(name, fn, tuple(params), tuple(needs), dense, (fn.__doc__ or "").strip(), label or name)
         return fn
 
     return deco
@@ -114,7 +116,7 @@ def _weighted(inputs):
     return B * r[None], S * r[None], valid
 
 
-@solve_method("lsq")
+@solve_method("lsq", label='lsq — unregularised diagnostic (weights can explode)')
 def _lsq(inputs, s):
     """Per-frame least squares, unbounded (a diagnostic: no regulariser keeps it in range)."""
     from ..solvers import baselines
@@ -123,7 +125,7 @@ def _lsq(inputs, s):
     return {"weights": baselines.no_const(B, S, valid), "edit": edit_options(s, alpha=0.01)}
 
 
-@solve_method("bounded", params=("lower", "upper", "ridge"))
+@solve_method("bounded", params=("lower", "upper", "ridge"), label='bounded — per frame, within lowest…highest')
 def _bounded(inputs, s):
     """Per-frame least squares with ``lower <= w <= upper`` (batched exact active set)."""
     from ..solvers import baselines
@@ -133,7 +135,7 @@ def _bounded(inputs, s):
             "edit": edit_options(s, alpha=0.01, lower=s.lower, upper=s.upper)}
 
 
-@solve_method("range_pf", params=("ridge",))
+@solve_method("range_pf", params=("ridge",), label='range_pf — per frame, −0.5…1.5 (Seol §7)')
 def _range_pf(inputs, s):
     """Seol 2012 §7 Range PF: per frame, -0.5 <= w <= 1.5."""
     from ..solvers import baselines
@@ -158,14 +160,14 @@ def _prior_pf_frames(inputs, s, frames):
     return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge)
 
 
-@solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",))
+@solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",), label="prior_pf — per frame with the rig's prior (Seol §7)")
 def _prior_pf(inputs, s):
     """Seol 2012 §7 Prior PF: per frame with the PCA prior."""
     return {"weights": _prior_pf_frames(inputs, s, slice(None)), "edit": edit_options(s)}
 
 
 @solve_method("spacetime", params=("alpha", "beta", "boundary", "ridge", "spacetime_bounds", "lower", "upper", "l1",
-                                   "name_weight"), needs=("prior",))
+                                   "name_weight"), needs=("prior",), label='spacetime — the whole take at once (Seol 2012)')
 def _spacetime(inputs, s):
     """Seol 2012 movement matching + PCA prior (+ Sobolev), the whole take at once; by default
     within ``lower <= w <= upper`` (exact bounded solve), optionally with L1 sparsity and a pull
@@ -196,7 +198,7 @@ def _spacetime(inputs, s):
                                  beta=s.beta)}
 
 
-@solve_method("local", params=("constraint", "local_temporal", "alpha", "beta", "sigma"), needs=("segment",))
+@solve_method("local", params=("constraint", "local_temporal", "alpha", "beta", "sigma"), needs=("segment",), label='local — face regions (Liu 2011)')
 def _local(inputs, s):
     """Liu 2011: per-region constrained QP (eq. 2), blended by the region masks (eq. 3)."""
     from ..solvers.local import blend_weights, local_precompute, local_spacetime, reconstruct_markers, smooth_weights
@@ -222,7 +224,7 @@ def _local(inputs, s):
             "edit": edit_options(s, lower=0.0, upper=1.0, beta=s.beta)}
 
 
-@solve_method("geometric", params=("geometric_prior", "mu", "lam"), needs=("prior",))
+@solve_method("geometric", params=("geometric_prior", "mu", "lam"), needs=("prior",), label='geometric — smooth mesh, few shapes (Ribera 2017)')
 def _geometric(inputs, s):
     """Ribera 2017: cotangent-Laplacian (or PCA / L2) prior + L1 sparsity by IRLS."""
     from ..model import flatten
@@ -245,7 +247,7 @@ def _geometric(inputs, s):
     return {"weights": sol.weights, "info": {"iterations": sol.iterations}, "edit": edit_options(s, alpha=0.01)}
 
 
-@solve_method("names")
+@solve_method("names", label='names — copy curves by ARKit name')
 def _names(inputs, s):
     """Copy by canonical name: each target shape plays its namesake source curve (weight-curve
     sources only; shapes without a namesake stay at zero). The baseline a solver must beat where
@@ -259,7 +261,7 @@ def _names(inputs, s):
             "edit": edit_options(s, alpha=0.01, lower=0.0, upper=1.0)}
 
 
-@solve_method("transfer", dense=True)
+@solve_method("transfer", dense=True, label='transfer — dense, a new rig (Xu 2014)')
 def _transfer(inputs, s):  # pragma: no cover - the solve stage is inactive for dense methods
     """Xu 2014 dense transfer: a new rig of transferred bases (+ details), see core.stages.dense."""
     raise RuntimeError("transfer is computed by the dense stages, not by the solve stage")

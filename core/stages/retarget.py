@@ -168,10 +168,10 @@ class Correspond(Stage):
 
     deps = ("load", "dense_correspondence")
     group, title = "calibrate", "Source & calibration"
-    correspondence = param.Selector(default="markers", objects=["markers", "dense"], doc=(
+    correspondence = param.Selector(label='Compare the faces at', default="markers", objects=["markers", "dense"], doc=(
         "What the solvers fit: markers = the layouts' 41 markers; dense = many points on the face, carried to the "
         "target by the registration dense transfer computes (the first time per rig pair takes tens of seconds)"))
-    dense_points = param.Integer(default=1000, bounds=(10, 20000), doc="Number of face points of dense correspondence")
+    dense_points = param.Integer(label='Face points (dense)', default=1000, bounds=(10, 20000), doc="Number of face points of dense correspondence")
 
     def relevant(self, cfg):
         return ("correspondence", "dense_points") if cfg.correspond.correspondence == "dense" else ("correspondence",)
@@ -204,8 +204,8 @@ class Frames(Stage):
 
     deps = ("take",)
     group, title = "source", "Frame range"
-    first_frame = param.Integer(default=0, bounds=(0, None), doc="First frame to retarget")
-    last_frame = param.Integer(default=-1, bounds=(-1, None), doc="Last frame to retarget (-1: the end)")
+    first_frame = param.Integer(label='First frame', default=0, bounds=(0, None), doc="First frame to retarget")
+    last_frame = param.Integer(label='Last frame', default=-1, bounds=(-1, None), doc="Last frame to retarget (-1: the end)")
 
     def run(self, inputs, s, progress=None):
         n = inputs["take"]["source"].n_frames
@@ -239,7 +239,7 @@ class Shapes(Stage):
 
     deps = ("load", "correspond")
     group, title = "calibrate", "Source & calibration"
-    target_shapes = param.String(default="", doc=(
+    target_shapes = param.String(label='Target shapes the solver may use', default="", doc=(
         "Target shapes the solvers may use: empty = all; 'arkit' = the shapes with an ARKit name (all when the rig has "
         "none); or comma-separated shape names. The others stay at zero"))
 
@@ -270,8 +270,8 @@ class Stabilize(Stage):
 
     deps = ("load", "correspond", "frames", "shapes")
     group, title = "source", "Frame range"
-    head_motion = param.Selector(default="auto", objects=["auto", "remove", "keep"], doc="Remove rigid head motion from captured markers (auto: captures only)")
-    neutral_frame = param.Integer(default=0, bounds=(0, None), doc="Frame of a captured take that shows the neutral face")
+    head_motion = param.Selector(label='Remove head motion (captures)', default="auto", objects=["auto", "remove", "keep"], doc="Remove rigid head motion from captured markers (auto: captures only)")
+    neutral_frame = param.Integer(label='Neutral frame (captures)', default=0, bounds=(0, None), doc="Frame of a captured take that shows the neutral face")
 
     def run(self, inputs, s, progress=None):
         ld, cor, fr = inputs["load"], inputs["correspond"], inputs["frames"]
@@ -302,9 +302,9 @@ class Calibrate(Stage):
 
     deps = ("load", "correspond", "shapes", "stabilize")
     group, title = "calibrate", "Source & calibration"
-    calibrate = param.Boolean(default=True, doc="Warp the target's marker blendshapes into the actor's proportions with an RBF")
-    rbf_smoothing = param.Number(default=0.0, bounds=(0, 1), softbounds=(0, 0.1), doc="RBF ridge relative to the mean marker distance (0: exact interpolation)")
-    motion_scale = param.Selector(default="none", objects=["none", "rom"], doc=(
+    calibrate = param.Boolean(label="Match the actor's proportions (Seol RBF)", default=True, doc="Warp the target's marker blendshapes into the actor's proportions with an RBF")
+    rbf_smoothing = param.Number(label='Proportion warp smoothing', default=0.0, bounds=(0, 1), softbounds=(0, 0.1), doc="RBF ridge relative to the mean marker distance (0: exact interpolation)")
+    motion_scale = param.Selector(label="Match the actor's range of motion", default="none", objects=["none", "rom"], doc=(
         "Match the actor's range of motion to the character's, point by point (rom: an actor's full jaw drop drives "
         "the character's full jaw drop); none = the actor's motion as captured"))
 
@@ -347,10 +347,10 @@ class Personalize(Stage):
     deps = ("load", "correspond", "stabilize", "calibrate")
     files = ("rom",)
     group, title = "personalize", "Actor personalisation (Ribera 2017)"
-    personalize = param.Boolean(default=False, doc="Align the target's marker blendshapes to the actor's range of motion")
-    rom = param.String(default="", doc="Range-of-motion take of the actor (default: the source itself)")
-    align_beta = param.Number(default=0.01, bounds=(0, None), softbounds=(0, 1), doc="E_Mesh weight beta (Ribera 2017 eq. 4)")
-    align_gamma = param.Number(default=0.1, bounds=(0, None), softbounds=(0, 1), doc="E_CEG weight gamma (Ribera 2017 eq. 4)")
+    personalize = param.Boolean(label="Align the rig to the actor's range of motion (Ribera)", default=False, doc="Align the target's marker blendshapes to the actor's range of motion")
+    rom = param.String(label='Range-of-motion take', default="", doc="Range-of-motion take of the actor (default: the source itself)")
+    align_beta = param.Number(label='Keep the marker mesh smooth (Ribera β)', default=0.01, bounds=(0, None), softbounds=(0, 1), doc="E_Mesh weight beta (Ribera 2017 eq. 4)")
+    align_gamma = param.Number(label='Keep contact edges (Ribera γ)', default=0.1, bounds=(0, None), softbounds=(0, 1), doc="E_CEG weight gamma (Ribera 2017 eq. 4)")
 
     def relevant(self, cfg):
         return None if cfg.personalize.personalize else ("personalize",)
@@ -391,9 +391,9 @@ class Segment(Stage):
 
     deps = ("shapes",)
     group, title = "solve", "Regions (Liu 2011)"
-    regions = param.Integer(default=12, bounds=(1, 64), softbounds=(1, 24), doc="Number of regions R")
-    min_region_size = param.Number(default=0.01, bounds=(0, 0.5), doc="Smallest region as a fraction of the vertices; smaller clusters are merged")
-    mask_smoothing = param.Integer(default=10, bounds=(0, 200), doc="Laplacian smoothing iterations of the region masks (overlap for blending)")
+    regions = param.Integer(label='Regions (Liu R)', default=12, bounds=(1, 64), softbounds=(1, 24), doc="Number of regions R")
+    min_region_size = param.Number(label='Smallest region', default=0.01, bounds=(0, 0.5), doc="Smallest region as a fraction of the vertices; smaller clusters are merged")
+    mask_smoothing = param.Integer(label='Region overlap (smoothing iterations)', default=10, bounds=(0, 200), doc="Laplacian smoothing iterations of the region masks (overlap for blending)")
 
     def active(self, cfg):
         return "segment" in method_of(cfg).needs
@@ -417,7 +417,7 @@ class Prior(Stage):
 
     deps = ("personalize", "shapes")
     group, title = "solve", "Prior (Seol 2012)"
-    prior_shapes = param.String(default="", doc=(
+    prior_shapes = param.String(label='Prior built from (Seol Fig. 13)', default="", doc=(
         "Shapes the PCA prior is built from: empty = all the solver's shapes (Seol 2012 Fig. 13 a), 'arkit', or "
         "comma-separated names (Fig. 13 b, c: e.g. the mouth shapes only)"))
 
@@ -445,37 +445,37 @@ class Solve(Stage):
 
     deps = ("load", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior")
     group, title = "solve", "Solver"
-    method = param.Selector(default="bounded", objects=list(METHODS), doc=(
+    method = param.Selector(label='Method', default="bounded", objects={m.label: n for n, m in METHODS.items()}, doc=(
         "lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
         "range_pf/prior_pf: Seol 2012 §7 baselines; spacetime: Seol 2012 movement matching; local: Liu 2011 "
         "regions; geometric: Ribera 2017 prior + L1; transfer: Xu 2014 dense transfer (a new rig)"))
-    lower = param.Number(default=0.0, softbounds=(-1, 0), doc="Lower weight bound (bounded)")
-    upper = param.Number(default=1.0, softbounds=(1, 2), doc="Upper weight bound (bounded)")
-    alpha = param.Number(default=0.01, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="PCA prior weight alpha (Seol 2012 eq. 4)")
-    beta = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="Sobolev position weight beta (Seol 2012 §7.1)")
-    boundary = param.Selector(default="perframe", objects=["perframe", "neutral", "none"], doc=(
+    lower = param.Number(label='Lowest weight', default=0.0, softbounds=(-1, 0), doc="Lower weight bound (bounded)")
+    upper = param.Number(label='Highest weight', default=1.0, softbounds=(1, 2), doc="Upper weight bound (bounded)")
+    alpha = param.Number(label="Stay near the rig's own expressions (Seol α)", default=0.01, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="PCA prior weight alpha (Seol 2012 eq. 4)")
+    beta = param.Number(label='Hold positions, not only motion (Seol β)', default=0.0, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="Sobolev position weight beta (Seol 2012 §7.1)")
+    boundary = param.Selector(label='First and last frame (Seol boundary)', default="perframe", objects=["perframe", "neutral", "none"], doc=(
         "Spacetime boundary frames: perframe = first/last frame from the Prior PF solution (takes rarely start and end "
         "neutral); neutral = zero weights at both ends as in Seol 2012 §3.1; none = free (needs beta > 0)"))
-    ridge = param.Number(default=1e-5, bounds=(0, 1), softbounds=(0, 1e-3), doc=(
+    ridge = param.Number(label="Damp shapes the markers can't tell apart (ridge)", default=1e-5, bounds=(0, 1), softbounds=(0, 1e-3), doc=(
         "Relative Tikhonov weight rho / sigma_max(B)^2 on the weights (bounded, range_pf, prior_pf, spacetime): pulls "
         "combinations of shapes the markers barely see (e.g. eye-wide vs look-up vs blink) to zero; 0 = the papers' methods"))
-    mu = param.Number(default=0.3, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="Geometric prior weight mu (Ribera 2017 eq. 16)")
-    lam = param.Number(default=0.6, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="L1 sparsity weight lambda (Ribera 2017 eq. 16)")
-    constraint = param.Selector(default="simplex", objects=["simplex", "box"], doc=(
+    mu = param.Number(label='Keep the mesh smooth (Ribera μ)', default=0.3, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="Geometric prior weight mu (Ribera 2017 eq. 16)")
+    lam = param.Number(label='Use few shapes (Ribera λ)', default=0.6, bounds=(0, None), softbounds=(0, 2), step=0.01, doc="L1 sparsity weight lambda (Ribera 2017 eq. 16)")
+    constraint = param.Selector(label='Region weights (Liu constraint)', default="simplex", objects=["simplex", "box"], doc=(
         "Local solve constraint: simplex = the paper's convex combination of poses (w >= 0, sum w <= 1 in delta form, "
         "Liu 2011 eq. 2); box = 0 <= w <= 1"))
-    local_temporal = param.Selector(default="perframe", objects=["perframe", "spacetime"], doc=(
+    local_temporal = param.Selector(label='Regions in time (Liu / Seol)', default="perframe", objects=["perframe", "spacetime"], doc=(
         "Local method in time: perframe = Liu 2011's per-frame constrained QP (optionally Gaussian-filtered); spacetime = "
         "Seol 2012 movement matching inside each region (uses alpha/beta; unconstrained between the end frames)"))
-    geometric_prior = param.Selector(default="geometric", objects=["geometric", "pca", "l2", "none"], doc=(
+    geometric_prior = param.Selector(label='Prior (Ribera Fig. 14)', default="geometric", objects=["geometric", "pca", "l2", "none"], doc=(
         "Prior of the geometric method (Ribera 2017 Fig. 14): cotangent-Laplacian bending, Seol's PCA, plain L2, none"))
-    sigma = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 5), doc="Gaussian temporal filter of the weights in frames (Liu 2011; 0: off)")
-    spacetime_bounds = param.Boolean(default=True, doc=(
+    sigma = param.Number(label='Smooth the curves over frames (Gaussian σ)', default=0.0, bounds=(0, None), softbounds=(0, 5), doc="Gaussian temporal filter of the weights in frames (Liu 2011; 0: off)")
+    spacetime_bounds = param.Boolean(label='Keep weights between lowest and highest', default=True, doc=(
         "Spacetime within lower <= w <= upper (exact bounded solve: curves an animator can key); off = Seol 2012's "
         "unbounded solve"))
-    l1 = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1e-3), doc=(
+    l1 = param.Number(label='Use few shapes (L1)', default=0.0, bounds=(0, None), softbounds=(0, 1e-3), doc=(
         "L1 sparsity of the spacetime weights, relative to sigma_max(B)^2 like ridge: fewer shapes per frame"))
-    name_weight = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1e-2), doc=(
+    name_weight = param.Number(label='Follow the same-named source curves (names)', default=0.0, bounds=(0, None), softbounds=(0, 1e-2), doc=(
         "Pull of each target shape towards its namesake source curve (same canonical ARKit name), relative to "
         "sigma_max(B)^2; 0 = off. Only where the source is weight curves sharing names with the target"))
 
@@ -569,7 +569,7 @@ class Evaluate(Stage):
 
     deps = ("calibrate", "personalize", "solve", "edit", "synthesize")
     group, title = "source", "Frame range"
-    jitter_window = param.Integer(default=1, bounds=(1, 10), doc="Frame step of the jitter measure")
+    jitter_window = param.Integer(label='Jitter measured over (frames)', default=1, bounds=(1, 10), doc="Frame step of the jitter measure")
 
     def active(self, cfg):
         return not method_of(cfg).dense

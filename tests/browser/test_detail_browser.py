@@ -51,17 +51,6 @@ def shown(res, details, frame):
     return res.neutral + np.einsum("k,kvc->vc", res.weights[frame], res.deltas) + details[frame]
 
 
-def checkbox(page, text):
-    """The checkbox whose label starts with ``text`` (Bokeh draws ``<input><div>label</div>`` in
-    a shadow root: no <label>, so the accessible name is empty and a click on the text is inert)."""
-    boxes = page.get_by_role("checkbox")
-    for i in range(boxes.count()):
-        label = boxes.nth(i).evaluate("e => e.nextElementSibling ? e.nextElementSibling.textContent : ''")
-        if label.startswith(text):
-            return boxes.nth(i)
-    raise AssertionError(f"no checkbox labelled {text!r}")
-
-
 def status(page):
     return page.get_by_text(re.compile(r"^(selection:|detail edit|undone|⚠|\d+ frames)")).first.inner_text()
 
@@ -156,7 +145,7 @@ def test_details_play_along_as_morph_targets_in_the_browser(page, detail_url, de
         "return v && v.self.width > 0 && v.self.stats.renders > 0 && v.info().offsets; }", arg=label, timeout=90_000)
     C, B, err = detail_morph_targets(res.details)
     K = res.n_bases
-    checkbox(page, "Details while playing").check()
+    page.get_by_role("button", name=re.compile("Details while playing")).click()  # a toggle: its label is the button
     expect(page.get_by_text(re.compile(r"^details play as \d+ extra morph targets"))).to_be_visible(timeout=30_000)
     page.wait_for_function("([label, K]) => window.__faceRetarget.viewers[label].self.K === K && "
                            "!window.__faceRetarget.viewers[label].info().offsets", arg=[label, K + len(B)], timeout=30_000)

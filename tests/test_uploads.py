@@ -1,0 +1,70 @@
+"""Uploads are checked when they arrive (core/io/check.py through the dashboard session): each
+bad file gets a message naming it as the user called it — never a server path, a byte string or
+a command-line flag — and stays out of the lists; good files go where they belong."""
+
+import numpy as np
+import pytest
+
+from core.pipeline import StageCache
+from datapaths import LAYOUTS, PERFORMANCES, RIGS
+
+
+@pytest.fixture
+def session():
+    from dashboard.session import Session
+
+    return Session(cache=StageCache())
+
+
+def _no_shapes_glb(tmp_path, tiger):
+    from core.io.gltf import write_rig
+    from core.model import Rig
+
+    p = tmp_path / "plain.glb"
+    write_rig(p, Rig(tiger.neutral, tiger.faces, np.zeros((0,) + tiger.neutral.shape), [], None, "m", "plain"))
+    return p.read_bytes()
+
+
+def test_bad_uploads_are_refused_in_plain_words(session, tmp_path, tiger):
+    before = {k: dict(v) for k, v in session.files.items()}
+    cases = [("empty.glb", b"", "empty.glb is empty"),
+             ("garbage.glb", b"\x00\x01 not a binary glTF", "garbage.glb is not a GLB file"),
+             ("plain.glb", _no_shapes_glb(tmp_path, tiger), "plain.glb has no blend shapes"),
+             ("no_frames.csv", b"Timecode,BlendShapeCount,EyeBlinkLeft\n", "no_frames.csv"),
+             ("words.csv", b"hello,world\n1,2\n", "words.csv"),
+             ("binary.csv", b"\x00\xff\x00\xfe" * 100, "binary.csv is not a text file"),
+             ("notes.txt", b"hello", "notes.txt: files of type .txt"),
+             ("broken.json", b"{not json", "broken.json is not valid JSON"),
+             ("list.json", b"[1, 2]", "expected a JSON object")]
+    for name, data, want in cases:
+        with pytest.raises(ValueError) as e:
+            session.add_upload(name, data)
+        msg = str(e.value)
+        assert want in msg, msg
+        assert str(session.upload_dir) not in msg and "/tmp" not in msg and "b'" not in msg and "--" not in msg, msg
+        assert not (session.upload_dir / name).exists(), f"{name} was kept"
+    assert session.files == before
+
+
+def test_good_uploads_go_where_they_belong(session, tmp_path):
+    msg = session.add_upload("take.csv", (PERFORMANCES / "livelinkface_rom.csv").read_bytes())
+    assert "weight curves" in msg and session.source == "⤒ take.csv"
+    msg = session.add_upload("tiger copy.glb", (RIGS / "jeeliz_tiger.glb").read_bytes())
+    assert "11 blend shapes" in msg and "⤒ tiger copy.glb" in session.files["rigs"]
+    # a layout applies to the chosen target rig
+    session.target_rig = "⤒ tiger copy.glb"
+    msg = session.add_upload("my.layout.json", (LAYOUTS / "jeeliz_tiger.json").read_bytes())
+    assert "41 markers" in msg and session.pipeline.target_face.target_layout.endswith("my.layout.json")
+    assert session.recompute(), session.error
+    # a rig without a layout: the page's words, not the command line's
+    session.add_upload("other.glb", (RIGS / "jeeliz_triceratops.glb").read_bytes())
+    session.pipeline.configure(target_layout="")
+    session.target_rig = "⤒ other.glb"
+    assert session.needs_layout == "other.glb"
+    assert not session.recompute()
+    assert "has no marker layout yet" in session.error and "--" not in session.error and "/tmp" not in session.error
+    report = session.place_markers()
+    assert "Placed 41 markers" in report["message"] and session.layout_path().exists()
+    assert session.recompute(), session.error
+    assert session.needs_layout == ""
+    assert len(session.result_bytes("glb")) > 1000 and session.result_bytes("csv").startswith(b"time_s,frame,valid")
