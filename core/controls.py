@@ -271,9 +271,8 @@ def _directional(name: str, partner: str) -> bool:
         return False
     if len(spans) >= 2:
         return True  # Eye_Left_Left: the second side is a direction
-    rest = _swapped(s, [])
     a, b = spans[0]
-    rest = re.sub(r"[^0-9a-z]", "", (rest[:a] + rest[b:]).lower())
+    rest = re.sub(r"[^0-9a-z]", "", (s[:a] + s[b:]).lower())  # the name without its side token
     return rest.endswith(_DIRECTIONAL_END)
 
 
@@ -815,7 +814,7 @@ def _fps(fps) -> float:
 
 def lowpass_alpha(cutoff, fps) -> np.ndarray:
     """Smoothing factor of the first-order low-pass at ``cutoff`` Hz:
-    ``a = 1 / (1 + tau / T_e)``, ``tau = 1 / (2 pi f_c)``, ``T_e = 1 / fps`` (Casiez 2012, eq. 2)."""
+    ``a = 1 / (1 + tau / T_e)``, ``tau = 1 / (2 pi f_c)``, ``T_e = 1 / fps`` (Casiez et al. 2012 [2])."""
     r = 2.0 * np.pi * np.asarray(cutoff, dtype=np.float64) / _fps(fps)
     return r / (1.0 + r)
 
