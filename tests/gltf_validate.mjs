@@ -1,6 +1,6 @@
 // Check a glTF/GLB file with the tools that will open it.
 //
-//   node tests/gltf_validate.mjs <file.glb|file.gltf> [--no-three]
+//   node tests/gltf_validate.mjs <file.glb|file.gltf> [--no-three] [--sample=t0,t1,...]
 //
 // Prints one JSON object on stdout:
 //   { file, validator: {version, numErrors, numWarnings, numInfos, numHints, messages[]},
@@ -8,7 +8,9 @@
 //             animations: [{name, duration, tracks: [{name, times, values}]}]} }
 // "validator" is the Khronos glTF Validator (npm gltf-validator); "three" is what three.js's
 // GLTFLoader.parse builds from the bytes (runs in node without a DOM for files whose buffers
-// are embedded and that have no images).
+// are embedded and that have no images). With --sample=t0,t1,... "three.samples" holds the
+// first mesh's morphTargetInfluences after an AnimationMixer plays animations[0] to each time
+// (seconds): three.js's own LINEAR / CUBICSPLINE interpolation of the file.
 //
 // Exit codes: 0 ran (look at numErrors), 1 a tool threw, 2 bad arguments,
 // 3 node_modules missing (run `npm ci` at the repository root).
@@ -18,6 +20,8 @@ import path from 'node:path';
 
 const args = process.argv.slice(2);
 const file = args.find((a) => !a.startsWith('--'));
+const sampleArg = args.find((a) => a.startsWith('--sample='));
+const sampleTimes = sampleArg ? sampleArg.slice('--sample='.length).split(',').map(Number) : [];
 if (!file) {
   console.error('usage: node tests/gltf_validate.mjs <file.glb|file.gltf> [--no-three]');
   process.exit(2);
@@ -90,8 +94,21 @@ if (!args.includes('--no-three')) {
       });
     }
   });
+  let samples = [];
+  if (sampleTimes.length && gltf.animations.length) {
+    const { AnimationMixer } = await need('three');
+    let first = null;
+    gltf.scene.traverse((o) => { if (o.isMesh && !first) first = o; });
+    const mixer = new AnimationMixer(gltf.scene);
+    mixer.clipAction(gltf.animations[0]).play();
+    samples = sampleTimes.map((t) => {
+      mixer.setTime(t);
+      return Array.from(first.morphTargetInfluences);
+    });
+  }
   out.three = {
     meshes,
+    samples,
     animations: gltf.animations.map((a) => ({
       name: a.name,
       duration: a.duration,

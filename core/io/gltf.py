@@ -19,6 +19,12 @@ What :func:`write_rig` writes (and :func:`read_rig` / :func:`read_animation` /
   (numpy arrays as JSON lists), e.g. ICT's ``upstreamVertexIndex``;
 * with ``weights``: ``animations[0]`` with one LINEAR sampler (input: float32 seconds,
   output: T*K float32 weights, frame-major) and one channel ``{node: 0, path: "weights"}``;
+  with reduced keys (:func:`core.controls.reduce_keys`) the sampler holds only the key times,
+  LINEAR or CUBICSPLINE (output 3*T*K floats: per key the in-tangents, values and
+  out-tangents of all targets). glTF animates a node's morph weights through one sampler, so
+  one time grid for all targets: per-curve keys are written on the union of their times
+  (:meth:`core.controls.Keys.grid`, which reproduces each curve exactly), or reduced jointly
+  (``reduce_keys(..., shared=True)``, the fewest keys of one grid);
 * with ``markers``: ``mesh.extras.markerLayout = {"rig", "names", "vertices" (M x 3 ints),
   "weights" (M x 3 barycentric), "extras"}`` so a marker layout travels with its rig. The key
   ``markerLayout`` is reserved: :func:`read_rig` leaves it out of ``Rig.extras``.
@@ -396,7 +402,9 @@ def read_animation(path, animation: int = 0, fps: Optional[float] = None) -> Per
     Returns
     -------
     Performance, kind "curves", data (T, K) float64 (float32 in the file round-trips
-    exactly), ``extras["interpolation"]`` the sampler interpolation.
+    exactly), ``extras["interpolation"]`` the sampler interpolation; for CUBICSPLINE also
+    ``extras["in_tangents"]`` and ``extras["out_tangents"]`` (T, K) float64 (per second, as in
+    the file), so the curves can be evaluated between keys (:func:`core.controls.evaluate_sampler`).
 
     Raises
     ------
@@ -438,12 +446,15 @@ def read_animation(path, animation: int = 0, fps: Optional[float] = None) -> Per
                 f"{path}: {sw}.output has {values.size} values, expected {per_key}*{T} keys*{K} targets = {per_key * T * K} ({interp})"
             )
         data = values.reshape(T, per_key, K)[:, per_key // 2, :].astype(np.float64)
+        extras = {"interpolation": interp, "node": int(tgt.node), "mesh": int(mesh)}
+        if interp == "CUBICSPLINE":
+            tan = values.reshape(T, 3, K).astype(np.float64)
+            extras["in_tangents"], extras["out_tangents"] = tan[:, 0].copy(), tan[:, 2].copy()
         if fps is None:
             fps = estimate_fps(times, f"{path}: {sw}.input", snap="whole") if T > 1 else 30.0
         name = anim.name or path.stem
         try:
-            return Performance.curves(data, names, fps, times=times, name=name,
-                                      extras={"interpolation": interp, "node": int(tgt.node), "mesh": int(mesh)})
+            return Performance.curves(data, names, fps, times=times, name=name, extras=extras)
         except ValueError as e:
             raise GltfError(f"{path}: {sw}: {e}") from None
     raise GltfError(f"{path}: {where} has no channel with target.path 'weights' on a node with a mesh")
@@ -518,6 +529,27 @@ def _jsonable(value, where: str):
     raise TypeError(f"{where}: {type(value).__name__} cannot be stored in glTF JSON extras")
 
 
+def _tangents(tangents, interpolation: str, shape) -> Optional[np.ndarray]:
+    """(T, 3, K) float32 sampler output of CUBICSPLINE keys (in-tangent, value slot, out-tangent)."""
+    if interpolation == "LINEAR":
+        if tangents is not None:
+            raise ValueError("tangents: only for interpolation='CUBICSPLINE'")
+        return None
+    if interpolation != "CUBICSPLINE":
+        raise ValueError(f"interpolation: expected 'LINEAR' or 'CUBICSPLINE', got {interpolation!r}")
+    if tangents is None or len(tangents) != 2:
+        raise ValueError("tangents: CUBICSPLINE needs (in_tangents, out_tangents), each (T, K) per second")
+    out = np.empty((shape[0], 3, shape[1]), np.float32)
+    for slot, (name, t) in zip((0, 2), zip(("in_tangents", "out_tangents"), tangents)):
+        a = np.asarray(t, dtype=np.float64)
+        if a.shape != shape:
+            raise ValueError(f"tangents: {name} must be {shape} (like the weights), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"tangents: {name} contains NaN/inf")
+        out[:, slot] = a
+    return out
+
+
 def _animation_inputs(rig: Rig, weights, fps, times) -> tuple[np.ndarray, np.ndarray]:
     """Validated (weights (T, K) float32, times (T,) float32) for the animation."""
     if isinstance(weights, Performance):
@@ -554,7 +586,8 @@ def _animation_inputs(rig: Rig, weights, fps, times) -> tuple[np.ndarray, np.nda
 
 
 def write_rig(path, rig: Rig, weights=None, fps: float = 30.0, times=None,
-              markers: Optional[MarkerLayout] = None, *, normals: bool = True) -> Path:
+              markers: Optional[MarkerLayout] = None, *, normals: bool = True, interpolation: str = "LINEAR",
+              tangents=None) -> Path:
     """Write ``rig`` (and optionally a morph-weight animation) as glTF 2.0.
 
     The mesh is ``neutral + sum_k w_k deltas[k]`` (glTF 2.0 §3.7.2.2), the layout is given
@@ -580,6 +613,13 @@ def write_rig(path, rig: Rig, weights=None, fps: float = 30.0, times=None,
     normals : bool
         Write ``NORMAL`` (unit, area-weighted, see :func:`vertex_normals`) and per-target
         ``NORMAL`` deltas so viewers shade morphed shapes correctly.
+    interpolation : {"LINEAR", "CUBICSPLINE"}
+        The sampler's interpolation. Reduced keys: ``F, t, V, A, Bt = keys.grid()`` then
+        ``write_rig(path, rig, V, times=t, interpolation=keys.interpolation, tangents=(A, Bt))``
+        (:meth:`core.controls.Keys.grid`).
+    tangents : (in_tangents, out_tangents), each (T, K) float per second, CUBICSPLINE only
+        glTF 2.0 Appendix C: on ``[t_k, t_k+1]`` the value is the cubic Hermite of the two
+        values, key k's out-tangent and key k+1's in-tangent, times ``t_k+1 - t_k``.
 
     Returns
     -------
@@ -598,6 +638,7 @@ def write_rig(path, rig: Rig, weights=None, fps: float = 30.0, times=None,
     if not isinstance(rig, Rig):
         raise TypeError(f"rig: expected a core.model.Rig, got {type(rig).__name__}")
     anim = None if weights is None else _animation_inputs(rig, weights, fps, times)
+    cubic = None if anim is None else _tangents(tangents, interpolation, anim[0].shape)
     if markers is not None:
         if not isinstance(markers, MarkerLayout):
             raise TypeError(f"markers: expected a MarkerLayout, got {type(markers).__name__}")
@@ -642,10 +683,13 @@ def write_rig(path, rig: Rig, weights=None, fps: float = 30.0, times=None,
     if anim is not None:
         w32, t32 = anim
         inp = b.add(t32, "SCALAR", _FLOAT, minmax=True)
+        if cubic is not None:
+            cubic[:, 1] = w32
+            w32 = cubic
         out = b.add(w32.reshape(-1), "SCALAR", _FLOAT)
         doc["animations"] = [{
             "name": "weights",
-            "samplers": [{"input": inp, "output": out, "interpolation": "LINEAR"}],
+            "samplers": [{"input": inp, "output": out, "interpolation": interpolation}],
             "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
         }]
     blob = b.blob()

@@ -11,6 +11,17 @@ frame's fit. Frames are batched: frames sharing a mask pattern share one factori
 solved as right-hand sides of it. A frame with no valid marker gets the minimum-norm answer
 (zero weights for No Const, the prior's mode for Prior PF, the box projection of zero for
 Range PF) — its result says nothing about the data.
+
+Production controls (:mod:`core.controls`) enter the per-frame solves as two options, both off
+by default (then the solves are exactly the papers'):
+
+* ``quadratic`` — a constant (K, K) positive semi-definite ``Q``, relative to ``sigma_max(B)^2``
+  like ``ridge``: the energy gains ``sigma_max(B)^2 w_t^T Q w_t`` per frame, i.e. ``Q`` joins the
+  Gram matrix ``B_v^T B_v`` (e.g. the symmetry term ``mu_s sum_pairs (w_L - w_R)^2`` of
+  :func:`core.controls.symmetry_matrix`);
+* ``zero`` — (K,) or (T, K) bool: weights held at 0 (at the nearest bound when 0 is outside
+  ``[lower, upper]``): the inactive shapes of an active set, or the weaker shape of a cancel
+  pair in :func:`core.controls.cancel_pairs`' second pass.
 """
 
 from __future__ import annotations
@@ -75,7 +86,8 @@ def no_const(B, S, valid=None, rcond: float = 1e-7) -> np.ndarray:
     return W
 
 
-def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str = "cm", ridge: float = 0.0) -> np.ndarray:
+def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str = "cm", ridge: float = 0.0,
+             quadratic=None, zero=None) -> np.ndarray:
     """"Prior PF" (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2 + alpha E_prior(w_t)`` per frame.
 
     Normal equations ``(B_v^T B_v + alpha P) w_t = B_v^T s_t + alpha q`` (``B_v``: valid rows),
@@ -91,6 +103,13 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
         :func:`core.prior.alpha_for_units`.
     prior : PCAPrior, (P, q) tuple or None
         None: PCA of ``B``'s shapes (paper default).
+    ridge : float >= 0
+        Relative Tikhonov weight (times ``sigma_max(B)^2``).
+    quadratic : (K, K) float, optional
+        Relative symmetric PSD ``Q``: adds ``sigma_max(B)^2 w_t^T Q w_t`` (module docstring).
+    zero : (K,) or (T, K) bool, optional
+        Weights held at 0: their rows and columns leave the frame's normal equations (one
+        factorisation per mask pattern and zero pattern).
 
     Returns
     -------
@@ -104,17 +123,35 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
     else:
         P, q = np.zeros((K, K)), np.zeros(K)
     W = np.zeros((len(Sz), K))
-    rho = ridge * _smax2(Bm)
+    smax2 = _smax2(Bm)
+    rho = ridge * smax2
+    Qs = _quadratic(quadratic, K, smax2, "prior_pf")
+    zero = _zero_mask(zero, len(Sz), K, "prior_pf")
     for pat, frames in _groups(valid):
         rows = np.repeat(pat, 3)
         Bv = Bm[rows]
         H = Bv.T @ Bv + a * P + rho * np.eye(K)
+        if Qs is not None:
+            H = H + Qs
         rhs = Sz[frames][:, rows] @ Bv + a * q
-        try:
-            W[frames] = scipy.linalg.cho_solve(scipy.linalg.cho_factor(H, lower=True), rhs.T).T
-        except np.linalg.LinAlgError:
-            W[frames] = scipy.linalg.lstsq(H, rhs.T)[0].T
+        if zero is None:
+            W[frames] = _spd_solve(H, rhs)
+            continue
+        zp, zinv = np.unique(zero[frames], axis=0, return_inverse=True)
+        zinv = np.asarray(zinv).ravel()
+        for g, zrow in enumerate(zp):
+            fr, free = frames[zinv == g], ~zrow
+            if free.any():
+                W[np.ix_(fr, np.flatnonzero(free))] = _spd_solve(H[np.ix_(free, free)], rhs[zinv == g][:, free])
     return W
+
+
+def _spd_solve(H, rhs):
+    """Rows of ``rhs`` solved with the symmetric ``H`` (Cholesky; ``lstsq`` when singular)."""
+    try:
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(H, lower=True), rhs.T).T
+    except np.linalg.LinAlgError:
+        return scipy.linalg.lstsq(H, rhs.T)[0].T
 
 
 def box_lsq(H: np.ndarray, rhs: np.ndarray, lower, upper, max_iter: int = 30):
@@ -159,6 +196,38 @@ def _smax2(Bm) -> float:
     return float(np.linalg.norm(Bm, 2) ** 2) if Bm.size else 0.0
 
 
+def _quadratic(Q, K: int, scale: float, name: str):
+    """``scale * Q`` validated: (K, K), finite, symmetric, positive semi-definite; None -> None."""
+    if Q is None:
+        return None
+    Q = np.asarray(Q, dtype=np.float64)
+    if Q.shape != (K, K):
+        raise ValueError(f"{name}: quadratic must be a ({K}, {K}) matrix (one row and column per shape), got {Q.shape}")
+    if not np.isfinite(Q).all():
+        raise ValueError(f"{name}: quadratic contains NaN/inf")
+    top = max(float(np.abs(Q).max()), 1e-300)
+    if np.abs(Q - Q.T).max() > 1e-12 * top:
+        raise ValueError(f"{name}: quadratic must be symmetric")
+    if np.linalg.eigvalsh(Q)[0] < -1e-10 * top:
+        raise ValueError(f"{name}: quadratic must be positive semi-definite (a sum of squares such as "
+                         "core.controls.symmetry_matrix)")
+    return scale * 0.5 * (Q + Q.T)
+
+
+def _zero_mask(zero, T: int, K: int, name: str):
+    """(T, K) bool of the weights held at 0, from None, (K,) or (T, K); None when nothing is held."""
+    if zero is None:
+        return None
+    z = np.asarray(zero)
+    if z.dtype != bool:
+        raise ValueError(f"{name}: zero must be a bool mask, got dtype {z.dtype}")
+    if z.shape == (K,):
+        z = np.broadcast_to(z, (T, K))
+    if z.shape != (T, K):
+        raise ValueError(f"{name}: zero must be a ({K},) or ({T}, {K}) bool mask, got shape {z.shape}")
+    return z if z.any() else None
+
+
 def _bounds(lower, upper, K: int, name: str):
     """(K,) float bounds from scalars or per-shape arrays, validated."""
     try:
@@ -175,7 +244,8 @@ def _bounds(lower, upper, K: int, name: str):
     return lo, hi
 
 
-def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: float = 0.0, return_info: bool = False):
+def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: float = 0.0, return_info: bool = False,
+             quadratic=None, zero=None):
     """"Range PF" (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2  s.t. lower <= w <= upper``.
 
     With ``w = lower + D u``, ``D = diag(upper - lower)``, every frame is the unit-box QP
@@ -201,6 +271,14 @@ def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: f
         ``ridge="auto"``) is then added to make it so.
     return_info : bool
         Also return the solver's counters (see :func:`core.solvers.boxqp.solve_box_sequence`).
+    quadratic : (K, K) float, optional
+        Relative symmetric PSD ``Q``: ``H = B_v^T B_v + rho I + sigma_max(B)^2 Q`` (module
+        docstring), e.g. :func:`core.controls.symmetry_matrix`.
+    zero : (K,) or (T, K) bool, optional
+        Weights held at ``clip(0, lower, upper)`` (the active set's off shapes, a cancel pair's
+        weaker shape). Per frame a held weight is one more pinned variable: its row and column of
+        the unit-box Hessian become the identity (``u = 0``), one Hessian per mask pattern and
+        zero pattern in the table of :func:`~core.solvers.boxqp.solve_box_sequence`.
 
     Returns
     -------
@@ -217,32 +295,61 @@ def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: f
     K = Bm.shape[1]
     lo, hi = _bounds(lower, upper, K, "range_pf")
     T = len(Sz)
-    W = np.broadcast_to(np.clip(0.0, lo, hi), (T, K)).copy()  # frames without any valid marker
+    zero = _zero_mask(zero, T, K, "range_pf")
+    held = np.clip(0.0, lo, hi)
+    W = np.broadcast_to(held, (T, K)).copy()  # frames without any valid marker
     info = {"fallback": 0}
-    rho = ridge * _smax2(Bm)
+    smax2 = _smax2(Bm)
+    rho = ridge * smax2
+    Qs = _quadratic(quadratic, K, smax2, "range_pf")
     sol = np.flatnonzero(hi > lo)  # shapes to solve for; the others are pinned at lower
     if len(sol):
         pats, inv = (valid[:1], np.zeros(T, np.int64)) if valid.all() else np.unique(valid, axis=0, return_inverse=True)
         inv = np.asarray(inv).ravel()
         d = (hi - lo)[sol]
         R = Sz @ Bm  # (T, K): B_v^T s_t for every frame (missing samples are zero-filled)
-        Htab, lin = [], []
+        Hfull = []
         for pat in pats:
             rows = np.repeat(pat, 3)
             Bv = Bm[rows]
             H = Bv.T @ Bv + rho * np.eye(K)
+            if Qs is not None:
+                H = H + Qs
             try:
                 np.linalg.cholesky(H)
             except np.linalg.LinAlgError:
                 # rank-deficient B on these markers: the bounded fit is not unique; the same
                 # relative ridge as the spacetime solver's "auto" picks the smallest-norm-ish one
                 H = H + AUTO_RIDGE * max(np.linalg.eigvalsh(H)[-1], 1e-300) * np.eye(K)
-            Htab.append(H[np.ix_(sol, sol)] * d[:, None] * d[None, :])
-            lin.append((lo @ H)[sol])
+            Hfull.append(H)
+        # per frame: which Hessian (mask pattern, and the pattern of held weights among `sol`)
+        if zero is None:
+            zpats, zinv = np.zeros((1, len(sol)), bool), np.zeros(T, np.int64)
+        else:
+            zpats, zinv = np.unique(zero[:, sol], axis=0, return_inverse=True)
+            zinv = np.asarray(zinv).ravel()
+        combo, cinv = np.unique(np.column_stack([inv, zinv]), axis=0, return_inverse=True)
+        cinv = np.asarray(cinv).ravel()
+        Htab, lin, dtab = [], [], []
+        for p, z in combo:
+            H, zr = Hfull[p], zpats[z]
+            dz = np.where(zr, 0.0, d)
+            Hs = H[np.ix_(sol, sol)] * dz[:, None] * dz[None, :]
+            Hs[zr, zr] = 1.0  # a held weight: u = 0 decoupled from the others
+            start = lo.copy()
+            start[sol[zr]] = held[sol[zr]]  # the value the unit box starts from (held weights sit there)
+            Htab.append(Hs)
+            lin.append((start @ H)[sol])
+            dtab.append((start[sol], dz))
         has = pats.any(1)[inv]  # frames with at least one valid marker
         fr = np.flatnonzero(has)
         if len(fr):
-            f = (np.asarray(lin)[inv[fr]] - R[fr][:, sol]) * d
-            u, info = solve_box_sequence(np.asarray(Htab), f, inv[fr], return_info=True)
-            W[np.ix_(fr, sol)] = np.clip(lo[sol] + u * d, lo[sol], hi[sol])
+            c = cinv[fr]
+            dz = np.asarray([x[1] for x in dtab])[c]
+            base = np.asarray([x[0] for x in dtab])[c]
+            f = (np.asarray(lin)[c] - R[fr][:, sol]) * dz
+            u, info = solve_box_sequence(np.asarray(Htab), f, c, return_info=True)
+            W[np.ix_(fr, sol)] = np.clip(base + u * dz, lo[sol], hi[sol])
+    if zero is not None:
+        W[zero] = np.broadcast_to(held, (T, K))[zero]
     return (W, info) if return_info else W

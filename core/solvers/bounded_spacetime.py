@@ -339,7 +339,7 @@ def bounded_spacetime_reference(B, S, alpha: float, beta: float, prior, known, *
     B, S, alpha, beta, prior, known
         As :class:`SpacetimeSolver`; ``kw`` passes ``boundary``, ``valid``, ``marker_weights``,
         ``frame_weights``, ``alpha_units``, ``ridge`` (absolute), ``name_target``,
-        ``name_weight`` (absolute) on to :func:`kronecker_system`.
+        ``name_weight`` (absolute), ``quadratic`` (absolute) on to :func:`kronecker_system`.
     lower, upper : float or (K,) float, optional
     l1 : float or (K,) float
         Absolute L1 weight (use ``SpacetimeSolver(...).l1_``).

@@ -47,6 +47,15 @@ support S with signs σ, H_SS w_S = b_S − c σ_S, checks the KKT conditions
 few rounds, all frames at once). Polished frames (``Solution.polished``) hold the exact ℓ1
 optimum, not an ε-smoothed one; the tests compare it with L-BFGS-B on the split
 w = w⁺ − w⁻.
+
+Production controls (:mod:`core.controls`), off by default
+----------------------------------------------------------
+``quadratic`` C (K × K, PSD, e.g. the symmetry term of :func:`core.controls.symmetry_matrix`)
+adds ``s_P wᵀCw`` with ``s_P = σ_max(P)²/M`` (relative to the data term, as the other solvers'
+relative weights): it joins H, so IRLS and the polish are unchanged. ``zero`` in
+:meth:`GeometricSolver.solve` holds weights at 0: they never enter a frame's support (the
+first iterate, IRLS and the polish's active set all skip them), which is the exact optimum of
+eq. 16 with those weights fixed.
 """
 
 from __future__ import annotations
@@ -173,6 +182,9 @@ class GeometricSolver:
         IRLS stops for a frame when no weight changes by more than ``tol`` × max(1, max|w|).
     polish : bool
         Finish with the exact support/sign solve (module docstring).
+    quadratic : (K, K) float, optional
+        Relative symmetric PSD coupling C: ``σ_max(P)²/M · wᵀCw`` joins the energy (module
+        docstring); the absolute matrix is ``coupling_``.
 
     Raises
     ------
@@ -182,7 +194,8 @@ class GeometricSolver:
     """
 
     def __init__(self, blendshapes, prior="geometric", rig=None, gram=None, linear=None,
-                 mu=MU, lam=LAMBDA, units="cm", drop=0.05, max_iter=5, tol=1e-6, polish=True, greedy_rounds=3):
+                 mu=MU, lam=LAMBDA, units="cm", drop=0.05, max_iter=5, tol=1e-6, polish=True, greedy_rounds=3,
+                 quadratic=None):
         P = np.asarray(blendshapes, dtype=np.float64)
         if P.ndim != 3 or P.shape[2] != 3:
             raise ValueError(f"blendshapes: expected (K, M, 3), got {P.shape}")
@@ -222,7 +235,15 @@ class GeometricSolver:
             raise ValueError(f"gram/linear: expected ({K}, {K}) and ({K},), got {Q.shape} and {q.shape}")
         self.Q = 0.5 * (Q + Q.T)
         self.q = q
+        self.coupling_ = None
+        if quadratic is not None:
+            from core.solvers.baselines import _quadratic
+
+            scale = float(np.linalg.norm(self.P, 2) ** 2) / M if self.P.size else 0.0
+            self.coupling_ = _quadratic(quadratic, K, scale, "GeometricSolver")
         self.H = self.P.T @ self.P / M + self.mu * self.Q
+        if self.coupling_ is not None:
+            self.H = self.H + self.coupling_
         self.c = self.lam / (2.0 * K)  # the ℓ1 weight in the halved gradient
 
     # -- pieces ---------------------------------------------------------------------------
@@ -248,12 +269,15 @@ class GeometricSolver:
         A = self._frames(frames)
         W = np.asarray(weights, dtype=np.float64).reshape(len(A), self.K)
         r = A - W @ self.P.T
-        return (np.einsum("ij,ij->i", r, r) / self.M
-                + self.mu * (np.einsum("ij,jk,ik->i", W, self.Q, W) + 2 * W @ self.q)
-                + self.lam / self.K * np.abs(W).sum(axis=1))
+        e = (np.einsum("ij,ij->i", r, r) / self.M
+             + self.mu * (np.einsum("ij,jk,ik->i", W, self.Q, W) + 2 * W @ self.q)
+             + self.lam / self.K * np.abs(W).sum(axis=1))
+        if self.coupling_ is not None:
+            e = e + np.einsum("ij,jk,ik->i", W, self.coupling_, W)
+        return e
 
     # -- solve ----------------------------------------------------------------------------
-    def solve(self, frames) -> Solution:
+    def solve(self, frames, zero=None) -> Solution:
         """Weights (T, K) minimising eq. 16 for every frame, all frames at once.
 
         IRLS (module docstring) on all frames in lock-step; a coordinate whose weight has
@@ -265,6 +289,9 @@ class GeometricSolver:
         ----------
         frames : (T, M, 3) or (M, 3) float
             Marker displacements from the neutral (metres), markers in the blendshapes' order.
+        zero : (K,) or (T, K) bool, optional
+            Weights held at 0 (module docstring): an active set's off shapes, a cancel pair's
+            weaker shape.
 
         Returns
         -------
@@ -278,26 +305,42 @@ class GeometricSolver:
         b = self.rhs(frames)
         T, K = b.shape
         H, c = self.H, self.c
+        free = None
+        if zero is not None:
+            z = np.asarray(zero)
+            if z.dtype != bool or z.shape not in ((K,), (T, K)):
+                raise ValueError(f"zero: expected a ({K},) or ({T}, {K}) bool mask, got {z.dtype} {z.shape}")
+            free = ~np.broadcast_to(z, (T, K))
+            if free.all():
+                free = None
         if c == 0.0 or T == 0:  # no ℓ1: one linear solve
-            W = np.linalg.solve(H, b.T).T if T else np.zeros((0, K))
+            if free is not None:
+                W = _reduced_solve(H, free, np.ones((T, K)), 0.0, b)
+            else:
+                W = np.linalg.solve(H, b.T).T if T else np.zeros((0, K))
             return Solution(W, self.energy(frames, W), 0, np.ones(T, bool))
-        W, it, unconverged = self._irls(b, self.drop, self.max_iter)
+        W, it, unconverged = self._irls(b, self.drop, self.max_iter, free)
         polished = np.zeros(T, bool)
         if self.polish:
-            W, polished = self._polish(W, b)
+            W, polished = self._polish(W, b, free=free)
             if not polished.all():  # rare: retry those frames with plain, long IRLS
                 rows = np.flatnonzero(~polished)
-                W2, _, _ = self._irls(b[rows], 1e-12, 50 * self.max_iter)
-                W2, ok2 = self._polish(W2, b[rows])
+                fr = None if free is None else free[rows]
+                W2, _, _ = self._irls(b[rows], 1e-12, 50 * self.max_iter, fr)
+                W2, ok2 = self._polish(W2, b[rows], free=fr)
                 W[rows] = W2
                 polished[rows] = ok2
         return Solution(W, self.energy(frames, W), it, polished, {"unconverged": unconverged})
 
-    def _irls(self, b, drop, max_iter):
+    def _irls(self, b, drop, max_iter, free=None):
         T, K = b.shape
         H, c = self.H, self.c
-        # first iterate (|w0| = 1 for all k): one matrix, T right-hand sides
-        W = np.linalg.solve(H + c * np.eye(K), b.T).T
+        # first iterate (|w0| = 1 for all k): one matrix, T right-hand sides (held weights left out;
+        # IRLS keeps a zero weight at zero, so they stay held)
+        if free is None:
+            W = np.linalg.solve(H + c * np.eye(K), b.T).T
+        else:
+            W = _reduced_solve(H, free, np.ones((T, K)), c, b)
         active = np.arange(T)
         it = 0
         for it in range(1, max_iter + 1):
@@ -315,7 +358,7 @@ class GeometricSolver:
             active = active[change > self.tol * np.maximum(scale[:, 0], 1.0)]
         return W, it, int(len(active))
 
-    def _polish(self, W, b, rounds=30):
+    def _polish(self, W, b, rounds=30, free=None):
         """Exact ℓ1 optimum from the IRLS support and signs, by active-set rounds.
 
         Each round solves H_SS w_S = b_S − c σ_S (c = λ/2K) for every frame at once, then
@@ -342,6 +385,8 @@ class GeometricSolver:
             g = bb - Wp @ H  # H symmetric
             flipped = o & (np.sign(Wp) != sg)
             viol = ~o & (np.abs(g) > c + tol[todo, None])
+            if free is not None:
+                viol &= free[todo]
             ok = ~flipped.any(axis=1) & ~viol.any(axis=1)
             out[todo[ok]] = Wp[ok]
             done[todo[ok]] = True

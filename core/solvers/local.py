@@ -46,6 +46,17 @@ verified per frame): 0.20 s instead of 0.37 s for the 24,000 QPs of ``bench_loca
 case, measured back to back on the same machine.
 
 Synthesis (eq. 3) blends the regional results with the masks: ``x = n + Σ_k B_k D̄ u_k``.
+
+Production controls (:mod:`core.controls`), all off by default
+---------------------------------------------------------------
+* ``quadratic`` Q (K × K, PSD, e.g. the symmetry term of :func:`core.controls.symmetry_matrix`):
+  region k's Hessian gains ``λ_max(Dᵀ M_k² D) · Q``, so the term is equally strong relative to
+  every region's own data term (per region, as the brief's "local (per region)" asks);
+* ``lower``/``upper`` per shape for the box form: ``w = lower + (upper − lower) u`` turns
+  ``lower ≤ w ≤ upper`` into the unit box (a pinned shape, ``lower = upper``, gets an identity row);
+* ``zero`` in :meth:`LocalProblem.solve`: (T, K) or (T, R, K) weights held at 0 (the same
+  identity-row device: one Hessian per region, mask pattern and zero pattern), used by the
+  cancel pairs' second pass of :func:`core.controls.cancel_pairs`.
 """
 
 from __future__ import annotations
@@ -461,6 +472,11 @@ class LocalProblem:
     ridge: float
     H: np.ndarray
     info: dict = field(default_factory=dict)
+    #: (R, K, K) absolute coupling per region (``quadratic`` times the region's scale), or None
+    coupling: Optional[np.ndarray] = None
+    #: (K,) box bounds of the weights (None: the unit box)
+    lower: Optional[np.ndarray] = None
+    upper: Optional[np.ndarray] = None
 
     @property
     def n_regions(self) -> int:
@@ -481,7 +497,8 @@ class LocalProblem:
         tr = np.einsum("rkk->r", H) / self.n_shapes
         floor = 1e-300 + 1e-12 * max(tr.max(initial=0.0), 0.0)
         eps = self.ridge * np.maximum(tr, floor)
-        return H + eps[:, None, None] * np.eye(self.n_shapes)[None]
+        H = H + eps[:, None, None] * np.eye(self.n_shapes)[None]
+        return H if self.coupling is None else H + self.coupling
 
     def linear_terms(self, targets: np.ndarray, valid: Optional[np.ndarray] = None) -> np.ndarray:
         """f (T, R, K) = −Dᵀ M_k² (t − s_0) for targets (T, M, 3) (missing markers weigh 0)."""
@@ -499,7 +516,7 @@ class LocalProblem:
         return -np.einsum("tkm,trm->trk", X, w, optimize=True)
 
     def solve(self, targets, valid=None, max_iter: int = 10, return_info: bool = False, block: Optional[int] = None,
-              warm_iter: int = 3):
+              warm_iter: int = 3, zero=None):
         """Regional weights for every frame: eq. 2 for all (frame, region) pairs.
 
         Parameters
@@ -520,6 +537,10 @@ class LocalProblem:
         warm_iter : int
             ``"simplex"``: active-set iterations a warm-started QP gets within its step; the few
             that need more are resumed from their (feasible) iterate in one batch at the end.
+        zero : (T, K) or (T, R, K) bool, optional
+            Weights held at 0 (at ``lower`` when 0 is below it): per (frame, region) problem a held
+            weight gets an identity row of the Hessian (module docstring). (T, K) holds them in
+            every region.
 
         ``"box"`` is solved by the batched parametric active-set method of
         :func:`core.solvers.boxqp.solve_box_sequence` (every region a chain of frames, each
@@ -566,12 +587,38 @@ class LocalProblem:
             f = self.linear_terms(targets, valid)
         f = f.reshape(T, R, K)
         hidx = hidx.reshape(T, R)
+        unit = self._unit(Htab, f, hidx, zero)
+        if unit is not None:  # bounds or held weights: the problems in unit-box coordinates
+            Htab, f, hidx, start, dz = unit
+            kw = {} if block is None else {"block": block}
+            if self.constraint == "box":
+                from .boxqp import solve_box_sequence
+
+                u, stats = solve_box_sequence(Htab, f, hidx, return_info=True, **kw)
+            else:
+                u, stats = self._simplex(Htab, f, hidx, block, max_iter, warm_iter)
+            U = start + u * dz
+            if self.lower is not None:
+                U = np.clip(U, self.lower, self.upper)
+            if not return_info:
+                return U
+            _, inf = self._finish(u, Htab, f, hidx, targets, valid, stats)  # KKT of the unit problems
+            return U, dict(inf, objective=self._objective(U, targets, valid))
         if self.constraint == "box":
             from .boxqp import solve_box_sequence
 
             kw = {} if block is None else {"block": block}
             U, stats = solve_box_sequence(Htab, f, hidx, return_info=True, **kw)
             return self._finish(U, Htab, f, hidx, targets, valid, stats) if return_info else U
+        U, stats = self._simplex(Htab, f, hidx, block, max_iter, warm_iter)
+        if not return_info:
+            return U
+        return self._finish(U, Htab, f, hidx, targets, valid, stats)
+
+    def _simplex(self, Htab, f, hidx, block, max_iter, warm_iter):
+        """The block-warm-started PDAS / primal active set of :meth:`solve` for ``"simplex"``
+        on problems ``(Htab, f (T, R, K), hidx (T, R))``: ``(U, counters)``."""
+        T, R, K = f.shape
         block = 16 if block is None else block
         U = np.empty((T, R, K))
         # Frames are cut into blocks of ``block`` consecutive frames. The first frame of
@@ -610,23 +657,70 @@ class LocalProblem:
             as_its += k
             fb += len(tt)
         U = _snap(U.reshape(T * R, K), simplex).reshape(T, R, K)
-        if not return_info:
-            return U
-        return self._finish(U, Htab, f, hidx, targets, valid,
-                            {"pdas_iterations": its, "fallback": fb, "active_set_iterations": as_its})
+        return U, {"pdas_iterations": its, "fallback": fb, "active_set_iterations": as_its}
 
     def _finish(self, U, Htab, f, hidx, targets, valid, info):
         """``(U, info)`` with the KKT violation and the objective ‖M_k (D u − b)‖² per (frame, region)."""
         K = self.n_shapes
         kkt = kkt_violation(Htab, f.reshape(-1, K), hidx.ravel(), U.reshape(-1, K), self.constraint)
+        return U, dict(info, kkt_violation=kkt, objective=self._objective(U, targets, valid))
+
+    def _objective(self, U, targets, valid):
+        """‖M_k (D u − b)‖² per (frame, region), (T, R)."""
         res = np.einsum("trk,kmc->trmc", U, self.deltas) - (targets - self.neutral[None])[:, None]
         res = np.where(valid[:, None, :, None], res, 0.0)
-        obj = np.einsum("trmc,rm->tr", res**2, self.marker_weights**2)
-        return U, dict(info, kkt_violation=kkt, objective=obj)
+        return np.einsum("trmc,rm->tr", res**2, self.marker_weights**2)
+
+    def _unit(self, Htab, f, hidx, zero):
+        """The problems in unit-box coordinates when there are bounds or held weights, else None.
+
+        With ``w = start + d∘u`` (``start`` = lower, or the held value; ``d`` = upper − lower, 0
+        for pinned and held weights) the QP ``½wᵀHw + fᵀw`` becomes ``½uᵀ(dHd)u + (d∘(H start +
+        f))ᵀu``; rows and columns with ``d = 0`` get the identity (``u = 0``). One unit Hessian per
+        (Hessian, held pattern). Returns ``(Htab, f, hidx, start (T, R, K), d (T, R, K))``.
+        """
+        T, R, K = f.shape
+        z = None
+        if zero is not None:
+            z = np.asarray(zero)
+            if z.dtype != bool:
+                raise ValueError(f"zero: expected a bool mask, got dtype {z.dtype}")
+            if z.shape == (T, K):
+                z = np.broadcast_to(z[:, None, :], (T, R, K))
+            if z.shape != (T, R, K):
+                raise ValueError(f"zero: expected ({T}, {K}) or ({T}, {R}, {K}) bool, got {z.shape}")
+            if not z.any():
+                z = None
+        if z is None and self.lower is None:
+            return None
+        lo = np.zeros(K) if self.lower is None else self.lower
+        hi = np.ones(K) if self.upper is None else self.upper
+        d0 = hi - lo
+        held = np.clip(0.0, lo, hi)
+        zz = np.zeros((T, R, K), bool) if z is None else z
+        zz = zz | (d0 <= 0)[None, None]
+        pats, zinv = np.unique(zz.reshape(-1, K), axis=0, return_inverse=True)
+        zinv = np.asarray(zinv).ravel()
+        combo, cinv = np.unique(np.column_stack([hidx.ravel(), zinv]), axis=0, return_inverse=True)
+        cinv = np.asarray(cinv).ravel()
+        Hu = np.empty((len(combo), K, K))
+        starts = np.empty((len(combo), K))
+        ds = np.empty((len(combo), K))
+        for c, (h, p) in enumerate(combo):
+            zr = pats[p]
+            dz = np.where(zr, 0.0, d0)
+            Hu[c] = Htab[h] * dz[:, None] * dz[None, :]
+            Hu[c][zr, zr] = 1.0
+            starts[c] = np.where(zr, np.where(d0 <= 0, lo, held), lo)
+            ds[c] = dz
+        st, dz = starts[cinv], ds[cinv]
+        fl = f.reshape(-1, K)
+        fu = dz * (_hmul(Htab, hidx.ravel(), st) + fl)
+        return Hu, fu.reshape(T, R, K), cinv.reshape(T, R), st.reshape(T, R, K), dz.reshape(T, R, K)
 
 
 def local_precompute(neutral_markers, marker_deltas, marker_weights=None, constraint: str = "simplex",
-                     ridge: float = 1e-9) -> LocalProblem:
+                     ridge: float = 1e-9, quadratic=None, lower=None, upper=None) -> LocalProblem:
     """Precompute eq. 2's regional Hessians (Liu et al. 2011, §3.2.2).
 
     Parameters
@@ -642,6 +736,12 @@ def local_precompute(neutral_markers, marker_deltas, marker_weights=None, constr
         ``"simplex"`` is the paper (u ≥ 0, 1ᵀu ≤ 1); ``"box"`` is 0 ≤ u ≤ 1.
     ridge : float >= 0
         Relative Tikhonov term (see :class:`LocalProblem`).
+    quadratic : (K, K) float, optional
+        Relative symmetric PSD coupling Q (e.g. :func:`core.controls.symmetry_matrix`): region
+        k's Hessian gains ``λ_max(Dᵀ M_k² D) Q`` (module docstring).
+    lower, upper : float or (K,) float, optional
+        Per-shape weight bounds of the ``"box"`` form (default the unit box [0, 1]); the
+        ``"simplex"`` form has no per-shape bounds and refuses them.
 
     Returns
     -------
@@ -670,9 +770,26 @@ def local_precompute(neutral_markers, marker_deltas, marker_weights=None, constr
         raise ValueError(f"constraint: expected one of {CONSTRAINTS}, got {constraint!r}")
     if not ridge >= 0:
         raise ValueError(f"ridge: expected >= 0, got {ridge}")
+    K = len(D)
+    lo = hi = None
+    if lower is not None or upper is not None:
+        if constraint != "box":
+            raise ValueError("lower/upper: per-shape bounds need constraint='box' (the simplex form is u >= 0, "
+                             "sum u <= 1)")
+        lo = np.broadcast_to(np.asarray(0.0 if lower is None else lower, dtype=np.float64), (K,)).copy()
+        hi = np.broadcast_to(np.asarray(1.0 if upper is None else upper, dtype=np.float64), (K,)).copy()
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or (lo > hi).any():
+            raise ValueError(f"lower/upper: expected finite per-shape bounds with lower <= upper, got {lower}, {upper}")
     for a in (n, D, mw):
         a.setflags(write=False)
-    prob = LocalProblem(n, D, mw, constraint, float(ridge), np.empty((0, 0, 0)))
+    prob = LocalProblem(n, D, mw, constraint, float(ridge), np.empty((0, 0, 0)), lower=lo, upper=hi)
+    if quadratic is not None:
+        from .baselines import _quadratic
+
+        Q = _quadratic(quadratic, K, 1.0, "local_precompute")
+        H0 = prob.hessians()
+        scale = np.linalg.eigvalsh(H0)[:, -1]  # λ_max of every region's data term
+        object.__setattr__(prob, "coupling", scale[:, None, None] * Q[None])
     H = prob.hessians()
     H.setflags(write=False)
     object.__setattr__(prob, "H", H)
@@ -680,9 +797,10 @@ def local_precompute(neutral_markers, marker_deltas, marker_weights=None, constr
 
 
 def solve_local(neutral_markers, marker_deltas, targets, marker_weights=None, constraint: str = "simplex",
-                valid=None, ridge: float = 1e-9) -> np.ndarray:
-    """One-line form: ``local_precompute(...).solve(targets, valid)`` → (T, R, K)."""
-    return local_precompute(neutral_markers, marker_deltas, marker_weights, constraint, ridge).solve(targets, valid)
+                valid=None, ridge: float = 1e-9, **options) -> np.ndarray:
+    """One-line form: ``local_precompute(...).solve(targets, valid)`` → (T, R, K); ``options``:
+    :func:`local_precompute`'s ``quadratic``, ``lower``, ``upper``."""
+    return local_precompute(neutral_markers, marker_deltas, marker_weights, constraint, ridge, **options).solve(targets, valid)
 
 
 # ----------------------------------------------------------------------------------------
@@ -816,7 +934,7 @@ def region_curves(region_weights, shape_names: Sequence[str], region_names: Opti
 
 
 def local_spacetime(marker_deltas, source_deltas, marker_weights, per_frame, alpha: float = 0.01, beta: float = 0.0,
-                    valid=None) -> np.ndarray:
+                    valid=None, quadratic=None) -> np.ndarray:
     """Local spacetime retargeting: Seol et al. 2012 movement matching inside each region.
 
     For region k the spacetime energy is evaluated on markers weighted by ``m_k`` (the
@@ -833,6 +951,8 @@ def local_spacetime(marker_deltas, source_deltas, marker_weights, per_frame, alp
     per_frame : (T, R, K) the per-frame regional solution (eq. 2): end frames and fallback
     alpha, beta : spacetime prior and Sobolev weights (see :class:`SpacetimeSolver`)
     valid : (T, M) bool, optional
+    quadratic : (K, K), optional — relative coupling (symmetry) of each region's solve, as
+        :class:`SpacetimeSolver`'s ``quadratic`` (relative to that region's weighted markers)
 
     Returns
     -------
@@ -852,7 +972,7 @@ def local_spacetime(marker_deltas, source_deltas, marker_weights, per_frame, alp
         g = np.sqrt(mw[r])[:, None]
         try:
             solver = SpacetimeSolver(D * g[None], S * g[None], alpha=alpha, beta=beta, valid=valid,
-                                     known={0: U[0, r], T - 1: U[-1, r]})
+                                     known={0: U[0, r], T - 1: U[-1, r]}, quadratic=quadratic)
         except ValueError:  # the region's weighted shapes do not move: nothing to match
             continue
         out[:, r] = solver.solve()

@@ -8,6 +8,7 @@ deltas ``S`` (T, M, 3)::
          + sum_t beta * f_t * ||Gamma^1/2 (B w_t - s_t)||^2            Sobolev position term (§7.1)
          + rho * sum_t ||w_t||^2                                       ridge, only when B is rank deficient
          + sum_t sum_{k named} gamma_k (w_tk - n_tk)^2                 name term: pull toward namesake curves
+         + sum_t w_t^T Q w_t                                           constant coupling (e.g. symmetry pairs)
         (+ sum_tk l1_k |w_tk|,  lower_k <= w_tk <= upper_k)            bounded solver, see below
 
 subject to known entries of ``W`` (boundary frames, user poses, partial poses; §4, §6).
@@ -36,6 +37,9 @@ marker weights are uniform (``G = c A``) or the frame weights are (``f = const``
 is not a multiple of ``I`` (only some shapes have a namesake) and is not diagonalised by the
 ``U`` of ``(A, alpha P)``, but it is the same K x K matrix in every frame, so it simply joins
 ``C`` before the pencil below is diagonalised (``name_weight = 0`` gives today's ``C`` exactly).
+A constant coupling ``Q`` (any K x K PSD matrix the same in every frame, e.g. the symmetry term
+``mu_s sum_pairs (w_L - w_R)^2`` of :func:`core.controls.symmetry_matrix`) joins ``C`` the same
+way: ``C = alpha P + Gn + Q + rho I``, exact, still the fast path.
 A namesake curve with gaps (some frames NaN) would make ``Gn`` vary per frame; it is refused.
 The generalised symmetric eigenproblem of
 the pencil ``(A, A + C)``, ``A U = (A + C) U diag(mu)``, ``U^T (A + C) U = I``, gives
@@ -69,9 +73,9 @@ known entries are eliminated symmetrically, and a block Cholesky-Thomas sweep so
 Units: ``B`` and ``S`` in metres (the library convention). ``alpha`` is given for lengths in
 ``alpha_units`` (default cm, see :func:`core.prior.alpha_for_units`) and used internally as
 ``alpha * s**2``. ``beta`` is scale-free (both terms are squared lengths). ``ridge``, ``l1`` and
-``name_weight`` are relative to ``sigma_max(B)^2`` (a weight costs ``sigma_max(B)^2`` per unit
+``name_weight`` and ``quadratic`` are relative to ``sigma_max(B)^2`` (a weight costs ``sigma_max(B)^2`` per unit
 squared in the data term of the most visible shape combination), so they do not depend on the
-rig's size either; the absolute values are ``ridge_``, ``l1_``, ``name_weight_``.
+rig's size either; the absolute values are ``ridge_``, ``l1_``, ``name_weight_``, ``quadratic_``.
 """
 
 from __future__ import annotations
@@ -166,6 +170,23 @@ def _name_term(target, weight, T: int, K: int):
     return np.where(has, Wn, 0.0), gam
 
 
+def _coupling(Q, K: int, scale: float):
+    """``scale * Q`` for a relative (K, K) symmetric PSD coupling, validated; None -> None."""
+    if Q is None:
+        return None
+    Q = np.asarray(Q, dtype=np.float64)
+    if Q.shape != (K, K):
+        raise ValueError(f"quadratic: expected a ({K}, {K}) matrix (one row and column per shape), got {Q.shape}")
+    if not np.isfinite(Q).all():
+        raise ValueError("quadratic: contains NaN/inf")
+    top = max(float(np.abs(Q).max()), 1e-300)
+    if np.abs(Q - Q.T).max() > 1e-12 * top:
+        raise ValueError("quadratic: must be symmetric")
+    if np.linalg.eigvalsh(Q)[0] < -1e-10 * top:
+        raise ValueError("quadratic: must be positive semi-definite (a sum of squares, e.g. core.controls.symmetry_matrix)")
+    return scale * 0.5 * (Q + Q.T)
+
+
 def known_rows(known, T: int, K: int, boundary="neutral", name: str = "known") -> dict:
     """Known weights as ``{frame: (K,) row}`` (NaN = free), frames in ``[0, T)``, sorted.
 
@@ -235,6 +256,7 @@ class SpacetimeEnergy(NamedTuple):
     total: float
     name: float = 0.0  # gamma ||W - W_named||^2 over the shapes with a namesake
     l1: float = 0.0  # l1 ||W||_1
+    quadratic: float = 0.0  # sum_t w_t^T Q w_t (the constant coupling, absolute Q)
 
 
 @dataclass(frozen=True)
@@ -751,6 +773,9 @@ class SpacetimeSolver:
         0 (default): today's energy exactly.
     tol : float > 0 (keyword only)
         Relative KKT tolerance of the bounded solver (default :data:`KKT_RTOL`).
+    quadratic : (K, K) float, optional (keyword only)
+        Relative symmetric PSD ``Q``: ``sigma_max(B)^2 sum_t w_t^T Q w_t`` is added (joins ``C``,
+        see the module docstring), e.g. :func:`core.controls.symmetry_matrix`. None: none.
 
     Attributes
     ----------
@@ -764,6 +789,7 @@ class SpacetimeSolver:
     scale_ : float            ``sigma_max(B)^2 = ||B^T B||_2``, the scale of the relative settings
     lower_, upper_ : (K,)     bounds (-inf/inf where none)
     l1_, name_weight_ : (K,)  absolute L1 and name weights (m^2)
+    quadratic_ : (K, K) or None  absolute coupling ``sigma_max(B)^2 Q`` (m^2)
     bounded_ : bool           whether solves go through the bounded solver
     info_ : dict              the bounded solver's report of the last solve (iterations, active,
                               kkt, converged; see :func:`core.solvers.bounded_spacetime.solve_bounded`)
@@ -778,7 +804,8 @@ class SpacetimeSolver:
     def __init__(self, B, S, alpha: float = 0.01, beta: float = 0.0, prior=None, known=None,
                  boundary="neutral", valid=None, marker_weights=None, frame_weights=None,
                  alpha_units: str = "cm", ridge="auto", names=None, method: str = "auto", *,
-                 lower=None, upper=None, l1=0.0, name_target=None, name_weight=0.0, tol: float = KKT_RTOL):
+                 lower=None, upper=None, l1=0.0, name_target=None, name_weight=0.0, tol: float = KKT_RTOL,
+                 quadratic=None):
         Bm = as_basis(B)
         n3, K = Bm.shape
         M = n3 // 3
@@ -835,6 +862,7 @@ class SpacetimeSolver:
         self.l1_ = _per_shape(l1, K, "l1") * smax2
         self._named, self.name_weight_ = _name_term(name_target, name_weight, T, K)
         self.name_weight_ = self.name_weight_ * smax2
+        self.quadratic_ = _coupling(quadratic, K, smax2)
         tol = float(tol)
         if not (np.isfinite(tol) and tol > 0):
             raise ValueError(f"tol must be a finite number > 0, got {tol}")
@@ -851,6 +879,8 @@ class SpacetimeSolver:
                 )
         # per-frame terms other than the data: C = alpha P + rho I + diag(gamma_name)
         Cf = self.alpha_ * self.P_ + self.ridge_ * np.eye(K) + np.diag(self.name_weight_)
+        if self.quadratic_ is not None:
+            Cf = Cf + self.quadratic_
         self._C = Cf
 
         # directions no per-frame term pins (null space of alpha P + rho I + diag(gamma)): with no
@@ -905,15 +935,35 @@ class SpacetimeSolver:
             Kn[t] = w
         return Kn
 
-    def solve(self, method: Optional[str] = None) -> np.ndarray:
+    def solve(self, method: Optional[str] = None, zero=None) -> np.ndarray:
         """Weights (T, K) minimising the energy subject to ``known_``.
 
         Parameters
         ----------
         method : {"auto", "fast", "block"}, optional
             Override the solver's ``method`` for this call.
+        zero : (K,) or (T, K) bool, optional
+            Weights held at ``clip(0, lower, upper)`` for this solve: more known entries (partial
+            poses, so the fast path's capacitance system takes them exactly); the solver's own
+            known weights win where both set an entry. E.g. the weaker shape of each cancel pair
+            (:func:`core.controls.cancel_pairs`) or the off shapes of an active set.
         """
-        return self._solve_range(0, self.T - 1, dict(self._known), method or self.method)
+        rows = dict(self._known)
+        if zero is not None:
+            z = np.asarray(zero)
+            if z.dtype != bool or z.shape not in ((self.K,), (self.T, self.K)):
+                raise ValueError(f"zero: expected a ({self.K},) or ({self.T}, {self.K}) bool mask, got "
+                                 f"{z.dtype} {z.shape}")
+            z = np.broadcast_to(z, (self.T, self.K))
+            held = np.clip(0.0, self.lower_, self.upper_)
+            for t in np.flatnonzero(z.any(1)):
+                row = rows[t].copy() if t in rows else np.full(self.K, np.nan)
+                put = z[t] & np.isnan(row)
+                row[put] = held[put]
+                row.setflags(write=False)
+                rows[int(t)] = row
+            rows = {t: rows[t] for t in sorted(rows)}
+        return self._solve_range(0, self.T - 1, rows, method or self.method)
 
     def edit(self, W, frame=None, weights=None, window=None, shapes=None, edits=None,
              method: Optional[str] = None) -> np.ndarray:
@@ -1101,7 +1151,9 @@ class SpacetimeSolver:
         ridge = float(self.ridge_ * (X**2).sum())
         name = float((self.name_weight_ * (X - self._named[sl]) ** 2).sum()) if self._named is not None else 0.0
         lone = float((self.l1_ * np.abs(X)).sum()) if l1 else 0.0
-        return SpacetimeEnergy(match, prior, position, ridge, match + prior + position + ridge + name + lone, name, lone)
+        quad = float(np.einsum("tk,kl,tl->", X, self.quadratic_, X)) if self.quadratic_ is not None else 0.0
+        return SpacetimeEnergy(match, prior, position, ridge, match + prior + position + ridge + name + lone + quad, name,
+                               lone, quad)
 
     def _gradient_range(self, X: np.ndarray, lo: int) -> np.ndarray:
         """Gradient of the energy terms of frames ``lo .. lo + len(X) - 1`` (smooth terms)."""
@@ -1113,6 +1165,8 @@ class SpacetimeSolver:
         g = self.alpha_ * (X @ self.P_ - self.q_) + ((self._bt[sl, None] * self._gamma3 * v3) * R) @ Bm + self.ridge_ * X
         if self._named is not None:
             g += self.name_weight_ * (X - self._named[sl])
+        if self.quadratic_ is not None:
+            g += X @ self.quadratic_
         g[1:] += Re
         g[:-1] -= Re
         return 2 * g
@@ -1281,7 +1335,7 @@ def solve_spacetime(B, S, alpha: float = 0.01, beta: float = 0.0, prior=None, kn
     Minimises ``||D(BW)^T - DS^T||_F^2 + alpha sum_t E_prior(w_t) + beta sum_t f_t
     ||Gamma^1/2 (B w_t - s_t)||^2`` (Seol et al. 2012, eq. 2, 4 and §7.1) subject to known
     weights. Parameters as :class:`SpacetimeSolver` (``options``: its keyword-only ``lower``,
-    ``upper``, ``l1``, ``name_target``, ``name_weight``, ``tol``); returns weights (T, K).
+    ``upper``, ``l1``, ``name_target``, ``name_weight``, ``tol``, ``quadratic``); returns weights (T, K).
     """
     return SpacetimeSolver(B, S, alpha, beta, prior, known, boundary, valid, marker_weights,
                            frame_weights, alpha_units, ridge, method=method, **options).solve()
@@ -1301,7 +1355,7 @@ class KroneckerSystem(NamedTuple):
 
 def kronecker_system(B, S, alpha: float, beta: float, prior, known, *, boundary="neutral",
                      valid=None, marker_weights=None, frame_weights=None, alpha_units: str = "cm",
-                     ridge: float = 0.0, name_target=None, name_weight=0.0) -> KroneckerSystem:
+                     ridge: float = 0.0, name_target=None, name_weight=0.0, quadratic=None) -> KroneckerSystem:
     """The paper's sparse Kronecker system, assembled literally (the slow references' core).
 
     Stacks the least-squares rows of Seol et al. 2012 eq. 5 and §5, §7.1 with
@@ -1326,6 +1380,8 @@ def kronecker_system(B, S, alpha: float, beta: float, prior, known, *, boundary=
         Namesake curves, NaN columns = no namesake (as :class:`SpacetimeSolver`).
     name_weight : float or (K,) float
         Absolute name weight ``gamma`` (m^2); use ``SpacetimeSolver(...).name_weight_``.
+    quadratic : (K, K) float, optional
+        Absolute coupling ``Q`` (m^2), added as ``I_T (x) Q``; use ``SpacetimeSolver(...).quadratic_``.
     """
     Bm = as_basis(B)
     n3, K = Bm.shape
@@ -1381,12 +1437,14 @@ def kronecker_system(B, S, alpha: float, beta: float, prior, known, *, boundary=
     if Pextra is not None:
         H = (H + Pextra[0]).tocsc()
         r = r + Pextra[1]
+    if quadratic is not None:
+        H = (H + sp.kron(sp.identity(T), sp.csr_matrix(np.asarray(quadratic, dtype=np.float64)), format="csc")).tocsc()
     return KroneckerSystem(H, np.asarray(r).ravel(), Kn.ravel())
 
 
 def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, boundary="neutral",
                         valid=None, marker_weights=None, frame_weights=None, alpha_units: str = "cm",
-                        ridge: float = 0.0, name_target=None, name_weight=0.0) -> np.ndarray:
+                        ridge: float = 0.0, name_target=None, name_weight=0.0, quadratic=None) -> np.ndarray:
     """Slow, literal reference: the paper's sparse Kronecker system solved by ``spsolve``.
 
     :func:`kronecker_system`, then ``H_uu x_u = r_u - H_uk x_k`` for the free entries with
@@ -1404,7 +1462,7 @@ def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, bounda
     H, r, xk = kronecker_system(B, S, alpha, beta, prior, known, boundary=boundary, valid=valid,
                                 marker_weights=marker_weights, frame_weights=frame_weights,
                                 alpha_units=alpha_units, ridge=ridge, name_target=name_target,
-                                name_weight=name_weight)
+                                name_weight=name_weight, quadratic=quadratic)
     kn = np.isfinite(xk)
     fr = ~kn
     x = xk.copy()
