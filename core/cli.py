@@ -31,7 +31,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 #: share the rigs they load and the segmentations they compute
 _CACHE = None
 #: CLI options that are not pipeline settings
-OUTPUT_OPTIONS = ("func", "out", "weights_csv", "livelink_csv", "quiet", "command", "shot", "save_shot", "csv_precision")
+OUTPUT_OPTIONS = ("func", "out", "weights_csv", "livelink_csv", "quiet", "command", "shot", "save_shot", "csv_precision",
+                  "controls_file", "keys", "keys_tolerance")
 
 
 def _cache():
@@ -43,11 +44,21 @@ def _cache():
     return _CACHE
 
 
+def _settings(args) -> dict:
+    """The pipeline settings of a command's flags; ``--controls FILE`` reads the per-shape table."""
+    settings = {k: v for k, v in vars(args).items() if k not in OUTPUT_OPTIONS}
+    if getattr(args, "controls_file", None):
+        from .controls import read_table
+
+        settings["controls"] = read_table(args.controls_file)
+    return settings
+
+
 def _pipeline(args):
     """The pipeline of a ``retarget`` run: the shot (``--shot``) with the flags given on top."""
     from .pipeline import Pipeline
 
-    settings = {k: v for k, v in vars(args).items() if k not in OUTPUT_OPTIONS}
+    settings = _settings(args)
     if getattr(args, "shot", None):
         pipe = Pipeline.from_shot(args.shot, cache=_cache(), **settings)
     else:
@@ -65,7 +76,7 @@ def _retarget(args) -> int:
     pipe = _pipeline(args)
     label = "transfer" if REGISTRY[pipe.solve.method].dense else "retarget"
     out = write_outputs(pipe, args.out, args.weights_csv, args.csv_precision, livelink_csv=args.livelink_csv,
-                        progress=None if args.quiet else StderrBar(label))
+                        progress=None if args.quiet else StderrBar(label), keys=args.keys, keys_tolerance=args.keys_tolerance)
     print(out.text([f"wrote {args.save_shot}"] if args.save_shot else []))
     return 0
 
@@ -81,7 +92,7 @@ def _evaluate(args) -> int:
     if unknown:
         raise ValueError(f"--methods: unknown or dense methods {unknown}; choose from "
                          f"{[n for n, m in REGISTRY.items() if not m.dense]}")
-    settings = {k: v for k, v in vars(args).items() if k not in OUTPUT_OPTIONS + ("methods", "json", "html", "method")}
+    settings = {k: v for k, v in _settings(args).items() if k not in ("methods", "json", "html", "method")}
     if getattr(args, "shot", None):
         from .pipeline import Pipeline
 
@@ -234,6 +245,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--csv-precision", default=6, type=lambda v: v if v == "full" else int(v),
                    help="decimals of the CSV weights, or 'full' for round-trip exact values (default: 6)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--controls", dest="controls_file", help="per-shape controls table JSON (bounds, gain, offset, active, "
+                                                             "symmetry and cancel pairs; see docs/controls.md)")
+    r.add_argument("--keys", choices=["linear", "cubic"], default=None,
+                   help="keyframe reduction: the GLB keeps the fewest keys (linear or cubic Hermite) that stay within "
+                        "--keys-tolerance of every frame, and <csv>_keys.csv lists each curve's keys (default: every frame)")
+    r.add_argument("--keys-tolerance", type=float, default=0.005, help="largest weight difference of the reduced curves "
+                                                                        "(default: 0.005)")
     r.set_defaults(func=_retarget)
 
     ev = sub.add_parser("evaluate", help="score methods on a source + rigs: JSON and a self-contained HTML report")
@@ -243,6 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", help="output JSON: {methods: {method: {metric: value}}}")
     ev.add_argument("--html", help="output HTML report (self-contained: plots and renders inline)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    ev.add_argument("--controls", dest="controls_file", help="per-shape controls table JSON (see docs/controls.md)")
     ev.set_defaults(func=_evaluate)
 
     bt = sub.add_parser("batch", help="retarget many shots on Dask (a local cluster, or --scheduler)",

@@ -64,7 +64,7 @@ class ShotOutputs:
 
 
 def write_outputs(pipe, out=None, weights_csv=None, csv_precision=6, progress: Optional[ProgressFn] = None,
-                  livelink_csv=None) -> ShotOutputs:
+                  livelink_csv=None, keys: Optional[str] = None, keys_tolerance: float = 0.005) -> ShotOutputs:
     """Compute ``pipe``'s result and write its rig with animation (``out``), weight CSV
     (``weights_csv``) and Live Link Face CSV (``livelink_csv``).
 
@@ -77,6 +77,9 @@ def write_outputs(pipe, out=None, weights_csv=None, csv_precision=6, progress: O
     csv_precision : decimals of the CSV weights, or ``"full"`` (round-trip exact)
     progress : ``progress(fraction, message)`` for the pipeline run
     livelink_csv : path of a Live Link Face CSV of the target's ARKit-named shapes, or None
+    keys : None (every frame a key), "linear" or "cubic": keyframe reduction of the GLB's animation
+        (:func:`core.controls.reduce_keys`, within ``keys_tolerance`` weight at every frame) and a
+        ``<csv stem>_keys.csv`` of each curve's own keys beside the weights CSV
 
     Raises
     ------
@@ -91,7 +94,7 @@ def write_outputs(pipe, out=None, weights_csv=None, csv_precision=6, progress: O
             raise ValueError("--livelink-csv: dense transfer makes a new rig of bases (xu_basis_*), which has no ARKit "
                              "shapes to write; use a marker method (bounded, spacetime, ...) for Live Link output")
         return _write_transfer(pipe, out, weights_csv, csv_precision, progress)
-    return _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv)
+    return _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv, keys, keys_tolerance)
 
 
 def write_animation(path, rig, weights, times, fps: float) -> None:
@@ -118,7 +121,8 @@ def _write_livelink(path, rig, weights, times, fps: float) -> str:
                               f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''})" if missing else "")
 
 
-def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv=None) -> ShotOutputs:
+def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv=None, keys=None,
+                   keys_tolerance=0.005) -> ShotOutputs:
     from .io.curves_csv import write_curves_csv
 
     t0 = time.perf_counter()
@@ -130,8 +134,23 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
     times = st.times - st.times[0]
     frames = res["frames"]["first"] + np.arange(len(times))
     written, paths = [], []
+    reduced = None
+    if keys:
+        from .controls import reduce_keys
+
+        reduced = reduce_keys(W, st.fps, keys_tolerance, {"linear": "LINEAR", "cubic": "CUBICSPLINE"}[keys],
+                              names=rig.names)
+        written.append(f"keys: {int(reduced.counts.sum())} of {W.size} samples ({100 * reduced.counts.sum() / W.size:.1f} %), "
+                       f"every frame within {keys_tolerance:g} of the dense curves")
     if out:
-        write_animation(out, rig, W, times, st.fps)
+        if reduced is not None and str(out).lower().endswith((".glb", ".gltf")):
+            from .io.gltf import write_rig
+
+            F, t_keys, V, A, Bt = reduced.grid()
+            write_rig(out, rig, weights=V, times=t_keys, interpolation=reduced.interpolation,
+                      tangents=None if A is None else (A, Bt))
+        else:
+            write_animation(out, rig, W, times, st.fps)
         written.append(f"wrote {out}")
         paths.append(Path(out))
     if livelink_csv:
@@ -141,6 +160,13 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
         write_curves_csv(weights_csv, times, W, rig.names, csv_precision, valid=valid, frames=frames)
         written.append(f"wrote {weights_csv}")
         paths.append(Path(weights_csv))
+        if reduced is not None:
+            from .io.curves_csv import write_keys_csv
+
+            kpath = Path(weights_csv).with_name(Path(weights_csv).stem + "_keys.csv")
+            write_keys_csv(kpath, reduced, rig.names)
+            written.append(f"wrote {kpath} (each curve's own keys)")
+            paths.append(kpath)
         U = res["solve"]["info"].get("region_weights")
         if U is not None:  # Liu 2011 §6.4: the regional curves an animator edits
             from .gaps import fill_gaps

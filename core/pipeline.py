@@ -183,7 +183,7 @@ class Pipeline:
     """
 
     def __init__(self, cache: Optional[StageCache] = None, **settings):
-        self.cache = cache or StageCache()
+        self.cache = cache if cache is not None else StageCache()
         self.stages = OrderedDict((n, STAGES[n](name=n)) for n in _stage_order())
         self.runs: Counter = Counter()
         self.timings: dict = {}
@@ -431,12 +431,13 @@ class Pipeline:
 def cli_flags(pipeline_or_cls=None):
     """(flag, param name, parameter object, owner) for every tunable setting, e.g.
     ``--alpha`` -> ("alpha", Number). One definition serves the dashboard and the CLI.
-    Edit lists are not flags (they come from a shot)."""
+    Edit lists and tables (the per-shape controls) are not flags: they come from a shot, or a
+    JSON file (``--controls``)."""
     objs = pipeline_or_cls.settings_objects if pipeline_or_cls is not None else Pipeline().settings_objects
     out = []
     for stage, obj in objs.items():
         for pname, p in obj.param.objects("existing").items():
-            if pname == "name" or isinstance(p, param.List):
+            if pname == "name" or isinstance(p, (param.List, param.Dict)):
                 continue
             out.append(("--" + pname.replace("_", "-"), pname, p, stage))
     return out

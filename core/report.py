@@ -160,7 +160,7 @@ def evaluate_methods(settings: dict, methods: Sequence[str], progress=None, cach
     """
     from .pipeline import Pipeline, StageCache
 
-    pipe = Pipeline(cache=cache or StageCache(), **settings)
+    pipe = Pipeline(cache=cache if cache is not None else StageCache(), **settings)
     base = pipe.results(["load", "frames"])
     truth = ground_truth(base["load"], base["frames"])
     rig = base["load"]["target_rig"]
@@ -208,12 +208,24 @@ METRICS = [("mean_mm", "vertex error mean (mm)", "{:.3f}"), ("p95_mm", "p95 (mm)
            ("seconds", "seconds", "{:.2f}")]
 
 
+#: weights an animator can key: a method whose curves leave this range is ranked after those that do not
+KEYABLE = (-0.05, 1.05)
+
+
 def ranking(report: dict) -> list:
-    """Methods best first: by mean vertex error against the truth where there is one, else by
-    marker error; failed methods last."""
+    """Methods best first: those whose weights stay keyable (inside :data:`KEYABLE`) before those
+    that do not, each by mean vertex error against the truth where there is one, else by marker
+    error (an unregularised fit has the least marker error and weights of hundreds: it is not the
+    best result); failed methods last."""
     ok = {m: r for m, r in report["methods"].items() if "error" not in r}
     key = "mean_mm" if report["ground_truth"] else "marker_mean_mm"
-    return sorted(ok, key=lambda m: ok[m][key]) + [m for m in report["methods"] if m not in ok]
+
+    def rank(m):
+        r = ok[m]
+        keyable = KEYABLE[0] <= r["weight_min"] and r["weight_max"] <= KEYABLE[1]
+        return (not keyable, r[key] if r.get(key) is not None else float("inf"))
+
+    return sorted(ok, key=rank) + [m for m in report["methods"] if m not in ok]
 
 
 def _png(fig) -> str:

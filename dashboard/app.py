@@ -60,7 +60,7 @@ def visible_settings(stage, cfg) -> list:
         return []
     keep = stage.relevant(cfg)
     names = stage.setting_names() if keep is None else [n for n in stage.setting_names() if n in set(keep)]
-    return [n for n in names if not isinstance(stage.param[n], param.List)]
+    return [n for n in names if not isinstance(stage.param[n], (param.List, param.Dict))]
 
 
 def stage_params(pipe, groups) -> list:
@@ -155,6 +155,25 @@ class DashboardApp(pn.viewable.Viewer):
                                                    button_type="light", sizing_mode="stretch_width")
         self.w_marker_progress = pn.indicators.Progress(value=0, max=100, height=10, sizing_mode="stretch_width", visible=False)
         self.w_marker_info = pn.pane.Markdown("", sizing_mode="stretch_width", css_classes=["fr-status"])
+        # per-shape controls (core.controls): a sortable table, edits go into the shot's solve settings
+        self.w_shape_table = pn.widgets.Tabulator(
+            self._shape_frame(), show_index=False, height=320, sizing_mode="stretch_width", pagination=None,
+            layout="fit_data_table", selectable=False, disabled=False,
+            editors={"shape": None, "now": None, "lower": {"type": "number", "step": 0.05},
+                     "upper": {"type": "number", "step": 0.05}, "gain": {"type": "number", "step": 0.1},
+                     "offset": {"type": "number", "step": 0.05}, "active": {"type": "tickCross"}})
+        self.w_shape_table.on_edit(self._on_shape_edit)
+        self.w_controls_dl = pn.widgets.FileDownload(callback=self._controls_bytes, filename="controls.json",
+                                                     label="Download controls", button_type="light", width=160)
+        self.w_controls_reset = pn.widgets.Button(name="Reset controls", button_type="light", width=130)
+        self.w_controls_reset.on_click(lambda e: self.pipe.configure(controls={}))
+        self.shape_card = pn.Card(
+            pn.pane.Markdown("Per shape: its range (lower…upper, inside the solve), a gain and offset applied after "
+                             "it (clamped to the range), and whether the solver may use it. Sort by a column; "
+                             "*now* is the weight at the current frame. Upload a controls .json to load a table.",
+                             css_classes=["fr-muted"]),
+            self.w_shape_table, pn.Row(self.w_controls_dl, self.w_controls_reset),
+            title="Shapes (per-shape controls)", collapsed=True, sizing_mode="stretch_width")
         self.marker_card = pn.Card(
             pn.pane.Markdown("The 41 markers the solvers compare both faces at. A rig of your own needs them once: "
                              "place them automatically, then move any that landed badly.", css_classes=["fr-muted"]),
@@ -177,6 +196,59 @@ class DashboardApp(pn.viewable.Viewer):
         import io
 
         return io.BytesIO(self.s.shot().to_json().encode("utf-8"))
+
+    # -- per-shape controls -------------------------------------------------------------------
+    def _shape_frame(self):
+        """The shape table's rows: the target's shapes, the current frame's weight, the controls."""
+        import pandas as pd
+
+        snap = getattr(self, "s", None) and self.s.snapshot
+        if not snap:
+            return pd.DataFrame({c: [] for c in ("shape", "now", "lower", "upper", "gain", "offset", "active")})
+        from core.controls import default_table, merge_table
+
+        names = snap["target_names"]
+        lo, hi = self.pipe.solve.lower, self.pipe.solve.upper
+        table = merge_table(self.pipe.solve.controls or {}, default_table(names, lo, hi, symmetry=False))["shapes"]
+        f = min(self.w_frame.value, len(snap["weights"]) - 1)
+        return pd.DataFrame({"shape": names, "now": np.round(np.nan_to_num(snap["weights"][f]), 3),
+                             "lower": [table[n]["lower"] for n in names], "upper": [table[n]["upper"] for n in names],
+                             "gain": [table[n]["gain"] for n in names], "offset": [table[n]["offset"] for n in names],
+                             "active": [bool(table[n]["active"]) for n in names]})
+
+    def _on_shape_edit(self, event):
+        """A cell of the shape table changed: that shape's control goes into the solve settings."""
+        import copy
+
+        row = self.w_shape_table.value.iloc[event.row]
+        table = copy.deepcopy(self.pipe.solve.controls or {})
+        entry = table.setdefault("shapes", {}).setdefault(row["shape"], {})
+        entry[event.column] = bool(event.value) if event.column == "active" else float(event.value)
+        try:
+            from core.controls import validate_table
+
+            validate_table(table, self.s.snapshot["target_names"])
+        except ValueError as e:
+            self._notify("error", str(e))
+            self.w_shape_table.value = self._shape_frame()
+            return
+        self.pipe.configure(controls=table)
+
+    def _controls_bytes(self):
+        import io
+        import json
+
+        from core.controls import FORMAT
+
+        table = {"format": FORMAT, "version": 1, **(self.pipe.solve.controls or {})}
+        return io.BytesIO(json.dumps(table, indent=1).encode("utf-8"))
+
+    def _mirror_edit(self, i: int):
+        from core.controls import mirror_edit
+
+        e = self.pipe.edit.edits[i]
+        self.pipe.add_edit("spacetime", mirror_edit(e, self.s.snapshot["solver_names"]))
+        self.refresh()
 
     def _download(self, kind: str):
         import io
@@ -327,6 +399,7 @@ class DashboardApp(pn.viewable.Viewer):
             pn.Row(pn.Column(self.w_shapes, pn.pane.Bokeh(self.curves.fig, sizing_mode="stretch_width"),
                              pn.pane.Bokeh(self.diag.fig, sizing_mode="stretch_width"), sizing_mode="stretch_width"),
                    pn.Column(edit_card, self.region_box, width=330), sizing_mode="stretch_width"),
+            self.shape_card,
             sizing_mode="stretch_width",
         )
         self.tabs = pn.Tabs(("Retarget", main), ("Dense transfer (Xu 2014)", self.transfer_view), sizing_mode="stretch_width")
@@ -368,6 +441,9 @@ class DashboardApp(pn.viewable.Viewer):
         self.diag.set_time(t)
         self._sync_edit_value()
         self.normalmap_view.update(self.s.snapshot, event.new)
+        if not self.shape_card.collapsed and self.s.snapshot:  # the "now" column follows the frame
+            f = min(int(event.new), len(self.s.snapshot["weights"]) - 1)
+            self.w_shape_table.patch({"now": [(slice(None), list(np.round(np.nan_to_num(self.s.snapshot["weights"][f]), 3)))]})
 
     def _seek(self, time_s: float):
         snap = self.s.snapshot
@@ -429,9 +505,11 @@ class DashboardApp(pn.viewable.Viewer):
         for i, e in enumerate(self.pipe.edit.edits):
             (shape, value), = e["weights"].items()
             win = "whole take" if not e["window"] else f"{e['window'][0]}–{e['window'][1]}"
-            b = pn.widgets.Button(name="✕", width=34, button_type="light")
+            b = pn.widgets.Button(name="✕", width=34, button_type="light", description="remove this edit")
             b.on_click(lambda ev, i=i: self._remove_edit(i))
-            rows.append(pn.Row(pn.pane.Markdown(f"frame {e['frame']}: `{shape}` = {value:g} ({win})", margin=(2, 5)), b))
+            m = pn.widgets.Button(name="⇄", width=34, button_type="light", description="the same edit on the other side")
+            m.on_click(lambda ev, i=i: self._mirror_edit(i))
+            rows.append(pn.Row(pn.pane.Markdown(f"frame {e['frame']}: `{shape}` = {value:g} ({win})", margin=(2, 5)), m, b))
         self.w_edits[:] = rows or [pn.pane.Markdown("*no edits*", css_classes=["fr-muted"])]
 
     # -- redraw -----------------------------------------------------------------------------
@@ -491,6 +569,8 @@ class DashboardApp(pn.viewable.Viewer):
         self.normalmap_view.update(snap, self.w_frame.value)
         self.personalize_view.update(snap)
         self._sync_edit_value()  # the edit slider shows the new result's weight at this frame
+        if not self.shape_card.collapsed or len(self.w_shape_table.value) == 0:
+            self.w_shape_table.value = self._shape_frame()
         self.w_timings.object = (f"<table style='font-size:0.85em;width:100%'>{rows}<tr><td><b>server total</b></td>"
                                  f"<td style='text-align:right'><b>{snap['server_ms']:.1f} ms</b></td></tr></table>")
 

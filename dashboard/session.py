@@ -66,7 +66,7 @@ class Session(param.Parameterized):
     def __init__(self, cache: StageCache | None = None, **params):
         self.files = {"performances": bundled("performances"), "rigs": bundled("rigs")}
         super().__init__(**params)
-        self.pipeline = Pipeline(cache=cache or SHARED_CACHE)
+        self.pipeline = Pipeline(cache=cache if cache is not None else SHARED_CACHE)
         self._refresh_options()
         perf, rigs = self.files["performances"], self.files["rigs"]
         self.source = next((k for k in perf if "take_s07" in k), next(iter(perf), None))
@@ -123,6 +123,10 @@ class Session(param.Parameterized):
         if kind == "layout":
             self.pipeline.configure(target_layout=str(path))
             return f"{info['summary']} — the target rig's markers"
+        if kind == "controls":
+            table = {k: v for k, v in info["controls"].items() if k not in ("format", "version")}
+            self.pipeline.configure(controls=table)
+            return f"{info['summary']} — the solver's per-shape controls"
         if kind == "name_map":
             self.pipeline.configure(name_map=str(path))
             return f"{info['summary']} — maps the source's channels to the source rig's shapes"

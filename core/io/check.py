@@ -106,6 +106,12 @@ def _json(path: Path, name: str, target_rig=None) -> dict:
 
         shot = Shot.from_dict(doc)
         return {"kind": "shot", "shot": shot, "summary": f"{name}: a shot with {len(shot.files)} files"}
+    if doc.get("format") == "face-retarget controls":
+        from ..controls import validate_table
+
+        table = validate_table(doc, where=name)
+        return {"kind": "controls", "controls": table,
+                "summary": f"{name}: controls for {len(table.get('shapes', {}))} shapes"}
     if doc.get("format") == "face-retarget marker layout" or "markers" in doc:
         from .layout import read_layout
 

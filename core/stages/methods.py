@@ -60,11 +60,11 @@ def method_of(cfg) -> Method:
 
 def edit_options(s, alpha=None, lower=None, upper=None, l1=0.0, name_weight=0.0, beta=0.0) -> dict:
     """The spacetime options an edit of this method's result is solved with: its prior weight
-    (the default alpha for methods without one), Sobolev weight, ridge, bounds (None: unbounded),
-    L1 and name weight."""
+    (the default alpha for methods without one), Sobolev weight, ridge, bounds (None: unbounded;
+    scalars or per shape), L1, name weight, and the symmetry pairs' quadratic (the controls')."""
     return {"alpha": float(s.alpha if alpha is None else alpha), "beta": float(beta),
             "ridge": float(s.ridge) if s.ridge > 0 else "auto", "lower": lower, "upper": upper,
-            "l1": float(l1), "name_weight": float(name_weight)}
+            "l1": float(l1), "name_weight": float(name_weight), "quadratic": getattr(s, "quadratic", None)}
 
 
 def named_target(inputs) -> "np.ndarray | None":
@@ -131,7 +131,7 @@ def _bounded(inputs, s):
     from ..solvers import baselines
 
     B, S, valid = _weighted(inputs)
-    return {"weights": baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge),
+    return {"weights": baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge, quadratic=s.quadratic, zero=s.zero),
             "edit": edit_options(s, alpha=0.01, lower=s.lower, upper=s.upper)}
 
 
@@ -141,7 +141,7 @@ def _range_pf(inputs, s):
     from ..solvers import baselines
 
     B, S, valid = _weighted(inputs)
-    return {"weights": baselines.range_pf(B, S, valid=valid, ridge=s.ridge),
+    return {"weights": baselines.range_pf(B, S, valid=valid, ridge=s.ridge, quadratic=s.quadratic, zero=s.zero),
             "edit": edit_options(s, alpha=0.01, lower=-0.5, upper=1.5)}
 
 
@@ -157,7 +157,8 @@ def _prior_pf_frames(inputs, s, frames):
         B0 = _markers(inputs)[0]
         P, q, _ = prior_quadratic(prior, flatten(B0).T, len(B0))
         prior = (P, q)
-    return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge)
+    zero = s.zero if s.zero is None or np.ndim(s.zero) == 1 else np.asarray(s.zero)[frames]
+    return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge, quadratic=s.quadratic, zero=zero)
 
 
 @solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",), label="prior_pf — per frame with the rig's prior (Seol §7)")
@@ -188,8 +189,9 @@ def _spacetime(inputs, s):
     solver = SpacetimeSolver(B, S, alpha=s.alpha, beta=s.beta, prior=_prior(inputs), known=known,
                              boundary="none" if s.boundary == "none" else "neutral", valid=valid,
                              ridge=s.ridge if s.ridge > 0 else "auto", lower=lo, upper=hi, l1=s.l1, marker_weights=mw,
-                             name_target=named, name_weight=s.name_weight if named is not None else 0.0)
-    W = solver.solve()
+                             name_target=named, name_weight=s.name_weight if named is not None else 0.0,
+                             quadratic=s.quadratic)
+    W = solver.solve(zero=s.zero)
     info = {"path": solver.method_}
     if getattr(solver, "info_", None):
         info["bounded"] = dict(solver.info_)
@@ -207,14 +209,16 @@ def _local(inputs, s):
     st = inputs["calibrate"]["source"]
     seg = inputs["segment"]
     mw = seg["marker_weights"] if _marker_weights(inputs) is None else seg["marker_weights"] * _marker_weights(inputs)[None]
-    problem = local_precompute(np.zeros_like(st.neutral), B, mw, constraint=s.constraint)
+    box = {"lower": s.lower, "upper": s.upper} if s.constraint == "box" else {}
+    problem = local_precompute(np.zeros_like(st.neutral), B, mw, constraint=s.constraint, quadratic=s.quadratic, **box)
     has = valid.any(1)  # frames without a marker sample (tracking loss) are gaps: filled, flagged by synthesize
     U = np.empty((len(S), len(seg["masks"]), len(B)))
-    U[has] = problem.solve(S[has], valid[has])  # (T, R, K) regional weights, eq. 2
+    zero = s.zero if s.zero is None or np.ndim(s.zero) == 1 else np.asarray(s.zero)[has]
+    U[has] = problem.solve(S[has], valid[has], zero=zero)  # (T, R, K) regional weights, eq. 2
     if not has.all():
         U = fill_gaps(U, has)
     if s.local_temporal == "spacetime":  # movement matching per region, ends from the QP
-        U = local_spacetime(B, S, mw, U, s.alpha, s.beta, valid)
+        U = local_spacetime(B, S, mw, U, s.alpha, s.beta, valid, quadratic=s.quadratic)
     if s.sigma > 0:
         U = smooth_weights(U, s.sigma)
     W = blend_weights(U, seg["masks"])
@@ -243,7 +247,7 @@ def _geometric(inputs, s):
         fill = np.einsum("tk,kmc->tmc", baselines.no_const(B, S, valid), B)
         frames = np.where(valid[..., None], S, fill)
         warnings.warn(f"geometric: {int((~valid).sum())} missing marker samples filled by the per-frame fit")
-    sol = GeometricSolver(B, s.geometric_prior, mu=s.mu, lam=s.lam, **kw).solve(frames)
+    sol = GeometricSolver(B, s.geometric_prior, mu=s.mu, lam=s.lam, quadratic=s.quadratic, **kw).solve(frames, zero=s.zero)
     return {"weights": sol.weights, "info": {"iterations": sol.iterations}, "edit": edit_options(s, alpha=0.01)}
 
 

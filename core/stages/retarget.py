@@ -46,6 +46,8 @@ class Take(Stage):
         "meshes = a GLB's or UsdSkel file's animated mesh as a dense mesh sequence (no source rig needed)"))
     source_fps = param.Number(default=0.0, bounds=(0, None), doc=(
         "Frame rate of a mesh-sequence folder, GLB or USD source (0: the file's own, a folder's sequence.json, else 30)"))
+    mirror_source = param.Boolean(default=False, label="Mirror the take (left ↔ right)", doc=(
+        "Swap the take's left and right (curve names, marker names and positions; core.controls.mirror_performance)"))
 
     def run(self, inputs, s, progress=None):
         from ..io.performance import read_performance
@@ -53,7 +55,12 @@ class Take(Stage):
         if not s.source:
             raise ValueError("no source performance chosen (--source)")
         report(progress, 0.1, "reading source")
-        return {"source": read_performance(s.source, kind=s.source_kind, fps=s.source_fps or None)}
+        perf = read_performance(s.source, kind=s.source_kind, fps=s.source_fps or None)
+        if s.mirror_source:
+            from ..controls import mirror_performance
+
+            perf = mirror_performance(perf)
+        return {"source": perf}
 
 
 def _with_default_layout(paths: dict, rig: str, layout: str) -> dict:
@@ -475,21 +482,70 @@ class Solve(Stage):
         "unbounded solve"))
     l1 = param.Number(label='Use few shapes (L1)', default=0.0, bounds=(0, None), softbounds=(0, 1e-3), doc=(
         "L1 sparsity of the spacetime weights, relative to sigma_max(B)^2 like ridge: fewer shapes per frame"))
+    controls = param.Dict(default={}, label="Per-shape controls", doc=(
+        "Per-shape controls (core.controls): {shapes: {name: {lower, upper, gain, offset, active}}, symmetry: [[L, R]], "
+        "cancel: [[a, b]]}; empty = every shape active within lowest…highest, gain 1, the automatic left/right pairs"))
+    symmetry_weight = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1), label="Solve left and right alike (μ_s)",
+                                   doc="Weight of the symmetry pairs' term μ_s ||w_L - w_R||², relative to sigma_max(B)^2; 0 = off")
+    cancel_threshold = param.Number(default=0.0, bounds=(0, 1), label="Cancel pairs: fire above", doc=(
+        "Two shapes of a cancel pair never both exceed this weight (the weaker is held at 0 and the rest re-solved)"))
+    weights_filter = param.Selector(default="none", objects=["none", "one_euro", "gaussian"], label="Jitter filter (per-frame methods)",
+                                    doc="Post-solve filter of per-frame methods: One Euro (causal) or a zero-phase Gaussian of sigma frames")
+    filter_min_cutoff = param.Number(default=1.0, bounds=(0.01, None), softbounds=(0.1, 10), label="One Euro: cutoff at rest (Hz)",
+                                     doc="One Euro filter's minimum cutoff frequency (Casiez et al. 2012)")
+    filter_beta = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1), label="One Euro: follow fast motion (β)",
+                               doc="One Euro filter's speed coefficient: higher = less lag on fast motion")
     name_weight = param.Number(label='Follow the same-named source curves (names)', default=0.0, bounds=(0, None), softbounds=(0, 1e-2), doc=(
         "Pull of each target shape towards its namesake source curve (same canonical ARKit name), relative to "
         "sigma_max(B)^2; 0 = off. Only where the source is weight curves sharing names with the target"))
 
+    #: the settings every marker method reads (the production controls of core.controls)
+    CONTROLS = ("controls", "symmetry_weight", "cancel_threshold")
+    FILTERS = ("weights_filter", "filter_min_cutoff", "filter_beta", "sigma")
+
     def relevant(self, cfg):
-        return ("method",) + method_of(cfg).params
+        m = method_of(cfg)
+        out = ("method",) + m.params
+        if m.name not in ("lsq", "names"):
+            out += self.CONTROLS
+        if m.name not in ("spacetime", "names", "local"):
+            f = cfg.solve.weights_filter
+            out += ("weights_filter",) + (("filter_min_cutoff", "filter_beta") if f == "one_euro" else
+                                          ("sigma",) if f == "gaussian" else ())
+        return out
 
     def active(self, cfg):
         return not method_of(cfg).dense
 
     def run(self, inputs, s, progress=None):
+        from types import SimpleNamespace
+
+        from ..controls import default_table, filter_weights, merge_table, resolve
+
         m = METHODS[s.method]
-        out = m.run(inputs, s)
+        names = list(inputs["shapes"]["rig"].names)
+        ctl = resolve(merge_table(s.controls or {}, default_table(names, s.lower, s.upper)), names)
+        lo, hi = ctl.bounds()
+        sym = ctl.symmetry_matrix(s.symmetry_weight) if s.symmetry_weight > 0 and len(ctl.symmetry) else None
+        zero = ctl.zero() if (~ctl.active).any() else None
+        aug = SimpleNamespace(**{**vars(s), "lower": lo, "upper": hi, "quadratic": sym, "zero": zero})
+        out = m.run(inputs, aug)
         W = np.asarray(out["weights"], dtype=np.float64)
-        return {"weights": W, "method": m.name, "info": out.get("info", {}), "edit": out["edit"]}
+        info = dict(out.get("info", {}))
+        if len(ctl.cancel) and m.name not in ("lsq", "names"):
+            from ..controls import cancel_pairs
+
+            def again(z):
+                held = z if zero is None else z | zero[None]
+                return np.asarray(m.run(inputs, SimpleNamespace(**{**vars(aug), "zero": held}))["weights"], dtype=np.float64)
+
+            W, cinfo = cancel_pairs(again, W, ctl.cancel, s.cancel_threshold)
+            info["cancel"] = {k: v for k, v in cinfo.items() if k != "held"}
+        if s.weights_filter != "none" and m.name not in ("spacetime", "names", "local"):
+            fps = inputs["calibrate"]["source"].fps
+            W = filter_weights(np.nan_to_num(W), fps, s.weights_filter, sigma=max(s.sigma, 1e-3),
+                               min_cutoff=s.filter_min_cutoff, beta=s.filter_beta)
+        return {"weights": W, "method": m.name, "info": info, "edit": out["edit"], "controls": ctl}
 
 
 @register("edit")
@@ -528,7 +584,7 @@ class Edit(Stage):
                                  known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["shapes"]["rig"].names,
                                  ridge=opt["ridge"], lower=opt["lower"], upper=opt["upper"], l1=opt["l1"],
                                  marker_weights=inputs["shapes"].get("weights"), name_target=named,
-                                 name_weight=opt["name_weight"])
+                                 name_weight=opt["name_weight"], quadratic=opt.get("quadratic"))
         return {"weights": solver.edit(W, edits=edits), "edits": list(s.edits)}
 
 
@@ -542,7 +598,7 @@ class Synthesize(Stage):
     ``weights`` that are played and written, and flagged in ``valid`` (T,) bool; ``raw`` keeps
     the NaN."""
 
-    deps = ("load", "edit", "calibrate", "stabilize")
+    deps = ("load", "solve", "edit", "calibrate", "stabilize")
 
     def active(self, cfg):
         return not method_of(cfg).dense
@@ -554,6 +610,9 @@ class Synthesize(Stage):
         st = inputs["stabilize"]["source"]
         valid = np.isfinite(Wsub).all(1) & st.valid.any(1)
         Wfill = fill_gaps(Wsub, valid)
+        ctl = inputs["solve"]["controls"]
+        if (ctl.gain != 1).any() or (ctl.offset != 0).any():  # the per-shape remap, after the solve (clamped)
+            Wfill = ctl.remap(Wfill)
         markers = tm.neutral[None] + (Wfill @ tm.deltas.reshape(len(tm.deltas), -1)).reshape((len(Wfill),) + tm.neutral.shape)
         full = np.zeros((len(Wsub), inputs["load"]["target_rig"].n_shapes))
         full[:, cal["shape_index"]] = Wfill
