@@ -887,6 +887,7 @@ class ClosestPoints:
         if len(F) == 0:
             raise ValueError("F: the mesh to find closest points on has no triangles")
         self.V, self.F = V, F
+        self._fn = None  # unit face normals, when a query filters by normal
         used = np.unique(F)
         self._vtree = cKDTree(V[used])
         # the triangles around each used vertex (CSR rows of the incidence)
@@ -900,8 +901,11 @@ class ClosestPoints:
             ids = np.flatnonzero(level == lv)
             self._groups.append((ids, cKDTree(c[ids]), R[ids]))
 
-    def _best(self, P, q, f, best):
+    def _best(self, P, q, f, best, normals=None, min_dot=0.0):
         """Closest points of the pairs (query q (sorted), triangle f); keep the better one per query."""
+        if normals is not None and len(q):
+            ok = np.einsum("ij,ij->i", self._fn[f], normals[q]) >= min_dot
+            q, f = q[ok], f[ok]
         if len(q) == 0:
             return
         d2b, fb, bb, pb = best
@@ -918,7 +922,7 @@ class ClosestPoints:
         qq, first = qq[better], first[better]
         d2b[qq], fb[qq], bb[qq], pb[qq] = d2[first], f[first], b[first], pts[first]
 
-    def query(self, P, max_distance: float = np.inf):
+    def query(self, P, max_distance: float = np.inf, normals=None, min_dot: float = 0.0):
         """Closest points of ``P`` (m, 3) on the mesh.
 
         Parameters
@@ -927,6 +931,12 @@ class ClosestPoints:
         max_distance : float
             Points farther than this from the surface get ``distance = inf``, ``triangle =
             -1`` and themselves as the closest point.
+        normals : (m, 3) float, optional
+            Unit normals of the queries: only triangles whose unit normal ``n_f`` has
+            ``n_f · normal >= min_dot`` count (the closest point on the sheet facing the same
+            way: upper and lower lips in contact are told apart). Give a finite
+            ``max_distance`` with it: a query whose nearby triangles all face away searches
+            up to there.
 
         Returns
         -------
@@ -936,10 +946,16 @@ class ClosestPoints:
         if P.ndim != 2 or P.shape[1] != 3:
             raise ValueError(f"P: expected query points of shape (m, 3), got {P.shape}")
         m = len(P)
+        if normals is not None:
+            normals = np.asarray(normals, dtype=np.float64)
+            if normals.shape != P.shape:
+                raise ValueError(f"normals: expected {P.shape} (one per query point), got {normals.shape}")
+            if self._fn is None:
+                self._fn = face_normals(self.V, self.F)
         best = (np.full(m, np.inf), np.full(m, -1, np.int64), np.zeros((m, 3)), P.copy())
         _, nv = self._vtree.query(P)
         ring = self._ring[nv]
-        self._best(P, np.repeat(np.arange(m), np.diff(ring.indptr)), ring.indices, best)
+        self._best(P, np.repeat(np.arange(m), np.diff(ring.indptr)), ring.indices, best, normals, min_dot)
         bound = np.minimum(np.sqrt(best[0]), max_distance) * (1 + 1e-12)
         for ids, tree, R in self._groups:
             rows = np.arange(m)
@@ -948,7 +964,7 @@ class ClosestPoints:
                 dd, ii = tree.query(P[rows], k=k)
                 dd, ii = dd.reshape(len(rows), k)[:, lo:], ii.reshape(len(rows), k)[:, lo:]
                 r_hit, c_hit = np.nonzero(dd <= bound[rows, None] + R[ii])
-                self._best(P, rows[r_hit], ids[ii[r_hit, c_hit]], best)
+                self._best(P, rows[r_hit], ids[ii[r_hit, c_hit]], best, normals, min_dot)
                 if k >= len(ids):
                     break
                 rows = rows[dd[:, -1] <= bound[rows] + R.max()]

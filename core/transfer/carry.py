@@ -9,17 +9,20 @@ UVs, materials and skinning), so the result is carried back through the registra
           w_j = t(c_j)\, s\!\left(\frac{\delta_j - r_0}{r_1 - r_0}\right)
 
 for every target vertex ``j``: ``c_j`` is its closest point on the fitted source surface, in
-triangle ``f_j`` with barycentric coordinates ``b_j``, at distance ``δ_j``; ``d`` a
+triangle ``f_j`` with barycentric coordinates ``b_j``, at distance ``δ_j`` (among the source
+triangles facing the target vertex's way, when the target's faces are given); ``d`` a
 displacement of the source vertices (a basis delta, a detail morph target). The weight fades
 the motion out where the source surface does not describe the target:
 
 * ``s`` is the smoothstep ``3x² - 2x³`` clamped to [0, 1], reversed (1 below ``r_0``, 0 beyond
   ``r_1``): target parts the fitted face does not reach (eyeballs under the lids, a body)
   keep their neutral, with a continuous fall-off in between;
-* ``t`` is the source's trust interpolated at ``c_j``: 1 on the vertices the registration
-  fitted to the target, 0 on those that only follow them (the rest of the head outside a face
-  crop, :func:`.correspond.register`), smoothed over ``rings`` vertex rings inside the fitted
-  region, so the face's border fades out instead of stepping.
+* ``t`` is the source's trust interpolated at ``c_j``: 1 on the source's face skin (the face
+  crop, :func:`.correspond.face_crop`, which a cropped registration fitted and a whole-head one
+  fitted among the rest), 0 elsewhere (back of head, neck, and the mouth bag and eye sockets
+  that a whole-head registration lays onto the target's lips and lids too), ramped over
+  ``rings`` vertex rings inside the face, so its border fades out instead of stepping. Only
+  the face's triangles are searched for ``c_j``.
 
 ``w = 0`` gives a displacement of exactly 0: those target vertices keep the neutral to the
 bit. The map is linear, one sparse (V', V) matrix for every basis and detail target.
@@ -80,7 +83,7 @@ def _smoothstep_down(x):
 
 
 def carry_back(fitted, faces, target_positions, trusted: Optional[np.ndarray] = None, inner: float = INNER,
-               outer: float = OUTER, rings: int = RINGS) -> CarryBack:
+               outer: float = OUTER, rings: int = RINGS, target_faces=None) -> CarryBack:
     """The :class:`CarryBack` of target vertices onto the fitted source surface.
 
     Parameters
@@ -93,13 +96,17 @@ def carry_back(fitted, faces, target_positions, trusted: Optional[np.ndarray] = 
         Source vertices fitted to the target (the registration's crop); default all.
     inner, outer : float, 0 <= inner < outer, fractions of the target's bounding-box diagonal
     rings : int >= 0, vertex rings of the trust ramp inside ``trusted``
+    target_faces : (F', 3) int, optional
+        The target's triangles: with them a target vertex is located only on source triangles
+        facing its way (normals less than 90° apart), so the upper lip takes the upper lip's
+        motion where the lips touch; without, the plain closest point.
 
     Raises
     ------
     ValueError
         Bad shapes, ``trusted`` not (V,) bool, ``inner``/``outer`` out of order.
     """
-    from ..geometry import ClosestPoints, vertex_adjacency
+    from ..geometry import ClosestPoints, vertex_adjacency, vertex_normals
 
     S = check_positions(fitted, "fitted")
     F = check_faces(faces, len(S), "faces")
@@ -124,8 +131,18 @@ def carry_back(fitted, faces, target_positions, trusted: Optional[np.ndarray] = 
                 level[front] = k
             trust = level / rings
     size = bbox_size(T)
-    _, dist, tri, bary = ClosestPoints(S, F).query(T, max_distance=outer * size)
+    # the closest point on the sheet facing the same way as the target vertex (dot >= 0): upper
+    # and lower lips (or lids) in contact are two sheets a plain closest point mixes up
+    Tf = check_faces(target_faces, len(T), "target_faces") if target_faces is not None else None
+    nq = None if Tf is None else vertex_normals(T, Tf, fallback=None)
+    # only the fitted region's triangles are searched: where the registration laid other parts of
+    # the source onto the target too (a mouth bag projected onto the lips), they are not found
+    fit = np.flatnonzero(trust[F].min(axis=1) > 0) if trusted is not None else np.arange(len(F))
+    if len(fit) == 0:
+        raise ValueError("trusted: no source triangle lies wholly in the trusted region")
+    _, dist, tri, bary = ClosestPoints(S, F[fit]).query(T, max_distance=outer * size, normals=nq, min_dot=0.0)
     near = tri >= 0
+    tri = np.where(near, fit[np.maximum(tri, 0)], -1)
     w = np.zeros(len(T))
     corners = F[np.maximum(tri, 0)]
     w[near] = (np.einsum("jk,jk->j", bary[near], trust[corners[near]])
