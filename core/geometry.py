@@ -11,7 +11,9 @@ algorithm, its variants as explicit options):
 * topology: :func:`weld` (UV-seam copies merged), :func:`boundary_loops`, :func:`edges`;
   :func:`farthest_points` (virtual markers);
 * alignment: :func:`procrustes` (Kabsch / Umeyama, weighted, batched), :func:`nonrigid_icp`
-  with the schedule :func:`nricp_steps` (Amberg et al. 2007, through trimesh);
+  with the schedule :func:`nricp_steps` (Amberg et al. 2007: trimesh's loop, faster, coarse to
+  fine, with progress); :class:`ClosestPoints` (exact closest points on a mesh, KD-trees),
+  :func:`closest_on_triangles`, :func:`harmonic_extension`;
 * construction: :func:`marker_triangulation` (the mesh over a face's markers),
   :func:`decimate` (quadric, through pyvista).
 
@@ -806,23 +808,399 @@ def nricp_steps(iterations=10, final_stiffness: float = 5e-4, final_normal: floa
     return tuple((ws[k], _NRICP_LANDMARK[k], wn[k], int(it[k])) for k in range(4))
 
 
+def closest_on_triangles(P, A, B, C):
+    r"""Closest point of each point ``P[i]`` on triangle ``(A[i], B[i], C[i])``, with its
+    barycentric coordinates (Ericson 2005, "Real-Time Collision Detection" §5.1.5).
+
+    Vectorised over (n, 3) arrays: the seven Voronoi regions of the triangle (three vertices,
+    three edges, the face) are tested in order and the first that holds gives the answer.
+    Degenerate triangles fall into a vertex or edge region (no division by a zero area).
+
+    Returns
+    -------
+    points : (n, 3), barycentric : (n, 3) float64 (rows sum to 1, the weights of A, B, C)
+    """
+    P, A, B, C = (np.asarray(x, dtype=np.float64) for x in (P, A, B, C))
+    ab, ac, ap = B - A, C - A, P - A
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp = P - B
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    cp = P - C
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    bary = np.zeros((len(P), 3))
+    done = np.zeros(len(P), bool)
+
+    def take(mask, u, v, w):
+        m = mask & ~done
+        bary[m, 0], bary[m, 1], bary[m, 2] = u[m], v[m], w[m]
+        done[m] = True
+
+    one, zero = np.ones(len(P)), np.zeros(len(P))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        take((d1 <= 0) & (d2 <= 0), one, zero, zero)                          # vertex A
+        take((d3 >= 0) & (d4 <= d3), zero, one, zero)                         # vertex B
+        t = d1 / (d1 - d3)
+        take((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1 - t, t, zero)              # edge AB
+        take((d6 >= 0) & (d5 <= d6), zero, zero, one)                         # vertex C
+        t = d2 / (d2 - d6)
+        take((vb <= 0) & (d2 >= 0) & (d6 <= 0), 1 - t, zero, t)              # edge AC
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        take((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), zero, 1 - t, t)    # edge BC
+        den = va + vb + vc
+        v, w = vb / den, vc / den
+        take(np.isfinite(v) & np.isfinite(w), 1 - v - w, v, w)                # face
+    take(np.ones(len(P), bool), one, zero, zero)  # nothing held (NaN input): vertex A
+    pts = bary[:, :1] * A + bary[:, 1:2] * B + bary[:, 2:] * C
+    return pts, bary
+
+
+class ClosestPoints:
+    r"""Exact closest points on a triangle mesh for many query points, by KD-trees.
+
+    For a query ``q`` the triangles around its nearest mesh vertex give a first closest
+    point at distance ``d_0`` (an upper bound). A triangle with a point within ``d_0`` of
+    ``q`` has its centroid ``c_f`` within ``d_0 + R_f`` of ``q``, ``R_f`` its largest
+    centroid-to-corner distance; so the nearest centroids up to that radius hold the closest
+    triangle, and the exact closest point on each (:func:`closest_on_triangles`) decides.
+    Triangles are grouped by ``R`` (powers of two), one centroid tree per group, so one large
+    triangle does not widen every query; each group is queried for the k nearest centroids,
+    k doubled for the queries whose k-th centroid is still inside the radius.
+
+    Hand-written because ``trimesh.proximity.closest_point`` (an R-tree query per point and
+    Python-level candidate lists) took 0.45 s per call for the 14K ICT vertices on the 4.5K
+    Rocketbox triangles, 4 s of every registration, and missed the closest triangle of 2 %
+    of the points (by up to 0.03 mm); this one is exact (tested against brute force).
+
+    Parameters
+    ----------
+    V : (n, 3) float, F : (F, 3) int
+        The mesh; only vertices that some triangle uses count.
+    """
+
+    def __init__(self, V, F):
+        from scipy.spatial import cKDTree
+
+        V, F = _check_mesh(V, F)
+        if len(F) == 0:
+            raise ValueError("F: the mesh to find closest points on has no triangles")
+        self.V, self.F = V, F
+        self._fn = None  # unit face normals, when a query filters by normal
+        used = np.unique(F)
+        self._vtree = cKDTree(V[used])
+        # the triangles around each used vertex (CSR rows of the incidence)
+        self._ring = vertex_face_incidence(F, len(V))[used].tocsr()
+        tri = V[F]
+        c = tri.mean(axis=1)
+        R = np.linalg.norm(tri - c[:, None], axis=2).max(axis=1)
+        level = np.floor(np.log2(np.maximum(R, 1e-300) / max(R.max(), 1e-300))).clip(-60, 0)
+        self._groups = []
+        for lv in np.unique(level)[::-1]:
+            ids = np.flatnonzero(level == lv)
+            self._groups.append((ids, cKDTree(c[ids]), R[ids]))
+
+    def _best(self, P, q, f, best, normals=None, min_dot=0.0):
+        """Closest points of the pairs (query q (sorted), triangle f); keep the better one per query."""
+        if normals is not None and len(q):
+            ok = np.einsum("ij,ij->i", self._fn[f], normals[q]) >= min_dot
+            q, f = q[ok], f[ok]
+        if len(q) == 0:
+            return
+        d2b, fb, bb, pb = best
+        T = self.F[f]
+        pts, b = closest_on_triangles(P[q], self.V[T[:, 0]], self.V[T[:, 1]], self.V[T[:, 2]])
+        d2 = ((pts - P[q]) ** 2).sum(1)
+        # q is sorted: the first smallest entry of each run of equal q
+        start = np.flatnonzero(np.r_[True, q[1:] != q[:-1]])
+        seg = np.repeat(np.arange(len(start)), np.diff(np.r_[start, len(q)]))
+        at = np.flatnonzero(d2 == np.minimum.reduceat(d2, start)[seg])
+        first = at[np.r_[True, seg[at][1:] != seg[at][:-1]]]
+        qq = q[first]
+        better = d2[first] < d2b[qq]
+        qq, first = qq[better], first[better]
+        d2b[qq], fb[qq], bb[qq], pb[qq] = d2[first], f[first], b[first], pts[first]
+
+    def query(self, P, max_distance: float = np.inf, normals=None, min_dot: float = 0.0):
+        """Closest points of ``P`` (m, 3) on the mesh.
+
+        Parameters
+        ----------
+        P : (m, 3) float
+        max_distance : float
+            Points farther than this from the surface get ``distance = inf``, ``triangle =
+            -1`` and themselves as the closest point.
+        normals : (m, 3) float, optional
+            Unit normals of the queries: only triangles whose unit normal ``n_f`` has
+            ``n_f · normal >= min_dot`` count (the closest point on the sheet facing the same
+            way: upper and lower lips in contact are told apart). Give a finite
+            ``max_distance`` with it: a query whose nearby triangles all face away searches
+            up to there.
+
+        Returns
+        -------
+        points (m, 3), distance (m,), triangle (m,) int, barycentric (m, 3)
+        """
+        P = np.asarray(P, dtype=np.float64)
+        if P.ndim != 2 or P.shape[1] != 3:
+            raise ValueError(f"P: expected query points of shape (m, 3), got {P.shape}")
+        m = len(P)
+        if normals is not None:
+            normals = np.asarray(normals, dtype=np.float64)
+            if normals.shape != P.shape:
+                raise ValueError(f"normals: expected {P.shape} (one per query point), got {normals.shape}")
+            if self._fn is None:
+                self._fn = face_normals(self.V, self.F)
+        best = (np.full(m, np.inf), np.full(m, -1, np.int64), np.zeros((m, 3)), P.copy())
+        _, nv = self._vtree.query(P)
+        ring = self._ring[nv]
+        self._best(P, np.repeat(np.arange(m), np.diff(ring.indptr)), ring.indices, best, normals, min_dot)
+        bound = np.minimum(np.sqrt(best[0]), max_distance) * (1 + 1e-12)
+        for ids, tree, R in self._groups:
+            rows = np.arange(m)
+            k, lo = min(8, len(ids)), 0
+            while len(rows):
+                dd, ii = tree.query(P[rows], k=k)
+                dd, ii = dd.reshape(len(rows), k)[:, lo:], ii.reshape(len(rows), k)[:, lo:]
+                r_hit, c_hit = np.nonzero(dd <= bound[rows, None] + R[ii])
+                self._best(P, rows[r_hit], ids[ii[r_hit, c_hit]], best, normals, min_dot)
+                if k >= len(ids):
+                    break
+                rows = rows[dd[:, -1] <= bound[rows] + R.max()]
+                k, lo = min(2 * k, len(ids)), k
+        d2, f, b, pts = best
+        dist = np.sqrt(d2)
+        far = dist > max_distance
+        dist[far], f[far], b[far], pts[far] = np.inf, -1, 0.0, P[far]
+        return pts, dist, f, b
+
+
+def closest_points(P, V, F, max_distance: float = np.inf):
+    """Closest points of ``P`` on the mesh ``(V, F)``: :class:`ClosestPoints`\\ ``(V, F).query(P)``."""
+    return ClosestPoints(V, F).query(P, max_distance)
+
+
+def harmonic_extension(values, mask, F, n: Optional[int] = None) -> np.ndarray:
+    r"""Harmonic extension of per-vertex ``values`` given on ``mask`` to every vertex.
+
+    .. math:: L_{ff}\, y_f = -L_{fc}\, y_c, \qquad y_c = \text{values}
+
+    with the graph Laplacian ``L = D - A`` (:func:`uniform_laplacian`; each free vertex the
+    mean of its neighbours): by the maximum principle every component stays within the range
+    of the given values. A ``1e-9`` ridge gives 0 on parts not connected to ``mask``.
+
+    Parameters
+    ----------
+    values : (|mask|, c) float, the values on ``mask``'s vertices in increasing vertex order
+    mask : (n,) bool
+    F : (F, 3) int
+    n : int, optional (default ``len(mask)``)
+
+    Returns
+    -------
+    (n, c) float64
+    """
+    import scipy.sparse.linalg as spla
+
+    mask = np.asarray(mask, bool)
+    n = len(mask) if n is None else n
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim != 2 or len(values) != int(mask.sum()):
+        raise ValueError(f"values: expected ({int(mask.sum())}, c), one row per masked vertex, got {values.shape}")
+    L = uniform_laplacian(F, n)
+    free = np.flatnonzero(~mask)
+    out = np.zeros((n, values.shape[1]))
+    out[mask] = values
+    if len(free) == 0:
+        return out
+    Lf = L[free]
+    Lff = Lf[:, free] + 1e-9 * sp.eye(len(free), format="csr")
+    out[free] = spla.splu(Lff.tocsc()).solve(np.asarray(-(Lf[:, np.flatnonzero(mask)] @ values)))
+    return out
+
+
+def _coarse_subset(V, F, n_coarse: int, keep) -> tuple:
+    """A coarse mesh on a subset of ``V``'s vertices: the quadric decimation
+    (:func:`decimate`) to about ``n_coarse`` vertices, each decimated vertex replaced by a
+    distinct nearest vertex of ``V``, the ``keep`` vertices (landmarks) always among them.
+    Returns ``(ids (m,) int into V, faces (F', 3) into ids)``."""
+    from scipy.spatial import cKDTree
+
+    Vd, Fd, _ = decimate(V, F, max_vertices=n_coarse)
+    tree = cKDTree(V)
+    kk = min(16, len(V))
+    dd, cand = tree.query(Vd, k=kk)
+    ids = np.full(len(Vd), -1, np.int64)
+    taken = np.zeros(len(V), bool)
+    keep = np.unique(np.asarray(keep, dtype=np.int64))
+    # landmarks first: each takes the decimated vertex nearest to it
+    if len(keep):
+        _, near = cKDTree(Vd).query(V[keep], k=min(8, len(Vd)))
+        for v, row in zip(keep, np.atleast_2d(near)):
+            free = [j for j in np.atleast_1d(row) if ids[j] < 0]
+            if free:
+                ids[free[0]] = v
+                taken[v] = True
+    for j in np.argsort(dd[:, 0], kind="stable"):
+        if ids[j] >= 0:
+            continue
+        for c in cand[j]:
+            if not taken[c]:
+                ids[j], taken[c] = c, True
+                break
+    ok = ids >= 0
+    remap = np.cumsum(ok) - 1
+    Fc = remap[Fd[ok[Fd].all(1)]]
+    Fc = Fc[(Fc[:, 0] != Fc[:, 1]) & (Fc[:, 1] != Fc[:, 2]) & (Fc[:, 0] != Fc[:, 2])]
+    return ids[ok], Fc
+
+
+def _block_pcg(A, B, X0, precond, rtol: float, maxiter: int):
+    """Preconditioned conjugate gradients for ``A X = B`` with several right-hand sides
+    (independent per column, one preconditioner call for all columns: scipy's ``cg`` takes
+    one column at a time). Returns X, or None when a column's relative residual is still
+    above ``rtol`` after ``maxiter`` iterations."""
+    X = np.array(X0, dtype=np.float64)
+    R = B - A @ X
+    bn = np.maximum(np.linalg.norm(B, axis=0), 1e-300)
+    if (np.linalg.norm(R, axis=0) <= rtol * bn).all():
+        return X
+    Z = precond(R)
+    Pd = Z.copy()
+    rz = (R * Z).sum(0)
+    for _ in range(maxiter):
+        AP = A @ Pd
+        alpha = rz / np.where((Pd * AP).sum(0) != 0, (Pd * AP).sum(0), 1.0)
+        X += alpha * Pd
+        R -= alpha * AP
+        if (np.linalg.norm(R, axis=0) <= rtol * bn).all():
+            return X
+        Z = precond(R)
+        rz_new = (R * Z).sum(0)
+        Pd = Z + (rz_new / np.where(rz != 0, rz, 1.0)) * Pd
+        rz = rz_new
+    return None
+
+
+def _nicp_loop(Vn, F, target, tnormals, TF, lm, steps, X, threshold, eps, report, trimesh_normals):
+    """The iterations of :func:`nonrigid_icp` in the unit frame; returns the maps X (n, 4, 3)."""
+    import scipy.sparse.linalg as spla
+
+    n = len(Vn)
+    lm_v, lm_r, lm_p = lm
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    w_e = 1.0 / np.maximum(np.linalg.norm(Vn[E[:, 0]] - Vn[E[:, 1]], axis=1), 1e-300)
+    rows = np.arange(len(E))
+    Minc = sp.csr_matrix((np.r_[w_e, -w_e], (np.r_[rows, rows], np.r_[E[:, 0], E[:, 1]])), shape=(len(E), n))
+    K = sp.kron((Minc.T @ Minc).tocsr(), sp.identity(4, format="csr"), format="csr")
+    bi = np.repeat(np.arange(4 * n).reshape(n, 4), 4, axis=1).ravel()
+    bj = np.tile(np.arange(4 * n).reshape(n, 4), (1, 4)).ravel()
+    Dh = np.hstack([Vn, np.ones((n, 1))])
+    lm_blocks = np.zeros((n, 4, 4))
+    np.add.at(lm_blocks, lm_v, lm_r[:, :, None] * lm_r[:, None, :])
+    lm_rhs = np.zeros((n, 4, 3))
+    np.add.at(lm_rhs, lm_v, lm_r[:, :, None] * lm_p[:, None, :])
+    if trimesh_normals:
+        import trimesh
+
+        DN = np.hstack([trimesh.Trimesh(Vn, F, process=False).vertex_normals, np.ones((n, 1))])
+    inc = vertex_face_incidence(F, n)
+    current = np.einsum("ni,nic->nc", Dh, X)
+    for k, (ws, wl, wn, max_iter) in enumerate(steps):
+        last_error, error = np.finfo(np.float32).max, np.finfo(np.float16).max
+        it, lu = 0, None
+        while last_error - error > eps and (max_iter is None or it < max_iter):
+            u, dist, tid, bary = target.query(current, max_distance=threshold)
+            weight = (dist <= threshold).astype(np.float64)
+            if wn > 0:
+                tn = np.einsum("ij,ijk->ik", bary, tnormals[TF[np.maximum(tid, 0)]])
+                sn = np.einsum("ni,nic->nc", DN, X) if trimesh_normals else vertex_normals(current, F, incidence=inc)
+                weight *= np.clip(np.einsum("ij,ij->i", sn, tn), 0, 1) ** wn
+            w2 = weight ** 2
+            blocks = w2[:, None, None] * Dh[:, :, None] * Dh[:, None, :] + wl ** 2 * lm_blocks
+            A = ws ** 2 * K + sp.csr_matrix((blocks.ravel(), (bi, bj)), shape=(4 * n, 4 * n))
+            rhs = (w2[:, None, None] * Dh[:, :, None] * u[:, None, :] + wl ** 2 * lm_rhs).reshape(4 * n, 3)
+            # a 1e-12 relative ridge towards the current maps: a part without matches or
+            # landmarks keeps its maps instead of making the system singular
+            ridge = 1e-12 * float(A.diagonal().mean())
+            A = A + ridge * sp.identity(4 * n, format="csr")
+            rhs += ridge * X.reshape(4 * n, 3)
+            # symmetric positive definite: no pivoting, a minimum-degree ordering of A^T + A.
+            # Within a step only the data weights change: the step's first factorisation
+            # preconditions conjugate gradients for the later iterations (warm-started at the
+            # current maps), refactored when they do not converge
+            X_new = None
+            if lu is not None:
+                X_new = _block_pcg(A, rhs, X.reshape(4 * n, 3), lu.solve, rtol=1e-10, maxiter=40)
+            if X_new is None:
+                lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                               options=dict(SymmetricMode=True))
+                X_new = lu.solve(rhs)
+            X = X_new.reshape(n, 4, 3)
+            current = np.einsum("ni,nic->nc", Dh, X)
+            last_error = error
+            error = float((np.linalg.norm(u - current, axis=1) * weight).mean())
+            it += 1
+            report(k, it, max_iter, error)
+    return X
+
+
 def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=None, steps=None,
-                 distance_threshold: float = 0.1) -> np.ndarray:
+                 distance_threshold: float = 0.1, progress=None, eps: float = 1e-4, coarse: Optional[int] = None,
+                 fine_iterations: int = 4, normals: str = "trimesh") -> np.ndarray:
     r"""Deform a mesh onto a target surface by optimal-step non-rigid ICP [6].
 
     Per-vertex affine maps :math:`X_i` (4x3) minimise, for each step's stiffness
     :math:`\alpha` (``ws``) and landmark weight :math:`\beta` (``wl``),
 
-    .. math:: E(X) = \sum_i w_i \|X_i v_i - u_i\|^2
-              + \alpha \sum_{(i,j)} \|(X_i - X_j) G\|_F^2
-              + \beta \sum_l \|X_l v_l - p_l\|^2
+    .. math:: E(X) = \sum_i w_i^2 \|X_i^T \tilde v_i - u_i\|^2
+              + \alpha^2 \sum_{(i,j)} \|X_i - X_j\|_F^2 / \ell_{ij}^2
+              + \beta^2 \sum_l \|X_l^T \tilde v_l - p_l\|^2
 
-    with :math:`u_i` the closest target point, :math:`w_i` 0 for matches farther than
-    ``distance_threshold`` and :math:`\cos^{wn}` of the normal angle, G = diag(1, 1, 1, 1)
-    (Amberg et al. 2007 eq. 12); ``trimesh.registration.nricp_amberg`` does the work.
+    (Amberg et al. 2007 eq. 12, G = I₄) with :math:`\tilde v = (v, 1)`, :math:`u_i` the
+    closest target point, :math:`w_i` 0 for matches farther than ``distance_threshold`` and
+    :math:`\cos^{wn}` of the angle between source and target normals (clipped at 0), the sum
+    over the directed edges of every face (an interior edge counts twice), :math:`\ell_{ij}`
+    its rest length. Each step iterates closest points and the sparse normal equations
 
-    trimesh moves the source to its (surface) centroid and scales it to unit bounding-box
-    diagonal before it starts (and the target with it): ``steps`` and ``distance_threshold``
+    .. math:: \big(\alpha^2 (M^T M \otimes I_4) + \mathrm{blockdiag}_i(w_i^2 \tilde v_i \tilde v_i^T)
+              + \beta^2 \mathrm{blockdiag}_l(\tilde v_l \tilde v_l^T)\big) X = D^T W^2 U + \beta^2 D_l^T P
+
+    until the mean weighted match error falls by less than ``eps`` or ``max_iter`` is
+    reached. This is the loop of ``trimesh.registration.nricp_amberg`` (equal to it to
+    5e-8 of the unit frame when both use exact closest points; tested), written here
+    because that one (a) has no progress callback, (b) factors the symmetric positive
+    definite 4n x 4n system with a general LU (``spsolve``, COLAMD; here SuperLU in
+    symmetric mode with a minimum-degree ordering: 1.7x faster, 35 % less fill on ICT) and
+    builds its right-hand side as a ``lil_matrix`` (0.4 s per iteration on ICT), and (c)
+    finds closest points through an R-tree that misses some (:class:`ClosestPoints`).
+
+    ``normals="trimesh"`` (default) is trimesh's source normal: the rest normal ``(n, 1)``
+    times the affine map (the map's translation added to it). ``"deformed"`` uses the
+    normals of the current deformed surface. Measured on ICT → Rocketbox / tiger /
+    triceratops, trimesh's gives fewer folded triangles after resampling (236 / 324 / 602
+    against 284 / 437 / 747; the rest normals 271 / 346 / 587), so it stays the default.
+
+    **Coarse to fine** (``coarse``): the schedule runs on a coarse mesh over about
+    ``coarse`` of the source's own vertices (quadric decimation, each new vertex moved to a
+    distinct nearest source vertex, the landmarks kept), the maps ``X`` found there are
+    carried to every vertex by :func:`harmonic_extension` (12 values per vertex: a vertex
+    between coarse ones gets the blend of their affine maps, so fine geometry is mapped,
+    not only moved), and ``fine_iterations`` iterations of the last step run on the full
+    mesh from there. A mesh of fewer than ``2 * coarse`` vertices runs at full resolution (the
+    coarse stage, extension and fine iterations cost more than they save there). On ICT (14K
+    vertices) → Rocketbox, 3,000 coarse vertices take the whole registration from 13-18 s (this
+    loop at full resolution) to 5-6 s, with landmarks 0.15 / 0.88 mm instead of 0.26 / 1.30
+    mean / max and the same surface p95 (docs/transfer.md).
+
+    Barycentric landmarks ``(faces, barycentric)`` follow trimesh: each corner k of the
+    landmark's triangle gets the row :math:`b_k \tilde v_k^T X_k = p - \sum_{j \ne k} b_j v_j`
+    (the other corners at their rest positions). On the coarse mesh a barycentric landmark
+    pulls the corner of its largest weight by the same offset.
+
+    Like trimesh, the source is moved to its area-weighted centroid and scaled to unit
+    bounding-box diagonal first (the target with it): ``steps`` and ``distance_threshold``
     are read in that frame, so they are relative to the source's size whatever its units.
 
     Parameters
@@ -838,6 +1216,18 @@ def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=No
         Default :func:`nricp_steps`\ ``()``.
     distance_threshold : float
         In units of the source's bounding-box diagonal (see above).
+    progress : ``(fraction, message) -> None``, optional
+        Called after every iteration with the step, the match error (mm if the input is in
+        metres) and a time estimate: the iterations left at the mean time per iteration so
+        far (a step may end early, so it is an upper bound).
+    eps : float
+        A step ends when its mean weighted match error falls by less than this (unit frame;
+        trimesh's default).
+    coarse : int, optional
+        Run the schedule on about this many vertices first (see above); None: full mesh.
+    fine_iterations : int
+        Iterations of the last step on the full mesh after the coarse stage.
+    normals : "trimesh" | "deformed"
 
     Returns
     -------
@@ -846,27 +1236,96 @@ def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=No
     Raises
     ------
     ValueError
-        Bad shapes, landmarks without positions (or the reverse) or of different lengths.
+        Bad shapes, landmarks without positions (or the reverse) or of different lengths,
+        an unknown ``normals``.
     """
-    import trimesh
+    import time
 
     V, F = _check_mesh(V, F, "V")
     T, TF = _check_mesh(target_V, target_F, "target_V")
     if (landmarks is None) != (landmark_positions is None):
         raise ValueError("landmarks, landmark_positions: give both or neither")
-    kw = {}
+    if normals not in ("trimesh", "deformed"):
+        raise ValueError(f"normals: expected 'trimesh' or 'deformed', got {normals!r}")
+    steps = nricp_steps() if steps is None else [tuple(x) for x in steps]
+    n = len(V)
+    # the unit frame of trimesh's _normalize_by_source
+    area = 0.5 * doublearea(V, F)
+    tri_c = V[F].mean(axis=1)
+    centroid = (area @ tri_c) / area.sum() if area.sum() > 0 else tri_c.mean(0)
+    scale = float(np.linalg.norm(np.ptp(V[np.unique(F)], axis=0))) or 1.0
+    Vn = (V - centroid) / scale
+    Tn = (T - centroid) / scale
+    # landmark rows (block-diagonal): vertex v, row r (4,), target (3,)
+    lm = (np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 3)))
+    lm_coarse = None  # (vertex ids, targets) for the coarse stage
     if landmarks is not None:
-        pos = np.asarray(landmark_positions, dtype=np.float64)
-        count = len(landmarks[0]) if isinstance(landmarks, tuple) else len(np.asarray(landmarks))
-        if pos.shape != (count, 3):
-            raise ValueError(f"landmark_positions: expected ({count}, 3) for {count} landmarks, got {pos.shape}")
-        kw = dict(source_landmarks=landmarks, target_positions=pos)
-    steps = nricp_steps() if steps is None else steps
-    src = trimesh.Trimesh(V, F, process=False)
-    tgt = trimesh.Trimesh(T, TF, process=False)
-    out = trimesh.registration.nricp_amberg(src, tgt, steps=[list(x) for x in steps],
-                                            distance_threshold=distance_threshold, **kw)
-    return np.asarray(out, dtype=np.float64)
+        pos = (np.asarray(landmark_positions, dtype=np.float64) - centroid) / scale
+        if isinstance(landmarks, tuple):
+            tid = np.asarray(landmarks[0], dtype=np.int64)
+            bc = np.asarray(landmarks[1], dtype=np.float64)
+            if pos.shape != (len(tid), 3) or bc.shape != (len(tid), 3):
+                raise ValueError(f"landmark_positions: expected ({len(tid)}, 3) for {len(tid)} landmarks, got {pos.shape}")
+            corners = F[tid]  # (L, 3)
+            on = np.einsum("lk,lkc->lc", bc, Vn[corners])
+            lm = (corners.ravel(),
+                  (np.concatenate([Vn[corners], np.ones(corners.shape + (1,))], axis=2) * bc[:, :, None]).reshape(-1, 4),
+                  (pos[:, None, :] - (on[:, None, :] - bc[:, :, None] * Vn[corners])).reshape(-1, 3))
+            top = corners[np.arange(len(tid)), np.argmax(bc, axis=1)]
+            lm_coarse = (top, pos + Vn[top] - on)
+        else:
+            ids = np.asarray(landmarks, dtype=np.int64).ravel()
+            if pos.shape != (len(ids), 3):
+                raise ValueError(f"landmark_positions: expected ({len(ids)}, 3) for {len(ids)} landmarks, got {pos.shape}")
+            if ids.size and (ids.min() < 0 or ids.max() >= n):
+                raise ValueError(f"landmarks: vertex ids must lie in [0, {n})")
+            lm = (ids, np.hstack([Vn[ids], np.ones((len(ids), 1))]), pos)
+            lm_coarse = (ids, pos)
+    target = ClosestPoints(Tn, TF)
+    import trimesh
+
+    tnormals = np.asarray(trimesh.Trimesh(Tn, TF, process=False).vertex_normals)  # trimesh's (angle-weighted)
+    use_coarse = coarse is not None and n > 2 * coarse
+    total = [sum(int(s[3]) for s in steps) + (fine_iterations if use_coarse else 0)]
+    done, t0 = [0], time.perf_counter()
+
+    def report(stage):
+        def f(k, it, max_iter, error):
+            done[0] += 1
+            if progress is None:
+                return
+            left = max(total[0] - done[0], 0)
+            el = time.perf_counter() - t0
+            progress(done[0] / max(done[0] + left, 1),
+                     f"non-rigid ICP{stage} step {k + 1}/{len(steps)} iteration {it}: match error "
+                     f"{error * scale * 1000:.3g} mm, at most {el / done[0] * left:.0f} s left")
+        return f
+
+    X0 = np.tile(np.vstack([np.eye(3), np.zeros((1, 3))]), (n, 1)).reshape(n, 4, 3)
+    tm = normals == "trimesh"
+    if not use_coarse:
+        X = _nicp_loop(Vn, F, target, tnormals, TF, lm, steps, X0, distance_threshold, eps, report(""), tm)
+        return np.einsum("ni,nic->nc", np.hstack([Vn, np.ones((n, 1))]), X) * scale + centroid
+    keep = lm_coarse[0] if lm_coarse is not None else np.zeros(0, np.int64)
+    sub, Fc = _coarse_subset(Vn, F, int(coarse), keep)
+    local = np.full(n, -1, np.int64)
+    local[sub] = np.arange(len(sub))
+    lmc = (np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 3)))
+    if lm_coarse is not None:
+        lv = local[lm_coarse[0]]
+        lmc = (lv, np.hstack([Vn[lm_coarse[0]], np.ones((len(lv), 1))]), lm_coarse[1])
+    Xc = _nicp_loop(Vn[sub], Fc, target, tnormals, TF, lmc, steps, X0[sub], distance_threshold, eps,
+                    report(f" (coarse, {len(sub)} vertices)"), tm)
+    # a step ended early leaves iterations unused: the estimate counts only the fine ones now
+    total[0] = done[0] + fine_iterations
+    mask = np.zeros(n, bool)
+    mask[sub] = True
+    X = harmonic_extension(Xc.reshape(len(sub), 12)[np.argsort(sub)], mask, F, n).reshape(n, 4, 3)
+    if fine_iterations > 0:
+        last = steps[-1]
+        X = _nicp_loop(Vn, F, target, tnormals, TF, lm, [(last[0], last[1], last[2], int(fine_iterations))], X,
+                       distance_threshold, 0.0, report(" (full mesh)"), tm)
+    return np.einsum("ni,nic->nc", np.hstack([Vn, np.ones((n, 1))]), X) * scale + centroid
 
 
 # ---------------------------------------------------------------------------------------------

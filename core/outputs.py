@@ -12,7 +12,8 @@ Two kinds of result:
   with ``--method local`` also ``<csv stem>_regions.csv``, the per-region curves (Liu 2011 §6.4);
   optionally the target's ARKit-named shapes as a Live Link Face CSV;
 * dense transfer (Xu 2014): a rig of transferred bases (+ the fine details as extra morph
-  targets) with their weights (no Live Link output: the bases have no ARKit names).
+  targets) with their weights (no Live Link output: the bases have no ARKit names), on the
+  target's own mesh by default (``transfer_output``, :class:`core.stages.dense.DenseOutput`).
 """
 
 from __future__ import annotations
@@ -195,24 +196,23 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
 def _write_transfer(pipe, out, weights_csv, csv_precision, progress) -> ShotOutputs:
     """``--method transfer``: dense transfer (Xu 2014) to a rig of new morph targets."""
     from .io.curves_csv import write_curves_csv
-    from .model import Rig
 
     t0 = time.perf_counter()
     # target_face in the same run: a second run would reset pipe.timings to its own stages
-    res = pipe.results(["target_face", "transfer", "transfer_edit", "detail_morphs"], progress=progress)
-    tr, te, dm = res["transfer"], res["transfer_edit"], res["detail_morphs"]
+    res = pipe.results(["target_face", "transfer", "transfer_edit", "detail_morphs", "dense_output"], progress=progress)
+    tr, do = res["transfer"], res["dense_output"]
     r = tr["result"]
     target = res["target_face"]["target_rig"]
-    rig = Rig(r.neutral, r.faces, te["deltas"], r.to_rig().names, None, "m", f"{target.name}_transfer")
-    weights = te["weights"]
-    detail_note = ""
-    if dm["basis"] is not None:
-        # the per-frame details as extra morph targets: a GLB then plays the whole transfer
-        B = dm["basis"]
-        rig = Rig(rig.neutral, rig.faces, np.concatenate([rig.deltas, B]),
-                  list(rig.names) + [f"xu_detail_{j:02d}" for j in range(len(B))], None, "m", rig.name)
-        weights = np.hstack([weights, dm["coeffs"]])
-        detail_note = f"; details as {len(B)} morph targets (largest error {dm['max_error'] * 1000:.3f} mm)"
+    rig, weights = do["rig"], do["weights"]
+    detail_note = (f"; details as {do['n_details']} morph targets (largest error {do['detail_error'] * 1000:.3f} mm)"
+                   if do["n_details"] else "")
+    if do["mesh"] == "target":
+        c = do["carry"]
+        mesh_note = (f"the target's own mesh" + ("" if c is None else
+                     f", carried back from the source topology: {int((c.weight > 0).sum())} of {rig.n_vertices} vertices move, "
+                     f"{int((c.weight == 1).sum())} fully"))
+    else:
+        mesh_note = "source topology fitted to the target"
     times = tr["times"]
     frames = tr["first"] + np.arange(len(times))
     written, paths = [], []
@@ -226,5 +226,5 @@ def _write_transfer(pipe, out, weights_csv, csv_precision, progress) -> ShotOutp
         paths.append(Path(weights_csv))
     stages = " ".join(f"{k}={v:.1f}s" for k, v in pipe.timings.items() if v > 0.05)
     summary = (f"transferred {len(weights)} frames to {target.name}: {r.n_bases} bases on {rig.n_vertices} vertices "
-               f"(source topology fitted to the target){detail_note} in {time.perf_counter() - t0:.1f}s; stages: {stages}")
+               f"({mesh_note}){detail_note} in {time.perf_counter() - t0:.1f}s; stages: {stages}")
     return ShotOutputs(True, res, weights, list(rig.names), np.asarray(tr["valid"], dtype=bool), summary, written, paths)

@@ -484,3 +484,93 @@ def test_decimate_is_the_normal_maps_low_rig(ict):
     P, F, uv = g.decimate(ict.neutral, ict.faces, 0.9, uvs=ict.uvs)
     assert np.array_equal(low.faces, F) and np.array_equal(low.uvs, uv)
     assert np.abs(low.neutral - P).max() < 0.005 * ict.size  # its vertices snapped onto the full surface
+
+
+def test_closest_points_against_brute_force():
+    """Every query's closest point is the nearest of all triangles' (closest_on_triangles on
+    every pair); mixed triangle sizes, points on, near and far from the surface."""
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    V = np.asarray(m.vertices) * [1.0, 0.7, 1.3]
+    F = np.asarray(m.faces)
+    big = np.array([[3.0, 0, 0], [3.0, 2, 0], [3.0, 0, 2]])  # one large triangle beside it
+    V = np.vstack([V, big])
+    F = np.vstack([F, [[len(V) - 3, len(V) - 2, len(V) - 1]]])
+    rng = np.random.default_rng(3)
+    P = np.vstack([rng.normal(size=(300, 3)) * 1.5, V[F[:40]].mean(1), [[3.2, 0.5, 0.5]]])
+    pts, d, f, b = g.ClosestPoints(V, F).query(P)
+    A, B, C = (np.repeat(V[F[:, i]][None], len(P), 0).reshape(-1, 3) for i in range(3))
+    allp, allb = g.closest_on_triangles(np.repeat(P, len(F), 0), A, B, C)
+    alld = np.linalg.norm(allp - np.repeat(P, len(F), 0), axis=1).reshape(len(P), len(F))
+    np.testing.assert_allclose(d, alld.min(1), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("nk,nkc->nc", b, V[F[f]]), pts, atol=1e-12)
+    assert np.allclose(b.sum(1), 1) and (b >= -1e-12).all()
+    # max_distance: farther points report inf and -1, nearer ones the same answer
+    _, d2, f2, _ = g.ClosestPoints(V, F).query(P, max_distance=0.2)
+    assert np.array_equal(np.isinf(d2), d > 0.2) and (f2[d > 0.2] == -1).all()
+    np.testing.assert_array_equal(d2[d <= 0.2], d[d <= 0.2])
+
+
+def test_closest_on_triangles_single_triangle_regions():
+    A, B, C = np.array([[0.0, 0, 0]]), np.array([[1.0, 0, 0]]), np.array([[0.0, 1, 0]])
+    cases = {(-1, -1, 1): [1, 0, 0], (2, -0.5, 0): [0, 1, 0], (0.5, -1, 3): [0.5, 0.5, 0], (0.25, 0.25, -2): [0.5, 0.25, 0.25],
+             (1, 1, 0): [0, 0.5, 0.5], (-1, 0.5, 0): [0.5, 0, 0.5], (-0.5, 2, 0): [0, 0, 1]}
+    for p, want in cases.items():
+        _, b = g.closest_on_triangles(np.array([p], float), A, B, C)
+        np.testing.assert_allclose(b[0], want, atol=1e-12)
+    # a degenerate triangle (a segment) gives the closest point of the segment, no NaN
+    pt, b = g.closest_on_triangles(np.array([[0.5, 1.0, 0]]), A, B, B)
+    np.testing.assert_allclose(pt[0], [0.5, 0, 0], atol=1e-12) and np.isfinite(b).all()
+
+
+@pytest.mark.parametrize("landmarks", ["vertices", "barycentric"])
+def test_nonrigid_icp_equals_trimesh_with_exact_closest_points(landmarks, monkeypatch):
+    """Our loop is trimesh's nricp_amberg (the reference): with the same (exact) closest points
+    both give the same registration, to trimesh's float32 right-hand side."""
+    import trimesh
+
+    sph = trimesh.creation.icosphere(subdivisions=3)
+    V, F = np.asarray(sph.vertices), np.asarray(sph.faces)
+    T = V * [1.08, 0.95, 1.0] + 0.02 * np.sin(3 * V + [0.3, 0.7, 1.1]) + [0.01, 0.02, -0.03]
+    tgt = trimesh.Trimesh(T, F, process=False).subdivide()
+    if landmarks == "vertices":
+        lm = np.array([0, 10, 40, 90, 200])
+        pos = T[lm]
+    else:
+        tid = np.array([3, 50, 100, 400])
+        bc = np.array([[0.2, 0.3, 0.5], [1 / 3, 1 / 3, 1 / 3], [0.6, 0.2, 0.2], [0.1, 0.1, 0.8]])
+        lm, pos = (tid, bc), np.einsum("lk,lkc->lc", bc, T[F[tid]])
+    steps = [(0.02, 10, 0.5, 5), (0.005, 2, 0.5, 5)]
+    ours = g.nonrigid_icp(V, F, tgt.vertices, tgt.faces, lm, pos, steps, distance_threshold=0.1)
+    monkeypatch.setattr(trimesh.proximity, "closest_point",
+                        lambda mesh, p: g.ClosestPoints(mesh.vertices, mesh.faces).query(p)[:3])
+    ref = trimesh.registration.nricp_amberg(trimesh.Trimesh(V, F, process=False), trimesh.Trimesh(tgt.vertices, tgt.faces, process=False),
+                                            source_landmarks=lm, target_positions=pos, steps=[list(s) for s in steps],
+                                            distance_threshold=0.1)
+    assert np.abs(ref - V).max() > 0.05  # it moved
+    assert np.abs(ours - ref).max() < 2e-7
+
+
+def test_nonrigid_icp_coarse_to_fine_and_progress():
+    """Coarse to fine lands as close to the target as the full-mesh schedule, keeps the
+    landmarks, and reports every iteration with a time estimate."""
+    import trimesh
+
+    sph = trimesh.creation.icosphere(subdivisions=4)  # 2,562 vertices
+    V, F = np.asarray(sph.vertices), np.asarray(sph.faces)
+    T = V * [1.1, 0.9, 1.0] + 0.03 * np.sin(2 * V + [0.3, 0.7, 1.1])
+    lm = np.array([0, 100, 400, 900, 2000])
+    calls = []
+    full = g.nonrigid_icp(V, F, T, F, lm, T[lm])
+    coarse = g.nonrigid_icp(V, F, T, F, lm, T[lm], coarse=600, progress=lambda f, m: calls.append((f, m)))
+    cp = g.ClosestPoints(T, F)
+    d_full, d_coarse = cp.query(full)[1], cp.query(coarse)[1]
+    assert np.percentile(d_coarse, 95) < 2 * np.percentile(d_full, 95) + 1e-4
+    assert np.abs(coarse[lm] - T[lm]).max() < 5e-3
+    fr = [f for f, _ in calls]
+    assert fr == sorted(fr) and fr[-1] == 1.0 and len(calls) >= 5
+    assert any("coarse" in m for _, m in calls) and "full mesh" in calls[-1][1] and "s left" in calls[-1][1]
+    # a mesh of fewer than 2 x coarse vertices runs at full resolution
+    same = g.nonrigid_icp(V, F, T, F, lm, T[lm], coarse=2000)
+    np.testing.assert_array_equal(same, full)

@@ -103,7 +103,8 @@ def test_tiger_crop_beats_the_whole_head_registration(tiger_case, tiger_cropped,
     new, old = tiger_cropped.report, tiger_whole_head.report
     # the thresholds the crop passes, the whole-head registration of before fails
     assert old["flipped_triangles"] > 1000 and new["flipped_triangles"] < 0.5 * old["flipped_triangles"]
-    assert old["landmark_residual_mm_max"] > 4.0 and new["landmark_residual_mm_max"] < 0.5 * old["landmark_residual_mm_max"]
+    # (whole head: 6.4 mm max with trimesh's ICP, 3.6 mm coarse to fine; the crop 1.2 mm)
+    assert old["landmark_residual_mm_max"] > 3.0 and new["landmark_residual_mm_max"] < 0.5 * old["landmark_residual_mm_max"]
     assert new["landmark_residual_mm_mean"] < 0.5 * old["landmark_residual_mm_mean"]
     # outside the crop the old path projects the neck and the sockets onto the tiger and folds
     # them; the harmonic extension leaves almost nothing folded there

@@ -7,6 +7,7 @@
     target_face ─────────┴── register (per rig pair) ───────────────┴── deform ── details ── transfer
                                                                                                │
                                                       transfer_edit (Xu §4.3) ── detail_edit (§5.2) ── detail_morphs
+                                                                                 target_face ── dense_output (target | source mesh)
 
 The registration depends on the two rigs and their layouts only: a new take, frame range or
 basis setting reuses it (it is most of a transfer's time). The steps are the functions
@@ -261,3 +262,48 @@ class DetailMorphs(Stage):
             return {"coeffs": None, "basis": None, "max_error": 0.0}
         C, B, err = detail_morph_targets(details, rtol=s.detail_tolerance)
         return {"coeffs": C, "basis": B, "max_error": float(err)}
+
+
+@register("dense_output")
+class DenseOutput(Stage):
+    """The rig the transfer is written as: on the target's own mesh (its neutral, vertex order,
+    faces and UVs; the bases and detail morph targets carried back through the registration,
+    :func:`core.transfer.carry.carry_back`), or on the fitted source topology the transfer ran
+    in. A stage of its own: switching ``transfer_output`` re-runs no transfer."""
+
+    deps = ("transfer", "transfer_edit", "detail_morphs", "target_face", "register")
+    group, title = "dense", "Dense transfer (Xu 2014)"
+    transfer_output = param.Selector(default="target", objects=["target", "source"], doc=(
+        "Mesh of the written rig: target = the target's own mesh (its vertices, faces and UVs; the transfer carried "
+        "back through the registration, neutral outside the face), source = the source topology fitted to the target"))
+
+    def run(self, inputs, s, progress=None):
+        from ..model import Rig
+        from ..transfer.carry import carry_back
+
+        r = inputs["transfer"]["result"]
+        te, dm = inputs["transfer_edit"], inputs["detail_morphs"]
+        target = inputs["target_face"]["target_rig"]
+        names = list(r.to_rig().names)
+        deltas, weights = te["deltas"], te["weights"]
+        if dm["basis"] is not None:  # the per-frame details as extra morph targets
+            names += [f"xu_detail_{j:02d}" for j in range(len(dm["basis"]))]
+            deltas = np.concatenate([deltas, dm["basis"]])
+            weights = np.hstack([weights, dm["coeffs"]])
+        carry, name = None, f"{target.name}_transfer"
+        if s.transfer_output == "source":
+            rig = Rig(r.neutral, r.faces, deltas, names, None, "m", name)
+        elif r.registration is None:  # the target has the source's topology: its own mesh already
+            rig = Rig(target.neutral, target.faces, deltas, names, target.uvs, "m", name)
+        else:
+            report(progress, 0.1, "carrying the transfer back to the target's own mesh")
+            from ..transfer.correspond import face_crop
+
+            reg, w = r.registration, r.welded
+            # the face skin the motion is carried from: the registration's crop, or the face crop
+            crop = reg.crop if reg.crop is not None else face_crop(w.welded, w.faces, w.index[inputs["register"]["landmarks"][0]])
+            trusted = crop[w.index]
+            carry = carry_back(r.neutral, r.faces, target.neutral, trusted, target_faces=target.faces)
+            rig = Rig(target.neutral, target.faces, carry.apply(deltas), names, target.uvs, "m", name)
+        return {"rig": rig, "weights": weights, "carry": carry, "mesh": s.transfer_output,
+                "n_details": 0 if dm["basis"] is None else len(dm["basis"]), "detail_error": dm["max_error"]}

@@ -223,7 +223,8 @@ def register_target(src: WeldedSource, target_ref, target_faces, settings: Trans
                     progress: Optional[ProgressFn] = None) -> tuple:
     """§3 preprocessing: the target reference in the welded source topology, ``(T_w0 (V_w, 3),
     Registration or None)``. Same topology: the target as is; else landmarks + non-rigid ICP
-    (:func:`.correspond.register`), which needs ``settings.landmarks``."""
+    (:func:`.correspond.register`), which needs ``settings.landmarks``. ``progress(fraction,
+    message)`` hears every ICP iteration, with a time estimate."""
     T0in = check_positions(target_ref, "target_ref")
     Ft_in = check_faces(target_faces, len(T0in), "target_faces")
     Vs = len(src.neutral)
@@ -238,7 +239,8 @@ def register_target(src: WeldedSource, target_ref, target_faces, settings: Trans
         raise ValueError(f"settings.landmarks: source vertex ids must lie in [0, {Vs})")
     report(progress, 0.0, "registration (landmarks + non-rigid ICP)")
     reg = register(src.welded, src.faces, T0in, Ft_in, src.index[src_lm], tgt_pts, settings.icp_steps,
-                   settings.max_distance, settings.icp, crop=settings.crop, crop_index=src.index)
+                   settings.max_distance, settings.icp, crop=settings.crop, crop_index=src.index, progress=progress)
+    report(progress, 1.0, "registration done")
     return reg.resampled, reg
 
 
@@ -370,9 +372,9 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     target_faces : (F', 3) int; when the target topology differs from the source's,
                                ``settings.landmarks`` is required and §3 preprocessing runs
     settings : TransferSettings; keyword ``overrides`` replace single fields
-    progress : ``(fraction, message) -> None``, optional: called at each stage and after every
-        chunk of the detail stage (the registration's non-rigid ICP reports only its start
-        and end: trimesh's ``nricp_amberg`` has no callback)
+    progress : ``(fraction, message) -> None``, optional: called at each stage, after every
+        iteration of the registration's non-rigid ICP (with a time estimate) and after every
+        chunk of the detail stage
 
     Returns
     -------
@@ -394,7 +396,8 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     seq = np.asarray(source_seq)
     if seq.ndim != 3 or seq.shape[1:] != (len(src.neutral), 3) or len(seq) == 0:
         raise ValueError(f"source_seq: expected (T, {len(src.neutral)}, 3) frames in the topology of source_ref, got {seq.shape}")
-    Tw0, registration = register_target(src, target_ref, target_faces, settings, progress)
+    Tw0, registration = register_target(src, target_ref, target_faces, settings,
+                                        None if progress is None else (lambda f, m: progress(0.4 * f, m)))
     timings["preprocessing"] = time.perf_counter() - t0
 
     report(progress, 0.4, "decomposition (smoothing + Laplacian coating)")
