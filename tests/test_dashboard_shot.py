@@ -12,7 +12,10 @@ from core.cli import main
 from core.pipeline import StageCache
 
 
-def widget(app, label):
+def widget(app, label, stage=None):
+    """The page's widget of a stage parameter (``label`` a param name of ``stage``), or labelled ``label``."""
+    if stage is not None:
+        label = getattr(app.pipe, stage).param[label].label
     found = [w for w in app.layout.select(pn.widgets.Widget) if getattr(w, "name", None) == label]
     assert found, f"no widget labelled {label!r}"
     return found[0]
@@ -27,10 +30,10 @@ def app():
 
 
 def test_widgets_to_shot_to_cli_bit_identical(app, tmp_path):
-    widget(app, "Last frame").value = 299
-    widget(app, "Method").value = "bounded"
-    widget(app, "Upper").value = 0.8
-    widget(app, "Ridge").value = 1e-4
+    widget(app, "last_frame", "frames").value = 299
+    widget(app, "method", "solve").value = "bounded"  # not the page default
+    widget(app, "upper", "solve").value = 0.8
+    widget(app, "ridge", "solve").value = 1e-4
     assert app.s.snapshot["method"] == "bounded" and len(app.s.snapshot["times"]) == 300
     # a spacetime edit from the Edit card
     app.w_frame.value = 150
