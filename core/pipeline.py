@@ -189,6 +189,9 @@ class Pipeline:
         self.timings: dict = {}
         self.keys: dict = {}
         self.redo: dict = {e: [] for e in EDITORS}
+        #: ``f(editor, op, arg)`` called after each edit operation (op: add | undo | redo | remove;
+        #: arg: the edit, None, or the index) — a shared review page sends them to the review store
+        self.listeners: list = []
         self.frame = 0
         self.notes: list = []
         self._lock = threading.RLock()
@@ -248,17 +251,23 @@ class Pipeline:
             st.param.update(**{setting: history.done})
             self.redo[editor] = history.undone
 
+    def _tell(self, editor: str, op: str, arg=None) -> None:
+        for f in list(self.listeners):
+            f(editor, op, arg)
+
     def add_edit(self, editor: str, edit: dict) -> None:
         """Append an edit (clears that editor's redo stack)."""
         h = self.edits(editor)
         h.add(edit)
         self._set_edits(editor, h)
+        self._tell(editor, "add", copy.deepcopy(edit))
 
     def undo(self, editor: str) -> bool:
         h = self.edits(editor)
         ok = h.undo()
         if ok:
             self._set_edits(editor, h)
+            self._tell(editor, "undo")
         return ok
 
     def redo_edit(self, editor: str) -> bool:
@@ -266,12 +275,14 @@ class Pipeline:
         ok = h.redo()
         if ok:
             self._set_edits(editor, h)
+            self._tell(editor, "redo")
         return ok
 
     def remove_edit(self, editor: str, index: int) -> dict:
         h = self.edits(editor)
         e = h.remove(index)
         self._set_edits(editor, h)
+        self._tell(editor, "remove", index)
         return e
 
     # the shot -------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import html
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -83,7 +84,7 @@ class DashboardApp(pn.viewable.Viewer):
     """One browser session's page; a Panel object, so it also displays in a notebook cell
     (``pn.extension()``, then the app as a cell's value) sharing ``session.pipeline`` with code."""
 
-    def __init__(self, session: Session | None = None, **params):
+    def __init__(self, session: Session | None = None, hub=None, reviewer: str = "", **params):
         super().__init__(**params)
         self.s = session or Session()
         self.pipe = self.s.pipeline
@@ -94,8 +95,48 @@ class DashboardApp(pn.viewable.Viewer):
         self.transfer_view = TransferView(self.s)
         self.normalmap_view = NormalMapView(self.pipe, active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
         self.personalize_view = PersonalizeView()
+        self.mirror = self.review = None
+        if hub is not None:
+            self._join(hub, reviewer)
         self._build_layout()
         self.refresh()
+        if self.review is not None and self.pipe.frame:
+            self.w_frame.value = int(min(self.pipe.frame, self.w_frame.end))
+
+    # -- shared review ----------------------------------------------------------------------
+    def _join(self, hub, reviewer: str) -> None:
+        """Join the hub of a shared shot (dashboard.review): this page's pipeline mirrors it."""
+        import uuid
+
+        from dashboard.review import Mirror
+        from dashboard.review_view import ReviewPanel
+
+        doc = pn.state.curdoc
+        self.mirror = Mirror(hub, self.s, reviewer or "someone", on_change=self._remote_change, notify=self._notify, doc=doc)
+        self.mirror.session_id = uuid.uuid4().hex
+        hub.join(self.mirror.session_id, self.mirror.name)
+        self.review = ReviewPanel(self.mirror, self.w_frame, self.w_play, self._time_of, on_notes=self._draw_note_marks)
+        if doc is not None and pn.state.curdoc is not None:
+            def gone(ctx, mirror=self.mirror, review=self.review):
+                review.close()
+                mirror.close()
+                hub.leave(mirror.session_id)
+
+            pn.state.on_session_destroyed(gone)
+
+    def _remote_change(self, change: dict) -> None:
+        """Another page changed the shot: the page shows it (on this page's event loop)."""
+        if _shown(self.pipe) != self._shown:
+            self._build_settings()
+        self.refresh()
+        if self.review is not None:
+            self.review.draw_notes()
+        who = change.get("author") or "someone"
+        self.w_status.object = html.escape(f"{who} changed the shot ({change.get('kind')}, version {change.get('version')})")
+
+    def _draw_note_marks(self, notes) -> None:
+        self.curves.set_notes([self._time_of(int(n.get("frame", 0))) for n in notes],
+                              [str(n.get("text", ""))[:60] for n in notes])
 
     # -- widgets ----------------------------------------------------------------------------
     def _build_widgets(self):
@@ -361,6 +402,7 @@ class DashboardApp(pn.viewable.Viewer):
     def _build_layout(self):
         sidebar = pn.Column(
             pn.pane.Markdown("# face-retarget", css_classes=["fr-title"]),
+            *([self.review.card] if self.review is not None else []),
             pn.pane.Markdown("Transfer a captured face performance onto another character's blendshape rig. "
                              "Pick a capture and a target, press play, tune the solver.", css_classes=["fr-muted"]),
             self.w_source, self.w_source_rig, self.w_target,
@@ -650,9 +692,32 @@ class DashboardApp(pn.viewable.Viewer):
 
 
 def create_app():
-    pn.extension(raw_css=[CSS])
-    app = DashboardApp()
-    return app.layout
+    """The page: on a review server (``face-retarget serve --data-dir``) ``?shot=<id>`` joins that
+    shared shot and a page without one offers to create a shot or open a recent one; otherwise a
+    page of its own."""
+    pn.extension("tabulator", raw_css=[CSS])
+    from dashboard import review
+
+    if review.SERVER is None and os.environ.get("FACE_RETARGET_REVIEW_DIR"):  # `panel serve dashboard/app.py` with a store
+        review.configure(os.environ["FACE_RETARGET_REVIEW_DIR"])
+    if review.SERVER is None:
+        return DashboardApp().layout
+    args = pn.state.session_args or {}
+    sid = (args.get("shot") or [b""])[0].decode(errors="replace").strip()
+    if not sid:
+        from dashboard.review_view import landing
+
+        return landing(review.SERVER, lambda: Session().shot())
+    from core.store import UnknownShot
+
+    try:
+        hub = review.SERVER.hub(sid)
+    except (UnknownShot, ValueError):
+        return pn.pane.Markdown(f"## No shot {html.escape(sid)!s}\n\n[Start or open a shot](?)", margin=30)
+    session = Session()
+    session.open_shot(hub.shot, name=sid, locate=review.SERVER.store.locate)
+    user = getattr(pn.state, "user", None) or ""
+    return DashboardApp(session, hub=hub, reviewer=user).layout
 
 
 if __name__.startswith("bokeh"):  # panel serve dashboard/app.py --plugins dashboard.assets

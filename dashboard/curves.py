@@ -36,6 +36,11 @@ class CurvePlot:
         self.fig.add_tools(HoverTool(renderers=[r], tooltips=[("shape", "@name")], line_policy="nearest"))
         self.cursor = Span(location=0, dimension="height", line_color="#d62728", line_width=2)
         self.fig.add_layout(self.cursor)
+        # review notes: marks at their frames on the time axis
+        self.notes = ColumnDataSource(data=dict(t=[], y=[], text=[]))
+        nr = self.fig.scatter("t", "y", source=self.notes, marker="inverted_triangle", size=13, color="#9467bd",
+                              line_color="white")
+        self.fig.add_tools(HoverTool(renderers=[nr], tooltips=[("note", "@text")]))
         self._on_seek = on_seek
         self.fig.on_event("tap", self._tap)
         self.fig.select_one(TapTool).behavior = "inspect"
@@ -62,6 +67,10 @@ class CurvePlot:
 
     def set_time(self, t: float):
         self.cursor.location = float(t)
+
+    def set_notes(self, times, texts) -> None:
+        """Mark the review notes at their times (just above the curves' zero line)."""
+        self.notes.data = dict(t=[float(t) for t in times], y=[0.0] * len(times), text=list(texts))
 
 
 class DiagnosticsPlot:

@@ -218,11 +218,19 @@ class Session(param.Parameterized):
             return p.read_bytes()
 
     def _label_for(self, kind: str, path: str) -> str:
-        """The list label of a file path, adding it to the list when it is not there yet."""
+        """The list label of a file path — the listed file with that path or that content (a
+        shared shot reads its files from the review store) — adding it to the list when new."""
+        from core.pipeline import file_key
+
         files = self.files[kind]
         for label, p in files.items():
             if Path(p).resolve() == Path(path).resolve():
                 return label
+        if Path(path).is_file():
+            want = file_key(str(path))
+            for label, p in files.items():
+                if Path(p).is_file() and Path(p).suffix.lower() == Path(path).suffix.lower() and file_key(p) == want:
+                    return label
         label = UPLOAD + Path(path).name
         files[label] = str(path)
         return label
@@ -253,13 +261,18 @@ class Session(param.Parameterized):
         self._apply_selection()
         return self.pipeline.shot()
 
-    def open_shot(self, shot, name: str = "shot") -> None:
+    def sync_selection(self) -> None:
+        """Make the selectors show the pipeline's files (after a shared shot changed them)."""
+        take, sf, tf = self.pipeline.take.source, self.pipeline.source_face.source_rig, self.pipeline.target_face.target_rig
+        self.use_files(source=take or None, source_rig=sf, target_rig=tf or None)
+
+    def open_shot(self, shot, name: str = "shot", locate=None) -> None:
         """Make this session the shot's (a Shot, a path or JSON text): its files become the
         selections (added to the lists when new), its settings and edit lists the pipeline's.
 
         Raises ValueError / FileNotFoundError naming what is missing or wrong.
         """
-        other = Pipeline.from_shot(shot, cache=self.pipeline.cache)
+        other = Pipeline.from_shot(shot, cache=self.pipeline.cache, locate=locate)
         cfg = other.config()
         values = {}
         for n, st in other.stages.items():
