@@ -89,6 +89,7 @@ class DashboardApp(pn.viewable.Viewer):
         self.s = session or Session()
         self.pipe = self.s.pipeline
         self._viewer_keys = {"source": None, "target": None}
+        self._doc = pn.state.curdoc  # the page's document (None outside a server)
         self._shown_files = ""
         self._marker_report = None
         self._build_widgets()
@@ -127,12 +128,27 @@ class DashboardApp(pn.viewable.Viewer):
     def _remote_change(self, change: dict) -> None:
         """Another page changed the shot: the page shows it (on this page's event loop)."""
         if _shown(self.pipe) != self._shown:
-            self._build_settings()
-        self.refresh()
+            self._show_settings()
         if self.review is not None:
             self.review.draw_notes()
         who = change.get("author") or "someone"
-        self.w_status.object = html.escape(f"{who} changed the shot ({change.get('kind')}, version {change.get('version')})")
+        said = f"{who} changed the shot ({change.get('kind')}, version {change.get('version')})"
+        doc = self.mirror.doc if self.mirror is not None else None
+        if doc is None or change.get("kind") in ("note", "frame"):  # nothing to recompute for those
+            self.refresh()
+            self.w_status.object = html.escape(said)
+            return
+        # the changed widgets reach the browser first (alone: every change costs the browser a
+        # layout), the recompute's result right after
+
+        def later():
+            from dashboard.review import on_page
+
+            with on_page(doc):
+                self.refresh()
+                self.w_status.object = html.escape(said)
+
+        doc.add_timeout_callback(later, 15)
 
     def _draw_note_marks(self, notes) -> None:
         self.curves.set_notes([self._time_of(int(n.get("frame", 0))) for n in notes],
@@ -230,7 +246,9 @@ class DashboardApp(pn.viewable.Viewer):
         groups = {g for _, gs, _ in SIDEBAR_CARDS for g in gs}
         for st in self.pipe.stages.values():
             if type(st).group in groups:
-                st.param.watch(self._on_setting, st.setting_names())
+                # after the review mirror's watcher (precedence 0): other pages hear of a change
+                # before this page spends time recomputing it
+                st.param.watch(self._on_setting, st.setting_names(), precedence=1)
         self._build_settings()
 
     def _shot_bytes(self):
@@ -383,21 +401,64 @@ class DashboardApp(pn.viewable.Viewer):
         self.refresh()
 
     def _build_settings(self):
-        """The sidebar's setting cards, generated from the stages' settings (only those that
-        matter for the current method and switches)."""
+        """The sidebar's setting cards, generated from the stages' settings: every widget is made
+        once, and only those that matter for the current method and switches are visible
+        (:meth:`_show_settings`) — a method change toggles visibility instead of sending new
+        widgets to the browser (that rebuild took seconds to reach the other pages of a review)."""
         rom = {"(the source itself)": ""} | dict(self.s.files["performances"])
         extra = {"rom": {"type": pn.widgets.Select, "options": rom}}
-        cards = []
+        cfg = self.pipe.config()
+        cards, self._setting_panes, self._setting_cards = [], [], []
         for title, groups, collapsed in SIDEBAR_CARDS:
-            panes = [pn.Param(st, parameters=names, widgets=param_widgets(st, names, extra), show_name=False,
-                              sizing_mode="stretch_width") for st, names in stage_params(self.pipe, groups)]
+            panes = []
+            for st in self.pipe.stages.values():
+                if type(st).group not in groups:
+                    continue
+                names = [n for n in st.setting_names() if not isinstance(st.param[n], (param.List, param.Dict))]
+                if not names:
+                    continue
+                pane = pn.Param(st, parameters=names, widgets=param_widgets(st, names, extra), show_name=False,
+                                sizing_mode="stretch_width")
+                for n in names:  # the handle _set_visible hides it by
+                    w = pane._widgets[n]
+                    w.css_classes = [*w.css_classes, f"fr-setting-{n}"]
+                panes.append(pane)
+                self._setting_panes.append((st, pane))
+            panes.sort(key=lambda p: p.object.stage_name != "solve")  # the method choice first
             if title == "Solver":
                 cards.extend(panes)
             else:
                 open_ = title.startswith("Actor") and self.pipe.personalize.personalize
-                cards.append(pn.Card(*panes, title=title, collapsed=collapsed and not open_, sizing_mode="stretch_width"))
-        self._shown = _shown(self.pipe)
+                card = pn.Card(*panes, title=title, collapsed=collapsed and not open_, sizing_mode="stretch_width")
+                self._setting_cards.append((card, panes))
+                cards.append(card)
         self.settings_box[:] = cards
+        self._show_settings(cfg)
+
+    def _show_settings(self, cfg=None):
+        """Show the settings that matter now (:func:`visible_settings`), hide the others — in one
+        message to the browser (each visibility change sent alone re-lays the page out: ~0.3 s
+        each in Chromium here)."""
+        from dashboard.review import on_page
+
+        with on_page(self._doc):
+            self._set_visible(cfg or self.pipe.config())
+
+    def _set_visible(self, cfg):
+        # hidden by one stylesheet per stage, not by each widget's `visible`: Bokeh re-lays the
+        # page out for every `visible` change (~0.2 s each in Chromium here; a method change
+        # toggles ten), a stylesheet change is one
+        for st, pane in self._setting_panes:
+            keep = set(visible_settings(st, cfg))
+            hide = sorted(n for n in pane._widgets if n != "_title" and n not in keep)
+            sheet = [", ".join(f".fr-setting-{n}" for n in hide) + " { display: none !important; }"] if hide else []
+            if pane.layout.stylesheets != sheet:
+                pane.layout.stylesheets = sheet
+            if pane.visible != bool(keep):
+                pane.visible = bool(keep)
+        for card, panes in self._setting_cards:
+            card.visible = any(p.visible for p in panes)
+        self._shown = _shown(self.pipe)
 
     def _build_layout(self):
         sidebar = pn.Column(
@@ -455,11 +516,19 @@ class DashboardApp(pn.viewable.Viewer):
     def _on_setting(self, *events):
         # a new method (or switch) shows its own widgets before the (possibly long) recompute starts
         if _shown(self.pipe) != self._shown:
-            self._build_settings()
+            self._show_settings()
         self._changed()
 
     def _changed(self):
-        if self.s.auto_update:
+        if getattr(self, "mirror", None) is not None and self.mirror._applying:
+            return  # another page's change: _remote_change shows the widgets first, then recomputes
+        if not self.s.auto_update:
+            return
+        doc = self.mirror.doc if getattr(self, "mirror", None) is not None else None
+        if doc is not None:
+            # a shared shot: the other pages' updates (queued by the mirror) go out first
+            doc.add_next_tick_callback(self.refresh)
+        else:
             self.refresh()
 
     def _on_busy(self, *events):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from contextlib import contextmanager
 import time
 from typing import Optional
 
@@ -167,28 +168,33 @@ class Mirror:
         pipe = self.session.pipeline
         self._applying = True
         try:
-            mine = pipe.shot()
-            changed = {}
-            for stage, vals in shot.settings.items():
-                for k, v in vals.items():
-                    if mine.settings.get(stage, {}).get(k, object()) != v:
-                        changed[k] = v
-            for role, ref in shot.files.items():
-                if role not in mine.files or mine.files[role].sha != ref.sha:
-                    changed[role] = self.hub.store.locate(role, ref)
-            if changed:
-                pipe.configure(**changed)
-            from core.shot import EDITORS
-
-            for editor in EDITORS:
-                theirs = shot.edits[editor]
-                if pipe.edits(editor) != theirs:
-                    pipe._set_edits(editor, theirs)
-            pipe.notes = list(shot.notes)
-            self.session.sync_selection()
-            self.version = version
+            with on_page(self.doc):  # the page gets the whole change in one message
+                self._apply_shot(shot, version, initial)
         finally:
             self._applying = False
+
+    def _apply_shot(self, shot, version: int, initial: bool) -> None:
+        pipe = self.session.pipeline
+        mine = pipe.shot()
+        changed = {}
+        for stage, vals in shot.settings.items():
+            for k, v in vals.items():
+                if mine.settings.get(stage, {}).get(k, object()) != v:
+                    changed[k] = v
+        for role, ref in shot.files.items():
+            if role not in mine.files or mine.files[role].sha != ref.sha:
+                changed[role] = self.hub.store.locate(role, ref)
+        if changed:
+            pipe.configure(**changed)
+        from core.shot import EDITORS
+
+        for editor in EDITORS:
+            theirs = shot.edits[editor]
+            if pipe.edits(editor) != theirs:
+                pipe._set_edits(editor, theirs)
+        pipe.notes = list(shot.notes)
+        self.session.sync_selection()
+        self.version = version
         if self.on_change is not None and not initial:
             self.on_change(self.hub.last_change)
 
@@ -259,3 +265,19 @@ class Mirror:
 
 
 _EDIT_SETTINGS = ("edits", "transfer_edits", "detail_edits")
+
+
+@contextmanager
+def on_page(doc):
+    """Run a change of ``doc``'s page as if from its own event: the page's document is Panel's
+    current one (so widget changes apply at once instead of one scheduled callback each) and its
+    events are held and sent to the browser as one message (each one sent alone re-lays the page
+    out: ~0.3 s each in Chromium here). Nothing to do without a server page (``doc`` None)."""
+    if doc is None:
+        yield
+        return
+    import panel as pn
+    from panel.io.state import set_curdoc
+
+    with set_curdoc(doc), pn.io.hold(doc):
+        yield

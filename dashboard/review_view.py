@@ -134,9 +134,15 @@ class ReviewPanel:
     def notes(self) -> list:
         return list(self.mirror.session.pipeline.notes)
 
+    _drawn = None
+
     def draw_notes(self):
-        rows = []
         notes = self.notes()
+        key = (repr(notes), self.w_show_resolved.value)
+        if key == self._drawn:
+            return  # unchanged: no new rows for the browser to lay out
+        self._drawn = key
+        rows = []
         for n in sorted(notes, key=lambda n: n.get("frame", 0)):
             if n.get("resolved") and not self.w_show_resolved.value:
                 continue

@@ -41,16 +41,32 @@ def summary(page):
 
 
 def method_select(page):
-    return page.locator(".bk-input-group:visible", has=page.locator("label", has_text="Method")).locator("select")
+    return page.get_by_label("Method", exact=True)
 
 
-def timed(name, fn, check, page_b, timeout=15_000):
-    """Do ``fn`` on one page and time until ``check(page_b)`` holds on the other."""
-    t0 = time.monotonic()
-    fn()
-    check(page_b, timeout)
-    MEASURED[f"{name}_propagation_s"] = round(time.monotonic() - t0, 3)
+# Propagation is timed inside the receiving page (a poller started before the action; its
+# wall clock is this machine's, like the test's): Playwright's own retries wait up to a second
+# between checks.
+DEEP_TEXT = ("const deep = (r) => { let t = r.textContent || ''; r.querySelectorAll('*').forEach(e => "
+             "{ if (e.shadowRoot) t += ' ' + deep(e.shadowRoot); }); return t; };")
+
+
+def arm(page, predicate: str, arg=None, every_ms: int = 20):
+    """Start polling ``predicate`` (a JS function of ``arg``) in ``page``; :func:`seen` waits."""
+    page.evaluate(
+        "([src, arg, every]) => { const f = eval(src); window.__seen = new Promise(r => { const tick = () => "
+        "f(arg) ? r(Date.now()) : setTimeout(tick, every); tick(); }); }", [predicate, arg, every_ms])
+
+
+def seen(page, name, t_action, timeout_s=15.0):
+    t = page.evaluate(f"() => Promise.race([window.__seen, new Promise(r => setTimeout(() => r(null), {int(timeout_s * 1000)}))])")
+    assert t is not None, f"{name}: not seen on the other page within {timeout_s} s"
+    MEASURED[f"{name}_propagation_s"] = round(t / 1000 - t_action, 3)
     print(f"{name}: {MEASURED[f'{name}_propagation_s']} s")
+
+
+def has_text(regex: str) -> str:
+    return f"(re) => {{ {DEEP_TEXT} return new RegExp(re).test(deep(document)); }}"
 
 
 @pytest.mark.browser
@@ -79,38 +95,46 @@ def test_two_pages_one_shot_and_a_kill_minus_9(new_page, tmp_path, artifacts):
             box.blur()
         expect(b.get_by_text(re.compile(r"Here now: ana, bo"))).to_be_visible(timeout=15_000)
 
-        # a setting: the method
-        timed("setting", lambda: method_select(a).select_option(label=METHOD_LABEL["bounded"]),
-              lambda pg, t: expect(summary(pg)).to_contain_text("method bounded", timeout=t), b)
+        # a setting, the method: the other page shows it (its widget, timed in that page), then
+        # its result (recomputed)
+        method_select(b).evaluate(
+            "(el, want) => { window.__seen = new Promise(r => { const tick = () => el.value === want ? "
+            "r(Date.now()) : setTimeout(tick, 5); tick(); }); }", METHOD_LABEL["bounded"])
+        t0, w0 = time.monotonic(), time.time()
+        method_select(a).select_option(label=METHOD_LABEL["bounded"])
+        seen(b, "setting", w0)
+        expect(summary(b)).to_contain_text("method bounded", timeout=15_000)
+        MEASURED["setting_result_s"] = round(time.monotonic() - t0, 3)  # Playwright-polled: an upper bound
+        print(f"setting result: {MEASURED['setting_result_s']} s")
         # an edit from page b's Edit card, seen on page a
-        def edit():
-            b.get_by_role("button", name="Set pose at this frame").click()
-
         b.locator(".bk-input-group:visible", has=b.locator("label", has_text="Shape")).locator("select").select_option(
             "AK_25_JawOpen")
         slider = b.locator(".bk-input-group:visible", has=b.locator(".bk-slider-title", has_text=re.compile("^Frame:")))
         slider.first.locator(".noUi-handle").focus()
         for _ in range(20):
             b.keyboard.press("ArrowRight")
-        timed("edit", edit, lambda pg, t: expect(pg.get_by_text(re.compile(r"frame \d+: .?AK_25_JawOpen"))).to_be_visible(timeout=t), a)
+        EDIT = r"frame \d+: .?AK_25_JawOpen"
+        arm(a, has_text(EDIT), EDIT, every_ms=50)
+        w0 = time.time()
+        b.get_by_role("button", name="Set pose at this frame").click()
+        seen(a, "edit", w0)
         # a note from page a, seen on page b
         a.get_by_placeholder("a note at this frame…").fill("the jaw opens late here")
-        timed("note", lambda: a.get_by_role("button", name="Add note at this frame").click(),
-              lambda pg, t: expect(pg.get_by_text(re.compile("the jaw opens late here"))).to_be_visible(timeout=t), b)
+        arm(b, has_text("the jaw opens late here"), "the jaw opens late here", every_ms=50)
+        w0 = time.time()
+        a.get_by_role("button", name="Add note at this frame").click()
+        seen(b, "note", w0)
         # the presenter seeks, the follower follows
         a.get_by_role("button", name=re.compile("Present: the others follow")).click()
         sa = a.locator(".bk-input-group:visible", has=a.locator(".bk-slider-title", has_text=re.compile("^Frame:")))
         sa.first.locator(".noUi-handle").focus()
-
-        def seek():
-            for _ in range(5):
-                a.keyboard.press("ArrowRight")
-
-        def followed(pg, t):
-            want = a.evaluate("() => Object.values(window.__faceRetarget.viewers)[0].frame")
-            pg.wait_for_function(f"() => Object.values(window.__faceRetarget.viewers)[0].frame === {want}", timeout=t)
-
-        timed("seek", seek, followed, b)
+        FRAME = "Object.values(window.__faceRetarget.viewers)[0].frame"
+        want = a.evaluate(f"() => {FRAME}") + 1
+        arm(b, f"(want) => {FRAME} === want", want, every_ms=5)
+        w0 = time.time()
+        a.keyboard.press("ArrowRight")
+        seen(b, "seek", w0)
+        a.wait_for_function(f"() => {FRAME} === {want}")  # the presenter is there too
         a.wait_for_timeout(1000)
         a.screenshot(path=str(artifacts / "review_page_a.png"))
         b.screenshot(path=str(artifacts / "review_page_b.png"))
@@ -142,5 +166,5 @@ def test_two_pages_one_shot_and_a_kill_minus_9(new_page, tmp_path, artifacts):
             os.killpg(proc.pid, signal.SIGKILL)
         fh.close()
         (artifacts / "review_measurements.json").write_text(json.dumps(MEASURED, indent=2) + "\n")
-    for k, v in MEASURED.items():
+    for k, v in MEASURED.items():  # the 1 s target is the benchmark's (benchmarks/bench_review.py); here: no hang
         assert v < 5.0, f"{k} took {v} s"
