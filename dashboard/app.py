@@ -25,7 +25,7 @@ if str(ROOT) not in sys.path:
 from core.evaluate import marker_error_field  # noqa: E402
 from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
-from dashboard.session import NONE, Session  # noqa: E402
+from dashboard.session import NONE, Session, derived  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
 from dashboard.transfer_view import TransferView  # noqa: E402
@@ -76,6 +76,18 @@ def stage_params(pipe, groups) -> list:
     return sorted(out, key=lambda p: p[0].stage_name != "solve")  # the method choice first
 
 
+#: the tabs after "Retarget", in order (their views are made when first opened)
+TAB_VIEWS = ("transfer", "normalmap", "personalize")
+
+
+def _frozen_rig(rig, track):
+    """``(rig, track)`` with the rig's arrays read-only (shared by the pages, see derived())."""
+    for a in (rig.neutral, rig.deltas):
+        if isinstance(a, np.ndarray):
+            a.flags.writeable = False
+    return rig, track
+
+
 def _shown(pipe) -> tuple:
     return tuple(tuple((st.stage_name, tuple(n)) for st, n in stage_params(pipe, groups)) for _, groups, _ in SIDEBAR_CARDS)
 
@@ -93,9 +105,8 @@ class DashboardApp(pn.viewable.Viewer):
         self._shown_files = ""
         self._marker_report = None
         self._build_widgets()
-        self.transfer_view = TransferView(self.s)
-        self.normalmap_view = NormalMapView(self.pipe, active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
-        self.personalize_view = PersonalizeView()
+        self._tab_views: dict = {}  # the other tabs' views, made when first opened (see _tab_view)
+        self._tab_boxes = {n: pn.Column(sizing_mode="stretch_width") for n in TAB_VIEWS}
         self.mirror = self.review = None
         if hub is not None:
             self._join(hub, reviewer)
@@ -460,6 +471,42 @@ class DashboardApp(pn.viewable.Viewer):
             card.visible = any(p.visible for p in panes)
         self._shown = _shown(self.pipe)
 
+    # -- the other tabs: made when first opened ----------------------------------------------
+    def _tab_view(self, name: str):
+        """The view of tab ``name`` (made on first use, then shown in its tab and kept up to date)."""
+        if name not in self._tab_views:
+            if name == "transfer":
+                v = TransferView(self.s)
+            elif name == "normalmap":
+                v = NormalMapView(self.pipe, active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
+            else:
+                v = PersonalizeView()
+            self._tab_views[name] = v
+            self._tab_boxes[name][:] = [v]
+            self._update_tab(name)
+        return self._tab_views[name]
+
+    def _update_tab(self, name: str) -> None:
+        snap = self.s.snapshot
+        if not snap:
+            return
+        v = self._tab_views[name]
+        if name == "normalmap":
+            v.update(snap, self.w_frame.value)
+        else:
+            v.update(snap)
+
+    def _on_tab(self, event):
+        name = TAB_VIEWS[event.new - 1] if 0 < event.new <= len(TAB_VIEWS) else None
+        if name is not None:
+            self._tab_view(name)
+        if "normalmap" in self._tab_views:
+            self.normalmap_view.active = name == "normalmap"
+
+    transfer_view = property(lambda self: self._tab_view("transfer"), doc="The dense-transfer tab's view")
+    normalmap_view = property(lambda self: self._tab_view("normalmap"), doc="The normal-map tab's view")
+    personalize_view = property(lambda self: self._tab_view("personalize"), doc="The ROM-alignment tab's view")
+
     def _build_layout(self):
         sidebar = pn.Column(
             pn.pane.Markdown("# face-retarget", css_classes=["fr-title"]),
@@ -505,11 +552,14 @@ class DashboardApp(pn.viewable.Viewer):
             self.shape_card,
             sizing_mode="stretch_width",
         )
-        self.tabs = pn.Tabs(("Retarget", main), ("Dense transfer (Xu 2014)", self.transfer_view), sizing_mode="stretch_width")
-        self.tabs.append(("Normal maps (Liu 2011 §5)", self.normalmap_view))
-        self._normalmap_tab = len(self.tabs) - 1
-        self.tabs.param.watch(lambda e: setattr(self.normalmap_view, "active", e.new == self._normalmap_tab), "active")
-        self.tabs.append(("Actor ROM alignment (Ribera 2017 §4)", self.personalize_view))
+        # dynamic: a tab's views reach the browser when it is opened (a page of a shared shot costs
+        # the server only what it shows)
+        self.tabs = pn.Tabs(("Retarget", main), ("Dense transfer (Xu 2014)", self._tab_boxes["transfer"]),
+                            sizing_mode="stretch_width", dynamic=True)
+        self.tabs.append(("Normal maps (Liu 2011 §5)", self._tab_boxes["normalmap"]))
+        self.tabs.append(("Actor ROM alignment (Ribera 2017 §4)", self._tab_boxes["personalize"]))
+        self._normalmap_tab = 2
+        self.tabs.param.watch(self._on_tab, "active")
         self.layout = pn.Row(sidebar, self.tabs, sizing_mode="stretch_both")
 
     # -- events -----------------------------------------------------------------------------
@@ -551,7 +601,8 @@ class DashboardApp(pn.viewable.Viewer):
         self.curves.set_time(t)
         self.diag.set_time(t)
         self._sync_edit_value()
-        self.normalmap_view.update(self.s.snapshot, event.new)
+        if "normalmap" in self._tab_views:
+            self.normalmap_view.update(self.s.snapshot, event.new)
         if not self.shape_card.collapsed and self.s.snapshot:  # the "now" column follows the frame
             f = min(int(event.new), len(self.s.snapshot["weights"]) - 1)
             self.w_shape_table.patch({"now": [(slice(None), list(np.round(np.nan_to_num(self.s.snapshot["weights"][f]), 3)))]})
@@ -676,9 +727,8 @@ class DashboardApp(pn.viewable.Viewer):
         if notes:
             self.w_summary.object += "\n\n" + "\n".join(f"ℹ {html.escape(n)}" for n in notes[:4])
         rows = "".join(f"<tr><td>{k}</td><td style='text-align:right'>{v:.1f} ms</td></tr>" for k, v in snap["timings"].items() if v > 0.05)
-        self.transfer_view.update(snap)
-        self.normalmap_view.update(snap, self.w_frame.value)
-        self.personalize_view.update(snap)
+        for name in self._tab_views:
+            self._update_tab(name)
         self._sync_edit_value()  # the edit slider shows the new result's weight at this frame
         if not self.shape_card.collapsed or len(self.w_shape_table.value) == 0:
             self.w_shape_table.value = self._shape_frame()
@@ -699,17 +749,19 @@ class DashboardApp(pn.viewable.Viewer):
         if key != self._viewer_keys["source"]:
             if snap["source_rig"] is not None and snap["source_weights"] is not None:
                 rig = snap["source_rig"]
-                v = MeshViewer.from_rig(rig, np.nan_to_num(snap["source_weights"]), fps=fps, layout=snap["source_layout"],
+                v = MeshViewer.from_rig(rig, derived(snap, "source_track", lambda: np.nan_to_num(snap["source_weights"])),
+                                        fps=fps, layout=snap["source_layout"],
                                         label=rig.name, sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
             else:
-                mrig, track = marker_rig(snap["source_markers"])
-                v = MeshViewer.from_rig(mrig, track, fps=fps, marker_track=np.nan_to_num(snap["source_markers"]),
+                mrig, track = derived(snap, "marker_rig", lambda: _frozen_rig(*marker_rig(snap["source_markers"])))
+                v = MeshViewer.from_rig(mrig, track, fps=fps,
+                                        marker_track=derived(snap, "marker_track", lambda: np.nan_to_num(snap["source_markers"])),
                                         label="captured markers", sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
             self._link_frame(v)
             self.source_box[:] = [v]
             self._viewer_keys["source"] = key
         key = id(snap["target_rig"])
-        track = np.nan_to_num(snap["weights"])
+        track = derived(snap, "target_track", lambda: np.nan_to_num(snap["weights"]))
         if key != self._viewer_keys["target"]:
             rig = snap["target_rig"]
             self.target_viewer = MeshViewer.from_rig(rig, track, fps=fps, layout=snap["target_layout"], label=rig.name,

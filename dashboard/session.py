@@ -17,6 +17,7 @@ import threading
 import time
 import traceback
 import warnings
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,11 @@ UPLOAD = "⤒ "
 #: so two reviewers looking at the same take share the work
 SHARED_CACHE = StageCache(max_entries=128)
 #: the stages a retargeting view needs
+#: snapshots shared between sessions (see Session._shared_package)
+_SNAPSHOTS: "OrderedDict" = OrderedDict()
+_SNAPSHOT_LOCK = threading.Lock()
+_SNAPSHOT_ENTRIES = 16
+
 RETARGET_STAGES = ["load", "frames", "stabilize", "calibrate", "personalize", "segment", "solve", "edit", "synthesize", "evaluate"]
 #: the stages the dense-transfer tab shows
 DENSE_STAGES = ["transfer", "transfer_edit", "detail_edit"]
@@ -297,7 +303,7 @@ class Session(param.Parameterized):
                     warnings.simplefilter("always")
                     res = self.pipeline.results(RETARGET_STAGES, progress=self._progress)
                 timings = {k: v * 1e3 for k, v in self.pipeline.timings.items()}
-                self.snapshot = self._package(res, [str(w.message) for w in caught])
+                self.snapshot = dict(self._shared_package(res, [str(w.message) for w in caught]))
                 self.snapshot["timings"] = timings
                 self.snapshot["server_ms"] = (time.perf_counter() - t0) * 1e3
                 self.status = self._status_line()
@@ -343,6 +349,26 @@ class Session(param.Parameterized):
         self.progress = int(round(100 * min(max(fraction, 0), 1)))
         self.status = message
 
+    def _shared_package(self, res: dict, warnings_: list) -> dict:
+        """The snapshot of these results, shared by every session whose pipeline has the same
+        stage keys (the pages of one shot): its arrays are made once, and a page whose results
+        came from the cache shows the warnings of the run that computed them."""
+        key = (tuple(self.pipeline.keys.get(n) for n in RETARGET_STAGES), self.pipeline.solve.method)
+        with _SNAPSHOT_LOCK:
+            hit = _SNAPSHOTS.get(key)
+            if hit is not None:
+                _SNAPSHOTS.move_to_end(key)
+                return hit
+        snap = self._package(res, warnings_)
+        for v in snap.values():
+            if isinstance(v, np.ndarray):
+                v.flags.writeable = False  # shared: nobody writes into it
+        with _SNAPSHOT_LOCK:
+            _SNAPSHOTS[key] = snap
+            while len(_SNAPSHOTS) > _SNAPSHOT_ENTRIES:
+                _SNAPSHOTS.popitem(last=False)
+        return snap
+
     def _package(self, res: dict, warnings_: list) -> dict:
         ld, st = res["load"], res["stabilize"]["source"]
         tm = res["calibrate"]["target"]
@@ -363,6 +389,7 @@ class Session(param.Parameterized):
             "solve_info": res["solve"]["info"], "warnings": warnings_,
             # an edit is solved under the method's own bounds: the edit slider spans them
             "edit_bounds": (res["solve"]["edit"]["lower"], res["solve"]["edit"]["upper"]),
+            "derived": {},  # what views make of it, made once for every page sharing it (see derived())
         }
 
     def _status_line(self) -> str:
@@ -372,3 +399,16 @@ class Session(param.Parameterized):
         return (f"{len(s['times'])} frames @ {s['fps']:g} fps · {len(s['marker_names'])} markers · {s['method']} · "
                 f"marker error median {np.nanmedian(ev['marker_error_mm']):.2f} mm · server {s['server_ms']:.0f} ms"
                 + (f" · {gaps} frames without data" if gaps else ""))
+
+
+def derived(snap: dict, name: str, make):
+    """``make()`` of a snapshot, made once and kept with it (read-only arrays): every page showing
+    the snapshot shares it (e.g. the viewers' NaN-free tracks)."""
+    d = snap["derived"]
+    if name not in d:
+        v = make()
+        for a in (v if isinstance(v, tuple) else (v,)):
+            if isinstance(a, np.ndarray):
+                a.flags.writeable = False
+        d[name] = v
+    return d[name]
