@@ -124,7 +124,8 @@ class DashboardApp(pn.viewable.Viewer):
         from dashboard.review_view import ReviewPanel
 
         doc = pn.state.curdoc
-        self.mirror = Mirror(hub, self.s, reviewer or "someone", on_change=self._remote_change, notify=self._notify, doc=doc)
+        self.mirror = Mirror(hub, self.s, reviewer or "someone", on_change=self._remote_change, notify=self._notify, doc=doc,
+                             on_own=self._resend_settings)
         self.mirror.session_id = uuid.uuid4().hex
         hub.join(self.mirror.session_id, self.mirror.name)
         self.review = ReviewPanel(self.mirror, self.w_frame, self.w_play, self._time_of, on_notes=self._draw_note_marks)
@@ -136,6 +137,26 @@ class DashboardApp(pn.viewable.Viewer):
 
             pn.state.on_session_destroyed(gone)
 
+    def _resend_settings(self, names) -> None:
+        """Send this page's widgets of ``names`` their values again (the shot took the page's
+        change). A remote change that reached the browser after the user moved a widget but
+        before the server read that move leaves the browser showing the remote value while the
+        shot has the user's; Bokeh sends nothing for a value the server's model already has, so
+        the change is re-announced."""
+        from panel.io.document import unlocked
+
+        with unlocked():  # may run in Panel's lock-free event task (see dashboard.curves._page_safe)
+            for st, pane in getattr(self, "_setting_panes", []):
+                for n in names:
+                    w = pane._widgets.get(n)
+                    if w is None or getattr(st, n) != w.value:
+                        continue
+                    for model, _ in list(w._models.values()):
+                        prop = "active" if hasattr(model, "active") and not hasattr(model, "value") else "value"
+                        if hasattr(model, prop) and model.document is not None:
+                            v = getattr(model, prop)
+                            model.trigger(prop, v, v)
+
     def _remote_change(self, change: dict) -> None:
         """Another page changed the shot: the page shows it (on this page's event loop)."""
         if _shown(self.pipe) != self._shown:
@@ -145,7 +166,12 @@ class DashboardApp(pn.viewable.Viewer):
         who = change.get("author") or "someone"
         said = f"{who} changed the shot ({change.get('kind')}, version {change.get('version')})"
         doc = self.mirror.doc if self.mirror is not None else None
-        if doc is None or change.get("kind") in ("note", "frame"):  # nothing to recompute for those
+        if change.get("kind") == "frame":  # the presenter's cursor: the follow toggle moves ours
+            return
+        if change.get("kind") == "note":  # nothing to recompute: the notes were drawn above
+            self.w_status.object = html.escape(said)
+            return
+        if doc is None:
             self.refresh()
             self.w_status.object = html.escape(said)
             return
@@ -660,10 +686,16 @@ class DashboardApp(pn.viewable.Viewer):
         if self.pipe.undo("spacetime") if direction > 0 else self.pipe.redo_edit("spacetime"):
             self.refresh()
 
+    _edits_drawn = None
+
     def _draw_edits(self):
-        rows = []
         self.w_undo.disabled = not self.pipe.edit.edits
         self.w_redo.disabled = not self.pipe.redo["spacetime"]
+        key = repr(self.pipe.edit.edits)
+        if key == self._edits_drawn:
+            return  # unchanged: new children would make Bokeh walk the page's models again (~50 ms)
+        self._edits_drawn = key
+        rows = []
         for i, e in enumerate(self.pipe.edit.edits):
             (shape, value), = e["weights"].items()
             win = "whole take" if not e["window"] else f"{e['window'][0]}–{e['window'][1]}"
@@ -798,7 +830,8 @@ class DashboardApp(pn.viewable.Viewer):
     def _draw_regions(self):
         seg = self.s.snapshot.get("segment")
         if not seg:
-            self.region_box[:] = []
+            if len(self.region_box):
+                self.region_box[:] = []
             return
         sizes = np.bincount(seg["labels"], minlength=len(seg["masks"]))
         swatches = "".join(

@@ -135,6 +135,19 @@ class ReviewPanel:
         return list(self.mirror.session.pipeline.notes)
 
     _drawn = None
+    _rows: dict = {}
+
+    def _note_row(self, n: dict):
+        f, end = int(n.get("frame", 0)), n.get("frame_end")
+        where = f"frame {f}" + (f"–{end}" if end else "")
+        jump = pn.widgets.Button(name="↦", width=34, button_type="light", description=f"jump to {where}")
+        jump.on_click(lambda e, f=f: setattr(self.w_frame, "value", f))
+        done = bool(n.get("resolved"))
+        tick = pn.widgets.Button(name="reopen" if done else "resolve", width=70, button_type="light")
+        tick.on_click(lambda e, nid=n.get("id"), done=done: self.mirror.set_note(nid, not done))
+        text = f"**{html.escape(n.get('author', '') or '?')}** · {where}: {html.escape(n.get('text', ''))}"
+        return pn.Row(pn.pane.Markdown(("~~" + text + "~~") if done else text, margin=(2, 5), sizing_mode="stretch_width"),
+                      jump, tick, sizing_mode="stretch_width")
 
     def draw_notes(self):
         notes = self.notes()
@@ -142,20 +155,16 @@ class ReviewPanel:
         if key == self._drawn:
             return  # unchanged: no new rows for the browser to lay out
         self._drawn = key
-        rows = []
+        rows, cache = [], {}
         for n in sorted(notes, key=lambda n: n.get("frame", 0)):
             if n.get("resolved") and not self.w_show_resolved.value:
                 continue
-            f, end = int(n.get("frame", 0)), n.get("frame_end")
-            where = f"frame {f}" + (f"–{end}" if end else "")
-            jump = pn.widgets.Button(name="↦", width=34, button_type="light", description=f"jump to {where}")
-            jump.on_click(lambda e, f=f: setattr(self.w_frame, "value", f))
-            done = bool(n.get("resolved"))
-            tick = pn.widgets.Button(name="reopen" if done else "resolve", width=70, button_type="light")
-            tick.on_click(lambda e, nid=n.get("id"), done=done: self.mirror.set_note(nid, not done))
-            text = f"**{html.escape(n.get('author', '') or '?')}** · {where}: {html.escape(n.get('text', ''))}"
-            rows.append(pn.Row(pn.pane.Markdown(("~~" + text + "~~") if done else text, margin=(2, 5),
-                                                sizing_mode="stretch_width"), jump, tick, sizing_mode="stretch_width"))
+            # a row is made once per note state and kept: a new note sends the browser one new
+            # row, not the whole list again (20 pages x 100 notes made the server crawl)
+            k = (n.get("id"), bool(n.get("resolved")), n.get("text"), n.get("frame"), n.get("frame_end"), n.get("author"))
+            cache[k] = self._rows.get(k) or self._note_row(n)
+            rows.append(cache[k])
+        self._rows = cache
         self.w_notes[:] = rows or [pn.pane.Markdown("*no notes yet*", css_classes=["fr-muted"])]
         if self.on_notes is not None:
             self.on_notes([n for n in notes if not n.get("resolved")])

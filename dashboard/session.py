@@ -296,7 +296,7 @@ class Session(param.Parameterized):
         """Run the stale retargeting stages and publish a snapshot; False on error (see ``error``)."""
         with self._lock:
             self.busy, self.error, self.progress = True, "", 0
-            t0 = time.perf_counter()
+            t0 = self._t0 = time.perf_counter()
             try:
                 self._apply_selection()
                 with warnings.catch_warnings(record=True) as caught:
@@ -345,7 +345,11 @@ class Session(param.Parameterized):
             msg = msg.replace(flag, words)
         return msg
 
+    _t0 = 0.0
+
     def _progress(self, fraction: float, message: str):
+        if time.perf_counter() - self._t0 < 0.2:
+            return  # a quick recompute (cached stages) shows its result, not eight progress steps
         self.progress = int(round(100 * min(max(fraction, 0), 1)))
         self.status = message
 
