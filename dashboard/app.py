@@ -12,6 +12,7 @@ import html
 import logging
 import os
 import sys
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -612,14 +613,19 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_status.object = html.escape(self.s.status)
 
     def _on_upload(self, *events):
-        if self.w_upload.value is None or not self.w_upload.filename:
+        if not self.w_upload.filename:
             return
         try:
-            msg = self.s.add_upload(self.w_upload.filename, self.w_upload.value)
+            # an empty file arrives as no value at all: add_upload says it is empty
+            msg = self.s.add_upload(self.w_upload.filename, self.w_upload.value or b"")
             if not self.s.error:  # selecting it may already have failed to load: keep that error in view
                 self._notify("info", msg)
         except ValueError as e:
             self._notify("error", str(e))
+        except Exception as e:  # a reader's bug must not leave the page silent: the trace goes to the log
+            log.warning("upload %s failed: %s", self.w_upload.filename, traceback.format_exc())
+            self._notify("error", f"{Path(str(self.w_upload.filename)).name} could not be read ({type(e).__name__}); "
+                                  "if the file opens elsewhere, please report it")
 
     def _on_frame(self, event):
         self.pipe.frame = int(event.new)  # the review state the shot carries

@@ -36,6 +36,8 @@ UPLOAD = "⤒ "
 #: one cache for every session of this server process: results are keyed by content,
 #: so two reviewers looking at the same take share the work
 SHARED_CACHE = StageCache(max_entries=128)
+#: the largest upload a page may send, in bytes (``face-retarget serve --max-upload-mb`` sets it)
+MAX_UPLOAD = 200 * 2**20
 #: the stages a retargeting view needs
 #: snapshots shared between sessions (see Session._shared_package)
 _SNAPSHOTS: "OrderedDict" = OrderedDict()
@@ -103,12 +105,21 @@ class Session(param.Parameterized):
         was uploaded) and keeps nothing of a bad file."""
         from core.io.check import check_upload
 
-        name = Path(filename or "").name
-        if not name:
-            raise ValueError("the upload has no file name")
+        name = Path(str(filename or "").replace("\\", "/")).name.strip()
+        if not name or name in (".", "..") or name.startswith(".") or "\x00" in name:
+            raise ValueError(f"the upload's file name {str(filename)[:80]!r} is not usable: rename the file and upload it again")
         if not data:
             raise ValueError(f"{name} is empty: upload the file again (the upload may have been cut off)")
+        if len(data) > MAX_UPLOAD:
+            raise ValueError(f"{name} is {len(data) / 2**20:.0f} MB, more than this server takes "
+                             f"({MAX_UPLOAD / 2**20:.0f} MB): ask whoever runs it to raise the upload limit")
         path = self.upload_dir / name
+        # the file stays in this session's upload folder: no name reaches outside it, and a link
+        # planted under the name is replaced, not written through
+        if path.resolve().parent != self.upload_dir.resolve():
+            raise ValueError(f"the upload's file name {name!r} is not usable")
+        if path.is_symlink():
+            path.unlink()
         path.write_bytes(data)
         try:
             info = check_upload(path, name, target_rig=self._target_rig_object() if name.lower().endswith(".json") else None)
