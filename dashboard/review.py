@@ -234,6 +234,8 @@ class Mirror:
             a = self.hub.apply(change, base, self.name)
             if a.version == base + 1:
                 self.version = a.version  # nothing came between: the page is the shot
+                if change.get("kind") == "note":  # the store gave the note its id and author
+                    self.session.pipeline.notes = list(a.shot.notes)
             else:
                 # rebased over changes this page has not pulled yet: not marked as seen (the pull
                 # they scheduled brings them; taking this version would skip them — found by the

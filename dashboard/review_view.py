@@ -129,6 +129,7 @@ class ReviewPanel:
         ok = self.mirror.add_note(f, text, end if end is not None and end > f else None)
         if ok:
             self.w_note.value = ""
+            self.draw_notes()  # this page's own note shows at once (the others get it from the hub)
         return ok
 
     def notes(self) -> list:
@@ -144,7 +145,7 @@ class ReviewPanel:
         jump.on_click(lambda e, f=f: setattr(self.w_frame, "value", f))
         done = bool(n.get("resolved"))
         tick = pn.widgets.Button(name="reopen" if done else "resolve", width=70, button_type="light")
-        tick.on_click(lambda e, nid=n.get("id"), done=done: self.mirror.set_note(nid, not done))
+        tick.on_click(lambda e, nid=n.get("id"), done=done: self.mirror.set_note(nid, not done) and self.draw_notes())
         text = f"**{html.escape(n.get('author', '') or '?')}** · {where}: {html.escape(n.get('text', ''))}"
         return pn.Row(pn.pane.Markdown(("~~" + text + "~~") if done else text, margin=(2, 5), sizing_mode="stretch_width"),
                       jump, tick, sizing_mode="stretch_width")
