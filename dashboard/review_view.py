@@ -69,11 +69,16 @@ class ReviewPanel:
                                                  sizing_mode="stretch_width")
         self.w_show_resolved.param.watch(lambda e: self.draw_notes(), "value")
         self.w_notes = pn.Column(sizing_mode="stretch_width")
+        # the whole review as one file (shot, notes, history and the files it uses): mail it, keep it
+        # in version control, open it on another server's landing page
+        self.w_export = pn.widgets.FileDownload(callback=self._export_bytes, filename=f"review-{self.hub.shot_id}.zip",
+                                                label="Download the review (.zip)", button_type="light",
+                                                sizing_mode="stretch_width")
         self.card = pn.Card(
             self.w_link, pn.pane.Markdown("**Your name**", margin=(0, 10)), self.w_name, self.w_people,
             self.w_present, self.w_follow, pn.layout.Divider(),
             pn.pane.Markdown("**Notes**", margin=(0, 10)), self.w_note, self.w_note_range, self.w_add_note,
-            self.w_show_resolved, self.w_notes,
+            self.w_show_resolved, self.w_notes, pn.layout.Divider(), self.w_export,
             title="Shared review", collapsed=False, sizing_mode="stretch_width")
         doc = mirror.doc
         run = (lambda f: doc.add_next_tick_callback(f)) if doc is not None else (lambda f: f())
@@ -170,6 +175,14 @@ class ReviewPanel:
         if self.on_notes is not None:
             self.on_notes([n for n in notes if not n.get("resolved")])
 
+    def _export_bytes(self):
+        import io
+
+        buf = io.BytesIO()
+        self.hub.store.export(self.hub.shot_id, buf)
+        buf.seek(0)
+        return buf
+
     def close(self):
         for w in self._hub_watchers:
             self.hub.param.unwatch(w)
@@ -191,6 +204,24 @@ def landing(server, make_shot: Callable, title: str = "face-retarget") -> pn.vie
             pn.state.location.reload = True
 
     w_new.on_click(new)
+    w_import = pn.widgets.FileInput(accept=".zip", sizing_mode="stretch_width")
+
+    def import_(*events):
+        if not w_import.value:
+            return
+        import io
+
+        try:
+            sid = server.store.import_(io.BytesIO(w_import.value), author="import")
+        except ValueError as e:  # named, plain words (core.store)
+            status.object = f"**Error:** {html.escape(str(w_import.filename))}: {html.escape(str(e))}"
+            return
+        status.object = f"Imported: [open it](?shot={quote(sid)})"
+        if pn.state.location is not None:
+            pn.state.location.search = f"?shot={quote(sid)}"
+            pn.state.location.reload = True
+
+    w_import.param.watch(import_, "value")
     rows = []
     for r in server.store.recent(20):
         sid = r["id"] if isinstance(r, dict) else r[0]
@@ -202,4 +233,5 @@ def landing(server, make_shot: Callable, title: str = "face-retarget") -> pn.vie
         pn.pane.Markdown(f"# {title}", css_classes=["fr-title"]),
         pn.pane.Markdown("Shared review: everyone with the link sees the same shot — settings, edits, the frame "
                          "and notes — and nothing is lost when the server restarts.", css_classes=["fr-muted"]),
-        w_title, w_new, status, recent, width=520, margin=30)
+        w_title, w_new, pn.pane.Markdown("…or open a review someone sent you (the .zip of *Download the review*):",
+                                         css_classes=["fr-muted"]), w_import, status, recent, width=520, margin=30)

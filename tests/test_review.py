@@ -103,3 +103,30 @@ def test_everything_survives_a_restart(server, shot_id, tmp_path):
     assert b.pipe.solve.alpha == 0.04 and b.pipe.notes[0]["text"] == "keep me" and len(b.pipe.edit.edits) == 1
     np.testing.assert_array_equal(b.s.snapshot["weights"], W)
     again.store.close()
+
+
+def test_the_review_downloads_as_one_file_and_opens_on_another_server(server, shot_id, tmp_path):
+    """Download the review (.zip) from a page; a landing page of another server imports it."""
+    from dashboard import review
+    from dashboard.review_view import landing
+
+    a = page(server, shot_id, "ana")
+    a.review.w_note.value = "check the blink"
+    assert a.review.add_note()
+    data = a.review._export_bytes().read()
+    other = review.ReviewServer(tmp_path / "other")
+    try:
+        ui = landing(other, lambda: None)
+        upload = [w for w in ui.select(__import__("panel").widgets.FileInput)][0]
+        upload.param.update(filename="review.zip", value=data)
+        (sid,) = [r["id"] for r in other.store.recent(5)]
+        shot, _ = other.store.get(sid)
+        assert [n["text"] for n in shot.notes] == ["check the blink"]
+        assert shot.content_hash() == server.store.get(shot_id)[0].content_hash()
+        # a file that is not an export: a message on the landing page, nothing imported
+        upload.param.update(filename="notes.zip", value=b"PK not really")
+        status = [p for p in ui.select(__import__("panel").pane.Markdown) if "Error" in str(p.object)]
+        assert status and "notes.zip" in status[0].object
+        assert len(other.store.recent(5)) == 1
+    finally:
+        other.store.close()
