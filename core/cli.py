@@ -159,7 +159,14 @@ def _layout(args) -> int:
 def _serve(args) -> int:
     from dashboard.serve import serve
 
-    return serve(port=args.port, address=args.address, show=args.show, allow_websocket_origin=args.allow_websocket_origin)
+    oauth = None
+    if args.oauth_provider:
+        oauth = {"provider": args.oauth_provider, "key": os.environ.get("FACE_RETARGET_OAUTH_KEY", ""),
+                 "secret": os.environ.get("FACE_RETARGET_OAUTH_SECRET", ""), "redirect_uri": args.oauth_redirect_uri,
+                 "encryption_key": os.environ.get("FACE_RETARGET_OAUTH_ENCRYPTION_KEY")}
+    return serve(port=args.port, address=args.address, show=args.show, allow_websocket_origin=args.allow_websocket_origin,
+                 data_dir=args.data_dir, review=not args.no_review, password=args.password or os.environ.get("FACE_RETARGET_PASSWORD"),
+                 max_upload_mb=args.max_upload_mb, oauth=oauth)
 
 
 def _is_rig(p: Path) -> bool:
@@ -301,6 +308,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--address", default="localhost")
     s.add_argument("--show", action="store_true", help="open a browser")
     s.add_argument("--allow-websocket-origin", action="append", default=None, help="extra allowed origins host:port")
+    s.add_argument("--data-dir", default=None, help="review store folder: shots, notes, uploaded files (default: the "
+                                                    "per-user data folder, e.g. ~/.local/share/face-retarget)")
+    s.add_argument("--no-review", action="store_true", help="pages of their own: nothing shared, nothing kept")
+    s.add_argument("--password", default=None, help="ask every visitor for this password (Panel basic auth; or set "
+                                                    "FACE_RETARGET_PASSWORD); use with --address to share")
+    s.add_argument("--max-upload-mb", type=float, default=200.0, help="largest upload in MB (default: 200)")
+    s.add_argument("--oauth-provider", default=None, help="Panel OAuth provider (github, gitlab, google, azure, okta, ...); "
+                                                          "key/secret from FACE_RETARGET_OAUTH_KEY/_SECRET (docs/review.md)")
+    s.add_argument("--oauth-redirect-uri", default=None, help="OAuth redirect URI (the address reviewers open)")
     s.set_defaults(func=_serve)
 
     n = sub.add_parser("names", help="write the automatic channel->shape name map (JSON) for editing")

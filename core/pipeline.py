@@ -99,12 +99,17 @@ def _freeze(obj):
 
 
 class StageCache:
-    """A thread-safe LRU of stage results keyed by content hash."""
+    """A thread-safe LRU of stage results keyed by content hash.
+
+    Pipelines that share one cache (the pages of a review server) also share the work in
+    flight: :meth:`compute` of a key another thread is computing waits for that result
+    instead of computing it again (20 pages of one shot recompute a setting change once)."""
 
     def __init__(self, max_entries: int = 96):
         self.max_entries = max_entries
         self._data: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
+        self._inflight: dict = {}
 
     def get(self, key):
         with self._lock:
@@ -119,6 +124,29 @@ class StageCache:
             self._data.move_to_end(key)
             while len(self._data) > self.max_entries:
                 self._data.popitem(last=False)
+
+    def compute(self, key, fn):
+        """``(hit, value)``: the cached value of ``key`` (waiting for another thread computing
+        it), or ``fn()`` computed here and cached (``hit`` False). When the other thread's
+        computation fails, this one computes (and raises its own error)."""
+        while True:
+            with self._lock:
+                if key in self._data:
+                    self._data.move_to_end(key)
+                    return True, self._data[key]
+                ev = self._inflight.get(key)
+                if ev is None:
+                    ev = self._inflight[key] = threading.Event()
+                    break
+            ev.wait()
+        try:
+            value = fn()
+            self.put(key, value)
+            return False, value
+        finally:
+            with self._lock:
+                self._inflight.pop(key, None)
+            ev.set()
 
     def clear(self):
         with self._lock:
@@ -189,6 +217,9 @@ class Pipeline:
         self.timings: dict = {}
         self.keys: dict = {}
         self.redo: dict = {e: [] for e in EDITORS}
+        #: ``f(editor, op, arg)`` called after each edit operation (op: add | undo | redo | remove;
+        #: arg: the edit, None, or the index) — a shared review page sends them to the review store
+        self.listeners: list = []
         self.frame = 0
         self.notes: list = []
         self._lock = threading.RLock()
@@ -248,17 +279,23 @@ class Pipeline:
             st.param.update(**{setting: history.done})
             self.redo[editor] = history.undone
 
+    def _tell(self, editor: str, op: str, arg=None) -> None:
+        for f in list(self.listeners):
+            f(editor, op, arg)
+
     def add_edit(self, editor: str, edit: dict) -> None:
         """Append an edit (clears that editor's redo stack)."""
         h = self.edits(editor)
         h.add(edit)
         self._set_edits(editor, h)
+        self._tell(editor, "add", copy.deepcopy(edit))
 
     def undo(self, editor: str) -> bool:
         h = self.edits(editor)
         ok = h.undo()
         if ok:
             self._set_edits(editor, h)
+            self._tell(editor, "undo")
         return ok
 
     def redo_edit(self, editor: str) -> bool:
@@ -266,12 +303,14 @@ class Pipeline:
         ok = h.redo()
         if ok:
             self._set_edits(editor, h)
+            self._tell(editor, "redo")
         return ok
 
     def remove_edit(self, editor: str, index: int) -> dict:
         h = self.edits(editor)
         e = h.remove(index)
         self._set_edits(editor, h)
+        self._tell(editor, "remove", index)
         return e
 
     # the shot -------------------------------------------------------------------------
@@ -370,22 +409,24 @@ class Pipeline:
                 if not stage.active(cfg):
                     results[name], self.keys[name], self.timings[name] = None, k, 0.0
                     continue
-                hit, value = self.cache.get((name, k))
-                if not hit:
+                def compute(name=name, stage=stage, i=i):
                     if progress:
                         progress(i / len(order), f"{name}…")
                     inner = None
                     if progress:
                         lo, hi = i / len(order), (i + 1) / len(order)
-                        inner = lambda f, m, lo=lo, hi=hi, name=name: progress(lo + f * (hi - lo), f"{name}: {m}")  # noqa: E731
-                    t0 = time.perf_counter()
+                        inner = lambda f, m, lo=lo, hi=hi: progress(lo + f * (hi - lo), f"{name}: {m}")  # noqa: E731
                     value = stage.run({d: results[d] for d in stage.deps}, getattr(cfg, name), inner)
-                    self.timings[name] = time.perf_counter() - t0
                     _freeze(value)
-                    self.cache.put((name, k), value)
+                    return value
+
+                t0 = time.perf_counter()
+                hit, value = self.cache.compute((name, k), compute)
+                dt = time.perf_counter() - t0
+                # computed here: its time; a cache hit: 0, or the wait for another pipeline's run of it
+                self.timings[name] = dt if not hit or dt > 1e-3 else 0.0
+                if not hit:
                     self.runs[name] += 1
-                else:
-                    self.timings[name] = 0.0
                 results[name] = value
                 self.keys[name] = k
             if progress:

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import html
 import logging
+import os
 import sys
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +26,7 @@ if str(ROOT) not in sys.path:
 from core.evaluate import marker_error_field  # noqa: E402
 from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
-from dashboard.session import NONE, Session  # noqa: E402
+from dashboard.session import NONE, Session, derived  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
 from dashboard.transfer_view import TransferView  # noqa: E402
@@ -75,6 +77,18 @@ def stage_params(pipe, groups) -> list:
     return sorted(out, key=lambda p: p[0].stage_name != "solve")  # the method choice first
 
 
+#: the tabs after "Retarget", in order (their views are made when first opened)
+TAB_VIEWS = ("transfer", "normalmap", "personalize")
+
+
+def _frozen_rig(rig, track):
+    """``(rig, track)`` with the rig's arrays read-only (shared by the pages, see derived())."""
+    for a in (rig.neutral, rig.deltas):
+        if isinstance(a, np.ndarray):
+            a.flags.writeable = False
+    return rig, track
+
+
 def _shown(pipe) -> tuple:
     return tuple(tuple((st.stage_name, tuple(n)) for st, n in stage_params(pipe, groups)) for _, groups, _ in SIDEBAR_CARDS)
 
@@ -83,19 +97,100 @@ class DashboardApp(pn.viewable.Viewer):
     """One browser session's page; a Panel object, so it also displays in a notebook cell
     (``pn.extension()``, then the app as a cell's value) sharing ``session.pipeline`` with code."""
 
-    def __init__(self, session: Session | None = None, **params):
+    def __init__(self, session: Session | None = None, hub=None, reviewer: str = "", **params):
         super().__init__(**params)
         self.s = session or Session()
         self.pipe = self.s.pipeline
         self._viewer_keys = {"source": None, "target": None}
+        self._doc = pn.state.curdoc  # the page's document (None outside a server)
         self._shown_files = ""
         self._marker_report = None
         self._build_widgets()
-        self.transfer_view = TransferView(self.s)
-        self.normalmap_view = NormalMapView(self.pipe, active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
-        self.personalize_view = PersonalizeView()
+        self._tab_views: dict = {}  # the other tabs' views, made when first opened (see _tab_view)
+        self._tab_boxes = {n: pn.Column(sizing_mode="stretch_width") for n in TAB_VIEWS}
+        self.mirror = self.review = None
+        if hub is not None:
+            self._join(hub, reviewer)
         self._build_layout()
         self.refresh()
+        if self.review is not None and self.pipe.frame:
+            self.w_frame.value = int(min(self.pipe.frame, self.w_frame.end))
+
+    # -- shared review ----------------------------------------------------------------------
+    def _join(self, hub, reviewer: str) -> None:
+        """Join the hub of a shared shot (dashboard.review): this page's pipeline mirrors it."""
+        import uuid
+
+        from dashboard.review import Mirror
+        from dashboard.review_view import ReviewPanel
+
+        doc = pn.state.curdoc
+        self.mirror = Mirror(hub, self.s, reviewer or "someone", on_change=self._remote_change, notify=self._notify, doc=doc,
+                             on_own=self._resend_settings)
+        self.mirror.session_id = uuid.uuid4().hex
+        hub.join(self.mirror.session_id, self.mirror.name)
+        self.review = ReviewPanel(self.mirror, self.w_frame, self.w_play, self._time_of, on_notes=self._draw_note_marks)
+        if doc is not None and pn.state.curdoc is not None:
+            def gone(ctx, mirror=self.mirror, review=self.review):
+                review.close()
+                mirror.close()
+                hub.leave(mirror.session_id)
+
+            pn.state.on_session_destroyed(gone)
+
+    def _resend_settings(self, names) -> None:
+        """Send this page's widgets of ``names`` their values again (the shot took the page's
+        change). A remote change that reached the browser after the user moved a widget but
+        before the server read that move leaves the browser showing the remote value while the
+        shot has the user's; Bokeh sends nothing for a value the server's model already has, so
+        the change is re-announced."""
+        from panel.io.document import unlocked
+
+        with unlocked():  # may run in Panel's lock-free event task (see dashboard.curves._page_safe)
+            for st, pane in getattr(self, "_setting_panes", []):
+                for n in names:
+                    w = pane._widgets.get(n)
+                    if w is None or getattr(st, n) != w.value:
+                        continue
+                    for model, _ in list(w._models.values()):
+                        prop = "active" if hasattr(model, "active") and not hasattr(model, "value") else "value"
+                        if hasattr(model, prop) and model.document is not None:
+                            v = getattr(model, prop)
+                            model.trigger(prop, v, v)
+
+    def _remote_change(self, change: dict) -> None:
+        """Another page changed the shot: the page shows it (on this page's event loop)."""
+        if _shown(self.pipe) != self._shown:
+            self._show_settings()
+        if self.review is not None:
+            self.review.draw_notes()
+        who = change.get("author") or "someone"
+        said = f"{who} changed the shot ({change.get('kind')}, version {change.get('version')})"
+        doc = self.mirror.doc if self.mirror is not None else None
+        if change.get("kind") == "frame":  # the presenter's cursor: the follow toggle moves ours
+            return
+        if change.get("kind") == "note":  # nothing to recompute: the notes were drawn above
+            self.w_status.object = html.escape(said)
+            return
+        if doc is None:
+            self.refresh()
+            self.w_status.object = html.escape(said)
+            return
+        # the changed widgets reach the browser first (alone: every change costs the browser a
+        # layout), the recompute's result right after
+
+        def later():
+            from dashboard.review import on_page
+
+            with on_page(doc):
+                self.refresh()
+                self.w_status.object = html.escape(said)
+
+        doc.add_timeout_callback(later, 15)
+
+    def _draw_note_marks(self, notes) -> None:
+        self.curves.set_notes([self._time_of(int(n.get("frame", 0))) for n in notes],
+                              [str(n.get("text", ""))[:60] for n in notes])
 
     # -- widgets ----------------------------------------------------------------------------
     def _build_widgets(self):
@@ -189,7 +284,9 @@ class DashboardApp(pn.viewable.Viewer):
         groups = {g for _, gs, _ in SIDEBAR_CARDS for g in gs}
         for st in self.pipe.stages.values():
             if type(st).group in groups:
-                st.param.watch(self._on_setting, st.setting_names())
+                # after the review mirror's watcher (precedence 0): other pages hear of a change
+                # before this page spends time recomputing it
+                st.param.watch(self._on_setting, st.setting_names(), precedence=1)
         self._build_settings()
 
     def _shot_bytes(self):
@@ -342,25 +439,105 @@ class DashboardApp(pn.viewable.Viewer):
         self.refresh()
 
     def _build_settings(self):
-        """The sidebar's setting cards, generated from the stages' settings (only those that
-        matter for the current method and switches)."""
+        """The sidebar's setting cards, generated from the stages' settings: every widget is made
+        once, and only those that matter for the current method and switches are visible
+        (:meth:`_show_settings`) — a method change toggles visibility instead of sending new
+        widgets to the browser (that rebuild took seconds to reach the other pages of a review)."""
         rom = {"(the source itself)": ""} | dict(self.s.files["performances"])
         extra = {"rom": {"type": pn.widgets.Select, "options": rom}}
-        cards = []
+        cfg = self.pipe.config()
+        cards, self._setting_panes, self._setting_cards = [], [], []
         for title, groups, collapsed in SIDEBAR_CARDS:
-            panes = [pn.Param(st, parameters=names, widgets=param_widgets(st, names, extra), show_name=False,
-                              sizing_mode="stretch_width") for st, names in stage_params(self.pipe, groups)]
+            panes = []
+            for st in self.pipe.stages.values():
+                if type(st).group not in groups:
+                    continue
+                names = [n for n in st.setting_names() if not isinstance(st.param[n], (param.List, param.Dict))]
+                if not names:
+                    continue
+                pane = pn.Param(st, parameters=names, widgets=param_widgets(st, names, extra), show_name=False,
+                                sizing_mode="stretch_width")
+                for n in names:  # the handle _set_visible hides it by
+                    w = pane._widgets[n]
+                    w.css_classes = [*w.css_classes, f"fr-setting-{n}"]
+                panes.append(pane)
+                self._setting_panes.append((st, pane))
+            panes.sort(key=lambda p: p.object.stage_name != "solve")  # the method choice first
             if title == "Solver":
                 cards.extend(panes)
             else:
                 open_ = title.startswith("Actor") and self.pipe.personalize.personalize
-                cards.append(pn.Card(*panes, title=title, collapsed=collapsed and not open_, sizing_mode="stretch_width"))
-        self._shown = _shown(self.pipe)
+                card = pn.Card(*panes, title=title, collapsed=collapsed and not open_, sizing_mode="stretch_width")
+                self._setting_cards.append((card, panes))
+                cards.append(card)
         self.settings_box[:] = cards
+        self._show_settings(cfg)
+
+    def _show_settings(self, cfg=None):
+        """Show the settings that matter now (:func:`visible_settings`), hide the others — in one
+        message to the browser (each visibility change sent alone re-lays the page out: ~0.3 s
+        each in Chromium here)."""
+        from dashboard.review import on_page
+
+        with on_page(self._doc):
+            self._set_visible(cfg or self.pipe.config())
+
+    def _set_visible(self, cfg):
+        # hidden by one stylesheet per stage, not by each widget's `visible`: Bokeh re-lays the
+        # page out for every `visible` change (~0.2 s each in Chromium here; a method change
+        # toggles ten), a stylesheet change is one
+        for st, pane in self._setting_panes:
+            keep = set(visible_settings(st, cfg))
+            hide = sorted(n for n in pane._widgets if n != "_title" and n not in keep)
+            sheet = [", ".join(f".fr-setting-{n}" for n in hide) + " { display: none !important; }"] if hide else []
+            if pane.layout.stylesheets != sheet:
+                pane.layout.stylesheets = sheet
+            if pane.visible != bool(keep):
+                pane.visible = bool(keep)
+        for card, panes in self._setting_cards:
+            card.visible = any(p.visible for p in panes)
+        self._shown = _shown(self.pipe)
+
+    # -- the other tabs: made when first opened ----------------------------------------------
+    def _tab_view(self, name: str):
+        """The view of tab ``name`` (made on first use, then shown in its tab and kept up to date)."""
+        if name not in self._tab_views:
+            if name == "transfer":
+                v = TransferView(self.s)
+            elif name == "normalmap":
+                v = NormalMapView(self.pipe, active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
+            else:
+                v = PersonalizeView()
+            self._tab_views[name] = v
+            self._tab_boxes[name][:] = [v]
+            self._update_tab(name)
+        return self._tab_views[name]
+
+    def _update_tab(self, name: str) -> None:
+        snap = self.s.snapshot
+        if not snap:
+            return
+        v = self._tab_views[name]
+        if name == "normalmap":
+            v.update(snap, self.w_frame.value)
+        else:
+            v.update(snap)
+
+    def _on_tab(self, event):
+        name = TAB_VIEWS[event.new - 1] if 0 < event.new <= len(TAB_VIEWS) else None
+        if name is not None:
+            self._tab_view(name)
+        if "normalmap" in self._tab_views:
+            self.normalmap_view.active = name == "normalmap"
+
+    transfer_view = property(lambda self: self._tab_view("transfer"), doc="The dense-transfer tab's view")
+    normalmap_view = property(lambda self: self._tab_view("normalmap"), doc="The normal-map tab's view")
+    personalize_view = property(lambda self: self._tab_view("personalize"), doc="The ROM-alignment tab's view")
 
     def _build_layout(self):
         sidebar = pn.Column(
             pn.pane.Markdown("# face-retarget", css_classes=["fr-title"]),
+            *([self.review.card] if self.review is not None else []),
             pn.pane.Markdown("Transfer a captured face performance onto another character's blendshape rig. "
                              "Pick a capture and a target, press play, tune the solver.", css_classes=["fr-muted"]),
             self.w_source, self.w_source_rig, self.w_target,
@@ -402,22 +579,33 @@ class DashboardApp(pn.viewable.Viewer):
             self.shape_card,
             sizing_mode="stretch_width",
         )
-        self.tabs = pn.Tabs(("Retarget", main), ("Dense transfer (Xu 2014)", self.transfer_view), sizing_mode="stretch_width")
-        self.tabs.append(("Normal maps (Liu 2011 §5)", self.normalmap_view))
-        self._normalmap_tab = len(self.tabs) - 1
-        self.tabs.param.watch(lambda e: setattr(self.normalmap_view, "active", e.new == self._normalmap_tab), "active")
-        self.tabs.append(("Actor ROM alignment (Ribera 2017 §4)", self.personalize_view))
+        # dynamic: a tab's views reach the browser when it is opened (a page of a shared shot costs
+        # the server only what it shows)
+        self.tabs = pn.Tabs(("Retarget", main), ("Dense transfer (Xu 2014)", self._tab_boxes["transfer"]),
+                            sizing_mode="stretch_width", dynamic=True)
+        self.tabs.append(("Normal maps (Liu 2011 §5)", self._tab_boxes["normalmap"]))
+        self.tabs.append(("Actor ROM alignment (Ribera 2017 §4)", self._tab_boxes["personalize"]))
+        self._normalmap_tab = 2
+        self.tabs.param.watch(self._on_tab, "active")
         self.layout = pn.Row(sidebar, self.tabs, sizing_mode="stretch_both")
 
     # -- events -----------------------------------------------------------------------------
     def _on_setting(self, *events):
         # a new method (or switch) shows its own widgets before the (possibly long) recompute starts
         if _shown(self.pipe) != self._shown:
-            self._build_settings()
+            self._show_settings()
         self._changed()
 
     def _changed(self):
-        if self.s.auto_update:
+        if getattr(self, "mirror", None) is not None and self.mirror._applying:
+            return  # another page's change: _remote_change shows the widgets first, then recomputes
+        if not self.s.auto_update:
+            return
+        doc = self.mirror.doc if getattr(self, "mirror", None) is not None else None
+        if doc is not None:
+            # a shared shot: the other pages' updates (queued by the mirror) go out first
+            doc.add_next_tick_callback(self.refresh)
+        else:
             self.refresh()
 
     def _on_busy(self, *events):
@@ -425,14 +613,19 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_status.object = html.escape(self.s.status)
 
     def _on_upload(self, *events):
-        if self.w_upload.value is None or not self.w_upload.filename:
+        if not self.w_upload.filename:
             return
         try:
-            msg = self.s.add_upload(self.w_upload.filename, self.w_upload.value)
+            # an empty file arrives as no value at all: add_upload says it is empty
+            msg = self.s.add_upload(self.w_upload.filename, self.w_upload.value or b"")
             if not self.s.error:  # selecting it may already have failed to load: keep that error in view
                 self._notify("info", msg)
         except ValueError as e:
             self._notify("error", str(e))
+        except Exception as e:  # a reader's bug must not leave the page silent: the trace goes to the log
+            log.warning("upload %s failed: %s", self.w_upload.filename, traceback.format_exc())
+            self._notify("error", f"{Path(str(self.w_upload.filename)).name} could not be read ({type(e).__name__}); "
+                                  "if the file opens elsewhere, please report it")
 
     def _on_frame(self, event):
         self.pipe.frame = int(event.new)  # the review state the shot carries
@@ -440,7 +633,8 @@ class DashboardApp(pn.viewable.Viewer):
         self.curves.set_time(t)
         self.diag.set_time(t)
         self._sync_edit_value()
-        self.normalmap_view.update(self.s.snapshot, event.new)
+        if "normalmap" in self._tab_views:
+            self.normalmap_view.update(self.s.snapshot, event.new)
         if not self.shape_card.collapsed and self.s.snapshot:  # the "now" column follows the frame
             f = min(int(event.new), len(self.s.snapshot["weights"]) - 1)
             self.w_shape_table.patch({"now": [(slice(None), list(np.round(np.nan_to_num(self.s.snapshot["weights"][f]), 3)))]})
@@ -498,10 +692,16 @@ class DashboardApp(pn.viewable.Viewer):
         if self.pipe.undo("spacetime") if direction > 0 else self.pipe.redo_edit("spacetime"):
             self.refresh()
 
+    _edits_drawn = None
+
     def _draw_edits(self):
-        rows = []
         self.w_undo.disabled = not self.pipe.edit.edits
         self.w_redo.disabled = not self.pipe.redo["spacetime"]
+        key = repr(self.pipe.edit.edits)
+        if key == self._edits_drawn:
+            return  # unchanged: new children would make Bokeh walk the page's models again (~50 ms)
+        self._edits_drawn = key
+        rows = []
         for i, e in enumerate(self.pipe.edit.edits):
             (shape, value), = e["weights"].items()
             win = "whole take" if not e["window"] else f"{e['window'][0]}–{e['window'][1]}"
@@ -565,9 +765,8 @@ class DashboardApp(pn.viewable.Viewer):
         if notes:
             self.w_summary.object += "\n\n" + "\n".join(f"ℹ {html.escape(n)}" for n in notes[:4])
         rows = "".join(f"<tr><td>{k}</td><td style='text-align:right'>{v:.1f} ms</td></tr>" for k, v in snap["timings"].items() if v > 0.05)
-        self.transfer_view.update(snap)
-        self.normalmap_view.update(snap, self.w_frame.value)
-        self.personalize_view.update(snap)
+        for name in self._tab_views:
+            self._update_tab(name)
         self._sync_edit_value()  # the edit slider shows the new result's weight at this frame
         if not self.shape_card.collapsed or len(self.w_shape_table.value) == 0:
             self.w_shape_table.value = self._shape_frame()
@@ -588,17 +787,19 @@ class DashboardApp(pn.viewable.Viewer):
         if key != self._viewer_keys["source"]:
             if snap["source_rig"] is not None and snap["source_weights"] is not None:
                 rig = snap["source_rig"]
-                v = MeshViewer.from_rig(rig, np.nan_to_num(snap["source_weights"]), fps=fps, layout=snap["source_layout"],
+                v = MeshViewer.from_rig(rig, derived(snap, "source_track", lambda: np.nan_to_num(snap["source_weights"])),
+                                        fps=fps, layout=snap["source_layout"],
                                         label=rig.name, sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
             else:
-                mrig, track = marker_rig(snap["source_markers"])
-                v = MeshViewer.from_rig(mrig, track, fps=fps, marker_track=np.nan_to_num(snap["source_markers"]),
+                mrig, track = derived(snap, "marker_rig", lambda: _frozen_rig(*marker_rig(snap["source_markers"])))
+                v = MeshViewer.from_rig(mrig, track, fps=fps,
+                                        marker_track=derived(snap, "marker_track", lambda: np.nan_to_num(snap["source_markers"])),
                                         label="captured markers", sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
             self._link_frame(v)
             self.source_box[:] = [v]
             self._viewer_keys["source"] = key
         key = id(snap["target_rig"])
-        track = np.nan_to_num(snap["weights"])
+        track = derived(snap, "target_track", lambda: np.nan_to_num(snap["weights"]))
         if key != self._viewer_keys["target"]:
             rig = snap["target_rig"]
             self.target_viewer = MeshViewer.from_rig(rig, track, fps=fps, layout=snap["target_layout"], label=rig.name,
@@ -635,7 +836,8 @@ class DashboardApp(pn.viewable.Viewer):
     def _draw_regions(self):
         seg = self.s.snapshot.get("segment")
         if not seg:
-            self.region_box[:] = []
+            if len(self.region_box):
+                self.region_box[:] = []
             return
         sizes = np.bincount(seg["labels"], minlength=len(seg["masks"]))
         swatches = "".join(
@@ -650,9 +852,32 @@ class DashboardApp(pn.viewable.Viewer):
 
 
 def create_app():
-    pn.extension(raw_css=[CSS])
-    app = DashboardApp()
-    return app.layout
+    """The page: on a review server (``face-retarget serve --data-dir``) ``?shot=<id>`` joins that
+    shared shot and a page without one offers to create a shot or open a recent one; otherwise a
+    page of its own."""
+    pn.extension("tabulator", raw_css=[CSS])
+    from dashboard import review
+
+    if review.SERVER is None and os.environ.get("FACE_RETARGET_REVIEW_DIR"):  # `panel serve dashboard/app.py` with a store
+        review.configure(os.environ["FACE_RETARGET_REVIEW_DIR"])
+    if review.SERVER is None:
+        return DashboardApp().layout
+    args = pn.state.session_args or {}
+    sid = (args.get("shot") or [b""])[0].decode(errors="replace").strip()
+    if not sid:
+        from dashboard.review_view import landing
+
+        return landing(review.SERVER, lambda: Session().shot())
+    from core.store import UnknownShot
+
+    try:
+        hub = review.SERVER.hub(sid)
+    except (UnknownShot, ValueError):
+        return pn.pane.Markdown(f"## No shot {html.escape(sid)!s}\n\n[Start or open a shot](?)", margin=30)
+    session = Session()
+    session.open_shot(hub.shot, name=sid, locate=review.SERVER.store.locate)
+    user = getattr(pn.state, "user", None) or ""
+    return DashboardApp(session, hub=hub, reviewer=user).layout
 
 
 if __name__.startswith("bokeh"):  # panel serve dashboard/app.py --plugins dashboard.assets

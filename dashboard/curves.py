@@ -10,6 +10,27 @@ import numpy as np
 from bokeh.models import ColumnDataSource, HoverTool, Span, TapTool
 from bokeh.palettes import Category10_10
 from bokeh.plotting import figure
+from panel.io.document import unlocked
+
+
+def _page_safe(method):
+    """Run a method that changes these raw Bokeh models under Panel's ``unlocked()``.
+
+    Panel runs a widget's pending change (debounced 50 ms) inside a task *without* the document
+    lock when a Bokeh event of the same page (a button click, a tap) arrives before it
+    (``Syncable._server_event`` -> ``_event_coroutine``): Panel's own widgets cope, but a raw
+    Bokeh model changed from such a watcher makes Bokeh raise "_pending_writes should be
+    non-None ..." and the change is lost (found by the review load test: a scrub followed by a
+    click on "Add note"). ``unlocked()`` holds the page's events and writes them itself, with or
+    without the lock."""
+    import functools
+
+    @functools.wraps(method)
+    def run(*args, **kwargs):
+        with unlocked():
+            return method(*args, **kwargs)
+
+    return run
 
 
 def _fig(title, y_label, height=260, x_range=None):
@@ -36,6 +57,11 @@ class CurvePlot:
         self.fig.add_tools(HoverTool(renderers=[r], tooltips=[("shape", "@name")], line_policy="nearest"))
         self.cursor = Span(location=0, dimension="height", line_color="#d62728", line_width=2)
         self.fig.add_layout(self.cursor)
+        # review notes: marks at their frames on the time axis
+        self.notes = ColumnDataSource(data=dict(t=[], y=[], text=[]))
+        nr = self.fig.scatter("t", "y", source=self.notes, marker="inverted_triangle", size=13, color="#9467bd",
+                              line_color="white")
+        self.fig.add_tools(HoverTool(renderers=[nr], tooltips=[("note", "@text")]))
         self._on_seek = on_seek
         self.fig.on_event("tap", self._tap)
         self.fig.select_one(TapTool).behavior = "inspect"
@@ -44,6 +70,7 @@ class CurvePlot:
         if self._on_seek is not None and event.x is not None:
             self._on_seek(float(event.x))
 
+    @_page_safe
     def update(self, times, weights, names, selected):
         """Show the curves of ``selected`` shape names (all when empty: the 10 most active)."""
         W = np.asarray(weights)
@@ -60,8 +87,14 @@ class CurvePlot:
         )
         return [names[i] for i in idx]
 
+    @_page_safe
     def set_time(self, t: float):
         self.cursor.location = float(t)
+
+    @_page_safe
+    def set_notes(self, times, texts) -> None:
+        """Mark the review notes at their times (just above the curves' zero line)."""
+        self.notes.data = dict(t=[float(t) for t in times], y=[0.0] * len(times), text=list(texts))
 
 
 class DiagnosticsPlot:
@@ -77,8 +110,10 @@ class DiagnosticsPlot:
         self.cursor = Span(location=0, dimension="height", line_color="#d62728", line_width=2)
         self.fig.add_layout(self.cursor)
 
+    @_page_safe
     def update(self, times, marker_error_mm, velocity_error_mm):
         self.source.data = dict(t=np.asarray(times, float), err=np.asarray(marker_error_mm, float), vel=np.asarray(velocity_error_mm, float))
 
+    @_page_safe
     def set_time(self, t: float):
         self.cursor.location = float(t)

@@ -4,18 +4,50 @@ from __future__ import annotations
 
 import logging
 import os
+from typing import Optional
 
 
-def serve(port: int = 5006, address: str = "localhost", show: bool = False, allow_websocket_origin=None) -> int:
-    """Serve the dashboard until interrupted. No browser opens unless ``show``."""
+def serve(port: int = 5006, address: str = "localhost", show: bool = False, allow_websocket_origin=None,
+          data_dir=None, review: bool = True, password: Optional[str] = None, max_upload_mb: float = 200.0,
+          oauth: Optional[dict] = None) -> int:
+    """Serve the dashboard until interrupted. No browser opens unless ``show``.
+
+    Parameters
+    ----------
+    address : where to listen; ``localhost`` (the default) serves this machine only — give an
+        address (e.g. ``0.0.0.0``) to share with others, together with ``password`` or ``oauth``
+    data_dir : the review store's folder (shots, files by hash, notes; SQLite); default the per-user
+        data folder (``core.store.data_dir``). ``review=False`` serves pages of their own (nothing kept)
+    password : Panel's basic auth: one password for every reviewer (their name is asked in the page)
+    max_upload_mb : the largest file a page may upload (the websocket refuses larger messages)
+    oauth : ``{"provider": "github", "key": ..., "secret": ..., "redirect_uri": ..., "encryption_key": ...}``
+        for Panel's OAuth (see docs/review.md)
+    """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    from dashboard import assets
+    from dashboard import assets, review as rv
     from dashboard.app import create_app
 
     assets.three_dir()  # fail early with the `npm ci` hint when three.js is missing
+    from dashboard import session as sessions
+
+    sessions.MAX_UPLOAD = int(max_upload_mb * 2**20)
+    if review:
+        server = rv.configure(data_dir, max_upload_mb)
+        print(f"review store: {server.data_dir}", flush=True)
     origins = [f"{address}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"] + list(allow_websocket_origin or [])
+    kwargs = dict(websocket_origin=origins, liveness=True, threaded=True,
+                  # the websocket takes twice the limit (as base64) so that a file over the limit gets a
+                  # message in the page; beyond that Tornado closes the page's connection
+                  websocket_max_message_size=int(max_upload_mb * 2**20 * 2 * 1.37) + 2**20)
+    if password:
+        import secrets
+
+        kwargs.update(basic_auth=password, cookie_secret=secrets.token_hex(32))
+    if oauth:
+        kwargs.update(oauth_provider=oauth["provider"], oauth_key=oauth["key"], oauth_secret=oauth["secret"],
+                      oauth_redirect_uri=oauth.get("redirect_uri"), oauth_encryption_key=oauth.get("encryption_key"),
+                      cookie_secret=oauth.get("cookie_secret") or __import__("secrets").token_hex(32))
     print(f"face-retarget dashboard: http://{address}:{port}/  (Ctrl-C to stop)", flush=True)
-    assets.serve({"/": create_app}, port=port, address=address, show=show, title="face-retarget",
-                 websocket_origin=origins, liveness=True, threaded=True)
+    assets.serve({"/": create_app}, port=port, address=address, show=show, title="face-retarget", **kwargs)
     return 0

@@ -17,6 +17,7 @@ import threading
 import time
 import traceback
 import warnings
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,14 @@ UPLOAD = "⤒ "
 #: one cache for every session of this server process: results are keyed by content,
 #: so two reviewers looking at the same take share the work
 SHARED_CACHE = StageCache(max_entries=128)
+#: the largest upload a page may send, in bytes (``face-retarget serve --max-upload-mb`` sets it)
+MAX_UPLOAD = 200 * 2**20
 #: the stages a retargeting view needs
+#: snapshots shared between sessions (see Session._shared_package)
+_SNAPSHOTS: "OrderedDict" = OrderedDict()
+_SNAPSHOT_LOCK = threading.Lock()
+_SNAPSHOT_ENTRIES = 16
+
 RETARGET_STAGES = ["load", "frames", "stabilize", "calibrate", "personalize", "segment", "solve", "edit", "synthesize", "evaluate"]
 #: the stages the dense-transfer tab shows
 DENSE_STAGES = ["transfer", "transfer_edit", "detail_edit"]
@@ -97,12 +105,21 @@ class Session(param.Parameterized):
         was uploaded) and keeps nothing of a bad file."""
         from core.io.check import check_upload
 
-        name = Path(filename or "").name
-        if not name:
-            raise ValueError("the upload has no file name")
+        name = Path(str(filename or "").replace("\\", "/")).name.strip()
+        if not name or name in (".", "..") or name.startswith(".") or "\x00" in name:
+            raise ValueError(f"the upload's file name {str(filename)[:80]!r} is not usable: rename the file and upload it again")
         if not data:
             raise ValueError(f"{name} is empty: upload the file again (the upload may have been cut off)")
+        if len(data) > MAX_UPLOAD:
+            raise ValueError(f"{name} is {len(data) / 2**20:.0f} MB, more than this server takes "
+                             f"({MAX_UPLOAD / 2**20:.0f} MB): ask whoever runs it to raise the upload limit")
         path = self.upload_dir / name
+        # the file stays in this session's upload folder: no name reaches outside it, and a link
+        # planted under the name is replaced, not written through
+        if path.resolve().parent != self.upload_dir.resolve():
+            raise ValueError(f"the upload's file name {name!r} is not usable")
+        if path.is_symlink():
+            path.unlink()
         path.write_bytes(data)
         try:
             info = check_upload(path, name, target_rig=self._target_rig_object() if name.lower().endswith(".json") else None)
@@ -218,11 +235,19 @@ class Session(param.Parameterized):
             return p.read_bytes()
 
     def _label_for(self, kind: str, path: str) -> str:
-        """The list label of a file path, adding it to the list when it is not there yet."""
+        """The list label of a file path — the listed file with that path or that content (a
+        shared shot reads its files from the review store) — adding it to the list when new."""
+        from core.pipeline import file_key
+
         files = self.files[kind]
         for label, p in files.items():
             if Path(p).resolve() == Path(path).resolve():
                 return label
+        if Path(path).is_file():
+            want = file_key(str(path))
+            for label, p in files.items():
+                if Path(p).is_file() and Path(p).suffix.lower() == Path(path).suffix.lower() and file_key(p) == want:
+                    return label
         label = UPLOAD + Path(path).name
         files[label] = str(path)
         return label
@@ -253,13 +278,18 @@ class Session(param.Parameterized):
         self._apply_selection()
         return self.pipeline.shot()
 
-    def open_shot(self, shot, name: str = "shot") -> None:
+    def sync_selection(self) -> None:
+        """Make the selectors show the pipeline's files (after a shared shot changed them)."""
+        take, sf, tf = self.pipeline.take.source, self.pipeline.source_face.source_rig, self.pipeline.target_face.target_rig
+        self.use_files(source=take or None, source_rig=sf, target_rig=tf or None)
+
+    def open_shot(self, shot, name: str = "shot", locate=None) -> None:
         """Make this session the shot's (a Shot, a path or JSON text): its files become the
         selections (added to the lists when new), its settings and edit lists the pipeline's.
 
         Raises ValueError / FileNotFoundError naming what is missing or wrong.
         """
-        other = Pipeline.from_shot(shot, cache=self.pipeline.cache)
+        other = Pipeline.from_shot(shot, cache=self.pipeline.cache, locate=locate)
         cfg = other.config()
         values = {}
         for n, st in other.stages.items():
@@ -277,14 +307,14 @@ class Session(param.Parameterized):
         """Run the stale retargeting stages and publish a snapshot; False on error (see ``error``)."""
         with self._lock:
             self.busy, self.error, self.progress = True, "", 0
-            t0 = time.perf_counter()
+            t0 = self._t0 = time.perf_counter()
             try:
                 self._apply_selection()
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
                     res = self.pipeline.results(RETARGET_STAGES, progress=self._progress)
                 timings = {k: v * 1e3 for k, v in self.pipeline.timings.items()}
-                self.snapshot = self._package(res, [str(w.message) for w in caught])
+                self.snapshot = dict(self._shared_package(res, [str(w.message) for w in caught]))
                 self.snapshot["timings"] = timings
                 self.snapshot["server_ms"] = (time.perf_counter() - t0) * 1e3
                 self.status = self._status_line()
@@ -326,9 +356,33 @@ class Session(param.Parameterized):
             msg = msg.replace(flag, words)
         return msg
 
+    _t0 = 0.0
+
     def _progress(self, fraction: float, message: str):
+        if time.perf_counter() - self._t0 < 0.2:
+            return  # a quick recompute (cached stages) shows its result, not eight progress steps
         self.progress = int(round(100 * min(max(fraction, 0), 1)))
         self.status = message
+
+    def _shared_package(self, res: dict, warnings_: list) -> dict:
+        """The snapshot of these results, shared by every session whose pipeline has the same
+        stage keys (the pages of one shot): its arrays are made once, and a page whose results
+        came from the cache shows the warnings of the run that computed them."""
+        key = (tuple(self.pipeline.keys.get(n) for n in RETARGET_STAGES), self.pipeline.solve.method)
+        with _SNAPSHOT_LOCK:
+            hit = _SNAPSHOTS.get(key)
+            if hit is not None:
+                _SNAPSHOTS.move_to_end(key)
+                return hit
+        snap = self._package(res, warnings_)
+        for v in snap.values():
+            if isinstance(v, np.ndarray):
+                v.flags.writeable = False  # shared: nobody writes into it
+        with _SNAPSHOT_LOCK:
+            _SNAPSHOTS[key] = snap
+            while len(_SNAPSHOTS) > _SNAPSHOT_ENTRIES:
+                _SNAPSHOTS.popitem(last=False)
+        return snap
 
     def _package(self, res: dict, warnings_: list) -> dict:
         ld, st = res["load"], res["stabilize"]["source"]
@@ -350,6 +404,7 @@ class Session(param.Parameterized):
             "solve_info": res["solve"]["info"], "warnings": warnings_,
             # an edit is solved under the method's own bounds: the edit slider spans them
             "edit_bounds": (res["solve"]["edit"]["lower"], res["solve"]["edit"]["upper"]),
+            "derived": {},  # what views make of it, made once for every page sharing it (see derived())
         }
 
     def _status_line(self) -> str:
@@ -359,3 +414,16 @@ class Session(param.Parameterized):
         return (f"{len(s['times'])} frames @ {s['fps']:g} fps · {len(s['marker_names'])} markers · {s['method']} · "
                 f"marker error median {np.nanmedian(ev['marker_error_mm']):.2f} mm · server {s['server_ms']:.0f} ms"
                 + (f" · {gaps} frames without data" if gaps else ""))
+
+
+def derived(snap: dict, name: str, make):
+    """``make()`` of a snapshot, made once and kept with it (read-only arrays): every page showing
+    the snapshot shares it (e.g. the viewers' NaN-free tracks)."""
+    d = snap["derived"]
+    if name not in d:
+        v = make()
+        for a in (v if isinstance(v, tuple) else (v,)):
+            if isinstance(a, np.ndarray):
+                a.flags.writeable = False
+        d[name] = v
+    return d[name]

@@ -31,6 +31,7 @@ instead (``MeshStandardMaterial.normalMap``, object or tangent space). Python on
 
 from __future__ import annotations
 
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -45,8 +46,47 @@ from . import assets
 _STATIC = Path(__file__).parent / "static"
 
 
+# float32 copies of read-only arrays, shared by every viewer (every page) showing them: a rig's
+# deltas are the bulk of a session's memory, and the pipeline's results are frozen, so the copy
+# of one is the copy for all. Keyed by the source array's id, checked by a weak reference (numpy
+# arrays are not hashable), dropped with it.
+_SHARED_F32: dict = {}
+
+
 def _f32(a, what: str, shape: tuple) -> np.ndarray:
-    """C-contiguous float32 copy of ``a``, checked against ``shape`` (None = any) and finite."""
+    """C-contiguous float32 copy of ``a``, checked against ``shape`` (None = any) and finite;
+    for a read-only ``a`` the same (read-only) copy every time."""
+    if isinstance(a, np.ndarray) and not a.flags.writeable:
+        hit = _SHARED_F32.get(id(a))
+        if hit is not None and hit[0]() is a and hit[2] == (what, shape):
+            return hit[1]
+        out = _f32_copy(a, what, shape)
+        out.flags.writeable = False
+        key = id(a)
+        try:
+            ref = weakref.ref(a, lambda r, key=key: _SHARED_F32.pop(key, None))
+        except TypeError:  # a view of a buffer that takes no weak reference: not shared
+            return out
+        _SHARED_F32[key] = (ref, out, (what, shape))
+        return out
+    return _f32_copy(a, what, shape)
+
+
+def _u32(a) -> np.ndarray:
+    """C-contiguous uint32 ``a`` (triangles), shared like :func:`_f32` for a read-only ``a``."""
+    if isinstance(a, np.ndarray) and not a.flags.writeable:
+        hit = _SHARED_F32.get(id(a))
+        if hit is not None and hit[0]() is a and hit[2] == "u32":
+            return hit[1]
+        out = np.ascontiguousarray(a, dtype=np.uint32)
+        out.flags.writeable = False
+        key = id(a)
+        _SHARED_F32[key] = (weakref.ref(a, lambda r, key=key: _SHARED_F32.pop(key, None)), out, "u32")
+        return out
+    return np.ascontiguousarray(a, dtype=np.uint32)
+
+
+def _f32_copy(a, what: str, shape: tuple) -> np.ndarray:
     arr = np.ascontiguousarray(np.asarray(a, dtype=np.float64))
     if arr.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, arr.shape)):
         want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
@@ -215,7 +255,7 @@ class MeshViewer(pn.custom.JSComponent):
             raise ValueError(f"rig {name!r} faces: expected shape (F, 3), got {faces.shape}")
         values = dict(
             neutral=_f32(rig.neutral, f"rig {name!r} neutral", (V, 3)),
-            faces=np.ascontiguousarray(faces, dtype=np.uint32),
+            faces=_u32(faces),
             deltas=_f32(rig.deltas, f"rig {name!r} deltas", (K, V, 3)),
             shape_names=list(rig.names),
             fps=float(fps),

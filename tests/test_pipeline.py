@@ -267,3 +267,38 @@ def test_an_edit_stays_inside_the_methods_bounds_and_its_window():
         pipe.configure(method=method)
         W = pipe.results(["synthesize"])["synthesize"]["weights"]
         assert W.min() >= -1e-9 and W.max() <= 1 + 1e-9, method
+
+
+def test_cache_shares_work_in_flight():
+    """Two pipelines asking for one key at once compute it once; when the computing thread fails,
+    the waiting one computes it itself (and a later call is a hit)."""
+    import threading
+    import time as _time
+
+    from core.pipeline import StageCache
+
+    cache, calls, out = StageCache(), [], []
+
+    def slow():
+        calls.append(1)
+        _time.sleep(0.3)
+        return 42
+
+    ts = [threading.Thread(target=lambda: out.append(cache.compute("k", slow))) for _ in range(4)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    assert len(calls) == 1 and sorted(out) == [(False, 42)] + [(True, 42)] * 3
+
+    def fails():
+        _time.sleep(0.2)
+        raise RuntimeError("boom")
+
+    res = []
+    t = threading.Thread(target=lambda: res.append(pytest.raises(RuntimeError, cache.compute, "j", fails)))
+    t.start()
+    _time.sleep(0.05)
+    assert cache.compute("j", lambda: 7) == (False, 7)  # waited for the failure, then computed
+    t.join()
+    assert cache.compute("j", lambda: 8) == (True, 7)

@@ -51,6 +51,10 @@ def check_upload(path, name: Optional[str] = None, target_rig=None) -> dict:
             return _rig(path, name)
         if suffix == ".json":
             return _json(path, name, target_rig)
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{name} is not UTF-8 text (byte {e.start} is {e.object[e.start:e.start + 1]!r}; "
+                         f"{'Latin-1 or Windows-1252' if 0x80 <= e.object[e.start] else 'another encoding'}?): "
+                         "save it as UTF-8 and upload it again") from None
     except ValueError as e:
         raise ValueError(_plain(str(e), path, name)) from None
     except (OSError, KeyError, IndexError, TypeError) as e:  # a reader meeting a malformed file
@@ -61,14 +65,39 @@ def check_upload(path, name: Optional[str] = None, target_rig=None) -> dict:
                      "marker layout or name map")
 
 
+#: the most columns a take's header may have (a 1,000-marker capture has 3,000 + a few)
+MAX_COLUMNS = 20_000
+MAX_HEADER_BYTES = 4 * 2**20
+
+
 def _take(path: Path, name: str) -> dict:
     from .performance import read_performance
 
-    head = path.read_bytes()[:4096]
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+        fh.seek(0)
+        first = fh.readline(MAX_HEADER_BYTES + 1)
+    if head[:2] in (b"\xff\xfe", b"\xfe\xff") and path.suffix.lower() != ".c3d":
+        raise ValueError(f"{name} is UTF-16 text: save it as UTF-8 (a plain .csv) and upload it again")
+    if path.suffix.lower() in (".csv", ".trc") and (len(first) > MAX_HEADER_BYTES
+                                                    or max(first.count(b","), first.count(b"\t")) + 1 > MAX_COLUMNS):
+        # refused before a reader splits a 10^6-column header (that took the server minutes)
+        n = max(first.count(b","), first.count(b"\t")) + 1
+        raise ValueError(f"{name} has {'a first line of more than 4 MB' if len(first) > MAX_HEADER_BYTES else f'{n:,} columns'}"
+                         f": a take has at most a few thousand channels (markers x 3); is this the right file?")
     if b"\0" in head:
         raise ValueError(f"{name} is not a text file: a take is a .csv from Live Link Face or a marker capture (.csv/.trc)"
                          if path.suffix.lower() != ".c3d" else f"{name} could not be read as a C3D capture")
-    perf = read_performance(path)
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        perf = read_performance(path)
+    quality = []
+    for w in caught:  # passed on, and said in the summary (the page shows it): masked cells are kept
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        if w.category.__name__ == "DataQualityWarning":
+            quality.append(str(w.message).replace(str(path), name))
     if perf.n_frames == 0:
         raise ValueError(f"{name} has no frames")
     if not perf.valid.any():
@@ -76,7 +105,7 @@ def _take(path: Path, name: str) -> dict:
     kind = {"curves": "weight curves", "markers": "marker trajectories", "meshes": "a mesh sequence"}[perf.kind]
     return {"kind": "take", "take": perf,
             "summary": f"{name}: {kind}, {perf.n_frames} frames at {perf.fps:g} fps ({perf.duration:.1f} s), "
-                       f"{len(perf.names)} channels"}
+                       f"{len(perf.names)} channels" + "".join(f" — {q.split(': ', 1)[-1]}" for q in quality)}
 
 
 def _rig(path: Path, name: str) -> dict:

@@ -386,6 +386,28 @@ def test_method_select_bounded_recomputes(dash):
 
 
 @pytest.mark.browser
+def test_other_tabs_are_made_when_opened_and_show_their_views(dash, artifacts):
+    """The tabs after Retarget reach the browser when first opened (Tabs(dynamic=True)): each shows
+    its own view then, and Retarget still shows its two viewers when we come back."""
+    page = dash
+    from playwright.sync_api import expect
+
+    text = page.evaluate(ALL_TEXT)
+    assert "Transfers the take's dense motion" not in text, "the transfer tab was sent before it was opened"
+    for tab, expected in (("Dense transfer", "Transfers the take's dense motion"),
+                          ("Normal maps", "Per-expression object-space normal maps"),
+                          ("Actor ROM alignment", "Range-of-motion alignment is off")):
+        page.locator(".bk-tab", has_text=tab).first.click()
+        expect(page.get_by_text(expected).first).to_be_visible(timeout=30_000)
+        page.wait_for_timeout(300)
+        page.screenshot(path=str(artifacts / f"dashboard_tab_{tab.split()[0].lower()}.png"))
+    page.locator(".bk-tab", has_text="Retarget").first.click()
+    page.wait_for_function(VIEWERS_READY, timeout=30_000)
+    expect(canvas(page, TGT)).to_be_visible(timeout=10_000)
+    assert not page.console_errors, page.console_errors
+
+
+@pytest.mark.browser
 def test_broken_upload_is_a_readable_error_and_the_sample_comes_back(dash, artifacts):
     page = dash
     page.locator("input[type=file]").set_input_files(

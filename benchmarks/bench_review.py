@@ -1,0 +1,149 @@
+"""Shared review on a real server (``face-retarget serve``), measured with websocket pages
+(tests/review_client.py: the Bokeh protocol a browser speaks, without the browser's own layout
+time). The reference is today's per-tab app, ``face-retarget serve --no-review``, in the same run:
+
+* ``review_propagation_2pages`` / ``review_propagation_20pages``: page 0 of a shot changes the
+  spacetime α (8 times, 1.5 s apart); ours = p50 over the other pages of the time until their
+  target viewer shows the recomputed curves (``setting_p50_s``: until their α slider shows the
+  value); ref = the same change on a per-tab page until that page's own viewer shows the result
+  (the round trip a user waits for today, with 1 resp. 19 more idle per-tab pages on the server).
+* ``review_page_20th``: 20 pages of a computed shot requested at once; ours = time until the 20th
+  is complete (HTML + websocket + document), ``first_s`` the 1st; ref = 20 per-tab pages at once.
+  ``mb_per_session`` = growth of the server's resident memory / 20 (ref the same for per-tab).
+
+The SQLite write latency of an edit is ``store_edit_write`` in bench_store.py.
+"""
+
+import asyncio
+import os
+import re
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+import review_client as rc  # noqa: E402
+
+ALPHA = re.compile(r"Seol α")
+
+
+def _models(page):
+    return (page.one("Slider", title=ALPHA),
+            {m.id for m in page.doc.models if type(m).__name__.startswith("MeshViewer")})
+
+
+async def _propagation(base, sid, n, changes=8, gap=1.5, start=0.02):
+    """Ours: page 0 changes α; the other pages' times to the new α and to the new result."""
+    marks: dict = {}   # value -> time sent
+    seen_setting, seen_result = [], []
+    waiting: dict = {}  # page index -> (value, time sent) until its viewer's track changes
+
+    def on_patch(page, changes_, t):
+        alpha, viewers = page.m
+        for mid, attr, new in changes_:
+            if mid == alpha.id and attr == "value" and new in marks and page.index:
+                seen_setting.append(t - marks[new])
+                waiting[page.index] = (new, marks[new])
+            elif attr == "track" and mid in viewers and page.index in waiting:
+                seen_result.append(t - waiting.pop(page.index)[1])
+
+    pages, _ = await rc.open_pages(base, sid, n, on_patch=None)
+    for p in pages:
+        p.m = _models(p)
+        p.on_patch = on_patch
+    await asyncio.sleep(2.0)
+    for k in range(changes):
+        v = round(start + 0.001 * k, 4)
+        marks[v] = time.monotonic()
+        pages[0].set(pages[0].m[0], value=v, value_throttled=v)
+        await asyncio.sleep(gap)
+    await asyncio.sleep(5.0)
+    for p in pages:
+        await p.close()
+    return seen_setting, seen_result
+
+
+async def _own_round_trip(base, n, changes=8, gap=1.5, start=0.02):
+    """Ref: a per-tab page changes α; the time until its own viewer shows the result."""
+    rt, pending = [], {}
+
+    def on_patch(page, changes_, t):
+        if page.index != 0:
+            return
+        for mid, attr, new in changes_:
+            if attr == "track" and mid in page.m[1] and "t" in pending:
+                rt.append(t - pending.pop("t"))
+
+    pages, _ = await rc.open_pages(base, None, n, on_patch=None)
+    for p in pages:
+        p.m = _models(p)
+        p.on_patch = on_patch
+    await asyncio.sleep(2.0)
+    for k in range(changes):
+        v = round(start + 0.001 * k, 4)
+        pending["t"] = time.monotonic()
+        pages[0].set(pages[0].m[0], value=v, value_throttled=v)
+        await asyncio.sleep(gap)
+    await asyncio.sleep(3.0)
+    for p in pages:
+        await p.close()
+    return rt
+
+
+async def _open_many(base, sid, n, server=None):
+    """Open ``n`` pages at once: (completion times, the server's RSS in MB while they are open)."""
+    pages, served = await rc.open_pages(base, sid, n)
+    await asyncio.sleep(1.0)
+    rss = server.rss_mb() if server is not None else float("nan")
+    for p in pages:
+        await p.close()
+    return served, rss
+
+
+def _shot(data: Path) -> str:
+    from core.store import Store
+    from dashboard.session import Session
+
+    s = Session()
+    store = Store(data)
+    sid = store.create_shot(s.shot(), title="bench", author="bench")
+    store.close()
+    return sid
+
+
+def main():
+    rc.register_models()
+    tmp = Path(tempfile.mkdtemp(prefix="bench-review-"))
+    sid = _shot(tmp / "data")
+    with rc.Server("--data-dir", str(tmp / "data"), log=tmp / "ours.log") as ours, \
+            rc.Server("--no-review", log=tmp / "ref.log") as ref:
+        # warm both (the shot computed once, the per-tab sample once)
+        asyncio.run(_open_many(ours.base, sid, 1))
+        asyncio.run(_open_many(ref.base, None, 1))
+        for n, case in ((2, "review_propagation_2pages"), (20, "review_propagation_20pages")):
+            setting, result = asyncio.run(_propagation(ours.base, sid, n))
+            own = asyncio.run(_own_round_trip(ref.base, n))
+            o, r = statistics.median(result), statistics.median(own)
+            print(f"BENCH {case} ours_s={o:.3f} ref_s={r:.3f} ratio={r / o:.2f} "
+                  f"p95_s={rc.pctl(result, 0.95):.3f} setting_p50_s={statistics.median(setting):.3f} "
+                  f"setting_p95_s={rc.pctl(setting, 0.95):.3f} ref_p95_s={rc.pctl(own, 0.95):.3f} receipts={len(result)}",
+                  flush=True)
+        # 20 pages at once (fresh connections; the previous pages are closed)
+        time.sleep(3.0)
+        m0 = ours.rss_mb()
+        served, m1 = asyncio.run(_open_many(ours.base, sid, 20, ours))
+        r0 = ref.rss_mb()
+        ref_served, r1 = asyncio.run(_open_many(ref.base, None, 20, ref))
+        print(f"BENCH review_page_20th ours_s={served[-1]:.3f} ref_s={ref_served[-1]:.3f} "
+              f"ratio={ref_served[-1] / served[-1]:.2f} first_s={served[0]:.3f} ref_first_s={ref_served[0]:.3f} "
+              f"mb_per_session={(m1 - m0) / 20:.1f} ref_mb_per_session={(r1 - r0) / 20:.1f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

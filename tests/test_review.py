@@ -1,0 +1,132 @@
+"""Shared review without a browser: two pages (dashboard apps) of one shot on one review
+server see each other's settings, edits, notes and frame; a stale write is rebased or refused,
+never lost; a restart of the server (a new store on the same folder) keeps everything."""
+
+import numpy as np
+import pytest
+
+from core.pipeline import StageCache
+
+
+@pytest.fixture
+def server(tmp_path):
+    from dashboard import review
+
+    srv = review.configure(tmp_path / "data")
+    yield srv
+    review.SERVER = None
+    srv.store.close()
+
+
+def page(server, sid, name):
+    from dashboard.app import DashboardApp
+    from dashboard.session import Session
+
+    hub = server.hub(sid)
+    s = Session(cache=CACHE)
+    s.open_shot(hub.shot, locate=server.store.locate)
+    return DashboardApp(s, hub=hub, reviewer=name)
+
+
+CACHE = StageCache()
+
+
+@pytest.fixture
+def shot_id(server):
+    from dashboard.session import Session
+
+    s = Session(cache=CACHE)
+    s.pipeline.configure(last_frame=299)
+    return server.create(s.shot(), title="test", author="lead")
+
+
+def test_two_pages_see_each_others_changes(server, shot_id):
+    a, b = page(server, shot_id, "ana"), page(server, shot_id, "bo")
+    assert sorted(server.hub(shot_id).participants.values()) == ["ana", "bo"]
+    # a setting
+    a.pipe.configure(alpha=0.05)
+    assert b.pipe.solve.alpha == 0.05
+    np.testing.assert_array_equal(a.s.snapshot["weights"], b.s.snapshot["weights"])
+    # an edit, and its undo
+    a.w_frame.value = 150
+    a.w_edit_shape.value = "AK_25_JawOpen"
+    a.w_edit_value.value = 0.6
+    a._add_edit()
+    assert b.pipe.edit.edits == a.pipe.edit.edits and len(b.pipe.edit.edits) == 1
+    np.testing.assert_array_equal(a.s.snapshot["weights"], b.s.snapshot["weights"])
+    b._undo(1)
+    assert a.pipe.edit.edits == [] and a.pipe.redo["spacetime"]
+    # a note at a frame, resolved from the other page
+    a.review.w_note.value = "jaw opens late"
+    assert a.review.add_note()
+    (note,) = b.pipe.notes
+    assert note["text"] == "jaw opens late" and note["frame"] == 150 and note["author"] == "ana"
+    b.mirror.set_note(note["id"], True)
+    assert a.pipe.notes[0]["resolved"]
+    # the presenter's frame: b follows a
+    a.review.w_present.value = True
+    a.w_frame.value = 200
+    a.review._on_own_frame()
+    assert b.w_frame.value == 200
+
+
+def test_a_stale_change_is_rebased_or_refused_with_a_message(server, shot_id):
+    a, b = page(server, shot_id, "ana"), page(server, shot_id, "bo")
+    hub = server.hub(shot_id)
+    seen = []
+    b.mirror.notify = lambda kind, msg: seen.append(msg)
+    v = b.mirror.version
+    a.pipe.configure(alpha=0.07)
+    # b writes on the version it saw before a's change: another setting rebases, the same one is refused
+    b.mirror.version = v
+    assert b.mirror._send({"kind": "settings", "values": {"solve": {"beta": 0.1}}})
+    b.mirror.version = v
+    assert not b.mirror._send({"kind": "settings", "values": {"solve": {"alpha": 0.2}}})
+    assert seen and "alpha" in seen[-1] and "ana" in seen[-1]
+    shot, _ = server.store.get(shot_id)
+    assert shot.settings["solve"]["alpha"] == 0.07 and shot.settings["solve"]["beta"] == 0.1
+    assert b.pipe.solve.alpha == 0.07  # the refused page shows the shot as it is
+
+
+def test_everything_survives_a_restart(server, shot_id, tmp_path):
+    from dashboard import review
+
+    a = page(server, shot_id, "ana")
+    a.pipe.configure(alpha=0.04)
+    a.review.w_note.value = "keep me"
+    a.review.add_note()
+    a.pipe.add_edit("spacetime", {"frame": 100, "weights": {"AK_25_JawOpen": 0.5}, "window": [90, 110]})
+    W = a.s.snapshot["weights"].copy()
+    server.store.close()
+    again = review.configure(server.data_dir)
+    b = page(again, shot_id, "bo")
+    assert b.pipe.solve.alpha == 0.04 and b.pipe.notes[0]["text"] == "keep me" and len(b.pipe.edit.edits) == 1
+    np.testing.assert_array_equal(b.s.snapshot["weights"], W)
+    again.store.close()
+
+
+def test_the_review_downloads_as_one_file_and_opens_on_another_server(server, shot_id, tmp_path):
+    """Download the review (.zip) from a page; a landing page of another server imports it."""
+    from dashboard import review
+    from dashboard.review_view import landing
+
+    a = page(server, shot_id, "ana")
+    a.review.w_note.value = "check the blink"
+    assert a.review.add_note()
+    data = a.review._export_bytes().read()
+    other = review.ReviewServer(tmp_path / "other")
+    try:
+        ui = landing(other, lambda: None)
+        upload = [w for w in ui.select(__import__("panel").widgets.FileInput)][0]
+        upload.param.update(filename="review.zip", value=data)
+        (sid,) = [r["id"] for r in other.store.recent(5)]
+        shot, _ = other.store.get(sid)
+        assert [n["text"] for n in shot.notes] == ["check the blink"]
+        assert shot.content_hash() == server.store.get(shot_id)[0].content_hash()
+        # a file that is not an export: a message on the landing page, nothing imported
+        upload.param.update(filename="notes.zip", value=b"PK not really")
+        status = [p for p in ui.select(__import__("panel").pane.Markdown) if "Error" in str(p.object)]
+        assert status and "notes.zip" in status[0].object
+        assert len(other.store.recent(5)) == 1
+    finally:
+        other.store.close()
