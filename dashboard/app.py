@@ -78,7 +78,7 @@ def stage_params(pipe, groups) -> list:
 
 
 #: the tabs after "Retarget", in order (their views are made when first opened)
-TAB_VIEWS = ("transfer", "normalmap", "personalize")
+TAB_VIEWS = ("transfer", "normalmap", "personalize", "batch")
 
 
 def _frozen_rig(rig, track):
@@ -506,6 +506,10 @@ class DashboardApp(pn.viewable.Viewer):
                 v = TransferView(self.s)
             elif name == "normalmap":
                 v = NormalMapView(self.pipe, active=False, on_frame=lambda f: setattr(self.w_frame, "value", f))
+            elif name == "batch":
+                from dashboard.batch_view import BatchView
+
+                v = BatchView(self.s)
             else:
                 v = PersonalizeView()
             self._tab_views[name] = v
@@ -533,6 +537,7 @@ class DashboardApp(pn.viewable.Viewer):
     transfer_view = property(lambda self: self._tab_view("transfer"), doc="The dense-transfer tab's view")
     normalmap_view = property(lambda self: self._tab_view("normalmap"), doc="The normal-map tab's view")
     personalize_view = property(lambda self: self._tab_view("personalize"), doc="The ROM-alignment tab's view")
+    batch_view = property(lambda self: self._tab_view("batch"), doc="The Batch tab's view")
 
     def _build_layout(self):
         sidebar = pn.Column(
@@ -585,6 +590,7 @@ class DashboardApp(pn.viewable.Viewer):
                             sizing_mode="stretch_width", dynamic=True)
         self.tabs.append(("Normal maps (Liu 2011 §5)", self._tab_boxes["normalmap"]))
         self.tabs.append(("Actor ROM alignment (Ribera 2017 §4)", self._tab_boxes["personalize"]))
+        self.tabs.append(("Batch", self._tab_boxes["batch"]))
         self._normalmap_tab = 2
         self.tabs.param.watch(self._on_tab, "active")
         self.layout = pn.Row(sidebar, self.tabs, sizing_mode="stretch_both")

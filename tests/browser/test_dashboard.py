@@ -408,6 +408,40 @@ def test_other_tabs_are_made_when_opened_and_show_their_views(dash, artifacts):
 
 
 @pytest.mark.browser
+def test_batch_tab_runs_two_captures_and_downloads_the_results(dash, artifacts, tmp_path):
+    """Batch tab: pick two takes, run them with the page's settings on a local Dask cluster (one
+    worker), watch the rows fill in, download the zip."""
+    import zipfile
+
+    from playwright.sync_api import expect
+
+    page = dash
+    page.locator(".bk-tab", has_text="Batch").first.click()
+    group = page.locator(".bk-input-group:visible", has=page.locator("label", has_text="Captures"))
+    group.locator("select").select_option(label=["livelinkface_take_s07.csv", "livelinkface_rom.csv"])
+    workers = page.locator(".bk-input-group:visible", has=page.locator("label", has_text="Worker processes")).locator("input")
+    workers.fill("1")
+    workers.press("Enter")
+    page.get_by_role("button", name="Run the batch").click()
+    expect(page.get_by_text(re.compile(r"^Done: 2 ok"))).to_be_visible(timeout=300_000)
+    page.wait_for_timeout(500)
+    page.screenshot(path=str(artifacts / "dashboard_batch.png"))
+    rows = page.locator(".tabulator-row")
+    assert rows.count() == 2 and all("ok" in rows.nth(i).inner_text() for i in range(2))
+    with page.expect_download(timeout=60_000) as dl:
+        page.get_by_role("button", name=re.compile("Download the results")).click()
+    path = tmp_path / "batch.zip"
+    dl.value.save_as(path)
+    with zipfile.ZipFile(path) as z:
+        names = z.namelist()
+    assert any(n.endswith("livelinkface_rom/livelinkface_rom.csv") for n in names), names
+    assert any(n.endswith("summary.html") for n in names), names
+    page.locator(".bk-tab", has_text="Retarget").first.click()
+    page.wait_for_function(VIEWERS_READY, timeout=30_000)
+    assert not page.console_errors, page.console_errors
+
+
+@pytest.mark.browser
 def test_broken_upload_is_a_readable_error_and_the_sample_comes_back(dash, artifacts):
     page = dash
     page.locator("input[type=file]").set_input_files(
