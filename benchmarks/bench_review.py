@@ -124,11 +124,11 @@ def main():
     with rc.Server("--data-dir", str(tmp / "data"), log=tmp / "ours.log") as ours, \
             rc.Server("--no-review", log=tmp / "ref.log") as ref:
         # warm both (the shot computed once, the per-tab sample once)
-        asyncio.run(_open_many(ours.base, sid, 1))
-        asyncio.run(_open_many(ref.base, None, 1))
+        rc.run(_open_many(ours.base, sid, 1))
+        rc.run(_open_many(ref.base, None, 1))
         for n, case in ((2, "review_propagation_2pages"), (20, "review_propagation_20pages")):
-            setting, result = asyncio.run(_propagation(ours.base, sid, n))
-            own = asyncio.run(_own_round_trip(ref.base, n))
+            setting, result = rc.run(_propagation(ours.base, sid, n))
+            own = rc.run(_own_round_trip(ref.base, n))
             o, r = statistics.median(result), statistics.median(own)
             print(f"BENCH {case} ours_s={o:.3f} ref_s={r:.3f} ratio={r / o:.2f} "
                   f"p95_s={rc.pctl(result, 0.95):.3f} setting_p50_s={statistics.median(setting):.3f} "
@@ -137,9 +137,9 @@ def main():
         # 20 pages at once (fresh connections; the previous pages are closed)
         time.sleep(3.0)
         m0 = ours.rss_mb()
-        served, m1 = asyncio.run(_open_many(ours.base, sid, 20, ours))
+        served, m1 = rc.run(_open_many(ours.base, sid, 20, ours))
         r0 = ref.rss_mb()
-        ref_served, r1 = asyncio.run(_open_many(ref.base, None, 20, ref))
+        ref_served, r1 = rc.run(_open_many(ref.base, None, 20, ref))
         print(f"BENCH review_page_20th ours_s={served[-1]:.3f} ref_s={ref_served[-1]:.3f} "
               f"ratio={ref_served[-1] / served[-1]:.2f} first_s={served[0]:.3f} ref_first_s={ref_served[0]:.3f} "
               f"mb_per_session={(m1 - m0) / 20:.1f} ref_mb_per_session={(r1 - r0) / 20:.1f}", flush=True)

@@ -32,6 +32,27 @@ from tornado.httpclient import AsyncHTTPClient, HTTPRequest
 from tornado.websocket import websocket_connect
 
 
+def run(coro):
+    """``asyncio.run(coro)`` in a thread of its own: the caller's thread may already run an event
+    loop (a test before this one can leave one running), and asyncio.run refuses to nest."""
+    import threading
+
+    out: dict = {}
+
+    def target():
+        try:
+            out["value"] = asyncio.run(coro)
+        except BaseException as e:  # re-raised in the caller
+            out["error"] = e
+
+    t = threading.Thread(target=target, name="review-client", daemon=True)
+    t.start()
+    t.join()
+    if "error" in out:
+        raise out["error"]
+    return out.get("value")
+
+
 def register_models() -> None:
     """Import every model class a dashboard page may hold, so the client can deserialise them."""
     import importlib

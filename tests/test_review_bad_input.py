@@ -150,7 +150,7 @@ def test_bad_files_get_messages_and_the_other_page_is_served(tmp_path):
                 await p.close()
             return pages
 
-        pages = asyncio.run(run())
+        pages = rc.run(run())
         assert srv.alive()
         assert not [e for p in pages for e in p.errors]
     (ART / "review_bad_input.json").write_text(json.dumps(out, indent=2) + "\n")

@@ -67,7 +67,7 @@ def test_kill_minus_9_during_a_burst_keeps_every_acknowledged_change(tmp_path):
             srv.proc.wait(timeout=10)
             await page.close()
 
-        asyncio.run(burst())
+        rc.run(burst())
     finally:
         srv.stop()
     assert len(acked) >= 12, f"only {len(acked)} of {len(sent)} changes were shown before the kill"
@@ -99,7 +99,7 @@ def test_kill_minus_9_during_a_burst_keeps_every_acknowledged_change(tmp_path):
             await page.close()
             return texts
 
-        texts = asyncio.run(look())
+        texts = rc.run(look())
     for what in acked:
         if what.startswith("burst note"):
             assert what in texts, f"{what!r} not on the restarted server's page"

@@ -11,7 +11,6 @@ Localhost only, one server process, bounded: 20 pages x 60 s (about two minutes 
 
 from __future__ import annotations
 
-import asyncio
 import json
 import re
 from pathlib import Path
@@ -52,9 +51,9 @@ def test_twenty_pages_for_a_minute_lose_nothing(shot_on_server):
         pages, _ = await rc.open_pages(srv.base, sid, 1)
         await pages[0].close()
 
-    asyncio.run(warm())
+    rc.run(warm())
     rss0 = srv.rss_mb()
-    r = asyncio.run(rc.review_load(srv.base, sid, PAGES, SECONDS, seed=1))
+    r = rc.run(rc.review_load(srv.base, sid, PAGES, SECONDS, seed=1))
     rss1 = srv.rss_mb()
     assert srv.alive(), "the server died under load"
 
