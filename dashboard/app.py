@@ -870,10 +870,12 @@ def create_app():
         return DashboardApp().layout
     args = pn.state.session_args or {}
     sid = (args.get("shot") or [b""])[0].decode(errors="replace").strip()
-    if not sid:
-        from dashboard.review_view import landing
+    if not sid:  # the dashboard on the sample, a page of its own, with a card to share it as a review
+        from dashboard.review_view import review_start
 
-        return landing(review.SERVER, lambda: Session().shot())
+        app = DashboardApp()
+        app.layout[0].insert(1, review_start(review.SERVER, app.s.shot))
+        return app.layout
     from core.store import UnknownShot
 
     try:

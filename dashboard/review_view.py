@@ -188,22 +188,22 @@ class ReviewPanel:
             self.hub.param.unwatch(w)
 
 
-def landing(server, make_shot: Callable, title: str = "face-retarget") -> pn.viewable.Viewable:
-    """The page without ``?shot=``: start a shared shot from the sample, or open a recent one."""
+def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
+    """The widgets that start a shared shot (from ``make_shot()``), import a review .zip, or open a
+    recent shot: a new shot's page is opened in this tab."""
     from urllib.parse import quote
 
     status = pn.pane.Markdown("", sizing_mode="stretch_width")
     w_title = pn.widgets.TextInput(name="Title of the new shot", value="review", sizing_mode="stretch_width")
-    w_new = pn.widgets.Button(name="New shared shot (the bundled sample)", button_type="primary", sizing_mode="stretch_width")
+    w_new = pn.widgets.Button(name=label, button_type="primary", sizing_mode="stretch_width")
 
-    def new(event):
-        sid = server.create(make_shot(), title=w_title.value or "review", author="")
-        status.object = f"Shot created: [open it](?shot={quote(sid)})"
+    def go(sid: str, said: str) -> None:
+        status.object = f"{said}: [open it](?shot={quote(sid)})"
         if pn.state.location is not None:
             pn.state.location.search = f"?shot={quote(sid)}"
             pn.state.location.reload = True
 
-    w_new.on_click(new)
+    w_new.on_click(lambda event: go(server.create(make_shot(), title=w_title.value or "review", author=""), "Shot created"))
     w_import = pn.widgets.FileInput(accept=".zip", sizing_mode="stretch_width")
 
     def import_(*events):
@@ -216,22 +216,34 @@ def landing(server, make_shot: Callable, title: str = "face-retarget") -> pn.vie
         except ValueError as e:  # named, plain words (core.store)
             status.object = f"**Error:** {html.escape(str(w_import.filename))}: {html.escape(str(e))}"
             return
-        status.object = f"Imported: [open it](?shot={quote(sid)})"
-        if pn.state.location is not None:
-            pn.state.location.search = f"?shot={quote(sid)}"
-            pn.state.location.reload = True
+        go(sid, "Imported")
 
     w_import.param.watch(import_, "value")
     rows = []
-    for r in server.store.recent(20):
+    for r in server.store.recent(recent_n):
         sid = r["id"] if isinstance(r, dict) else r[0]
         t = (r.get("title") if isinstance(r, dict) else "") or sid
         when = r.get("updated", "") if isinstance(r, dict) else ""
         rows.append(f"- [{html.escape(str(t))}](?shot={quote(sid)}) <span class='fr-muted'>{html.escape(str(when))}</span>")
     recent = pn.pane.Markdown("**Recent shots**\n\n" + ("\n".join(rows) if rows else "*none yet*"), sizing_mode="stretch_width")
+    return [w_title, w_new, pn.pane.Markdown("…or open a review someone sent you (the .zip of *Download the review*):",
+                                             css_classes=["fr-muted"]), w_import, status, recent]
+
+
+def landing(server, make_shot: Callable, title: str = "face-retarget") -> pn.viewable.Viewable:
+    """A page of its own for starting a shared shot from ``make_shot()``, or opening a recent one."""
     return pn.Column(
         pn.pane.Markdown(f"# {title}", css_classes=["fr-title"]),
         pn.pane.Markdown("Shared review: everyone with the link sees the same shot — settings, edits, the frame "
                          "and notes — and nothing is lost when the server restarts.", css_classes=["fr-muted"]),
-        w_title, w_new, pn.pane.Markdown("…or open a review someone sent you (the .zip of *Download the review*):",
-                                         css_classes=["fr-muted"]), w_import, status, recent, width=520, margin=30)
+        *_start(server, make_shot, "New shared shot (the bundled sample)"), width=520, margin=30)
+
+
+def review_start(server, make_shot: Callable) -> pn.Card:
+    """The sidebar card of a page of its own (no ``?shot=``) on a review server: share what this
+    page shows as a new shot, import a review, or open a recent one."""
+    return pn.Card(
+        pn.pane.Markdown("Share what this page shows: everyone with the link sees the same shot — settings, "
+                         "edits, the frame and notes — and it is kept on the server.", css_classes=["fr-muted"]),
+        *_start(server, make_shot, "New shared shot from this page", recent_n=8),
+        title="Shared review", collapsed=False, sizing_mode="stretch_width")
