@@ -38,6 +38,24 @@ def _models(page):
             {m.id for m in page.doc.models if type(m).__name__.startswith("MeshViewer")})
 
 
+async def _drive_alpha(base, sid, n, on_patch, mark, changes, gap, start, settle):
+    """Open ``n`` pages (of shot ``sid``, or per-tab ones), then page 0 sets α ``changes`` times
+    ``gap`` s apart (``mark(value)`` just before each); ``on_patch`` sees every page's patches."""
+    pages, _ = await rc.open_pages(base, sid, n, on_patch=None)
+    for p in pages:
+        p.m = _models(p)
+        p.on_patch = on_patch
+    await asyncio.sleep(2.0)
+    for k in range(changes):
+        v = round(start + 0.001 * k, 4)
+        mark(v)
+        pages[0].set(pages[0].m[0], value=v, value_throttled=v)
+        await asyncio.sleep(gap)
+    await asyncio.sleep(settle)
+    for p in pages:
+        await p.close()
+
+
 async def _propagation(base, sid, n, changes=8, gap=1.5, start=0.02):
     """Ours: page 0 changes α; the other pages' times to the new α and to the new result."""
     marks: dict = {}   # value -> time sent
@@ -53,19 +71,7 @@ async def _propagation(base, sid, n, changes=8, gap=1.5, start=0.02):
             elif attr == "track" and mid in viewers and page.index in waiting:
                 seen_result.append(t - waiting.pop(page.index)[1])
 
-    pages, _ = await rc.open_pages(base, sid, n, on_patch=None)
-    for p in pages:
-        p.m = _models(p)
-        p.on_patch = on_patch
-    await asyncio.sleep(2.0)
-    for k in range(changes):
-        v = round(start + 0.001 * k, 4)
-        marks[v] = time.monotonic()
-        pages[0].set(pages[0].m[0], value=v, value_throttled=v)
-        await asyncio.sleep(gap)
-    await asyncio.sleep(5.0)
-    for p in pages:
-        await p.close()
+    await _drive_alpha(base, sid, n, on_patch, lambda v: marks.__setitem__(v, time.monotonic()), changes, gap, start, 5.0)
     return seen_setting, seen_result
 
 
@@ -80,19 +86,7 @@ async def _own_round_trip(base, n, changes=8, gap=1.5, start=0.02):
             if attr == "track" and mid in page.m[1] and "t" in pending:
                 rt.append(t - pending.pop("t"))
 
-    pages, _ = await rc.open_pages(base, None, n, on_patch=None)
-    for p in pages:
-        p.m = _models(p)
-        p.on_patch = on_patch
-    await asyncio.sleep(2.0)
-    for k in range(changes):
-        v = round(start + 0.001 * k, 4)
-        pending["t"] = time.monotonic()
-        pages[0].set(pages[0].m[0], value=v, value_throttled=v)
-        await asyncio.sleep(gap)
-    await asyncio.sleep(3.0)
-    for p in pages:
-        await p.close()
+    await _drive_alpha(base, None, n, on_patch, lambda v: pending.__setitem__("t", time.monotonic()), changes, gap, start, 3.0)
     return rt
 
 
@@ -106,21 +100,10 @@ async def _open_many(base, sid, n, server=None):
     return served, rss
 
 
-def _shot(data: Path) -> str:
-    from core.store import Store
-    from dashboard.session import Session
-
-    s = Session()
-    store = Store(data)
-    sid = store.create_shot(s.shot(), title="bench", author="bench")
-    store.close()
-    return sid
-
-
 def main():
     rc.register_models()
     tmp = Path(tempfile.mkdtemp(prefix="bench-review-"))
-    sid = _shot(tmp / "data")
+    sid = rc.sample_shot(tmp / "data", "bench", last_frame=-1)
     with rc.Server("--data-dir", str(tmp / "data"), log=tmp / "ours.log") as ours, \
             rc.Server("--no-review", log=tmp / "ref.log") as ref:
         # warm both (the shot computed once, the per-tab sample once)

@@ -53,6 +53,21 @@ def run(coro):
     return out.get("value")
 
 
+def sample_shot(data_dir, title: str, last_frame: int = 299) -> str:
+    """A new shot of the bundled sample (its first ``last_frame + 1`` frames; -1: all) in the review
+    store at ``data_dir``, made from outside the server as another process would; returns its id."""
+    from core.store import Store
+    from dashboard.session import Session
+
+    s = Session()
+    s.pipeline.configure(last_frame=last_frame)
+    store = Store(data_dir)
+    try:
+        return store.create_shot(s.shot(), title=title, author="lead")
+    finally:
+        store.close()
+
+
 def register_models() -> None:
     """Import every model class a dashboard page may hold, so the client can deserialise them."""
     import importlib

@@ -91,14 +91,11 @@ def corpus(tmp_path) -> list:
 @pytest.mark.slow
 def test_bad_files_get_messages_and_the_other_page_is_served(tmp_path):
     from core.store import Store
-    from dashboard.session import Session
 
     rc.register_models()
     data = tmp_path / "data"
-    s = Session()
-    s.pipeline.configure(last_frame=299)
+    sid = rc.sample_shot(data, "bad input")
     store = Store(data)
-    sid = store.create_shot(s.shot(), title="bad input", author="lead")
     before = store.get(sid)[0].to_json()
     store.close()
     cases = corpus(tmp_path)

@@ -19,15 +19,10 @@ import review_client as rc
 @pytest.mark.slow
 def test_kill_minus_9_during_a_burst_keeps_every_acknowledged_change(tmp_path):
     from core.store import Store
-    from dashboard.session import Session
 
     rc.register_models()
     data = tmp_path / "data"
-    s = Session()
-    s.pipeline.configure(last_frame=299)
-    store = Store(data)
-    sid = store.create_shot(s.shot(), title="crash", author="lead")
-    store.close()
+    sid = rc.sample_shot(data, "crash")
     acked: dict = {}   # what the page was shown: note text / edit text -> time
     sent: list = []
 

@@ -25,15 +25,8 @@ PAGES, SECONDS = 20, 60.0
 
 @pytest.fixture(scope="module")
 def shot_on_server(tmp_path_factory):
-    from core.store import Store
-    from dashboard.session import Session
-
     data = tmp_path_factory.mktemp("review-load")
-    s = Session()
-    s.pipeline.configure(last_frame=299)
-    store = Store(data)
-    sid = store.create_shot(s.shot(), title="load", author="lead")
-    store.close()
+    sid = rc.sample_shot(data, "load")
     ART.mkdir(exist_ok=True)
     log = ART / "server_review_load.log"
     with rc.Server("--data-dir", str(data), log=log) as srv:
