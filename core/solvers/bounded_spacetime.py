@@ -271,7 +271,9 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
     if not info["converged"]:
         warnings.warn(
             f"bounded spacetime solve of frames {system.lo}..{system.hi}: KKT residual {info['kkt']:.1e} "
-            f"> tol {tol:.0e} after {info['iterations']} inner solves",
+            f"> tol {tol:.0e} after {info['iterations']} inner solves ({K} shapes: shapes the markers cannot tell "
+            "apart make the active-set method cycle; solving on fewer shapes, e.g. the ARKit ones, converges in "
+            "a few steps)",
             RuntimeWarning, stacklevel=3,
         )
     return X, info
