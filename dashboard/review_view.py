@@ -51,6 +51,7 @@ class ReviewPanel:
 
     def __init__(self, mirror, frame_widget, play_widget, time_of: Callable, on_notes: Optional[Callable] = None):
         self.mirror, self.hub = mirror, mirror.hub
+        self._rows: dict = {}  # note state -> its row, kept between redraws (draw_notes)
         self.w_frame, self.w_play, self.time_of, self.on_notes = frame_widget, play_widget, time_of, on_notes
         self.w_name = NameBox(value=mirror.name if mirror.name != "someone" else "", sizing_mode="stretch_width", height=34)
         self.w_name.param.watch(self._on_name, "value")
@@ -141,7 +142,6 @@ class ReviewPanel:
         return list(self.mirror.session.pipeline.notes)
 
     _drawn = None
-    _rows: dict = {}
 
     def _note_row(self, n: dict):
         f, end = int(n.get("frame", 0)), n.get("frame_end")

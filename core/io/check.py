@@ -79,10 +79,9 @@ def _take(path: Path, name: str) -> dict:
         first = fh.readline(MAX_HEADER_BYTES + 1)
     if head[:2] in (b"\xff\xfe", b"\xfe\xff") and path.suffix.lower() != ".c3d":
         raise ValueError(f"{name} is UTF-16 text: save it as UTF-8 (a plain .csv) and upload it again")
-    if path.suffix.lower() in (".csv", ".trc") and (len(first) > MAX_HEADER_BYTES
-                                                    or max(first.count(b","), first.count(b"\t")) + 1 > MAX_COLUMNS):
+    n = max(first.count(b","), first.count(b"\t")) + 1  # the header's columns, whichever the separator
+    if path.suffix.lower() in (".csv", ".trc") and (len(first) > MAX_HEADER_BYTES or n > MAX_COLUMNS):
         # refused before a reader splits a 10^6-column header (that took the server minutes)
-        n = max(first.count(b","), first.count(b"\t")) + 1
         raise ValueError(f"{name} has {'a first line of more than 4 MB' if len(first) > MAX_HEADER_BYTES else f'{n:,} columns'}"
                          f": a take has at most a few thousand channels (markers x 3); is this the right file?")
     if b"\0" in head:

@@ -392,7 +392,6 @@ def bounded_spacetime_reference(B, S, alpha: float, beta: float, prior, known, *
             raise ImportError("bounded_spacetime_reference(solver='clarabel') needs clarabel: pip install clarabel "
                               "(or the test extra: pip install -e .[test])") from None
         blocks, b = [], []
-        pad = sp.csc_matrix((0, na))
         if len(rows_u):
             blocks.append(sp.hstack([I[rows_u], sp.csc_matrix((len(rows_u), na))]))
             b.append(hi[rows_u])
@@ -404,7 +403,6 @@ def bounded_spacetime_reference(B, S, alpha: float, beta: float, prior, known, *
             Ia = sp.identity(na, format="csc")
             blocks += [sp.hstack([Ea, -Ia]), sp.hstack([-Ea, -Ia])]
             b += [np.zeros(na), np.zeros(na)]
-        del pad
         Acon = sp.vstack(blocks, format="csc") if blocks else sp.csc_matrix((0, nf + na))
         bcon = np.concatenate(b) if b else np.zeros(0)
         st = clarabel.DefaultSettings()
