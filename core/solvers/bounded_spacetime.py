@@ -33,13 +33,19 @@ the iterate satisfies the optimality conditions exactly; the loop stops earlier 
 KKT residual (below) is under the tolerance. On the bundled ICT->Rocketbox take (1,000 frames,
 52 shapes, bounds [0, 1]) it takes 5 active-set steps after the unbounded solve.
 
-PDAS is not monotone and may cycle (the Hessian is not an M-matrix; it happens with the L1 kink
-inside the bounds, where correlated shapes trade signs). A run ends when a state repeats, when
-three steps in a row do not lower its best KKT residual, or after ``max_iter`` steps; the solve
-then runs ADMM, which converges for any convex problem, and starts a new active-set run from
-the state of the ADMM iterate after 10, 20, 40, ... iterations (or stops when the ADMM iterate
-itself meets the tolerance). Close to the solution the state is right and one inner solve is
-exact, so the combination ends with the active-set method's exactness and ADMM's guarantee.
+PDAS is not monotone and may cycle (the Hessian is not an M-matrix: with the L1 kink inside the
+bounds correlated shapes trade signs, and with many shapes the markers cannot tell apart, e.g.
+all 165 of the Rocketbox head on 41 markers, a few dozen entries flip back and forth). A run
+ends when a state repeats, when three steps in a row do not halve the fewest state changes of
+the run (the KKT residual of PDAS iterates jumps around even in a converging run, the number of
+changes falls fast), or after ``max_iter`` steps; the solve then runs ADMM from the unbounded
+minimiser, which converges for any convex problem. After 10, 30, 70, 150, ... iterations it
+starts a new active-set run from the state of the ADMM iterate -- but only once that state has
+settled (fewer than ``ADMM_SETTLED`` = 2 % of its active entries changed since the previous
+round: a run from a moving state cycles, and an inner solve with 13,000 fixed entries costs
+~0.3 s), or stops when the ADMM iterate itself meets the tolerance. Close to the solution the
+state is right and one inner solve is exact, so the combination ends with the active-set
+method's exactness and ADMM's guarantee.
 
 ADMM and the penalty metric
 ---------------------------
@@ -52,16 +58,20 @@ diagonalised once more (``O(K^3)``, ~1 ms for K = 52) into K new tridiagonals
 (:meth:`RangeSystem.shifted`). The alternative metric ``rho (A + C)`` would need no new
 eigendecomposition (``U^T (A + C) U = I``), but then the Z-update, a projection onto the box
 with soft thresholding, is no longer separable per weight. So the metric is Euclidean with a
-per-shape ``rho_k = 0.3 * 2 (2 A + C)_kk`` (scaled to each shape's curvature), relaxation 1.6,
+per-shape ``rho_k = 0.03 * 2 (2 A + C)_kk`` (scaled to each shape's curvature; on the 165-shape
+case 0.03 found the active set in half the iterations of 0.3 and of 0.01), relaxation 1.6,
 residual balancing between rounds (``rho`` times 5 or 1/5 when the primal and dual residuals
-differ by more than 10x), and one eigendecomposition per ``rho``.
+differ by more than 100x; at 10x it fired after the first round and slowed the 165-shape case
+twofold), and one eigendecomposition per ``rho``.
 
-Measured on the real take (1,000 frames, 51 shapes): for bounds [0, 1] ADMM alone needs
-hundreds of iterations (relative KKT 1e-6 after 640 at ~0.9 ms each) while PDAS is exact after
-5-6 inner solves; for the L1 kink (bounds [-0.2, 1], l1 = 1e-3) PDAS from the unbounded
-solution cycles, and 10-30 ADMM iterations followed by 1-2 active-set steps are exact. Without
-bounds (l1 = 1e-3 only) it took 70 ADMM iterations (2 changes of rho) and 27 active-set steps,
-~0.6 s: correct, not fast.
+Measured on the real take (1,000 frames; ``OPENBLAS_NUM_THREADS=1``, as the CLI and the server
+set it): 51 ARKit shapes, bounds [0, 1]: 6 active-set steps after the unbounded solve, 0.1 s;
+the L1 kink (bounds [-0.2, 1], l1 = 1e-3 relative): 70 ADMM iterations + 5 steps, 0.2 s. All
+165 shapes, bounds [0, 1]: the first run stops after 4 steps, then 310 ADMM iterations (~7 ms
+each) and 3 steps are exact, ~5 s (it was 2,550 ADMM iterations and 47 steps, 33 s, without
+converging, before the settled-state rule, the change-count stall rule and ``rho`` 0.03); with
+l1 = 1e-3 half the entries are active and each step costs 1-3 s: 18-40 s. Correct, not fast:
+the many-shape cases want fewer shapes (``target_shapes``) or dense correspondence.
 
 Tolerance
 ---------
@@ -183,7 +193,7 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
         Relative KKT tolerance (module docstring).
     max_iter : int
         Primal-dual steps per run; a run also ends when a state repeats or three steps in a
-        row do not lower its best KKT residual. 0: ADMM and no active-set step.
+        row do not halve its fewest state changes. 0: ADMM and no active-set step.
     max_solves : int
         Inner solves (active-set and ADMM together) before giving up with a warning.
 
@@ -191,8 +201,8 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
     -------
     W : (n, K) float, inside the bounds, known entries exact
     info : dict with ``iterations`` (inner solves), ``pdas`` (active-set steps), ``admm``
-        (ADMM iterations), ``rho_changes``, ``active`` (entries on a bound or at an L1 zero, known ones
-        excluded), ``kkt`` (final relative KKT residual, literal gradient), ``converged``
+        (ADMM iterations), ``rho_changes``, ``work_pdas``/``work_admm`` (rough flops spent in each),
+        ``active`` (entries on a bound or at an L1 zero, known ones excluded), ``kkt`` (final relative KKT residual, literal gradient), ``converged``
     """
     n, K = system.n, system.K
     lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n, K))
@@ -201,7 +211,7 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
     c = np.broadcast_to(np.maximum(system.curvature, 1e-300), (n, K))
     known = system.fixed
     use_l1 = bool((lam[~known] > 0).any()) if (~known).any() else False
-    info = {"iterations": 0, "pdas": 0, "admm": 0, "rho_changes": 0}
+    info = {"iterations": 0, "pdas": 0, "admm": 0, "rho_changes": 0, "work_pdas": 0.0, "work_admm": 0.0}
 
     free = ~known
     anyfree = bool(free.any())
@@ -222,7 +232,7 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
     def pdas(state):
         """Active-set steps from a state; returns (done, X, g)."""
         fixed, values, sign = state
-        seen, best, stall = set(), np.inf, 0
+        seen, fewest, stall = set(), np.inf, 0
         X = g = None
         for _ in range(max_iter):
             key = hash((fixed.tobytes(), values.tobytes(), sign.tobytes()))
@@ -232,14 +242,18 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
             X, g = system.solve(fixed, values, -0.5 * lam * sign if use_l1 else None)
             info["iterations"] += 1
             info["pdas"] += 1
+            info["work_pdas"] += _solve_work(n, K, int(np.count_nonzero(fixed)))
             r = residual(X, g)
             if small(X, r):
                 return True, X, g
             nf, nv, ns = state_of(X - np.nan_to_num(g) / c)
-            if np.array_equal(nf, fixed) and np.array_equal(nv, values) and np.array_equal(ns, sign):
+            changes = int(np.count_nonzero((nf != fixed) | (nv != values) | (ns != sign)))
+            if changes == 0:
                 return True, X, g  # the state's own KKT point (to rounding): nothing left to change
-            if r < best:
-                best, stall = r, 0
+            # progress is the number of state changes halving (the KKT residual of PDAS iterates jumps
+            # around even when the run converges; a cycling run keeps changing the same entries)
+            if changes < 0.5 * fewest:
+                fewest, stall = changes, 0
             else:
                 stall += 1
                 if stall >= 3:
@@ -255,7 +269,7 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
         done = True  # no bound or L1 zero is active: the unbounded solution is the answer
     else:
         done, X1, g1 = pdas(state) if max_iter > 0 else (False, None, None)
-        if X1 is not None:
+        if done:  # else ADMM starts from the unbounded minimiser (a failed run's iterate starts it worse)
             X, g = X1, g1
     if not done:
         done, X, g = _admm_restarts(system, X, g, lo, hi, lam, c, known, info, max_solves, pdas, state_of,
@@ -280,9 +294,19 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
 
 
 #: ADMM penalty per shape, relative to the shape's curvature 2 (2 A + C)_kk (see ``_admm_restarts``)
-ADMM_SIGMA = 0.3
+ADMM_SIGMA = 0.03
+#: an active-set run starts from an ADMM iterate once fewer than this fraction of its active entries
+#: changed state since the previous round
+ADMM_SETTLED = 0.02
 #: ADMM over-relaxation (Boyd et al. 2011, §3.4.3)
 ADMM_RELAX = 1.6
+
+
+def _solve_work(n, K, p):
+    """Flops, roughly, of one inner solve with ``p`` fixed entries (two K x K transforms of n
+    frames plus the capacitance recursion, :func:`core.solvers.spacetime._capacitance_solve`):
+    a deterministic clock to share the time between ADMM and active-set runs."""
+    return 4.0 * n * K * K + p * (32.0 + K) * K
 
 
 def _admm_restarts(system, X, g, lo, hi, lam, c, known, info, max_solves, pdas, state_of, residual, small):
@@ -296,6 +320,7 @@ def _admm_restarts(system, X, g, lo, hi, lam, c, known, info, max_solves, pdas, 
     z = np.clip(np.where(known, system.values, X), lo, hi)
     u = np.where(known, 0.0, -np.nan_to_num(g) / rho)  # scaled dual: dE/dW = -rho u at a fixed point
     rounds = 10
+    prev = None  # the state of the previous round's iterate
     while info["iterations"] < max_solves:
         for _ in range(rounds):
             x = step(0.5 * rho * (z - u))
@@ -307,10 +332,11 @@ def _admm_restarts(system, X, g, lo, hi, lam, c, known, info, max_solves, pdas, 
             u += xh - z
             info["iterations"] += 1
             info["admm"] += 1
+        info["work_admm"] += rounds * _solve_work(system.n, system.K, 0)
         # residual balancing (Boyd et al. 2011, §3.4.1): a new rho costs one eigendecomposition
         rp = np.abs(x - z).max() / max(np.abs(x).max(), np.abs(z).max(), 1e-300)
         rd = np.abs(rho * (z - z_prev)).max() / max(np.abs(rho * u).max(), 1e-300)
-        if rp > 10 * rd or rd > 10 * rp:
+        if rp > 100 * rd or rd > 100 * rp:
             f = 5.0 if rp > rd else 0.2
             rho, u = rho * f, u / f
             step = system.shifted(rho)
@@ -320,10 +346,18 @@ def _admm_restarts(system, X, g, lo, hi, lam, c, known, info, max_solves, pdas, 
             return True, z, gz  # ADMM itself is within the tolerance
         # the state ADMM's iterate is in: on a bound / at the L1 kink (exactly, from the prox) or free
         fixed = ((z == lo) | (z == hi) | ((lam > 0) & (z == 0))) & ~known
-        done, X1, g1 = pdas((fixed, np.where(fixed, z, 0.0), np.where(fixed | known, 0.0, np.sign(z))))
+        sign = np.where(fixed | known, 0.0, np.sign(z))
+        moved = np.inf if prev is None else np.count_nonzero((fixed != prev[0]) | (sign != prev[1]))
+        prev = fixed, sign
+        rounds *= 2
+        if moved > ADMM_SETTLED * max(int(fixed.sum()), 1) and info["work_pdas"] > info["work_admm"]:
+            # the iterate's state still moves: an active-set run from it would likely cycle, and
+            # active-set steps have already cost more than ADMM (one costs ~0.3 s with 13,000
+            # entries fixed and K = 165; an ADMM iteration ~7 ms)
+            continue
+        done, X1, g1 = pdas((fixed, np.where(fixed, z, 0.0), sign))
         if done:
             return True, X1, g1
-        rounds *= 2
     return False, z, system.gradient(z)
 
 
