@@ -26,6 +26,7 @@ if str(ROOT) not in sys.path:
 from core.evaluate import marker_error_field  # noqa: E402
 from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
+from dashboard.lazy import lazy_card  # noqa: E402
 from dashboard.session import NONE, Session, derived  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
@@ -262,14 +263,14 @@ class DashboardApp(pn.viewable.Viewer):
                                                      label="Download controls", button_type="light", width=160)
         self.w_controls_reset = pn.widgets.Button(name="Reset controls", button_type="light", width=130)
         self.w_controls_reset.on_click(lambda e: self.pipe.configure(controls={}))
-        self.shape_card = pn.Card(
+        self.shape_card = lazy_card(
             pn.pane.Markdown("Per shape: its range (lower…upper, inside the solve), a gain and offset applied after "
                              "it (clamped to the range), and whether the solver may use it. Sort by a column; "
                              "*now* is the weight at the current frame. Upload a controls .json to load a table.",
                              css_classes=["fr-muted"]),
             self.w_shape_table, pn.Row(self.w_controls_dl, self.w_controls_reset),
             title="Shapes (per-shape controls)", collapsed=True, sizing_mode="stretch_width")
-        self.marker_card = pn.Card(
+        self.marker_card = lazy_card(
             pn.pane.Markdown("The 41 markers the solvers compare both faces at. A rig of your own needs them once: "
                              "place them automatically, then move any that landed badly.", css_classes=["fr-muted"]),
             self.w_place, self.w_marker_progress, self.w_marker_info, self.w_edit_markers, self.w_layout_dl,
@@ -467,7 +468,7 @@ class DashboardApp(pn.viewable.Viewer):
                 cards.extend(panes)
             else:
                 open_ = title.startswith("Actor") and self.pipe.personalize.personalize
-                card = pn.Card(*panes, title=title, collapsed=collapsed and not open_, sizing_mode="stretch_width")
+                card = lazy_card(*panes, title=title, collapsed=collapsed and not open_, sizing_mode="stretch_width")
                 self._setting_cards.append((card, panes))
                 cards.append(card)
         self.settings_box[:] = cards
@@ -643,7 +644,9 @@ class DashboardApp(pn.viewable.Viewer):
             self.normalmap_view.update(self.s.snapshot, event.new)
         if not self.shape_card.collapsed and self.s.snapshot:  # the "now" column follows the frame
             f = min(int(event.new), len(self.s.snapshot["weights"]) - 1)
-            self.w_shape_table.patch({"now": [(slice(None), list(np.round(np.nan_to_num(self.s.snapshot["weights"][f]), 3)))]})
+            now = list(np.round(np.nan_to_num(self.s.snapshot["weights"][f]), 3))
+            # (an explicit slice: Panel's patch reads slice(None).start as a row index and fails)
+            self.w_shape_table.patch({"now": [(slice(0, len(now)), now)]})
 
     def _seek(self, time_s: float):
         snap = self.s.snapshot

@@ -16,6 +16,8 @@ def widget(app, label, stage=None):
     """The page's widget of a stage parameter (``label`` a param name of ``stage``), or labelled ``label``."""
     if stage is not None:
         label = getattr(app.pipe, stage).param[label].label
+    for card in app.layout.select(pn.Card):  # open the collapsed cards, as a user would (their widgets are made then)
+        card.collapsed = False
     found = [w for w in app.layout.select(pn.widgets.Widget) if getattr(w, "name", None) == label]
     assert found, f"no widget labelled {label!r}"
     return found[0]
