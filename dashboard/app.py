@@ -90,6 +90,13 @@ def _frozen_rig(rig, track):
     return rig, track
 
 
+def _mean_finite(x) -> float:
+    """Mean of the finite entries (frames without data are NaN), NaN if there are none."""
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    return float(x.mean()) if x.size else float("nan")
+
+
 def _shown(pipe) -> tuple:
     return tuple(tuple((st.stage_name, tuple(n)) for st, n in stage_params(pipe, groups)) for _, groups, _ in SIDEBAR_CARDS)
 
@@ -768,7 +775,7 @@ class DashboardApp(pn.viewable.Viewer):
             f"**{self.s.source}** → **{self.s.target_rig}** · {T} frames @ {snap['fps']:g} fps · "
             f"{len(snap['marker_names'])} markers · method **{snap['method']}** · marker error RMS "
             f"**{ev['marker_rms_mm']:.2f} mm** (max {ev['marker_max_mm']:.1f}) · velocity error "
-            f"{ev['velocity_error_total']:.3g} mm² · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
+            f"{_mean_finite(ev['velocity_error_mm']):.3f} mm per frame (RMS per marker, Seol 2012 eq. 2) · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
             f"({100 * ev['outside_01']:.1f}% outside 0..1)")
         notes = list(dict.fromkeys(snap.get("warnings", [])))  # data-quality notes stay on the page, not as toasts
         if notes:
