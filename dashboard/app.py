@@ -27,6 +27,7 @@ from core.evaluate import marker_error_field  # noqa: E402
 from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
 from dashboard.lazy import lazy_card  # noqa: E402
+from dashboard.upload_guard import UploadGuard  # noqa: E402
 from dashboard.session import NONE, Session, derived  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
@@ -208,6 +209,12 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_target = pn.widgets.Select.from_param(s.param.target_rig, name="Target rig", sizing_mode="stretch_width")
         self.w_upload = pn.widgets.FileInput(accept=".csv,.trc,.c3d,.glb,.gltf,.json", multiple=False, sizing_mode="stretch_width")
         self.w_upload.param.watch(self._on_upload, ["value", "filename"], onlychanged=False)
+        from dashboard import session as sessions
+
+        # a file over the limit is refused in the browser with a message (sent whole, over twice
+        # the limit it would close the page's connection: dashboard.upload_guard)
+        self.w_upload_box = UploadGuard(self.w_upload, max_bytes=sessions.MAX_UPLOAD, sizing_mode="stretch_width",
+                                        on_refused=lambda n, b: self._notify("error", sessions.too_large(Path(n).name, b)))
         self.settings_box = pn.Column(sizing_mode="stretch_width")
         self.w_auto = pn.widgets.Toggle.from_param(s.param.auto_update, name="Auto-update on every change", button_type="light", sizing_mode="stretch_width")
         self.w_apply = pn.widgets.Button(name="Apply", button_type="primary", sizing_mode="stretch_width")
@@ -555,7 +562,7 @@ class DashboardApp(pn.viewable.Viewer):
                              "Pick a capture and a target, press play, tune the solver.", css_classes=["fr-muted"]),
             self.w_source, self.w_source_rig, self.w_target,
             pn.pane.Markdown("Upload a take (.csv/.trc/.c3d), a rig (.glb/.usd), or a .json shot, marker layout or name map", css_classes=["fr-muted"], margin=(0, 10)),
-            self.w_upload,
+            self.w_upload_box,
             self.marker_card,
             pn.layout.Divider(),
             pn.pane.Markdown("**Solver**"),

@@ -13,6 +13,9 @@ from typing import Callable, Optional
 import panel as pn
 import param
 
+from dashboard import session as sessions
+from dashboard.upload_guard import UploadGuard
+
 
 class NameBox(pn.custom.JSComponent):
     """The reviewer's name, kept in the browser's ``localStorage`` (asked once, then remembered)."""
@@ -219,6 +222,13 @@ def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
         go(sid, "Imported")
 
     w_import.param.watch(import_, "value")
+
+    def refused(name: str, size: int) -> None:
+        status.object = (f"**Error:** {html.escape(name)} is {size / 2**20:.0f} MB, more than this server takes for a "
+                         f"review ({2 * sessions.MAX_UPLOAD / 2**20:.0f} MB): ask whoever runs it to raise the upload limit")
+
+    # a review holds the files it uses: twice the upload limit, what the websocket takes (serve.py)
+    import_box = UploadGuard(w_import, max_bytes=2 * sessions.MAX_UPLOAD, on_refused=refused, sizing_mode="stretch_width")
     rows = []
     for r in server.store.recent(recent_n):
         sid = r["id"] if isinstance(r, dict) else r[0]
@@ -227,7 +237,7 @@ def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
         rows.append(f"- [{html.escape(str(t))}](?shot={quote(sid)}) <span class='fr-muted'>{html.escape(str(when))}</span>")
     recent = pn.pane.Markdown("**Recent shots**\n\n" + ("\n".join(rows) if rows else "*none yet*"), sizing_mode="stretch_width")
     return [w_title, w_new, pn.pane.Markdown("…or open a review someone sent you (the .zip of *Download the review*):",
-                                             css_classes=["fr-muted"]), w_import, status, recent]
+                                             css_classes=["fr-muted"]), import_box, status, recent]
 
 
 def landing(server, make_shot: Callable, title: str = "face-retarget") -> pn.viewable.Viewable:

@@ -38,6 +38,14 @@ UPLOAD = "⤒ "
 SHARED_CACHE = StageCache(max_entries=128)
 #: the largest upload a page may send, in bytes (``face-retarget serve --max-upload-mb`` sets it)
 MAX_UPLOAD = 200 * 2**20
+
+
+def too_large(name: str, size: int) -> str:
+    """The message for a file over :data:`MAX_UPLOAD` (the server's check and the browser's)."""
+    return (f"{name} is {size / 2**20:.0f} MB, more than this server takes ({MAX_UPLOAD / 2**20:.0f} MB): "
+            "ask whoever runs it to raise the upload limit")
+
+
 #: the stages a retargeting view needs
 #: snapshots shared between sessions (see Session._shared_package)
 _SNAPSHOTS: "OrderedDict" = OrderedDict()
@@ -111,8 +119,7 @@ class Session(param.Parameterized):
         if not data:
             raise ValueError(f"{name} is empty: upload the file again (the upload may have been cut off)")
         if len(data) > MAX_UPLOAD:
-            raise ValueError(f"{name} is {len(data) / 2**20:.0f} MB, more than this server takes "
-                             f"({MAX_UPLOAD / 2**20:.0f} MB): ask whoever runs it to raise the upload limit")
+            raise ValueError(too_large(name, len(data)))
         path = self.upload_dir / name
         # the file stays in this session's upload folder: no name reaches outside it, and a link
         # planted under the name is replaced, not written through

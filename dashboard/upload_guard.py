@@ -1,0 +1,64 @@
+"""A file input that refuses a file over the server's upload limit in the browser, with a message.
+
+Panel's :class:`~panel.widgets.FileInput` reads the whole file in the browser and sends it to
+the server as one websocket message. The server caps messages (``face-retarget serve`` allows
+twice the upload limit, so that a file just over the limit still arrives and gets its message);
+a larger one closes the connection and the page shows only Panel's "connection lost". Panel
+1.9's FileInput has no size limit of its own, so :class:`UploadGuard` wraps it: in the browser a
+listener on the input's shadow root, in the capture phase (before the input's own listener),
+stops the ``change`` event of a file over ``max_bytes``, clears the input and tells the server,
+which calls ``on_refused(filename, size)``. The server checks the size again (a page without
+this script can still send anything up to the message cap).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import panel as pn
+import param
+from panel.custom import Child
+
+__all__ = ["UploadGuard"]
+
+
+class UploadGuard(pn.custom.JSComponent):
+    """``UploadGuard(file_input, max_bytes=..., on_refused=callback)``: shows ``file_input``."""
+
+    child = Child(class_=pn.widgets.FileInput, doc="The guarded file input.")
+    max_bytes = param.Integer(default=0, bounds=(0, None), doc="Largest file sent (0: no limit).")
+
+    _esm = """
+export function render({ model, el }) {
+  const host = model.get_child("child")
+  el.append(host)
+  const guard = (ev) => {
+    const input = ev.target
+    if (!input || !input.files || !model.max_bytes) return
+    const big = Array.from(input.files).find((f) => f.size > model.max_bytes)
+    if (big === undefined) return
+    ev.stopImmediatePropagation()  // the input's own listener never reads the file
+    input.value = ""
+    model.send_msg({ filename: big.name, size: big.size })
+  }
+  let tries = 0
+  const attach = () => {  // the child's shadow root exists once it has rendered
+    if (host.shadowRoot) host.shadowRoot.addEventListener("change", guard, true)
+    else if (tries++ < 100) setTimeout(attach, 50)
+  }
+  attach()
+}
+"""
+
+    def __init__(self, child: pn.widgets.FileInput, on_refused: Optional[Callable[[str, int], None]] = None, **params):
+        super().__init__(child=child, **params)
+        self._on_refused = on_refused
+
+    def _handle_msg(self, msg) -> None:
+        if self._on_refused is not None and isinstance(msg, dict):
+            name = str(msg.get("filename", ""))[:200]
+            try:
+                size = int(msg.get("size", 0))
+            except (TypeError, ValueError):
+                size = 0
+            self._on_refused(name, size)
