@@ -279,7 +279,9 @@ def test_interrupted_batch_resumes_without_recomputing_finished_shots(client, tm
         t0 = time.time()
         # finished folders only: pathlib's * also matches the hidden temporary folder a shot is
         # written in before its rename (its manifest is written last, just before the rename)
-        while len([m for m in out.glob("*/manifest.json") if not m.parent.name.startswith(".")]) < 2:
+        # interrupted after the first finished shot: waiting for two, the other shots once all
+        # finished before the signal arrived (exit 0, seen in a full run under load)
+        while len([m for m in out.glob("*/manifest.json") if not m.parent.name.startswith(".")]) < 1:
             assert proc.poll() is None, proc.communicate()
             assert time.time() - t0 < 120, "no shot finished in 2 minutes"
             time.sleep(0.05)
@@ -289,11 +291,11 @@ def test_interrupted_batch_resumes_without_recomputing_finished_shots(client, tm
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait(10)
-    assert proc.returncode == 130, err[-2000:]
+    assert proc.returncode == 130, f"exit {proc.returncode} (0: every shot finished before the interrupt)\n" + err[-2000:]
     assert "run the same command again to resume" in err
     # finished shots are whole; nothing half-written or temporary is left
     finished = sorted(p.name for p in out.iterdir() if p.is_dir())
-    assert 2 <= len(finished) < 10 and [p.name for p in out.iterdir() if p.name.startswith(".")] == []
+    assert 1 <= len(finished) < 10 and [p.name for p in out.iterdir() if p.name.startswith(".")] == []
     assert all(complete(out / n) for n in finished)
     rows = {r["shot"]: r["status"] for r in csv.DictReader(open(out / "summary.csv"))}
     assert {rows[n] for n in finished} == {"ok"} and "pending" in rows.values()
