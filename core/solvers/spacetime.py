@@ -437,7 +437,10 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     mid = 0.5 * lp[:, -1:]
     E1 = np.exp(lp - mid)
     Pg = Ue / E1  # U e^(mid - l)
-    Cd = np.matmul(Pg, np.transpose(Qg * E1, (0, 2, 1)))
+    # the strict lower triangle (x > y) is e^(l_y - l_x) >= 1 and may overflow to inf/NaN in long
+    # blocks of frames far apart; it is discarded (mirrored from the upper one) right below
+    with np.errstate(over="ignore", invalid="ignore"):
+        Cd = np.matmul(Pg, np.transpose(Qg * E1, (0, 2, 1)))
     iu = np.tril_indices(bs, -1)
     Cd[:, iu[0], iu[1]] = Cd[:, iu[1], iu[0]]
     em = np.exp(mid)
@@ -482,6 +485,8 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         lam[i] = dtrtrs(Ls[i], Ns[i][:, K] - Ns[i][:, :K] @ z, lower=1, trans=1)[0]
         if i:
             z = (z * Psi[i] + Qg[i].T @ lam[i]) * Phi[i - 1]
+    if not np.isfinite(lam).all():
+        raise np.linalg.LinAlgError("capacitance solve not finite")
     if order is None:
         return lam.ravel()[:p].copy()
     out = np.empty(p)
