@@ -43,7 +43,8 @@ minimiser, which converges for any convex problem. After 10, 30, 70, 150, ... it
 starts a new active-set run from the state of the ADMM iterate -- but only once that state has
 settled (fewer than ``ADMM_SETTLED`` = 2 % of its active entries changed since the previous
 round: a run from a moving state cycles, and an inner solve with 13,000 fixed entries costs
-~0.3 s), or stops when the ADMM iterate itself meets the tolerance. Close to the solution the
+~0.3 s) or once ADMM has done as much work as the active-set steps so far (a deterministic
+flop count, :func:`_solve_work`), or stops when the ADMM iterate itself meets the tolerance. Close to the solution the
 state is right and one inner solve is exact, so the combination ends with the active-set
 method's exactness and ADMM's guarantee.
 
@@ -67,11 +68,14 @@ twofold), and one eigendecomposition per ``rho``.
 Measured on the real take (1,000 frames; ``OPENBLAS_NUM_THREADS=1``, as the CLI and the server
 set it): 51 ARKit shapes, bounds [0, 1]: 6 active-set steps after the unbounded solve, 0.1 s;
 the L1 kink (bounds [-0.2, 1], l1 = 1e-3 relative): 70 ADMM iterations + 5 steps, 0.2 s. All
-165 shapes, bounds [0, 1]: the first run stops after 4 steps, then 310 ADMM iterations (~7 ms
-each) and 3 steps are exact, ~5 s (it was 2,550 ADMM iterations and 47 steps, 33 s, without
-converging, before the settled-state rule, the change-count stall rule and ``rho`` 0.03); with
-l1 = 1e-3 half the entries are active and each step costs 1-3 s: 18-40 s. Correct, not fast:
-the many-shape cases want fewer shapes (``target_shapes``) or dense correspondence.
+165 shapes, bounds [0, 1], ridge 1e-5: the first run stops after 4 steps, then 150 ADMM
+iterations (~7 ms each) and 15 steps in four runs are exact, 6-7.5 s (it was 2,550 ADMM
+iterations and 47 steps, 33 s, without converging, before the change-count stall rule, the
+settled-state and work rules and ``rho`` 0.03). At larger alpha (0.1-0.5) ADMM itself is slow
+there (KKT 1e-7 after 2,550 iterations, 15 s, not converged); with the default ridge 1e-3 the
+same solves are exact in 0.2-1.4 s. With l1 = 1e-3 half the entries are active and each step
+costs 1-3 s: 26-41 s. Correct, not fast: the many-shape cases want the ridge, fewer shapes
+(``target_shapes``) or dense correspondence.
 
 Tolerance
 ---------
