@@ -32,7 +32,8 @@ def evaluate(B, W, S, valid=None, step: int = 1, predicted=None, frame_valid=Non
 
     Returns a dict: ``marker_error_mm`` (T,) RMS per frame, ``marker_error_per_marker_mm`` (M,),
     ``marker_distances_mm`` (T, M), ``velocity_error_mm2`` (T,) and its ``velocity_error_total``,
-    ``velocity_error_mm`` (T,) = sqrt(per-frame velocity error / M) (an RMS per marker per frame),
+    ``velocity_error_mm`` (T,) = sqrt(per-frame velocity error / M) (an RMS per marker per frame)
+    and its mean over the used frames ``velocity_error_mean_mm`` (None without any),
     ``weight_min``/``weight_max`` (K,), ``weight_low``/``weight_high``, ``outside_01``, ``jitter`` (T,),
     ``frame_valid`` (T,) and ``n_valid_frames``.
     """
@@ -55,10 +56,12 @@ def evaluate(B, W, S, valid=None, step: int = 1, predicted=None, frame_valid=Non
         near[step:-step] = ~fv[2 * step:] | ~fv[:-2 * step]
         jit[near] = np.nan
     vpf = np.where(fv, ve.per_frame, np.nan)
+    vrms = np.sqrt(vpf / M)
     return {
         "marker_error_mm": me.per_frame, "marker_error_per_marker_mm": me.per_marker, "marker_distances_mm": me.distances,
         "marker_rms_mm": me.rms, "marker_max_mm": me.max,
-        "velocity_error_mm2": vpf, "velocity_error_total": ve.total, "velocity_error_mm": np.sqrt(vpf / M),
+        "velocity_error_mm2": vpf, "velocity_error_total": ve.total, "velocity_error_mm": vrms,
+        "velocity_error_mean_mm": _stats(vrms)[0],
         "weight_min": wr.min, "weight_max": wr.max, "weight_low": wr.low, "weight_high": wr.high, "outside_01": wr.outside,
         "jitter": jit, "frame_valid": fv, "n_valid_frames": int(fv.sum()),
     }

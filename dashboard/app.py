@@ -28,6 +28,7 @@ from core.retarget import marker_rig  # noqa: E402
 from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
 from dashboard.lazy import lazy_card  # noqa: E402
 from dashboard.upload_guard import UploadGuard  # noqa: E402
+from dashboard import session as sessions  # noqa: E402  (MAX_UPLOAD is read when a page is made)
 from dashboard.session import NONE, Session, derived  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
@@ -89,13 +90,6 @@ def _frozen_rig(rig, track):
         if isinstance(a, np.ndarray):
             a.flags.writeable = False
     return rig, track
-
-
-def _mean_finite(x) -> float:
-    """Mean of the finite entries (frames without data are NaN), NaN if there are none."""
-    x = np.asarray(x, dtype=np.float64)
-    x = x[np.isfinite(x)]
-    return float(x.mean()) if x.size else float("nan")
 
 
 def _shown(pipe) -> tuple:
@@ -209,8 +203,6 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_target = pn.widgets.Select.from_param(s.param.target_rig, name="Target rig", sizing_mode="stretch_width")
         self.w_upload = pn.widgets.FileInput(accept=".csv,.trc,.c3d,.glb,.gltf,.json", multiple=False, sizing_mode="stretch_width")
         self.w_upload.param.watch(self._on_upload, ["value", "filename"], onlychanged=False)
-        from dashboard import session as sessions
-
         # a file over the limit is refused in the browser with a message (sent whole, over twice
         # the limit it would close the page's connection: dashboard.upload_guard)
         self.w_upload_box = UploadGuard(self.w_upload, max_bytes=sessions.MAX_UPLOAD, sizing_mode="stretch_width",
@@ -782,7 +774,7 @@ class DashboardApp(pn.viewable.Viewer):
             f"**{self.s.source}** → **{self.s.target_rig}** · {T} frames @ {snap['fps']:g} fps · "
             f"{len(snap['marker_names'])} markers · method **{snap['method']}** · marker error RMS "
             f"**{ev['marker_rms_mm']:.2f} mm** (max {ev['marker_max_mm']:.1f}) · velocity error "
-            f"{_mean_finite(ev['velocity_error_mm']):.3f} mm per frame (RMS per marker, Seol 2012 eq. 2) · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
+            f"{ev['velocity_error_mean_mm'] or float('nan'):.3f} mm per frame (RMS per marker, Seol 2012 eq. 2) · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
             f"({100 * ev['outside_01']:.1f}% outside 0..1)")
         notes = list(dict.fromkeys(snap.get("warnings", [])))  # data-quality notes stay on the page, not as toasts
         if notes:

@@ -224,8 +224,7 @@ def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
     w_import.param.watch(import_, "value")
 
     def refused(name: str, size: int) -> None:
-        status.object = (f"**Error:** {html.escape(name)} is {size / 2**20:.0f} MB, more than this server takes for a "
-                         f"review ({2 * sessions.MAX_UPLOAD / 2**20:.0f} MB): ask whoever runs it to raise the upload limit")
+        status.object = f"**Error:** {html.escape(sessions.too_large(name, size, 2 * sessions.MAX_UPLOAD, ' for a review'))}"
 
     # a review holds the files it uses: twice the upload limit, what the websocket takes (serve.py)
     import_box = UploadGuard(w_import, max_bytes=2 * sessions.MAX_UPLOAD, on_refused=refused, sizing_mode="stretch_width")

@@ -40,9 +40,11 @@ SHARED_CACHE = StageCache(max_entries=128)
 MAX_UPLOAD = 200 * 2**20
 
 
-def too_large(name: str, size: int) -> str:
-    """The message for a file over :data:`MAX_UPLOAD` (the server's check and the browser's)."""
-    return (f"{name} is {size / 2**20:.0f} MB, more than this server takes ({MAX_UPLOAD / 2**20:.0f} MB): "
+def too_large(name: str, size: int, limit: int | None = None, what: str = "") -> str:
+    """The message for a file over ``limit`` bytes (default :data:`MAX_UPLOAD`; the server's check
+    and the browser's), ``what`` naming the kind of file when the limit is not the upload's."""
+    limit = MAX_UPLOAD if limit is None else limit
+    return (f"{name} is {size / 2**20:.0f} MB, more than this server takes{what} ({limit / 2**20:.0f} MB): "
             "ask whoever runs it to raise the upload limit")
 
 
