@@ -276,6 +276,8 @@ class DashboardApp(pn.viewable.Viewer):
                              css_classes=["fr-muted"]),
             self.w_shape_table, pn.Row(self.w_controls_dl, self.w_controls_reset),
             title="Shapes (per-shape controls)", collapsed=True, sizing_mode="stretch_width")
+        # while collapsed the table is not kept up to date (a frame change would patch it): opened, it shows now
+        self.shape_card.param.watch(self._on_shape_card, "collapsed")
         self.marker_card = lazy_card(
             pn.pane.Markdown("The 41 markers the solvers compare both faces at. A rig of your own needs them once: "
                              "place them automatically, then move any that landed badly.", css_classes=["fr-muted"]),
@@ -302,6 +304,10 @@ class DashboardApp(pn.viewable.Viewer):
         return io.BytesIO(self.s.shot().to_json().encode("utf-8"))
 
     # -- per-shape controls -------------------------------------------------------------------
+    def _on_shape_card(self, event):
+        if not event.new and self.s.snapshot:
+            self.w_shape_table.value = self._shape_frame()
+
     def _shape_frame(self):
         """The shape table's rows: the target's shapes, the current frame's weight, the controls."""
         import pandas as pd

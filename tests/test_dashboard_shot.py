@@ -69,3 +69,20 @@ def test_uploading_the_shot_restores_the_page(app, tmp_path):
     assert other.pipe.solve.method == "bounded" and other.pipe.solve.upper == 0.8
     assert other.pipe.edit.edits == app.pipe.edit.edits and other.pipe.frame == 150
     assert np.array_equal(other.s.snapshot["weights"], app.s.snapshot["weights"])
+
+
+def test_collapsed_cards_fill_when_opened_and_the_shape_table_is_current():
+    """The collapsed cards reach the browser only when opened (dashboard/lazy.py); the shape
+    table, not kept up to date while collapsed, shows the current frame's weights when opened."""
+    from dashboard.app import DashboardApp
+    from dashboard.session import Session
+
+    app = DashboardApp(Session(cache=StageCache()))
+    assert app.shape_card.collapsed and len(app.shape_card.objects) == 0
+    assert not [w for w in app.layout.select(pn.widgets.Tabulator) if w is app.w_shape_table]
+    app.w_frame.value = 437
+    app.shape_card.collapsed = False
+    assert app.w_shape_table in app.shape_card.select(pn.widgets.Tabulator)
+    W = app.s.snapshot["weights"]
+    assert np.allclose(app.w_shape_table.value["now"].to_numpy(), np.round(np.nan_to_num(W[437]), 3))
+    assert np.abs(W[437]).max() > 0.01  # a frame where the face moves: the check means something
