@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -130,6 +132,11 @@ def _batch(args) -> int:
         raise ValueError("no shots to run")
     say = (lambda line: print(f"\r{line}".ljust(100), file=sys.stderr, flush=True))  # over the bar's line
     bar = None if args.quiet else StderrBar("batch")
+    if threading.current_thread() is threading.main_thread():
+        # SIGINT stops the batch keeping the finished shots, also when the command was started in the
+        # background by a script (`cmd &`: the shell makes it ignore SIGINT and Python then installs no
+        # handler, so `kill -INT` did nothing and the batch ran to the end)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         results = run_batch(jobs, args.out, client=args.scheduler, progress=bar, workers=args.workers, files=args.files,
                             csv_precision=args.csv_precision, force=args.force, log=say,
