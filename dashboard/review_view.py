@@ -224,10 +224,11 @@ def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
     w_import.param.watch(import_, "value")
 
     def refused(name: str, size: int) -> None:
-        status.object = f"**Error:** {html.escape(sessions.too_large(name, size, 2 * sessions.MAX_UPLOAD, ' for a review'))}"
+        status.object = f"**Error:** {html.escape(sessions.too_large(name, size, sessions.largest_message_file(), ' for a review'))}"
 
-    # a review holds the files it uses: twice the upload limit, what the websocket takes (serve.py)
-    import_box = UploadGuard(w_import, max_bytes=2 * sessions.MAX_UPLOAD, on_refused=refused, sizing_mode="stretch_width")
+    # a review holds the files it uses: as large as the websocket takes
+    import_box = UploadGuard(w_import, max_bytes=sessions.largest_message_file(), on_refused=refused,
+                             sizing_mode="stretch_width")
     rows = []
     for r in server.store.recent(recent_n):
         sid = r["id"] if isinstance(r, dict) else r[0]

@@ -37,9 +37,8 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
         print(f"review store: {server.data_dir}", flush=True)
     origins = [f"{address}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"] + list(allow_websocket_origin or [])
     kwargs = dict(websocket_origin=origins, liveness=True, threaded=True,
-                  # the websocket takes twice the limit (as base64) so that a file over the limit gets a
-                  # message in the page; beyond that Tornado closes the page's connection
-                  websocket_max_message_size=int(max_upload_mb * 2**20 * 2 * 1.37) + 2**20)
+                  # base64 of the largest file a page may send; beyond that Tornado closes the connection
+                  websocket_max_message_size=int(sessions.largest_message_file() * 1.37) + 2**20)
     if password:
         import secrets
 

@@ -40,6 +40,13 @@ SHARED_CACHE = StageCache(max_entries=128)
 MAX_UPLOAD = 200 * 2**20
 
 
+def largest_message_file() -> int:
+    """The largest file a page's websocket takes, in bytes: twice :data:`MAX_UPLOAD`, so that a
+    file just over the limit still arrives and gets its message (``face-retarget serve`` sizes the
+    websocket for it, as base64); a review import (a shot with its files) may be that large."""
+    return 2 * MAX_UPLOAD
+
+
 def too_large(name: str, size: int, limit: int | None = None, what: str = "") -> str:
     """The message for a file over ``limit`` bytes (default :data:`MAX_UPLOAD`; the server's check
     and the browser's), ``what`` naming the kind of file when the limit is not the upload's."""
