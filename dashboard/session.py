@@ -106,7 +106,20 @@ class Session(param.Parameterized):
         self._apply_selection()
         # the pipeline always holds the selected files (views may run stages without a recompute)
         self.param.watch(lambda *events: self._apply_selection(), ["source", "source_rig", "target_rig"])
-        self.upload_dir = Path(tempfile.mkdtemp(prefix="face-retarget-upload-"))
+        self._upload_dir: Path | None = None
+
+    @property
+    def upload_dir(self) -> Path:
+        """This session's folder for uploaded files, made on first use and removed with the
+        session (a page that never uploads leaves nothing behind; a long-running server used to
+        keep one empty folder per page ever opened, and every uploaded file, in the temp dir)."""
+        if self._upload_dir is None:
+            import shutil
+            import weakref
+
+            self._upload_dir = Path(tempfile.mkdtemp(prefix="face-retarget-upload-"))
+            weakref.finalize(self, shutil.rmtree, str(self._upload_dir), ignore_errors=True)
+        return self._upload_dir
 
     # -- files --------------------------------------------------------------------------
     def _refresh_options(self):
@@ -192,7 +205,7 @@ class Session(param.Parameterized):
         from core.io.layout import sidecar_layout_path
 
         rig = Path(self.files["rigs"][self.target_rig])
-        return sidecar_layout_path(rig) if rig.parent == self.upload_dir else self.upload_dir / f"{rig.stem}.layout.json"
+        return sidecar_layout_path(rig) if self._upload_dir is not None and rig.parent == self._upload_dir else self.upload_dir / f"{rig.stem}.layout.json"
 
     def place_markers(self, progress=None) -> dict:
         """Place the 41 markers on the target rig automatically (:func:`core.registration.place_markers`),
@@ -364,7 +377,9 @@ class Session(param.Parameterized):
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         if not isinstance(e, (ValueError, KeyError, FileNotFoundError)):
             msg = f"{type(e).__name__}: {msg}"
-        msg = msg.replace(str(self.upload_dir) + "/", "").replace(str(DATA) + "/", "")
+        if self._upload_dir is not None:
+            msg = msg.replace(str(self._upload_dir) + "/", "")
+        msg = msg.replace(str(DATA) + "/", "")
         # what the command line would say with a flag, the page says with its own controls
         for flag, words in (("(--source-rig)", "(choose the rig the curves drive under Source rig)"),
                             ("--source-rig", "the Source rig list"), ("--target-rig", "the Target rig list"),

@@ -68,3 +68,21 @@ def test_good_uploads_go_where_they_belong(session, tmp_path):
     assert session.recompute(), session.error
     assert session.needs_layout == ""
     assert len(session.result_bytes("glb")) > 1000 and session.result_bytes("csv").startswith(b"time_s,frame,valid")
+
+
+def test_upload_folder_is_made_on_use_and_removed_with_the_session():
+    """A page that never uploads leaves no folder; a session's uploads go when it does (a server
+    kept one temp folder per page ever opened, with every file uploaded into it)."""
+    import gc
+
+    from dashboard.session import Session
+
+    idle = Session(cache=StageCache())
+    assert idle._upload_dir is None
+    s = Session(cache=StageCache())
+    s.add_upload("take.csv", (PERFORMANCES / "livelinkface_rom.csv").read_bytes())
+    folder = s.upload_dir
+    assert (folder / "take.csv").is_file()
+    del s
+    gc.collect()
+    assert not folder.exists()
