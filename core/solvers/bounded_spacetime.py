@@ -73,9 +73,13 @@ iterations (~7 ms each) and 15 steps in four runs are exact, 6-7.5 s (it was 2,5
 iterations and 47 steps, 33 s, without converging, before the change-count stall rule, the
 settled-state and work rules and ``rho`` 0.03). At larger alpha (0.1-0.5) ADMM itself is slow
 there (KKT 1e-7 after 2,550 iterations, 15 s, not converged); with the default ridge 1e-3 the
-same solves are exact in 0.2-1.4 s. With l1 = 1e-3 half the entries are active and each step
-costs 1-3 s: 26-41 s. Correct, not fast: the many-shape cases want the ridge, fewer shapes
-(``target_shapes``) or dense correspondence.
+same solves are exact in 0.2-1.4 s. With l1 = 1e-3 (ridge 1e-3) half the entries are active:
+the capacitance system of ~80,000 constraints cost 1-3 s per step (25 s in all); once a
+step's fixed entries make the block sweep over each frame's free weights cheaper
+(:func:`core.solvers.spacetime._block_is_cheaper`) the inner solve switches to it, 0.3-0.4 s
+per step, 3.5 s in all. Spacetime with the position term on the full 2,028-frame take onto all
+175 shapes (``beta = 1``): 65 s before that switch, 11 s with it; on the 51 ARKit shapes (60 %
+of the entries on a bound) 1.8 s -> 1.3 s.
 
 Tolerance
 ---------
@@ -208,6 +212,17 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
         (ADMM iterations), ``rho_changes``, ``work_pdas``/``work_admm`` (rough flops spent in each),
         ``active`` (entries on a bound or at an L1 zero, known ones excluded), ``kkt`` (final relative KKT residual, literal gradient), ``converged``
     """
+    # one BLAS thread: the inner solves are thousands of K x K products and small factorisations,
+    # which OpenBLAS's threads slow down about tenfold (the capacitance solve of 1,000 frames x 165
+    # shapes: 2.1 s per step with the default threads on 2 cores, 0.2 s with one); the CLI and
+    # the server set OPENBLAS_NUM_THREADS=1 themselves, a script or notebook need not
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves)
+
+
+def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
     n, K = system.n, system.K
     lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n, K))
     hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (n, K))
