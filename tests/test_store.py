@@ -772,3 +772,23 @@ def test_data_dir_defaults_to_the_per_user_data_folder(tmp_path, monkeypatch):
     assert data_dir() == tmp_path / "env" and (tmp_path / "env").is_dir()
     made = data_dir(tmp_path / "given" / "deeper")
     assert made == tmp_path / "given" / "deeper" and made.stat().st_mode & 0o777 == 0o700
+
+
+def test_put_path_reads_an_unchanged_file_once(store, tmp_path, monkeypatch):
+    """Every page of a shot sets its files again: a file already stored and unchanged since
+    (size, mtime, inode) is not read, copied and fsynced again; a changed file is, and so is one
+    whose blob has gone."""
+    f = tmp_path / "take.csv"
+    f.write_bytes(b"Timecode,BlendShapeCount,JawOpen\n00:00:00:00.000,1,0.5\n")
+    reads = []
+    put = store._put
+    monkeypatch.setattr(store, "_put", lambda data, name, limit, expect=None: reads.append(name) or put(data, name, limit, expect))
+    sha = store.put_path(f)
+    assert store.put_path(f) == sha and store.put_path(f, name="renamed.csv") == sha and len(reads) == 1
+    assert "renamed.csv" in store.file_info(sha)["names"]
+    f.write_bytes(b"Timecode,BlendShapeCount,JawOpen\n00:00:00:00.000,1,0.7\n")
+    os.utime(f, ns=(time.time_ns(), time.time_ns() + 10**9))  # a new mtime even on a coarse clock
+    sha2 = store.put_path(f)
+    assert sha2 != sha and len(reads) == 2 and sha2 == file_hash(f)
+    store._blob(sha2).unlink()
+    assert store.put_path(f) == sha2 and len(reads) == 3 and store._blob(sha2).is_file()
