@@ -1319,6 +1319,8 @@ class SpacetimeSolver:
             r[:-1] -= Ad
             r[1:] += Ad
 
+        blocks: dict = {}
+
         def diag_block(t):
             """Frame t's full K x K block (without holes: one per (beta f_t, differences) pair)."""
             d = (t > 0) + (t < n - 1)
@@ -1334,7 +1336,6 @@ class SpacetimeSolver:
                     M = M + Ah.get(e, A)
             return M
 
-        blocks: dict = {}
         # block Cholesky-Thomas sweep on the free entries F_t of each frame:
         # S_t = D_t - O_{t-1}^T S_{t-1}^-1 O_{t-1}, O_t = -A_t
         free = [np.flatnonzero(row) for row in ~kmask]
