@@ -736,7 +736,7 @@ class Store:
         self.check = check
         self._lock = threading.RLock()
         self._rlock = threading.Lock()
-        self._stat_hashes: dict = {}  # put_path: (real path, size, mtime_ns, inode) -> content hash
+        self._stat_hashes: dict = {}  # put_path: (real path, size, mtime_ns, inode, name) -> content hash
         for sub in ("files", "views", "tmp"):
             self._path(sub).mkdir(exist_ok=True, mode=0o700)
         self._clean_tmp()
@@ -947,16 +947,13 @@ class Store:
                 with open(q, "rb") as f:
                     members[_member_name(q.name)] = self._put(f, q.name, math.inf)
             return self._put_folder(members, name or p.name)
-        # a file stored before and unchanged since (same size, mtime and inode, as git's index
-        # tells) is not read, copied and fsynced again: every page of a shot set its files
-        # (17 MB for the sample) once more when it opened
+        # a file stored before under this name and unchanged since (same size, mtime and inode,
+        # as git's index tells) is not read, copied and fsynced again: every page of a shot set
+        # its files (17 MB for the sample) once more when it opened
         st = p.stat()
-        key = (os.path.realpath(p), st.st_size, st.st_mtime_ns, st.st_ino)
+        key = (os.path.realpath(p), st.st_size, st.st_mtime_ns, st.st_ino, name or p.name)
         sha = self._stat_hashes.get(key)
         if sha is not None and self._blob(sha).is_file():
-            with self._txn() as db:
-                db.execute("INSERT OR IGNORE INTO file_names (sha, name, added) VALUES (?, ?, ?)",
-                           (sha, safe_name(name or p.name), time.time()))
             return sha
         with open(p, "rb") as f:
             sha = self._put(f, name or p.name, math.inf)
