@@ -1365,13 +1365,12 @@ class SpacetimeSolver:
             sol, _ = dpotrs(c, rhs, lower=1)
             gh[t] = sol[:, 0]
             Xs[t] = sol[:, 1:] if len(Fn) else None
-        x = C
+        x = C  # the fixed entries already hold their values
         for t in range(n - 1, -1, -1):
             F = free[t]
             if not len(F):
                 continue
             x[t, F] = gh[t] if Xs[t] is None else gh[t] - Xs[t] @ x[t + 1, free[t + 1]]
-        x[kmask] = Kn[kmask]
         self.method_ = "block"
         return x
 
