@@ -454,3 +454,26 @@ def test_every_rocketbox_shape_converges_exactly():
     assert s.info_["admm"] <= 640 and s.info_["pdas"] <= 40, s.info_
     W0 = SpacetimeSolver(B, S, alpha=0.01, ridge=1e-5).solve()
     assert F(s, W) < F(s, np.clip(W0, 0, 1))
+
+
+def test_bounded_solve_runs_with_one_blas_thread(monkeypatch):
+    """The inner solves are thousands of small products that OpenBLAS's threads slow down about
+    tenfold: the solve limits BLAS to one thread while it runs and restores the caller's count."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import core.solvers.bounded_spacetime as bs
+
+    def blas_threads():
+        return sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+
+    seen, inner = [], bs._solve_bounded
+    monkeypatch.setattr(bs, "_solve_bounded", lambda *a, **k: (seen.append(blas_threads()), inner(*a, **k))[1])
+    rng = np.random.default_rng(3)
+    B = rng.normal(size=(5, 6, 3)) * 0.01
+    S = np.einsum("tk,kmc->tmc", rng.uniform(-0.2, 1.2, (20, 5)), B)
+    with threadpool_limits(limits=2, user_api="blas"):
+        outside = blas_threads()
+        W = SpacetimeSolver(B, S, alpha=0.01, lower=0.0, upper=1.0).solve()
+        after = blas_threads()
+    assert outside == after == [2] and seen == [[1]]
+    assert W.min() >= 0.0 and W.max() <= 1.0

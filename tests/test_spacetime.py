@@ -306,6 +306,24 @@ def test_energy_is_minimal(real):
     assert velocity_error(B, W, S).total == pytest.approx(e.match * 1e6, rel=1e-10)
 
 
+def test_weight_space_gradient_matches_marker_space():
+    """The solver evaluates the data terms from S B and B^T B (weight space) where a frame has
+    every marker and in marker space where one is missing: against the gradient written out in
+    marker space, with holes at the ends, in the middle and in neighbouring frames, per-marker
+    weights and beta > 0, over the whole take and over a range."""
+    B, S, rng = random_problem(T=30, M=8, K=6, seed=11)
+    valid = np.ones((30, 8), bool)
+    valid[0, 2] = valid[7, :3] = valid[8, 5] = valid[15] = valid[29, 0] = False
+    s = SpacetimeSolver(B, S, alpha=0.05, beta=0.3, valid=valid, marker_weights=rng.uniform(0.2, 2.0, 8))
+    W = rng.normal(size=(30, 6))
+    np.testing.assert_allclose(s.gradient(W), gradient(s, W), rtol=1e-10, atol=1e-14)
+    # a range: its own terms only (the differences inside it)
+    lo, hi = 6, 16
+    s1 = SpacetimeSolver(B[:, :, :], S[lo:hi + 1], alpha=0.05, beta=0.3, valid=valid[lo:hi + 1],
+                         marker_weights=s._gamma3[::3])
+    np.testing.assert_allclose(s._gradient_range(W[lo:hi + 1], lo), gradient(s1, W[lo:hi + 1]), rtol=1e-10, atol=1e-14)
+
+
 def test_velocity_matching_vs_per_frame(real):
     """Seol §4: with No Const's values as boundary conditions and no prior, movement matching
     returns No Const itself. With constraints (Fig. 11) the spacetime solution keeps a smaller

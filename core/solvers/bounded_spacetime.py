@@ -113,6 +113,7 @@ References
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import numpy as np
@@ -216,10 +217,18 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
     # which OpenBLAS's threads slow down about tenfold (the capacitance solve of 1,000 frames x 165
     # shapes: 2.1 s per step with the default threads on 2 cores, 0.2 s with one); the CLI and
     # the server set OPENBLAS_NUM_THREADS=1 themselves, a script or notebook need not
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=1, user_api="blas"):
+    with _blas_controller().limit(limits=1, user_api="blas"):
         return _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves)
+
+
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    """threadpoolctl's view of the loaded BLAS libraries, made once: ``threadpool_limits``
+    looks them up again on every call (0.5 ms and a read of the process's library list; a
+    whole bounded solve of the benchmark case takes 50 ms). NumPy's BLAS is loaded by then."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):

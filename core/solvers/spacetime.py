@@ -569,8 +569,7 @@ class RangeSystem:
     def _setup_fast(self):
         s, lo, hi, n, K = self.solver, self.lo, self.hi, self.n, self.K
         full = self.full
-        Sr = s._S[lo:hi + 1]
-        Y = s._BU.T @ Sr.T  # (K, n): U^T B^T s_t
+        Y = (s._SB[lo:hi + 1] @ s._U).T  # (K, n): U^T B^T s_t
         rz = np.empty((K, n))  # (L Y)_t = sum over t's differences, + alpha U^T q (+ name term)
         rz[:] = (s.alpha_ * s._Uq)[:, None]
         if n > 1:
@@ -583,7 +582,7 @@ class RangeSystem:
             if lt.any():
                 rz += lt * Y
         elif s._bt[0] > 0:
-            rz += s._bt[0] * (s._GBU.T @ Sr.T)
+            rz += s._bt[0] * (s._SGB[lo:hi + 1] @ s._U).T
         del Y
         if s._named is not None:
             rz += ((s.name_weight_ * s._named[lo:hi + 1]) @ s._U).T
@@ -869,6 +868,13 @@ class SpacetimeSolver:
         else:
             self.P_, self.q_, self._c = np.zeros((K, K)), np.zeros(K), 0.0
         self._G = Bm.T @ (self._gamma3[:, None] * Bm)
+        # the data in weight space, S_t B and (gamma S_t) B (T, K): on a frame with every marker the
+        # data terms' gradients and right-hand sides need only these and A, G (K x K), so the
+        # iterations of a bounded solve never touch the (T, 3M) marker space again (1,000 dense
+        # points: 3,000 numbers a frame instead of K); frames with missing markers use it exactly
+        self._SB = self._S @ Bm
+        self._SGB = gam[0] * self._SB if np.ptp(gam) == 0 else (self._S * self._gamma3) @ Bm
+        self._full_ = self.valid_.all(1)  # (T,) frames with every marker
 
         sig = np.linalg.svd(Bm, compute_uv=False)
         smax2 = float(sig[0] ** 2) if sig.size and sig[0] > 0 else 1.0
@@ -945,11 +951,8 @@ class SpacetimeSolver:
             self._mu = np.clip(mu, 0.0, 1.0)
             self._nu = 1.0 - self._mu
             self._U = U
-            self._BU = Bm @ U
             self._AU = A @ U
             self._Uq = U.T @ self.q_
-            if self._mode == "uniform":
-                self._GBU = (self._gamma3[:, None] * Bm) @ U
         self.method_ = None
         self.info_ = {}
 
@@ -1185,11 +1188,19 @@ class SpacetimeSolver:
     def _gradient_range(self, X: np.ndarray, lo: int) -> np.ndarray:
         """Gradient of the energy terms of frames ``lo .. lo + len(X) - 1`` (smooth terms)."""
         sl = slice(lo, lo + len(X))
-        Bm = self._B
-        v3 = np.repeat(self.valid_[sl], 3, axis=1)
-        R = X @ Bm.T - self._S[sl]
-        Re = (R[1:] - R[:-1]) * (v3[:-1] & v3[1:]) @ Bm
-        g = self.alpha_ * (X @ self.P_ - self.q_) + ((self._bt[sl, None] * self._gamma3 * v3) * R) @ Bm + self.ridge_ * X
+        Rb = X @ self._A - self._SB[sl]  # R_t B = (B w_t - s_t)^T B on a frame with every marker
+        Re = Rb[1:] - Rb[:-1]
+        pos = self._bt[sl, None] * (X @ self._G - self._SGB[sl])
+        holes, pairs = self._holes_in(sl)
+        if len(holes) or len(pairs):  # frames with missing markers: their terms in marker space
+            Bm, S, V = self._B, self._S[sl], self.valid_[sl]
+            if len(holes):
+                v3 = np.repeat(V[holes], 3, axis=1)
+                pos[holes] = ((self._bt[sl][holes, None] * self._gamma3 * v3) * (X[holes] @ Bm.T - S[holes])) @ Bm
+            if len(pairs):
+                ve = np.repeat(V[pairs] & V[pairs + 1], 3, axis=1)
+                Re[pairs] = (((X[pairs + 1] - X[pairs]) @ Bm.T - (S[pairs + 1] - S[pairs])) * ve) @ Bm
+        g = self.alpha_ * (X @ self.P_ - self.q_) + pos + self.ridge_ * X
         if self._named is not None:
             g += self.name_weight_ * (X - self._named[sl])
         if self.quadratic_ is not None:
@@ -1197,6 +1208,16 @@ class SpacetimeSolver:
         g[1:] += Re
         g[:-1] -= Re
         return 2 * g
+
+    def _holes_in(self, sl: slice) -> tuple:
+        """Frames (relative to ``sl``) with a missing marker, and the differences (t, t + 1)
+        that touch one: the only places the data terms need the marker space."""
+        holes = np.flatnonzero(~self._full_[sl])
+        if not len(holes):
+            return holes, holes
+        n = len(self._full_[sl])
+        pairs = np.unique(np.r_[holes - 1, holes])
+        return holes, pairs[(pairs >= 0) & (pairs < n - 1)]
 
     def _shape_index(self, shapes, what) -> np.ndarray:
         if shapes is None:
@@ -1283,8 +1304,6 @@ class SpacetimeSolver:
         K = self.K
         n = hi - lo + 1
         Bm = self._B
-        Sr = self._S[lo:hi + 1]
-        V3 = np.repeat(self.valid_[lo:hi + 1], 3, axis=1)
         bt = self._bt[lo:hi + 1]
         g3 = self._gamma3
         A, G = self._A, self._G
@@ -1294,15 +1313,25 @@ class SpacetimeSolver:
             r += self.name_weight_ * self._named[lo:hi + 1]
         if linear is not None:
             r += linear
-        # position term: G_t = B^T diag(gamma * valid_t) B, stored only where a marker is missing
-        Gh = {int(t): np.einsum("ri,r,rj->ij", Bm, g3 * V3[t], Bm, optimize=True) for t in np.flatnonzero(~V3.all(1))}
-        r += bt[:, None] * ((Sr * g3 * V3) @ Bm)
+        # the data in weight space; frames with a missing marker (and the differences touching
+        # them) in marker space, where G_t = B^T diag(gamma valid_t) B and A_e differ from G, A
+        holes, pairs = self._holes_in(slice(lo, hi + 1))
+        Sr, V = self._S[lo:hi + 1], self.valid_[lo:hi + 1]
+        SG = self._SGB[lo:hi + 1].copy()
+        Gh: dict = {}
+        for t in holes:
+            v3 = np.repeat(V[t], 3)
+            SG[t] = (Sr[t] * g3 * v3) @ Bm
+            Gh[int(t)] = np.einsum("ri,r,rj->ij", Bm, g3 * v3, Bm, optimize=True)
+        r += bt[:, None] * SG
         Ah: dict = {}
         if n > 1:
-            ve = V3[:-1] & V3[1:]
-            Ye = ((Sr[1:] - Sr[:-1]) * ve) @ Bm
-            Ah = {int(e): np.einsum("ri,r,rj->ij", Bm, ve[e].astype(float), Bm, optimize=True)
-                  for e in np.flatnonzero(~ve.all(1))}
+            SB = self._SB[lo:hi + 1]
+            Ye = SB[1:] - SB[:-1]
+            for e in pairs:
+                ve = np.repeat(V[e] & V[e + 1], 3)
+                Ye[e] = ((Sr[e + 1] - Sr[e]) * ve) @ Bm
+                Ah[int(e)] = np.einsum("ri,r,rj->ij", Bm, ve.astype(float), Bm, optimize=True)
             r[:-1] -= Ye
             r[1:] += Ye
         # eliminate known entries: r -= H c
