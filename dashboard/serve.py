@@ -9,7 +9,7 @@ from typing import Optional
 
 def serve(port: int = 5006, address: str = "localhost", show: bool = False, allow_websocket_origin=None,
           data_dir=None, review: bool = True, password: Optional[str] = None, max_upload_mb: float = 200.0,
-          oauth: Optional[dict] = None) -> int:
+          oauth: Optional[dict] = None, warm_pages: int = 4) -> int:
     """Serve the dashboard until interrupted. No browser opens unless ``show``.
 
     Parameters
@@ -22,6 +22,9 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     max_upload_mb : the largest file a page may upload (the websocket refuses larger messages)
     oauth : ``{"provider": "github", "key": ..., "secret": ..., "redirect_uri": ..., "encryption_key": ...}``
         for Panel's OAuth (see docs/review.md)
+    warm_pages : pages of every opened shot built ahead while the server is idle, so that this many
+        reviewers opening it at once are served without waiting for Bokeh to build their pages
+        (:mod:`dashboard.warm`; 0: none; each costs ~2 MB)
     """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
@@ -35,6 +38,9 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     if review:
         server = rv.configure(data_dir, max_upload_mb)
         print(f"review store: {server.data_dir}", flush=True)
+        from dashboard import warm
+
+        warm.configure(warm_pages)
     origins = [f"{address}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"] + list(allow_websocket_origin or [])
     kwargs = dict(websocket_origin=origins, liveness=True, threaded=True,
                   # base64 of the largest file a page may send; beyond that Tornado closes the connection

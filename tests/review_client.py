@@ -120,8 +120,11 @@ class Page:
         self._reader: Optional[asyncio.Task] = None
 
     # -- connecting ----------------------------------------------------------------------------
-    async def open(self) -> "Page":
-        """GET the page, connect, pull the document; ``get_s``/``pull_s``: how long each took."""
+    async def open(self, defer: bool = False) -> "Page":
+        """GET the page, connect, pull the document; ``get_s``/``pull_s``: how long each took.
+        ``defer``: stop once the document has arrived and build it in :meth:`load` (a browser
+        builds it in its own process; this client would otherwise spend its time building one
+        page's models while the next pages' replies wait unread)."""
         from urllib.parse import urlencode
 
         query = ("?" + urlencode(self.args)) if self.args else ""
@@ -146,9 +149,15 @@ class Page:
                 raise RuntimeError("the server closed the connection")
             if reply.msgtype == "PULL-DOC-REPLY":
                 break
+        self.pull_s = time.monotonic() - t0
+        self._reply = reply
+        return self if defer else await self.load()
+
+    async def load(self) -> "Page":
+        """Build the pulled document and start listening (:meth:`open` does it unless deferred)."""
+        reply, self._reply = self._reply, None
         self.doc = Document()
         reply.push_to_document(self.doc)
-        self.pull_s = time.monotonic() - t0
         self.doc.callbacks.on_change_dispatch_to(self)
         self._reader = asyncio.ensure_future(self._read_loop())
         self.doc.callbacks.trigger_on_change(MessageSentEvent(self.doc, "bokeh_event", DocumentReady()))
@@ -313,20 +322,25 @@ ALPHA = re.compile(r"Seol α")
 BETA = re.compile(r"Seol β")
 
 
-async def open_pages(base: str, shot_id: Optional[str], n: int, on_patch=None, app: str = "/") -> tuple:
+async def open_pages(base: str, shot_id: Optional[str], n: int, on_patch=None, app: str = "/",
+                     defer: bool = False) -> tuple:
     """Open ``n`` pages at once; returns ``(pages, served)`` with ``served[i]`` the time from the
-    start to page ``i`` being complete (document pulled), in completion order."""
+    start to page ``i`` being complete (document pulled), in completion order. ``defer``: the
+    times are to each document's arrival, the documents are built after the last (Page.open)."""
     t0 = time.monotonic()
     done = []
 
     async def one(i):
         p = Page(base, app=app, args={"shot": shot_id} if shot_id else None, on_patch=on_patch)
         p.index = i
-        await p.open()
+        await p.open(defer=defer)
         done.append(time.monotonic() - t0)
         return p
 
     pages = await asyncio.gather(*(one(i) for i in range(n)))
+    if defer:
+        for p in pages:
+            await p.load()
     return list(pages), sorted(done)
 
 

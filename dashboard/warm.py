@@ -1,0 +1,259 @@
+"""Warm pages: pages of a shared shot built ahead of the people who will open them.
+
+Every page costs the server the Bokeh document Panel builds for it in Python, under the GIL:
+about 260 models, ~1.2 s of CPU on the 2-core machines (the review issue's "sessions are cheap";
+measured: 20 pages of a computed shot requested at once, the 20th served after 22 s, one after
+another). Sharing the computed results (the stage cache, the viewer payloads) is already done;
+what is left is Bokeh's per-document work, which no sharing removes: a bare Bokeh page of 100
+``Div`` models served to 20 clients at once takes 3.7 s for the 20th on the same machine.
+
+So the server builds a shot's pages before they are asked for, while it is idle. The pages of
+one shot are alike until someone opens them, and a review is opened by a few people at once
+(the lead mails the link). ``face-retarget serve --warm-pages N`` keeps up to N pages of every
+shot that was opened ready; ``/?shot=<id>`` hands one out and then costs only the HTML, a fresh
+session token and the document's serialisation.
+
+A warm page is *dormant* until it is handed out: it is not among the participants, and it does
+not follow the hub as changes come (twenty dormant pages recomputing every change would
+multiply the work of each change by twenty). Instead a waiting page that missed changes catches
+up with them when the server is idle again, one page at a time — the same pull as a remote
+change (:class:`dashboard.review.Mirror`). Handed out, it takes the request's token, cookies and
+arguments, joins the shot under the reviewer's name and pulls whatever it still missed. Its Bokeh
+session is kept from expiring while it waits (Bokeh discards a session nobody connected to after
+15 s).
+
+Building waits until the server has been idle for :data:`IDLE_S` (no page asked for, no change
+to the shot, and the event loop answering on time): a build holds the event loop for about a
+second, and a change of a review should not wait behind one. Each build is one page; the loop
+runs the other sessions' work in between.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Optional
+
+log = logging.getLogger("face_retarget.warm")
+
+#: seconds without a page request or a change before a warm page is built
+IDLE_S = 3.0
+#: the most shots that keep warm pages (the most recently opened)
+MAX_SHOTS = 8
+
+
+class WarmPool:
+    """Ready (dormant) pages per shot id, and their refilling (see the module docstring)."""
+
+    def __init__(self, size: int, idle_s: float = IDLE_S, max_shots: int = MAX_SHOTS):
+        if size < 0:
+            raise ValueError(f"warm pages: expected a count >= 0, got {size}")
+        self.size, self.idle_s, self.max_shots = int(size), float(idle_s), int(max_shots)
+        self.ready: dict = {}  # shot id -> [(ServerSession, DashboardApp)], oldest first
+        self.building: set = set()  # Bokeh session ids being built as warm pages
+        self.apps: dict = {}  # Bokeh session id -> the DashboardApp built for it (create_app puts it)
+        self._filling: set = set()  # shot ids whose refill is running
+        self._order: list = []  # shot ids, most recently opened last
+        self._watched: dict = {}  # shot id -> (hub, watcher) bumping the activity clock on changes
+        self._ctx: dict = {}  # shot id -> (Bokeh application context, application) to build pages in
+        self.last_activity = time.monotonic()
+
+    def touch(self, *_) -> None:
+        """Something happened (a page was asked for, a shot changed): builds wait."""
+        self.last_activity = time.monotonic()
+
+    def claim(self, shot_id: str):
+        """A ready ``(ServerSession, DashboardApp)`` of ``shot_id``, or None."""
+        pages = self.ready.get(shot_id) or []
+        while pages:
+            session, app = pages.pop(0)
+            if not session.destroyed:
+                return session, app
+        return None
+
+    def count(self, shot_id: str) -> int:
+        return len(self.ready.get(shot_id) or [])
+
+    def want(self, app_context, application, shot_id: str, hub=None) -> None:
+        """Keep ``shot_id``'s pages topped up and current (on the event loop, while idle)."""
+        if self.size <= 0:
+            return
+        from tornado.ioloop import IOLoop
+
+        self._loop = IOLoop.current()
+        self._ctx[shot_id] = (app_context, application)
+        if shot_id in self._order:
+            self._order.remove(shot_id)
+        self._order.append(shot_id)
+        for old in self._order[:-self.max_shots]:  # shots no one opened for a while: let their pages go
+            self._order.remove(old)
+            self._ctx.pop(old, None)
+            for session, _ in self.ready.pop(old, []):
+                session.unblock_expiration()
+            hub_w = self._watched.pop(old, None)
+            if hub_w is not None:
+                hub_w[0].param.unwatch(hub_w[1])
+        if hub is not None and shot_id not in self._watched:
+            self._watched[shot_id] = (hub, hub.param.watch(lambda e, s=shot_id: self._changed(s), ["version"]))
+        self._kick(shot_id)
+
+    def _changed(self, shot_id: str) -> None:
+        """The shot changed (any thread): builds wait, and its waiting pages will catch up."""
+        self.touch()
+        loop = getattr(self, "_loop", None)
+        if loop is not None:
+            loop.add_callback(self._kick, shot_id)
+
+    def _kick(self, shot_id: str) -> None:
+        if shot_id in self._filling or shot_id not in self._ctx:
+            return
+        self._filling.add(shot_id)
+        self._loop.spawn_callback(self._maintain, shot_id)
+
+    def _stale(self, shot_id: str):
+        for session, app in self.ready.get(shot_id) or []:
+            m = app.mirror
+            if not session.destroyed and m is not None and m.version != m.hub.version:
+                return app
+        return None
+
+    async def _maintain(self, shot_id: str) -> None:
+        """While idle, one step at a time: a waiting page that missed a change catches up (so a
+        page handed out is current and costs no recompute then), else one more page is built."""
+        import asyncio
+
+        try:
+            while shot_id in self._order:
+                stale = self._stale(shot_id)
+                if stale is None and self.count(shot_id) >= self.size:
+                    break
+                await self._idle()
+                if shot_id not in self._order:
+                    break
+                stale = self._stale(shot_id)
+                if stale is not None:
+                    stale.catch_up()
+                elif self.count(shot_id) < self.size:
+                    got = await self._build(*self._ctx[shot_id], shot_id)
+                    if got is None:
+                        break
+                    self.ready.setdefault(shot_id, []).append(got)
+                    n = self.count(shot_id)
+                    if n == self.size:
+                        log.info("shot %s: %d of %d warm pages ready", shot_id[:6], n, self.size)
+                await asyncio.sleep(0.05)  # the other sessions' work between two steps
+        finally:
+            self._filling.discard(shot_id)
+
+    async def _idle(self) -> None:
+        """Return once the server has been idle for :attr:`idle_s`."""
+        import asyncio
+
+        while time.monotonic() - self.last_activity < self.idle_s:
+            t = time.monotonic()
+            await asyncio.sleep(0.25)
+            if time.monotonic() - t > 0.4:  # the loop was busy (pages being built, a recompute): not idle
+                self.touch()
+
+    async def _build(self, app_context, application, shot_id: str):
+        """One dormant page of ``shot_id``, as Bokeh builds a requested one (the app function runs
+        with ``?shot=<id>``; :func:`dashboard.app.create_app` sees it is warm by its session id)."""
+        from bokeh.util.token import generate_jwt_token, generate_session_id
+        from tornado.httputil import HTTPHeaders, HTTPServerRequest
+
+        sid = generate_session_id(secret_key=application.secret_key, signed=application.sign_sessions)
+        token = generate_jwt_token(sid, secret_key=application.secret_key, signed=application.sign_sessions,
+                                   expiration=application.session_token_expiration,
+                                   extra_payload={"headers": {}, "cookies": {}, "arguments": {"shot": [shot_id.encode()]}})
+        request = HTTPServerRequest(method="GET", uri=f"/?shot={shot_id}", headers=HTTPHeaders())
+        self.building.add(sid)
+        t0 = time.perf_counter()
+        try:
+            session = await app_context.create_session_if_needed(sid, request, token)
+        except Exception:  # noqa: BLE001 - a page that cannot be built is built when asked for, with its error
+            log.warning("shot %s: building a warm page failed", shot_id[:6], exc_info=True)
+            return None
+        finally:
+            self.building.discard(sid)
+        app = self.apps.pop(sid, None)
+        if app is None:  # the app function served something else (an unknown shot): not a page to keep
+            return None
+        session.block_expiration()
+        log.debug("shot %s: warm page built in %.2f s", shot_id[:6], time.perf_counter() - t0)
+        return session, app
+
+
+#: the server's pool, when ``serve`` was started with ``warm_pages > 0`` (else None)
+POOL: Optional[WarmPool] = None
+
+
+def configure(size: int) -> Optional[WarmPool]:
+    """Set up the pool and route page requests through :func:`handler_class` (before the server
+    is made: Bokeh reads its URL patterns then)."""
+    global POOL
+    POOL = WarmPool(size) if size > 0 else None
+    if POOL is not None:
+        from bokeh.server import urls
+
+        urls.per_app_patterns[:] = [(p, handler_class() if p == r"/?" else h) for p, h in urls.per_app_patterns]
+    return POOL
+
+
+def is_warming(doc) -> bool:
+    """True while ``doc`` is being built as a warm page."""
+    ctx = getattr(doc, "session_context", None)
+    return POOL is not None and ctx is not None and ctx.id in POOL.building
+
+
+def handler_class():
+    """Panel's page handler, which hands out a warm page of the requested shot when one is ready."""
+    from panel.io.server import DocHandler
+
+    class WarmDocHandler(DocHandler):
+        async def get_session(self):
+            pool = POOL
+            shot_id = (self.get_argument("shot", default="") or "").strip()
+            explicit = self.get_argument("bokeh-token", default=None) or self.get_argument("bokeh-session-id", default=None)
+            if pool is None or not shot_id or explicit:
+                return await super().get_session()
+            pool.touch()
+            got = pool.claim(shot_id)
+            if got is None:
+                session = await super().get_session()
+            else:
+                session = self._hand_out(*got)
+            from dashboard import review
+
+            hub = review.SERVER.hubs.get(shot_id) if review.SERVER is not None else None
+            if hub is not None:  # a shot that exists: keep its pages warm
+                pool.want(self.application_context, self.application, shot_id, hub)
+            return session
+
+        def _hand_out(self, session, app):
+            """The warm page becomes this request's: its token (expiry, cookies, headers,
+            arguments), its request as Panel reads it, the reviewer, and the shot as it is now."""
+            from bokeh.server.contexts import _RequestProxy
+            from bokeh.util.token import generate_jwt_token
+            from panel.io.state import set_curdoc
+
+            payload = self._generate_token_payload()
+            token = generate_jwt_token(session.id, secret_key=self.application.secret_key,
+                                       signed=self.application.sign_sessions,
+                                       expiration=self.application.session_token_expiration, extra_payload=payload)
+            # Bokeh keeps the token and request of the (made-up) request the page was built for;
+            # the page is now this request's (private attributes: Bokeh has no API to re-key a session)
+            session._token = token
+            ctx = self.application_context._session_contexts.get(session.id)
+            if ctx is not None:
+                ctx._token = token
+                ctx._request = _RequestProxy(self.request, arguments=payload.get("arguments"),
+                                             cookies=payload.get("cookies"), headers=payload.get("headers"))
+            session.unblock_expiration()
+            import panel as pn
+
+            with set_curdoc(session.document):
+                app.wake(getattr(pn.state, "user", None) or "")  # as create_app reads it
+            log.info("shot %s: a warm page handed out", app.mirror.hub.shot_id[:6] if app.mirror else "?")
+            return session
+
+    return WarmDocHandler
