@@ -86,8 +86,13 @@ class ReviewPanel:
             title="Shared review", collapsed=False, sizing_mode="stretch_width")
         doc = mirror.doc
         def run(f):  # a dormant page (dashboard.warm) draws the people and the frame when it wakes
-            if not mirror.dormant:
-                doc.add_next_tick_callback(f) if doc is not None else f()
+            if mirror.dormant:
+                return
+            if doc is not None:
+                doc.add_next_tick_callback(f)
+            else:
+                f()
+
         self._hub_watchers = [
             self.hub.param.watch(lambda e: run(self.draw_people), ["participants", "presenter"]),
             self.hub.param.watch(lambda e: run(self._follow), ["frame", "playing"]),

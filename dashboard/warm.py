@@ -1,9 +1,9 @@
 """Warm pages: pages of a shared shot built ahead of the people who will open them.
 
 Every page costs the server the Bokeh document Panel builds for it in Python, under the GIL:
-about 260 models, ~1.2 s of CPU on the 2-core machines (the review issue's "sessions are cheap";
-measured: 20 pages of a computed shot requested at once, the 20th served after 22 s, one after
-another). Sharing the computed results (the stage cache, the viewer payloads) is already done;
+about 260 models, ~0.9 s of CPU on the 2-core machines (the review issue's "sessions are cheap";
+measured: 20 pages of a computed shot requested at once, the 20th served after 17-19 s, one
+after another). Sharing the computed results (the stage cache, the viewer payloads) is already done;
 what is left is Bokeh's per-document work, which no sharing removes: a bare Bokeh page of 100
 ``Div`` models served to 20 clients at once takes 3.7 s for the 20th on the same machine.
 
