@@ -35,6 +35,9 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     from dashboard import session as sessions
 
     sessions.MAX_UPLOAD = int(max_upload_mb * 2**20)
+    swept = sessions.sweep_orphan_uploads()  # what killed servers left behind
+    if swept:
+        print(f"removed {swept} upload folder(s) of servers that are gone", flush=True)
     if review:
         server = rv.configure(data_dir, max_upload_mb)
         print(f"review store: {server.data_dir}", flush=True)

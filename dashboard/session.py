@@ -12,6 +12,7 @@ packaging results.
 from __future__ import annotations
 
 import logging
+import os
 import tempfile
 import threading
 import time
@@ -74,6 +75,36 @@ def bundled(kind: str) -> dict:
     return {p.name: str(p) for p in files}
 
 
+#: the temp folders of sessions' uploads are named ``<prefix><server pid>-<random>``
+UPLOAD_PREFIX = "face-retarget-upload-"
+
+
+def sweep_orphan_uploads(root=None) -> int:
+    """Remove the upload folders of servers that are gone (a killed server cannot remove its
+    sessions' folders: each holds every file uploaded into it). Only folders named with the PID
+    of a process that no longer exists are touched. Returns how many were removed."""
+    import shutil
+
+    removed = 0
+    for d in Path(root or tempfile.gettempdir()).glob(f"{UPLOAD_PREFIX}*-*"):
+        pid = d.name[len(UPLOAD_PREFIX):].split("-", 1)[0]
+        if not (pid.isdigit() and d.is_dir()) or _alive(int(pid)):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed += not d.exists()
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
 class Session(param.Parameterized):
     """Selections + pipeline + results for one browser tab."""
 
@@ -117,7 +148,7 @@ class Session(param.Parameterized):
             import shutil
             import weakref
 
-            self._upload_dir = Path(tempfile.mkdtemp(prefix="face-retarget-upload-"))
+            self._upload_dir = Path(tempfile.mkdtemp(prefix=f"{UPLOAD_PREFIX}{os.getpid()}-"))
             weakref.finalize(self, shutil.rmtree, str(self._upload_dir), ignore_errors=True)
         return self._upload_dir
 

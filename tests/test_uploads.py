@@ -86,3 +86,24 @@ def test_upload_folder_is_made_on_use_and_removed_with_the_session():
     del s
     gc.collect()
     assert not folder.exists()
+
+
+def test_upload_folders_of_dead_servers_are_swept(tmp_path):
+    """A killed server cannot remove its sessions' upload folders; the next server start removes
+    those of processes that are gone and leaves the living ones' (and anything else) alone."""
+    import os
+    import subprocess
+    import sys
+
+    from dashboard.session import UPLOAD_PREFIX, sweep_orphan_uploads
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = tmp_path / f"{UPLOAD_PREFIX}{gone.pid}-abc"
+    mine = tmp_path / f"{UPLOAD_PREFIX}{os.getpid()}-def"
+    other = tmp_path / f"{UPLOAD_PREFIX}notapid"
+    for d in (dead, mine, other):
+        d.mkdir()
+        (d / "take.csv").write_text("x")
+    assert sweep_orphan_uploads(tmp_path) == 1
+    assert not dead.exists() and mine.exists() and other.exists()
