@@ -162,8 +162,8 @@ class DashboardApp(pn.viewable.Viewer):
         """A dormant page pulls the shot's changes now (while the server is idle), so that it is
         current when handed out (:mod:`dashboard.warm`)."""
         m = self.mirror
-        if m is not None and m.dormant and m.version != m.hub.version:
-            m._pull()
+        if m is not None and m.dormant:
+            m._pull()  # a no-op when it has the hub's version
 
     def _resend_settings(self, names) -> None:
         """Send this page's widgets of ``names`` their values again (the shot took the page's

@@ -55,7 +55,8 @@ class WarmPool:
         self._filling: set = set()  # shot ids whose refill is running
         self._order: list = []  # shot ids, most recently opened last
         self._watched: dict = {}  # shot id -> (hub, watcher) bumping the activity clock on changes
-        self._ctx: dict = {}  # shot id -> (Bokeh application context, application) to build pages in
+        self._ctx = None  # (Bokeh application context, application) of the page route, pages are built in
+        self._loop = None  # the server's event loop (a shot may change on another thread)
         self.last_activity = time.monotonic()
 
     def touch(self, *_) -> None:
@@ -81,13 +82,12 @@ class WarmPool:
         from tornado.ioloop import IOLoop
 
         self._loop = IOLoop.current()
-        self._ctx[shot_id] = (app_context, application)
+        self._ctx = (app_context, application)
         if shot_id in self._order:
             self._order.remove(shot_id)
         self._order.append(shot_id)
         for old in self._order[:-self.max_shots]:  # shots no one opened for a while: let their pages go
             self._order.remove(old)
-            self._ctx.pop(old, None)
             for session, _ in self.ready.pop(old, []):
                 session.unblock_expiration()
             hub_w = self._watched.pop(old, None)
@@ -100,12 +100,11 @@ class WarmPool:
     def _changed(self, shot_id: str) -> None:
         """The shot changed (any thread): builds wait, and its waiting pages will catch up."""
         self.touch()
-        loop = getattr(self, "_loop", None)
-        if loop is not None:
-            loop.add_callback(self._kick, shot_id)
+        if self._loop is not None:
+            self._loop.add_callback(self._kick, shot_id)
 
     def _kick(self, shot_id: str) -> None:
-        if shot_id in self._filling or shot_id not in self._ctx:
+        if shot_id in self._filling or shot_id not in self._order:
             return
         self._filling.add(shot_id)
         self._loop.spawn_callback(self._maintain, shot_id)
@@ -134,7 +133,7 @@ class WarmPool:
                 if stale is not None:
                     stale.catch_up()
                 elif self.count(shot_id) < self.size:
-                    got = await self._build(*self._ctx[shot_id], shot_id)
+                    got = await self._build(*self._ctx, shot_id)
                     if got is None:
                         break
                     self.ready.setdefault(shot_id, []).append(got)
