@@ -8,7 +8,8 @@ this module adds to the server.
 
 Three ways to get the route onto a server:
 
-* ``python scripts/viewer_demo.py`` / :func:`serve`: wraps ``pn.serve`` with the route;
+* ``python scripts/viewer_demo.py`` / :func:`serve`: wraps ``pn.serve`` with the route (and
+  the route of the viewers' meshes, :mod:`dashboard.payloads`, which only this way is used);
 * ``panel serve app.py --plugins dashboard.assets``: Panel's plugin hook imports this module
   and adds :data:`ROUTES`;
 * anything else that builds a tornado app: add :func:`routes` (or :func:`static_dirs` for
@@ -153,8 +154,11 @@ def _handler():
 
 
 def routes() -> list:
-    """Tornado routes serving three.js under ``/`` + :data:`THREE_ROUTE`."""
-    return [(rf"/{THREE_ROUTE}/(.*)", _handler(), {})]
+    """Tornado routes serving three.js under ``/`` + :data:`THREE_ROUTE`, and the viewers' meshes
+    (:mod:`dashboard.payloads`)."""
+    from . import payloads
+
+    return [(rf"/{THREE_ROUTE}/(.*)", _handler(), {})] + payloads.routes()
 
 
 #: Panel's plugin hook: ``panel serve app.py --plugins dashboard.assets`` adds these routes
@@ -169,6 +173,9 @@ def serve(panels, port: int = 0, address: str = "localhost", show: bool = False,
     """
     import panel as pn
 
+    from . import payloads
+
     three_dir()
     extra = list(kwargs.pop("extra_patterns", [])) + routes()
+    payloads.enable()  # viewers made from now on send their mesh by URL, not inside the document
     return pn.serve(panels, port=port, address=address, show=show, extra_patterns=extra, **kwargs)

@@ -41,7 +41,7 @@ from panel.io.state import state
 
 from core.normalmap import encode_normal_map  # noqa: F401  (re-exported for views and tests)
 
-from . import assets
+from . import assets, payloads
 
 _STATIC = Path(__file__).parent / "static"
 
@@ -124,9 +124,22 @@ class MeshViewer(pn.custom.JSComponent):
     ``pixels()``, ``pickAt(x, y)``, ``vertexPositions(ids)`` and ``camera()`` (see ``docs/viewer.md``).
     """
 
-    neutral = param.Array(default=None, doc="(V, 3) float32 rest positions, metres.")
-    faces = param.Array(default=None, doc="(F, 3) uint32 triangles.")
-    deltas = param.Array(default=None, doc="(K, V, 3) float32 shape deltas, metres.")
+    # the mesh is kept here and reaches the browser packed into one blob (dashboard.payloads):
+    # by URL on our server, inside the document otherwise (see _rename)
+    neutral = param.Array(default=None, precedence=-1, doc="(V, 3) float32 rest positions, metres.")
+    faces = param.Array(default=None, precedence=-1, doc="(F, 3) uint32 triangles.")
+    deltas = param.Array(default=None, precedence=-1, doc="(K, V, 3) float32 shape deltas, metres.")
+    geometry_url = param.String(
+        default="", doc="Set from neutral/faces/deltas: the path (from the server root) of their packed blob "
+                        "(dashboard.payloads), which the browser fetches once and caches; empty when the blob "
+                        "travels inline in `geometry`.")
+    geometry = param.Array(
+        default=None, doc="Set from neutral/faces/deltas when the server has no mesh route (a notebook, "
+                          "`panel serve` without dashboard.assets.serve) or `inline_geometry` is on: the packed "
+                          "blob as uint8, sent in the document (binary).")
+    inline_geometry = param.Boolean(
+        default=False, precedence=-1,
+        doc="Send the mesh inside the document even when the server serves meshes by URL.")
     shape_names = param.List(default=[], item_type=str, doc="K shape names.")
     track = param.Array(default=None, doc="(T, K) float32 weight track played in the browser.")
     weights = param.List(default=[], doc="K floats shown instead of the track while non-empty.")
@@ -205,6 +218,9 @@ class MeshViewer(pn.custom.JSComponent):
 
     _esm = _STATIC / "viewer.js"
 
+    # kept in Python only: the mesh reaches the browser packed (geometry_url / geometry)
+    _rename = {"neutral": None, "faces": None, "deltas": None, "inline_geometry": None}
+
     # three.js is imported from our own server (dashboard.assets), never a CDN
     _importmap = {"imports": {"three": assets.three_url(".")}}
 
@@ -262,6 +278,8 @@ class MeshViewer(pn.custom.JSComponent):
         )
         values.setdefault("label", name)
         values.update(cls._track_values(track, K, "track"))
+        values.update(cls._geometry_values(values["neutral"], values["faces"], values["deltas"],
+                                           params.get("inline_geometry", False)))
         if layout is not None and marker_track is not None:
             raise ValueError("give either layout (markers on the mesh) or marker_track (positions), not both")
         if layout is not None:
@@ -282,6 +300,34 @@ class MeshViewer(pn.custom.JSComponent):
             values["offsets"] = _f32(offsets, "offsets", (V, 3))
         values.update(params)
         return cls(**values)
+
+    def __init__(self, **params):
+        payload = params.pop("_payload", None)
+        super().__init__(**params)
+        self._payload = payload  # the registry only refers to a blob while a viewer holds it
+        if self.neutral is not None and not self.geometry_url and self.geometry is None:
+            self._set_geometry()
+        self.param.watch(lambda *e: self._set_geometry(), ["neutral", "faces", "deltas", "inline_geometry"])
+
+    @staticmethod
+    def _geometry_values(neutral, faces, deltas, inline: bool = False) -> dict:
+        """``geometry_url`` / ``geometry`` for these arrays (see :mod:`dashboard.payloads`), and
+        under ``_payload`` the :class:`~dashboard.payloads.Payload` the viewer must hold (or None)."""
+        if neutral is None:
+            return {"geometry_url": "", "geometry": None, "_payload": None}
+        faces = np.zeros((0, 3), np.uint32) if faces is None else faces
+        deltas = np.zeros((0, len(neutral), 3), np.float32) if deltas is None else deltas
+        if payloads.enabled() and not inline:
+            p = payloads.register(neutral, faces, deltas)
+            return {"geometry_url": p.url, "geometry": None, "_payload": p}
+        blob = np.frombuffer(payloads.pack(neutral, faces, deltas), dtype=np.uint8)
+        return {"geometry_url": "", "geometry": blob, "_payload": None}
+
+    def _set_geometry(self, **more) -> None:
+        # after a direct assignment (``viewer.deltas = ...``), or with the setters' other changes
+        values = self._geometry_values(self.neutral, self.faces, self.deltas, self.inline_geometry)
+        self._payload = values.pop("_payload")
+        self.param.update(**values, **more)
 
     @staticmethod
     def _track_values(track, K: int, what: str) -> dict:
@@ -361,7 +407,10 @@ class MeshViewer(pn.custom.JSComponent):
         recomputes its normals). Raises ValueError for another shape or NaN."""
         K = self.n_shapes
         V = 0 if self.neutral is None else len(self.neutral)
-        self.deltas = _f32(deltas, "deltas", (K, V, 3))
+        d = _f32(deltas, "deltas", (K, V, 3))
+        with param.discard_events(self):
+            self.deltas = d
+        self._set_geometry()
 
     def set_shapes(self, deltas, track, shape_names=None) -> None:
         """Replace the shapes and their track together; unlike :meth:`set_deltas` the shape count
@@ -381,7 +430,9 @@ class MeshViewer(pn.custom.JSComponent):
         values.update(self._track_values(track, K, "track"))
         T = 1 if values["track"] is None else len(values["track"])
         values["frame"] = min(self.frame, T - 1)
-        self.param.update(**values)
+        with param.discard_events(self):
+            self.deltas = values.pop("deltas")
+        self._set_geometry(**values)
 
     def set_highlight(self, vertices) -> None:
         """Mark ``vertices`` (ids of this rig) with spheres; raises ValueError for ids outside [0, V)."""

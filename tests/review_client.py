@@ -4,7 +4,7 @@ benchmark (benchmarks/bench_review.py).
 
 A :class:`Page` does what a browser does with a Panel page: ``GET /?shot=<id>`` (the server
 builds the session's document then), the websocket with the session's token, ``PULL-DOC`` (the
-document's models arrive), ``DocumentReady``; afterwards it applies every ``PATCH-DOC`` the server
+document's models arrive), the GET of the viewers' meshes (dashboard.payloads), ``DocumentReady``; afterwards it applies every ``PATCH-DOC`` the server
 sends and sends its own model changes as patches. Bokeh's ``ClientSession`` does the same but
 reads messages only inside its own blocking loop, one session at a time; twenty pages at once
 need one reader coroutine each, so the protocol steps are spelled out here (on Bokeh's own
@@ -30,6 +30,12 @@ from bokeh.protocol import Protocol
 from bokeh.protocol.receiver import Receiver
 from tornado.httpclient import AsyncHTTPClient, HTTPRequest
 from tornado.websocket import websocket_connect
+
+# twenty pages at once are twenty browsers: Tornado's client would queue all but 10 requests
+AsyncHTTPClient.configure(None, max_clients=100)
+
+#: the address of a viewer's mesh in a pulled document (dashboard.payloads.ROUTE)
+MESH_URL = re.compile(r"face-retarget/payload/[0-9a-f]{32}")
 
 
 def run(coro):
@@ -151,7 +157,20 @@ class Page:
                 break
         self.pull_s = time.monotonic() - t0
         self._reply = reply
+        self.doc_bytes = len(reply._content_json or "") + sum(memoryview(b.data).nbytes for b in reply.buffers)
+        await self._fetch_meshes(reply._content_json or "")
         return self if defer else await self.load()
+
+    async def _fetch_meshes(self, content_json: str) -> None:
+        """GET the viewers' meshes as a browser does after the document (dashboard.payloads):
+        a page is not usable before them. ``mesh_s``/``mesh_bytes``: how long, how much."""
+        t0 = time.monotonic()
+        urls = sorted(set(MESH_URL.findall(content_json)))
+        replies = await asyncio.gather(*(AsyncHTTPClient().fetch(HTTPRequest(f"{self.base}/{u}",
+                                                                             request_timeout=self.timeout))
+                                         for u in urls))
+        self.mesh_bytes = sum(len(r.body) for r in replies)
+        self.mesh_s = time.monotonic() - t0
 
     async def load(self) -> "Page":
         """Build the pulled document and start listening (:meth:`open` does it unless deferred)."""

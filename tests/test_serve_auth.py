@@ -24,6 +24,9 @@ def test_password_protects_every_page(tmp_path):
         r = _get(srv.base + "/")
         assert r.status_code in (302, 303) and "/login" in r.headers["Location"], (r.status_code, r.headers)
         assert _get(srv.base + "/liveness").status_code == 200  # health checks stay open
+        mesh = srv.base + "/face-retarget/payload/" + "0" * 32  # the viewers' meshes ask for the same login
+        r = _get(mesh)
+        assert r.status_code in (302, 303) and "/login" in r.headers["Location"], (r.status_code, r.headers)
         s = requests.Session()
         bad = s.post(srv.base + "/login", data={"username": "ana", "password": "wrong"}, allow_redirects=False, timeout=30)
         assert _get(srv.base + "/", s).status_code in (302, 303), "a wrong password opened the page"
@@ -32,6 +35,7 @@ def test_password_protects_every_page(tmp_path):
         assert ok.status_code in (200, 302, 303), ok.status_code
         page = _get(srv.base + "/", s)
         assert page.status_code == 200 and "face-retarget" in page.text, (page.status_code, page.text[:300])
+        assert _get(mesh, s).status_code == 404  # logged in: past the login, and no such mesh
         assert bad.status_code != 500
 
 

@@ -1,7 +1,10 @@
 // face-retarget 3D playback viewer: a blendshape rig as three.js morph targets.
 //
-// Sent once (binary, bokeh ndarray buffers): neutral (V,3) f32, faces (F,3) u32,
-// deltas (K,V,3) f32, the weight track (T,K) f32, marker layout / marker track.
+// Sent once: the mesh, neutral (V,3) f32, faces (F,3) u32 and deltas (K,V,3) f32 packed in one
+// blob (dashboard/payloads.py, decodeGeometry below), fetched from `geometry_url` (one copy on
+// the server for every page, cached by the browser under its content key) or, without that
+// route, inline in `geometry`; then (binary, bokeh ndarray buffers) the weight track (T,K) f32
+// and the marker layout / marker track.
 // Per frame nothing travels while playing: the browser plays the track at `fps` on a
 // clock shared by every viewer in the same `sync_group`; the group's first viewer writes
 // `frame` back to Python at most every `sync_interval` seconds (0 = only when playback
@@ -171,6 +174,27 @@ function asU32(a) {
   if (a == null) return null;
   return a instanceof Uint32Array && a.constructor === Uint32Array ? a : Uint32Array.from(a);
 }
+// The mesh blob of dashboard/payloads.py: "FRG1", V, F, K (uint32), neutral (V,3) f32, faces
+// (F,3) u32, deltas (K,V,3) f32, little-endian. Views into `buf`, no copy (unless misaligned).
+const GEOMETRY_MAGIC = 0x31475246; // "FRG1" read as a little-endian uint32
+function decodeGeometry(buf, byteOffset = 0, byteLength = buf.byteLength - byteOffset) {
+  if (byteOffset % 4) {
+    buf = buf.slice(byteOffset, byteOffset + byteLength);
+    byteOffset = 0;
+  }
+  if (byteLength < 16) throw new Error(`mesh payload of ${byteLength} bytes`);
+  const head = new Uint32Array(buf, byteOffset, 4);
+  if (head[0] !== GEOMETRY_MAGIC) throw new Error("not a face-retarget mesh payload");
+  const V = head[1], F = head[2], K = head[3];
+  const need = 16 + 12 * V + 12 * F + 12 * K * V;
+  if (byteLength !== need) throw new Error(`mesh payload of ${byteLength} bytes, expected ${need}`);
+  let o = byteOffset + 16;
+  const neutral = new Float32Array(buf, o, 3 * V); o += 12 * V;
+  const faces = new Uint32Array(buf, o, 3 * F); o += 12 * F;
+  const deltas = new Float32Array(buf, o, 3 * V * K);
+  return { V, F, K, neutral, faces, deltas, bytes: byteLength };
+}
+
 function rows(a) {
   // (n, ...) ndarray -> n, or 0 for null / empty
   if (a == null || !a.length) return 0;
@@ -290,23 +314,35 @@ class Viewer {
                    geometryBuilds: 0, offsetUpdates: 0 };
     STATS.viewers[this.label] = this.stats;
     this.pickCount = 0;
+    this.geo = null;        // the decoded mesh blob (decodeGeometry), or null
+    this.geometryGen = 0;   // the latest mesh load; an older one that finishes later is dropped
     this.buildDom();
     this.buildScene();
+    this.ready = this.start();
+  }
+
+  // Everything after the mesh has arrived (fetched when it comes by URL); the viewer appears in
+  // window.__faceRetarget.viewers only then.
+  async start() {
+    await this.loadGeometry();
+    if (this.disposed) return;
     this.setGeometry();
     this.setNormalMap();
     this.setMarkers();
     this.setHighlight();
-    this.clock = clockFor(model.sync_group);
+    this.clock = clockFor(this.model.sync_group);
     this.clock.join(this);
     if (this.clock.members.size === 1) {
-      this.clock.fps = model.fps;
-      this.clock.loop = model.loop;
-      this.clock.frame = this.clock.clamp(model.frame);
+      this.clock.fps = this.model.fps;
+      this.clock.loop = this.model.loop;
+      this.clock.frame = this.clock.clamp(this.model.frame);
     }
     this.watch();
     this.showFrame(this.clock.frame, false);
-    if (model.playing) this.clock.play(true);
+    if (this.model.playing) this.clock.play(true);
     REGISTRY.viewers[this.label] = this.api();
+    // a new mesh sent while the first one was loading (before watch() listened)
+    if (this.loadedFrom !== (this.model.geometry_url || this.model.geometry)) this.reloadGeometry();
   }
 
   // -- DOM, renderer, camera -----------------------------------------------------------
@@ -478,6 +514,42 @@ class Viewer {
     this.updateMaterial();
   }
 
+  // The mesh from `geometry_url` (fetched with the page's cookies; the browser's cache keeps it,
+  // the URL being its content's hash) or from the inline `geometry` blob, into this.geo.
+  // Resolves true when this load is the latest (the caller then rebuilds), false otherwise.
+  async loadGeometry() {
+    const gen = ++this.geometryGen;
+    const m = this.model;
+    this.loadedFrom = m.geometry_url || m.geometry;
+    const t = performance.now();
+    let geo = null, error = null;
+    try {
+      if (m.geometry_url) {
+        const r = await fetch(new URL(m.geometry_url, document.baseURI), { credentials: "same-origin" });
+        if (!r.ok) throw new Error(`HTTP ${r.status} ${r.statusText}`);
+        geo = decodeGeometry(await r.arrayBuffer());
+      } else if (m.geometry && m.geometry.length) {
+        const b = m.geometry;
+        geo = decodeGeometry(b.buffer, b.byteOffset, b.byteLength);
+      }
+    } catch (err) {
+      error = String(err && err.message || err);
+    }
+    if (gen !== this.geometryGen || this.disposed) return false;
+    this.geo = geo;
+    this.stats.geometryMs = performance.now() - t;
+    this.stats.geometryBytes = geo ? geo.bytes : 0;
+    this.stats.geometrySource = m.geometry_url ? "url" : (geo ? "inline" : "none");
+    this.stats.geometryError = error;
+    if (error) console.error(`face-retarget viewer ${this.label}: the mesh could not be loaded (${error})`);
+    return true;
+  }
+
+  async reloadGeometry() {
+    if (!(await this.loadGeometry())) return;
+    this.setGeometry(); this.setMarkers(); this.setHighlight(); this.showFrame(this.clock.clamp(this.clock.frame), false);
+  }
+
   setGeometry() {
     const THREE = this.THREE;
     const m = this.model;
@@ -487,12 +559,13 @@ class Viewer {
       this.mesh = null;
     }
     this.gpu = null; this.dynamic = null; this.morphing = false; this.offsets = null;
-    const V = rows(m.neutral);
+    const g = this.geo;
+    const V = g ? g.V : 0;
     this.V = V;
-    this.K = V ? rows(m.deltas) : 0;
+    this.K = V ? g.K : 0;
     if (!V) { this.nFrames = 1; this.hasUvs = false; return; }
-    const pos = asF32(m.neutral);
-    const faces = asU32(m.faces);
+    const pos = g.neutral;
+    const faces = g.faces;
     const geom = new THREE.BufferGeometry();
     geom.setAttribute("position", new THREE.BufferAttribute(pos, 3));
     geom.setIndex(new THREE.BufferAttribute(faces, 1));
@@ -503,7 +576,7 @@ class Viewer {
     this.stats.geometryBuilds += 1;
     const n0 = vertexNormals(pos, null, faces, weld, new Float32Array(3 * V), acc);
     geom.setAttribute("normal", new THREE.BufferAttribute(n0, 3));
-    const deltas = this.K ? asF32(m.deltas) : new Float32Array(0);
+    const deltas = this.K ? g.deltas : new Float32Array(0);
     this.deltas = deltas;
     this.neutral = pos;
     this.normal0 = n0;
@@ -906,7 +979,9 @@ class Viewer {
     this.updateHighlight();
     const T = this.nFrames;
     this.overlay.textContent = `${this.model.label || ""}  frame ${frame} / ${T - 1}` +
-      (this.override ? "  (probe)" : (this.model.weights && this.model.weights.length ? "  (weights from Python)" : ""));
+      (this.override ? "  (probe)" : (this.model.weights && this.model.weights.length ? "  (weights from Python)" : "")) +
+      (this.stats.geometryError ? `  — the mesh could not be loaded (${this.stats.geometryError}); reload the page` : "");
+    this.overlay.style.color = this.stats.geometryError ? "#ff8a80" : "#ddd";
   }
 
   // position = neutral + sum_k w_k delta_k, normal = n0 + sum_k w_k dn_k over non-zero w_k;
@@ -1119,9 +1194,7 @@ class Viewer {
     m.on("loop", () => { this.clock.loop = m.loop; });
     m.on("weights", () => { this.applyFrame(this.clock.frame); this.requestRender(); });
     m.on(["track"], () => { this.setTrack(); this.showFrame(this.clock.clamp(this.clock.frame), false); });
-    m.on(["neutral", "faces", "deltas"], () => {
-      this.setGeometry(); this.setMarkers(); this.setHighlight(); this.showFrame(this.clock.clamp(this.clock.frame), false);
-    });
+    m.on(["geometry_url", "geometry"], () => this.reloadGeometry());
     m.on(["marker_vertices", "marker_weights", "marker_track", "marker_radius"], () => {
       this.setMarkers(); this.setTrack(); this.showFrame(this.clock.frame, false);
     });
@@ -1236,7 +1309,7 @@ class Viewer {
     if (this.disposed) return;
     this.disposed = true;
     if (this.pendingRender !== null) cancelAnimationFrame(this.pendingRender);
-    this.clock.leave(this);
+    if (this.clock) this.clock.leave(this); // not joined yet while the mesh was still loading
     this.resizeObserver.disconnect();
     if (this.mesh) this.disposeGeometry();
     if (this.markers) this.markers.geometry.dispose();

@@ -1,0 +1,121 @@
+"""The viewers' meshes served by content (dashboard.payloads): the blob round-trips, every page of
+one mesh shares one blob, a blob is served only while a viewer holds it, a viewer sends its mesh by
+URL on our server and inline elsewhere, and a real server's page fetches the mesh it shows (the
+document carries none of it). The browser side (decodeGeometry, both paths) runs in
+tests/browser/test_viewer.py and every dashboard browser test."""
+
+from __future__ import annotations
+
+import gc
+
+import numpy as np
+import pytest
+import requests
+
+import review_client as rc
+from dashboard import payloads
+from dashboard.viewer import MeshViewer
+
+
+def _mesh(V=50, F=40, K=3, seed=0):
+    rng = np.random.default_rng(seed)
+    n = rng.normal(size=(V, 3)).astype(np.float32)
+    f = rng.integers(0, V, size=(F, 3)).astype(np.uint32)
+    d = rng.normal(size=(K, V, 3)).astype(np.float32)
+    return n, f, d
+
+
+def _frozen(*arrays):
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
+@pytest.fixture
+def served():
+    was = payloads.enabled()
+    payloads.enable(True)
+    yield
+    payloads.enable(was)
+
+
+def test_pack_round_trips_and_rejects_other_bytes():
+    n, f, d = _mesh()
+    blob = payloads.pack(n, f, d)
+    assert len(blob) == 16 + n.nbytes + f.nbytes + d.nbytes
+    n2, f2, d2 = payloads.unpack(blob)
+    assert np.array_equal(n2, n) and np.array_equal(f2, f) and np.array_equal(d2, d)
+    with pytest.raises(ValueError, match="magic"):
+        payloads.unpack(b"GLB0" + blob[4:])
+    with pytest.raises(ValueError, match="bytes"):
+        payloads.unpack(blob[:-4])
+
+
+def test_one_blob_per_mesh_held_only_while_a_viewer_holds_it():
+    n, f, d = _frozen(*_mesh(seed=1))
+    a = payloads.register(n, f, d)
+    assert payloads.register(n, f, d) is a  # the same arrays: no second pack
+    assert payloads.register(n.copy(), f.copy(), d.copy()) is a  # the same bytes: the same blob
+    other = payloads.register(*_mesh(seed=2))
+    assert other.key != a.key and len(a.key) == 32
+    assert payloads.lookup(a.key) is a
+    key = a.key
+    del a, other
+    gc.collect()
+    assert payloads.lookup(key) is None, "a blob nobody shows is still served"
+
+
+def test_viewer_sends_its_mesh_by_url_on_our_server_and_inline_elsewhere(served):
+    n, f, d = _frozen(*_mesh(seed=3))
+
+    class Rig:
+        name, neutral, faces, deltas = "r", n, f, d
+        names = ["a", "b", "c"]
+        n_vertices, n_shapes = len(n), len(d)
+
+    v = MeshViewer.from_rig(Rig, track=np.zeros((4, 3)))
+    key = v.geometry_url.rsplit("/", 1)[-1]
+    assert v.geometry_url.startswith(payloads.ROUTE + "/") and v.geometry is None
+    assert np.array_equal(payloads.unpack(payloads.lookup(key).data)[2], d)
+    # the arrays are not synced as such: the document holds the key only
+    model = v.get_root()
+    assert "neutral" not in model.data.properties() and "deltas" not in model.data.properties()
+    assert model.data.geometry_url == v.geometry_url
+    # new shapes: a new blob, the track with them
+    v.set_shapes(d[:2] * 2, np.zeros((4, 2)), ["x", "y"])
+    assert v.geometry_url != payloads.ROUTE + "/" + key and v.n_shapes == 2
+    assert np.allclose(payloads.unpack(payloads.lookup(v.geometry_url.rsplit("/", 1)[-1]).data)[2], d[:2] * 2)
+    # a direct assignment repacks too
+    v.deltas = np.asarray(d[:2] * 3)
+    assert np.allclose(payloads.unpack(payloads.lookup(v.geometry_url.rsplit("/", 1)[-1]).data)[2], d[:2] * 3)
+    # inline: the blob in the document, no URL
+    w = MeshViewer.from_rig(Rig, inline_geometry=True)
+    assert w.geometry_url == "" and bytes(w.geometry) == payloads.pack(n, f, d)
+    payloads.enable(False)
+    assert MeshViewer.from_rig(Rig).geometry_url == ""
+
+
+@pytest.mark.slow
+def test_a_page_fetches_the_mesh_it_shows(tmp_path):
+    rc.register_models()
+    sid = rc.sample_shot(tmp_path / "data", "mesh", last_frame=59)
+    with rc.Server("--data-dir", str(tmp_path / "data"), "--warm-pages", "0") as srv:
+        async def scenario():
+            (p,), _ = await rc.open_pages(srv.base, sid, 1)
+            viewers = [m for m in p.doc.models if hasattr(m, "data") and hasattr(m.data, "geometry_url")]
+            await p.close()
+            return [(m.data.geometry_url, m.data.geometry) for m in viewers]
+
+        found = rc.run(scenario())
+        assert len(found) >= 2, found
+        for url, inline in found:
+            assert url.startswith(payloads.ROUTE + "/") and inline is None, (url, inline)
+            r = requests.get(f"{srv.base}/{url}", timeout=30)
+            assert r.status_code == 200 and r.headers["Content-Type"] == "application/octet-stream"
+            assert "immutable" in r.headers["Cache-Control"]
+            n, f, d = payloads.unpack(r.content)
+            assert len(n) > 100 and len(f) > 100 and len(d) >= 1 and np.isfinite(d).all()
+            again = requests.get(f"{srv.base}/{url}", headers={"If-None-Match": r.headers["ETag"]}, timeout=30)
+            assert again.status_code == 304 and not again.content
+        assert requests.get(f"{srv.base}/{payloads.ROUTE}/{'0' * 32}", timeout=30).status_code == 404
+        assert requests.get(f"{srv.base}/{payloads.ROUTE}/..%2F..%2Fetc%2Fpasswd", timeout=30).status_code == 404
