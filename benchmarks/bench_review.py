@@ -151,12 +151,13 @@ WARM = 20
 
 
 def _wait_for_warm(log, n, timeout=300.0):
-    """Seconds until the server's log says ``n`` warm pages are ready (it builds them while idle):
-    its last line about warm pages is the one saying so (none handed out since)."""
+    """Seconds until the server's log says ``n`` warm pages are ready, current and their documents
+    made (it does all three while idle): its last line about warm pages is the one saying so (none
+    handed out since)."""
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:
         said = [ln for ln in Path(log).read_text(errors="replace").splitlines() if "warm page" in ln]
-        if said and f"{n} of {n} warm pages ready" in said[-1]:
+        if said and f"{n} warm pages current, their documents made" in said[-1]:
             return time.monotonic() - t0
         time.sleep(0.5)
     raise RuntimeError(f"the server did not get {n} warm pages ready within {timeout:.0f} s ({log})")

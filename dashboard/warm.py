@@ -22,6 +22,13 @@ arguments, joins the shot under the reviewer's name and pulls whatever it still 
 session is kept from expiring while it waits (Bokeh discards a session nobody connected to after
 15 s).
 
+A waiting page's document is also *serialised* ahead (:class:`PulledDocument`): when its
+reviewer's browser asks for the document, the reply is already made, unless the document changed
+since (then it is made as always). Bokeh would otherwise turn the page's 260-odd models into JSON
+when asked (~0.15 s each, one page after another: 3 s for twenty pages at once). That is why a
+handed-out page joins its shot (its name in the participants, the changes it missed) right
+*after* its document is sent: those changes reach the browser as patches, like any other.
+
 Building waits until the server has been idle for :data:`IDLE_S` (no page asked for, no change
 to the shot, and the event loop answering on time): a build holds the event loop for about a
 second, and a change of a review should not wait behind one. Each build is one page; the loop
@@ -116,6 +123,17 @@ class WarmPool:
                 return app
         return None
 
+    def _unserialised(self, shot_id: str):
+        """A waiting, current page of ``shot_id`` whose document reply is not made (or no longer
+        valid), as its :class:`PulledDocument`; None when there is none."""
+        for session, app in self.ready.get(shot_id) or []:
+            m = app.mirror
+            pulled = getattr(session, "_face_retarget_pull", None)
+            if (not session.destroyed and pulled is not None and not pulled.ready()
+                    and (m is None or m.version == m.hub.version)):
+                return pulled
+        return None
+
     async def _maintain(self, shot_id: str) -> None:
         """While idle, one step at a time: a waiting page that missed a change catches up (so a
         page handed out is current and costs no recompute then), else one more page is built."""
@@ -124,7 +142,7 @@ class WarmPool:
         try:
             while shot_id in self._order:
                 stale = self._stale(shot_id)
-                if stale is None and self.count(shot_id) >= self.size:
+                if stale is None and self._unserialised(shot_id) is None and self.count(shot_id) >= self.size:
                     break
                 await self._idle()
                 if shot_id not in self._order:
@@ -132,6 +150,11 @@ class WarmPool:
                 stale = self._stale(shot_id)
                 if stale is not None:
                     stale.catch_up()
+                elif self._unserialised(shot_id) is not None:
+                    pulled = self._unserialised(shot_id)
+                    await pulled.session.with_document_locked(pulled.prepare)
+                    if self._unserialised(shot_id) is None and self._stale(shot_id) is None:
+                        log.info("shot %s: %d warm pages current, their documents made", shot_id[:6], self.count(shot_id))
                 elif self.count(shot_id) < self.size:
                     got = await self._build(*self._ctx, shot_id)
                     if got is None:
@@ -178,8 +201,78 @@ class WarmPool:
         if app is None:  # the app function served something else (an unknown shot): not a page to keep
             return None
         session.block_expiration()
+        PulledDocument.install(session)
         log.debug("shot %s: warm page built in %.2f s", shot_id[:6], time.perf_counter() - t0)
         return session, app
+
+
+class PulledDocument:
+    """A warm page's ``PULL-DOC-REPLY`` made ahead, and what runs once it has been sent.
+
+    :meth:`install` replaces the session's pull handler (Bokeh looks it up on the session, so only
+    warm pages are affected). :meth:`prepare` (while the server is idle) serialises the document
+    as Bokeh's own reply would (``Document.to_json``, then its JSON text); any change of the
+    document afterwards drops it. The pull then sends the prepared reply when it is still valid
+    and the document holds no collected changes, else makes one as Bokeh does, and afterwards
+    runs :attr:`after_pull` (the page joining its shot) on the event loop: its changes reach the
+    browser as patches behind the reply.
+    """
+
+    def __init__(self, session):
+        self.session = session
+        self.reply = None  # (content, content JSON, buffers), or None
+        self.after_pull = None  # callable run once the document has been sent
+        self.hits = 0
+        session.document.callbacks.on_change(self._changed)
+
+    @classmethod
+    def install(cls, session) -> "PulledDocument":
+        import types
+
+        from bokeh.server.session import _needs_document_lock
+
+        pulled = cls(session)
+        session._face_retarget_pull = pulled
+        # the original is this same function wrapped in Bokeh's document lock
+        session._handle_pull = types.MethodType(_needs_document_lock(PulledDocument._pull), session)
+        return pulled
+
+    def _changed(self, event) -> None:
+        from bokeh.document.events import MessageSentEvent, SessionCallbackAdded, SessionCallbackRemoved
+
+        # callbacks added or removed and messages sent change nothing the reply holds
+        if not isinstance(event, (SessionCallbackAdded, SessionCallbackRemoved, MessageSentEvent)):
+            self.reply = None
+
+    def ready(self) -> bool:
+        return self.reply is not None
+
+    def prepare(self) -> None:
+        from bokeh.core.json_encoder import serialize_json
+
+        serialized = self.session.document.to_json()
+        content = {"doc": serialized.content}
+        self.reply = (content, serialize_json(content), list(serialized.buffers))
+
+    @staticmethod
+    def _pull(session, message, connection):
+        from bokeh.protocol.messages.pull_doc_reply import pull_doc_reply
+
+        self = session._face_retarget_pull
+        cb = session.document.callbacks
+        if self.reply is not None and cb.hold_value is None and not cb._held_events:
+            content, text, buffers = self.reply
+            msg = pull_doc_reply(pull_doc_reply.create_header(request_id=message.header["msgid"]), {}, content)
+            msg._content_json = text  # the JSON made ahead (Message keeps it once made)
+            msg.add_buffers(*buffers)
+            self.hits += 1
+        else:
+            msg = connection.protocol.create("PULL-DOC-REPLY", message.header["msgid"], session.document)
+        self.reply = None  # a page pulls once; a reconnect gets a fresh reply
+        after, self.after_pull = self.after_pull, None
+        if after is not None:  # with the document lock, once this reply has been written
+            session.document.add_next_tick_callback(after)
+        return msg
 
 
 #: the server's pool, when ``serve`` was started with ``warm_pages > 0`` (else None)
@@ -251,8 +344,19 @@ def handler_class():
             import panel as pn
 
             with set_curdoc(session.document):
-                app.wake(getattr(pn.state, "user", None) or "")  # as create_app reads it
-            log.info("shot %s: a warm page handed out", app.mirror.hub.shot_id[:6] if app.mirror else "?")
+                user = getattr(pn.state, "user", None) or ""  # as create_app reads it
+
+            def wake(doc=session.document):
+                with set_curdoc(doc):
+                    app.wake(user)
+
+            pulled = getattr(session, "_face_retarget_pull", None)
+            if pulled is not None:  # the page joins its shot once its document has been sent
+                pulled.after_pull = wake
+            else:
+                wake()
+            log.info("shot %s: a warm page handed out%s", app.mirror.hub.shot_id[:6] if app.mirror else "?",
+                     " (its document made ahead)" if pulled is not None and pulled.ready() else "")
             return session
 
     return WarmDocHandler

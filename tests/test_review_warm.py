@@ -65,7 +65,17 @@ def test_a_warm_page_is_the_shot_as_it_is_now(tmp_path):
             a_beta = a.one("Slider", title=BETA)
             b.set(b.one("Slider", title=BETA), value=0.2, value_throttled=0.2)
             assert await _until(lambda: a.value(a_beta, "value") == 0.2), a.value(a_beta, "value")
-            for p in (a, b):
+            # the page left waiting catches up with both changes while the server is idle, and its
+            # document is made ahead: handed out, it is sent as made, then joins under its name
+            made = len(_said(log, "their documents made"))
+            assert await _until(lambda: len(_said(log, "their documents made")) > made, 60), log.read_text()[-2000:]
+            (c,), _ = await rc.open_pages(srv.base, sid, 1)
+            assert _said(log, "a warm page handed out")[-1].endswith("(its document made ahead)")
+            assert c.value(c.one("Slider", title=ALPHA), "value") == 0.05
+            assert c.value(c.one("Slider", title=BETA), "value") == 0.2
+            _name(c, "cy")
+            assert await _until(lambda: "cy" in people_a() and "bo" in people_a()), people_a()
+            for p in (a, b, c):
                 assert not p.errors, p.errors
                 await p.close()
 
