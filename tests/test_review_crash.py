@@ -26,7 +26,7 @@ def test_kill_minus_9_during_a_burst_keeps_every_acknowledged_change(tmp_path):
     acked: dict = {}   # what the page was shown: note text / edit text -> time
     sent: list = []
 
-    srv = rc.Server("--data-dir", str(data))
+    srv = rc.Server("--data-dir", str(data), "--warm-pages", "0")  # the burst, not warm-page builds, on the loop
     try:
         async def burst():
             def on_patch(page, changes, t):
