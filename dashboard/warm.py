@@ -150,8 +150,7 @@ class WarmPool:
                 stale = self._stale(shot_id)
                 if stale is not None:
                     stale.catch_up()
-                elif self._unserialised(shot_id) is not None:
-                    pulled = self._unserialised(shot_id)
+                elif (pulled := self._unserialised(shot_id)) is not None:
                     await pulled.session.with_document_locked(pulled.prepare)
                     if self._unserialised(shot_id) is None and self._stale(shot_id) is None:
                         log.info("shot %s: %d warm pages current, their documents made", shot_id[:6], self.count(shot_id))
@@ -222,7 +221,6 @@ class PulledDocument:
         self.session = session
         self.reply = None  # (content, content JSON, buffers), or None
         self.after_pull = None  # callable run once the document has been sent
-        self.hits = 0
         session.document.callbacks.on_change(self._changed)
 
     @classmethod
@@ -265,7 +263,6 @@ class PulledDocument:
             msg = pull_doc_reply(pull_doc_reply.create_header(request_id=message.header["msgid"]), {}, content)
             msg._content_json = text  # the JSON made ahead (Message keeps it once made)
             msg.add_buffers(*buffers)
-            self.hits += 1
         else:
             msg = connection.protocol.create("PULL-DOC-REPLY", message.header["msgid"], session.document)
         self.reply = None  # a page pulls once; a reconnect gets a fresh reply
