@@ -217,6 +217,10 @@ class MeshViewer(pn.custom.JSComponent):
             "derivatives of the UVs).")
 
     _esm = _STATIC / "viewer.js"
+    # on a server the module is one URL (Panel's component route, cached by the browser), not its
+    # 58 KB source inside every viewer model of every page (2 per page: ~0.25 MB of server memory
+    # a page, and again in each document sent); elsewhere (a saved page, a notebook) it is inlined
+    _bundle = _esm
 
     # kept in Python only: the mesh reaches the browser packed (geometry_url / geometry)
     _rename = {"neutral": None, "faces": None, "deltas": None, "inline_geometry": None}
