@@ -27,6 +27,7 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
         (:mod:`dashboard.warm`; 0: none; each costs ~5 MB while it waits)
     """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    return_large_buffers()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     from dashboard import assets, review as rv
     from dashboard.app import create_app
@@ -59,3 +60,30 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     print(f"face-retarget dashboard: http://{address}:{port}/  (Ctrl-C to stop)", flush=True)
     assets.serve({"/": create_app}, port=port, address=address, show=show, title="face-retarget", **kwargs)
     return 0
+
+
+#: allocations at least this large get their own memory mapping (see return_large_buffers)
+MMAP_THRESHOLD = 256 * 1024
+
+
+def return_large_buffers() -> bool:
+    """Have glibc give every freed buffer of :data:`MMAP_THRESHOLD` or more straight back to the
+    system. Each page served makes buffers of megabytes that live a moment (its document as JSON,
+    the websocket frames, the mesh blobs' writes); glibc's own threshold rises after the first
+    such buffer is freed, the later ones are then carved from the heap, which they fragment, and
+    the server's resident memory grew by ~1 MB a page that was never returned (measured with 30
+    pages of a shot: 5.5 → 4.6 MB a page, and 47 MB less after the first). No library sets
+    ``mallopt``; ctypes does. A no-op (False) off glibc."""
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # musl and others: no mallopt
+        return False
+    M_MMAP_THRESHOLD = -3  # malloc.h
+    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD))
