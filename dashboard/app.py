@@ -25,7 +25,7 @@ if str(ROOT) not in sys.path:
 
 from core.evaluate import marker_error_field  # noqa: E402
 from core.retarget import marker_rig  # noqa: E402
-from dashboard.curves import CurvePlot, DiagnosticsPlot  # noqa: E402
+from dashboard.curves import CurvePlot, DiagnosticsPlot, curve_columns  # noqa: E402
 from dashboard.lazy import lazy_card  # noqa: E402
 from dashboard.upload_guard import UploadGuard  # noqa: E402
 from dashboard import session as sessions  # noqa: E402  (MAX_UPLOAD is read when a page is made)
@@ -821,7 +821,8 @@ class DashboardApp(pn.viewable.Viewer):
     def _draw_curves(self):
         snap = self.s.snapshot
         if snap:
-            self.curves.update(snap["times"], snap["weights"], snap["target_names"], list(self.w_shapes.value))
+            self.curves.update(snap["times"], snap["weights"], snap["target_names"], list(self.w_shapes.value),
+                               columns=derived(snap, "curve_columns", lambda: curve_columns(snap["weights"])))
             self.curves.set_time(self._time_of(self.w_frame.value))
 
     def _draw_viewers(self):

@@ -43,6 +43,12 @@ def _fig(title, y_label, height=260, x_range=None):
     return f
 
 
+def curve_columns(weights) -> np.ndarray:
+    """(T, K) weights as the curve plot draws them: (K, T) float rows, NaN (tracking loss) kept
+    as gaps, ±inf made finite."""
+    return np.ascontiguousarray(np.nan_to_num(np.asarray(weights, dtype=float).T, nan=np.nan))
+
+
 class CurvePlot:
     """The target's weight curves over time with a time cursor; tapping seeks.
 
@@ -71,17 +77,21 @@ class CurvePlot:
             self._on_seek(float(event.x))
 
     @_page_safe
-    def update(self, times, weights, names, selected):
-        """Show the curves of ``selected`` shape names (all when empty: the 10 most active)."""
+    def update(self, times, weights, names, selected, columns=None):
+        """Show the curves of ``selected`` shape names (all when empty: the 10 most active).
+        ``columns``: the weights as (K, T) C-contiguous rows, NaN kept and ±inf made finite, if
+        the caller keeps them (shared by the pages of a shot: a shown curve is then a view of
+        its row, not a copy per page); made from ``weights`` otherwise."""
         W = np.asarray(weights)
         if not selected:
             act = np.nan_to_num(np.nanmax(W, axis=0) - np.nanmin(W, axis=0))
             selected = [names[i] for i in np.argsort(-act)[:8]]
         idx = [names.index(n) for n in selected if n in names]
         t = np.asarray(times, dtype=float)
+        ys = [columns[i] for i in idx] if columns is not None else [curve_columns(W)[i] for i in idx]
         self.source.data = dict(
             xs=[t] * len(idx),
-            ys=[np.nan_to_num(W[:, i], nan=np.nan).astype(float) for i in idx],
+            ys=ys,
             name=[names[i] for i in idx],
             color=[Category10_10[j % 10] for j in range(len(idx))],
         )
