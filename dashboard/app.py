@@ -271,42 +271,14 @@ class DashboardApp(pn.viewable.Viewer):
                                              label="Download GLB", button_type="light", width=140)
         self.w_csv = pn.widgets.FileDownload(callback=lambda: self._download("csv"), filename="result.csv",
                                              label="Download CSV", button_type="light", width=140)
-        # markers on a rig without a layout (a user's own character)
-        self.w_place = pn.widgets.Button(name="Place markers automatically", button_type="primary", sizing_mode="stretch_width")
-        self.w_place.on_click(lambda e: self.place_markers())
-        self.w_edit_markers = pn.widgets.Toggle(name="Move markers: click a marker, then where it goes", button_type="light",
-                                                sizing_mode="stretch_width")
-        self.w_edit_markers.param.watch(lambda e: self._marker_mode(), "value")
-        self.w_layout_dl = pn.widgets.FileDownload(callback=self._layout_bytes, filename="layout.json", label="Download layout",
-                                                   button_type="light", sizing_mode="stretch_width")
-        self.w_marker_progress = pn.indicators.Progress(value=0, max=100, height=10, sizing_mode="stretch_width", visible=False)
-        self.w_marker_info = pn.pane.Markdown("", sizing_mode="stretch_width", css_classes=["fr-status"])
-        # per-shape controls (core.controls): a sortable table, edits go into the shot's solve settings
-        self.w_shape_table = pn.widgets.Tabulator(
-            self._shape_frame(), show_index=False, height=320, sizing_mode="stretch_width", pagination=None,
-            layout="fit_data_table", selectable=False, disabled=False,
-            editors={"shape": None, "now": None, "lower": {"type": "number", "step": 0.05},
-                     "upper": {"type": "number", "step": 0.05}, "gain": {"type": "number", "step": 0.1},
-                     "offset": {"type": "number", "step": 0.05}, "active": {"type": "tickCross"}})
-        self.w_shape_table.on_edit(self._on_shape_edit)
-        self.w_controls_dl = pn.widgets.FileDownload(callback=self._controls_bytes, filename="controls.json",
-                                                     label="Download controls", button_type="light", width=160)
-        self.w_controls_reset = pn.widgets.Button(name="Reset controls", button_type="light", width=130)
-        self.w_controls_reset.on_click(lambda e: self.pipe.configure(controls={}))
-        self.shape_card = lazy_card(
-            pn.pane.Markdown("Per shape: its range (lower…upper, inside the solve), a gain and offset applied after "
-                             "it (clamped to the range), and whether the solver may use it. Sort by a column; "
-                             "*now* is the weight at the current frame. Upload a controls .json to load a table.",
-                             css_classes=["fr-muted"]),
-            self.w_shape_table, pn.Row(self.w_controls_dl, self.w_controls_reset),
-            title="Shapes (per-shape controls)", collapsed=True, sizing_mode="stretch_width")
+        # markers on a rig without a layout (a user's own character), and the per-shape controls:
+        # their widgets are made when the card is first opened (see _marker_widgets)
+        self.shape_card = lazy_card(build=self._shape_widgets, title="Shapes (per-shape controls)", collapsed=True,
+                                    sizing_mode="stretch_width")
         # while collapsed the table is not kept up to date (a frame change would patch it): opened, it shows now
         self.shape_card.param.watch(self._on_shape_card, "collapsed")
-        self.marker_card = lazy_card(
-            pn.pane.Markdown("The 41 markers the solvers compare both faces at. A rig of your own needs them once: "
-                             "place them automatically, then move any that landed badly.", css_classes=["fr-muted"]),
-            self.w_place, self.w_marker_progress, self.w_marker_info, self.w_edit_markers, self.w_layout_dl,
-            title="Markers on the target rig", collapsed=True, sizing_mode="stretch_width")
+        self.marker_card = lazy_card(build=self._marker_widgets, title="Markers on the target rig", collapsed=True,
+                                     sizing_mode="stretch_width")
         self._marker_pick = None
         self.source_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
         self.target_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
@@ -328,8 +300,29 @@ class DashboardApp(pn.viewable.Viewer):
         return io.BytesIO(self.s.shot().to_json().encode("utf-8"))
 
     # -- per-shape controls -------------------------------------------------------------------
+    def _shape_widgets(self) -> list:
+        """The shape card's contents, made when it is first opened: a sortable table of the
+        per-shape controls (core.controls), edits go into the shot's solve settings."""
+        if getattr(self, "w_shape_table", None) is None:
+            self.w_shape_table = pn.widgets.Tabulator(
+                self._shape_frame(), show_index=False, height=320, sizing_mode="stretch_width", pagination=None,
+                layout="fit_data_table", selectable=False, disabled=False,
+                editors={"shape": None, "now": None, "lower": {"type": "number", "step": 0.05},
+                         "upper": {"type": "number", "step": 0.05}, "gain": {"type": "number", "step": 0.1},
+                         "offset": {"type": "number", "step": 0.05}, "active": {"type": "tickCross"}})
+            self.w_shape_table.on_edit(self._on_shape_edit)
+            self.w_controls_dl = pn.widgets.FileDownload(callback=self._controls_bytes, filename="controls.json",
+                                                         label="Download controls", button_type="light", width=160)
+            self.w_controls_reset = pn.widgets.Button(name="Reset controls", button_type="light", width=130)
+            self.w_controls_reset.on_click(lambda e: self.pipe.configure(controls={}))
+        return [pn.pane.Markdown("Per shape: its range (lower…upper, inside the solve), a gain and offset applied "
+                                 "after it (clamped to the range), and whether the solver may use it. Sort by a "
+                                 "column; *now* is the weight at the current frame. Upload a controls .json to "
+                                 "load a table.", css_classes=["fr-muted"]),
+                self.w_shape_table, pn.Row(self.w_controls_dl, self.w_controls_reset)]
+
     def _on_shape_card(self, event):
-        if not event.new and self.s.snapshot:
+        if not event.new and self.s.snapshot and getattr(self, "w_shape_table", None) is not None:
             self.w_shape_table.value = self._shape_frame()
 
     def _shape_frame(self):
@@ -403,10 +396,40 @@ class DashboardApp(pn.viewable.Viewer):
             return None
 
     # -- markers on the target rig ----------------------------------------------------------
+    def _marker_widgets(self) -> list:
+        """The marker card's contents, made on first use (a page that never opens the card never
+        pays for them; DashboardApp.w_place & co. exist from then on)."""
+        if getattr(self, "w_place", None) is None:
+            self.w_place = pn.widgets.Button(name=self._place_label(), button_type="primary", sizing_mode="stretch_width")
+            self.w_place.on_click(lambda e: self.place_markers())
+            self.w_edit_markers = pn.widgets.Toggle(name="Move markers: click a marker, then where it goes",
+                                                    button_type="light", sizing_mode="stretch_width")
+            self.w_edit_markers.param.watch(lambda e: self._marker_mode(), "value")
+            self.w_layout_dl = pn.widgets.FileDownload(callback=self._layout_bytes, filename="layout.json",
+                                                       label="Download layout", button_type="light",
+                                                       sizing_mode="stretch_width")
+            self.w_marker_progress = pn.indicators.Progress(value=0, max=100, height=10, sizing_mode="stretch_width",
+                                                            visible=False)
+            self.w_marker_info = pn.pane.Markdown("", sizing_mode="stretch_width", css_classes=["fr-status"])
+        return [pn.pane.Markdown("The 41 markers the solvers compare both faces at. A rig of your own needs them "
+                                 "once: place them automatically, then move any that landed badly.",
+                                 css_classes=["fr-muted"]),
+                self.w_place, self.w_marker_progress, self.w_marker_info, self.w_edit_markers, self.w_layout_dl]
+
+    def _place_label(self) -> str:
+        return "Place markers automatically" if self.s.needs_layout else "Place the markers again (automatically)"
+
+    def _moving_markers(self) -> bool:
+        """Whether the "move markers" toggle is on (off while its card was never opened)."""
+        w = getattr(self, "w_edit_markers", None)
+        return bool(w is not None and w.value)
+
     def place_markers(self, block: bool = False) -> None:
         """Place the markers automatically on the chosen target rig (a worker thread unless
         ``block``), with progress; the page recomputes with them."""
         import threading
+
+        self._marker_widgets()  # (called from code, the card may never have been opened)
 
         def job():
             t0 = __import__("time").perf_counter()
@@ -446,14 +469,14 @@ class DashboardApp(pn.viewable.Viewer):
         v = getattr(self, "target_viewer", None)
         if v is None:
             return
-        v.pick_mode = "vertex" if self.w_edit_markers.value else "off"
+        v.pick_mode = "vertex" if self._moving_markers() else "off"
         self._marker_pick = None
-        if self.w_edit_markers.value:
+        if self._moving_markers():
             self.w_marker_info.object = "Click a marker on the target, then the place it should be."
 
     def _on_target_pick(self, event):
         p = event.new
-        if not p or not self.w_edit_markers.value:
+        if not p or not self._moving_markers():
             return
         snap = self.s.snapshot
         layout, rig = snap["target_layout"], snap["target_rig"]
@@ -484,7 +507,8 @@ class DashboardApp(pn.viewable.Viewer):
         extra = {"rom": {"type": pn.widgets.Select, "options": rom}}
         cfg = self.pipe.config()
         cards, self._setting_panes, self._setting_cards = [], [], []
-        for title, groups, collapsed in SIDEBAR_CARDS:
+
+        def panes_of(groups):
             panes = []
             for st in self.pipe.stages.values():
                 if type(st).group not in groups:
@@ -500,12 +524,23 @@ class DashboardApp(pn.viewable.Viewer):
                 panes.append(pane)
                 self._setting_panes.append((st, pane))
             panes.sort(key=lambda p: p.object.stage_name != "solve")  # the method choice first
+            return panes
+
+        def built(groups):  # a collapsed card's panes, made when it is first opened
+            def build():
+                panes = panes_of(groups)
+                self._set_visible(self.pipe.config())
+                return panes
+            return build
+
+        for title, groups, collapsed in SIDEBAR_CARDS:
             if title == "Solver":
-                cards.extend(panes)
+                cards.extend(panes_of(groups))
             else:
                 open_ = title.startswith("Actor") and self.pipe.personalize.personalize
-                card = lazy_card(*panes, title=title, collapsed=collapsed and not open_, sizing_mode="stretch_width")
-                self._setting_cards.append((card, panes))
+                card = lazy_card(build=built(groups), title=title, collapsed=collapsed and not open_,
+                                 sizing_mode="stretch_width")
+                self._setting_cards.append((card, groups))
                 cards.append(card)
         self.settings_box[:] = cards
         self._show_settings(cfg)
@@ -531,8 +566,8 @@ class DashboardApp(pn.viewable.Viewer):
                 pane.layout.stylesheets = sheet
             if pane.visible != bool(keep):
                 pane.visible = bool(keep)
-        for card, panes in self._setting_cards:
-            card.visible = any(p.visible for p in panes)
+        for card, groups in self._setting_cards:  # its panes may not be made yet
+            card.visible = any(visible_settings(st, cfg) for st in self.pipe.stages.values() if type(st).group in groups)
         self._shown = _shown(self.pipe)
 
     # -- the other tabs: made when first opened ----------------------------------------------
@@ -764,7 +799,8 @@ class DashboardApp(pn.viewable.Viewer):
         ok = self.s.recompute()
         needs = self.s.needs_layout
         self.marker_card.collapsed = not needs and self.marker_card.collapsed
-        self.w_place.name = ("Place markers automatically" if needs else "Place the markers again (automatically)")
+        if getattr(self, "w_place", None) is not None:
+            self.w_place.name = self._place_label()
         if not ok:
             self._notify("error", self.s.error)
             self.w_status.object = "error — see the message at the top of the page"
@@ -813,7 +849,7 @@ class DashboardApp(pn.viewable.Viewer):
         for name in self._tab_views:
             self._update_tab(name)
         self._sync_edit_value()  # the edit slider shows the new result's weight at this frame
-        if not self.shape_card.collapsed or len(self.w_shape_table.value) == 0:
+        if not self.shape_card.collapsed and getattr(self, "w_shape_table", None) is not None:
             self.w_shape_table.value = self._shape_frame()
         self.w_timings.object = (f"<table style='font-size:0.85em;width:100%'>{rows}<tr><td><b>server total</b></td>"
                                  f"<td style='text-align:right'><b>{snap['server_ms']:.1f} ms</b></td></tr></table>")
@@ -850,7 +886,7 @@ class DashboardApp(pn.viewable.Viewer):
             rig = snap["target_rig"]
             self.target_viewer = MeshViewer.from_rig(rig, track, fps=fps, layout=snap["target_layout"], label=rig.name,
                                                      sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width",
-                                                     pick_mode="vertex" if self.w_edit_markers.value else "off")
+                                                     pick_mode="vertex" if self._moving_markers() else "off")
             self.target_viewer.param.watch(self._on_target_pick, "picked")
             self.target_box[:] = [self.target_viewer]
             self._viewer_keys["target"] = key

@@ -5,6 +5,8 @@ dashboard; see the review issue's "sessions are cheap"), and a collapsed card's 
 and sent even though nobody sees them until the card is opened. :func:`lazy_card` keeps the
 Python objects (widgets keep their values and watchers, code may read and set them) and puts
 them into the card only when a user first opens it: the models are then made for that page alone.
+Given a ``build`` function instead, it makes the Python objects then too (the settings cards:
+their widgets follow the pipeline, which holds the values, so nothing needs them before).
 """
 
 from __future__ import annotations
@@ -14,13 +16,19 @@ import panel as pn
 __all__ = ["lazy_card", "fill"]
 
 
-def lazy_card(*objects, collapsed: bool = True, **params) -> pn.Card:
+def lazy_card(*objects, build=None, collapsed: bool = True, **params) -> pn.Card:
     """A :class:`panel.Card` of ``objects``; when ``collapsed`` it starts empty and takes them the
-    first time it is opened (in the browser or by setting ``card.collapsed = False``)."""
+    first time it is opened (in the browser or by setting ``card.collapsed = False``).
+
+    ``build``: a function returning the objects instead, called when they are first needed — the
+    Python objects too are made then (each Panel object costs a page ~25 KB of server memory even
+    unseen: its parameters' watchers, and a pane's own layout)."""
+    if build is not None and objects:
+        raise ValueError("lazy_card: give objects or build, not both")
     if not collapsed:
-        return pn.Card(*objects, collapsed=False, **params)
+        return pn.Card(*(build() if build is not None else objects), collapsed=False, **params)
     card = pn.Card(collapsed=True, **params)
-    card._lazy_objects = list(objects)
+    card._lazy_objects = build if build is not None else list(objects)
 
     def _open(event):
         if not event.new:
@@ -36,5 +44,5 @@ def fill(card: pn.Card) -> pn.Card:
     if objects is not None:
         card._lazy_objects = None
         card.param.unwatch(card._lazy_watcher)
-        card.objects = objects
+        card.objects = objects() if callable(objects) else objects
     return card
