@@ -34,7 +34,7 @@ from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
 from dashboard.transfer_view import TransferView  # noqa: E402
 from dashboard.viewer import MeshViewer, error_colors  # noqa: E402
-from dashboard.widgets import param_widgets  # noqa: E402
+from dashboard.widgets import param_widgets, ruled_heading  # noqa: E402
 
 log = logging.getLogger("face_retarget.dashboard")
 
@@ -50,6 +50,9 @@ CSS = """
 .fr-muted {color: #666; font-size: 0.86em;}
 .fr-status {font-size: 0.86em;}
 """
+
+#: the heading of the sidebar's timings, above the table refresh() puts under it
+TIMINGS_HEAD = ruled_heading("Timings", "(server, last change)")
 
 #: the sidebar's setting cards: (title, stage groups, collapsed); which stages belong to a group
 #: and which of their settings show is declared by the stages (core.stages), not here
@@ -237,7 +240,7 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_apply.on_click(lambda e: self.refresh())
         self.w_progress = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width", height=12, bar_color="primary")
         self.w_status = pn.pane.Markdown("", css_classes=["fr-status"], sizing_mode="stretch_width")
-        self.w_timings = pn.pane.HTML("", sizing_mode="stretch_width")
+        self.w_timings = pn.pane.HTML(TIMINGS_HEAD, sizing_mode="stretch_width")
         self.w_summary = pn.pane.Markdown("", sizing_mode="stretch_width")
         # errors: a banner in the page (Panel's toast area rendered without its text outside a template)
         self.w_alert = pn.pane.Alert("", alert_type="danger", visible=False, sizing_mode="stretch_width", css_classes=["fr-error"])
@@ -621,16 +624,13 @@ class DashboardApp(pn.viewable.Viewer):
             pn.pane.Markdown("Upload a take (.csv/.trc/.c3d), a rig (.glb/.usd), or a .json shot, marker layout or name map", css_classes=["fr-muted"], margin=(0, 10)),
             self.w_upload_box,
             self.marker_card,
-            pn.layout.Divider(),
-            pn.pane.Markdown("**Solver**"),
+            pn.pane.HTML(ruled_heading("Solver"), sizing_mode="stretch_width"),
             self.settings_box,
             self.w_auto, self.w_apply, self.w_progress, self.w_status,
             pn.pane.Markdown("Everything this page shows (files, settings, edits) is one shot file: download it to "
                              "reproduce the result with `face-retarget retarget --shot shot.json`, upload it to come back.",
                              css_classes=["fr-muted"], margin=(0, 10)),
             self.w_shot,
-            pn.layout.Divider(),
-            pn.pane.Markdown("**Timings** (server, last change)"),
             self.w_timings,
             width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
         )
@@ -640,12 +640,14 @@ class DashboardApp(pn.viewable.Viewer):
             self.w_edit_shape, self.w_edit_value, self.w_edit_window,
             pn.Row(self.w_edit_add, self.w_undo, self.w_redo), self.w_edits,
             title="Edit (spacetime propagation, any method)", collapsed=False, sizing_mode="stretch_width")
-        views = pn.Row(
-            pn.Column(pn.pane.Markdown("**Source**", margin=(0, 10)), self.source_box, sizing_mode="stretch_width"),
-            pn.Column(pn.pane.Markdown("**Target**", margin=(0, 10)), self.target_box, sizing_mode="stretch_width"),
-            sizing_mode="stretch_width")
+        # the two headings in one pane over the two equal halves (not a column + heading per view)
+        heads = pn.pane.HTML("<div style='display:flex;font-weight:bold;margin:0 10px'><span style='flex:1'>Source</span>"
+                             "<span style='flex:1'>Target</span></div>",
+                             sizing_mode="stretch_width", margin=(5, 0, 0, 0))
+        views = pn.Row(self.source_box, self.target_box, sizing_mode="stretch_width")
         main = pn.Column(
             self.w_alert,
+            heads,
             views,
             pn.Row(self.w_play, self.w_frame, self.w_heat, sizing_mode="stretch_width"),
             pn.Row(self.w_glb, self.w_csv, sizing_mode="stretch_width"),
@@ -851,7 +853,7 @@ class DashboardApp(pn.viewable.Viewer):
         self._sync_edit_value()  # the edit slider shows the new result's weight at this frame
         if not self.shape_card.collapsed and getattr(self, "w_shape_table", None) is not None:
             self.w_shape_table.value = self._shape_frame()
-        self.w_timings.object = (f"<table style='font-size:0.85em;width:100%'>{rows}<tr><td><b>server total</b></td>"
+        self.w_timings.object = (f"{TIMINGS_HEAD}<table style='font-size:0.85em;width:100%'>{rows}<tr><td><b>server total</b></td>"
                                  f"<td style='text-align:right'><b>{snap['server_ms']:.1f} ms</b></td></tr></table>")
 
     def _draw_curves(self):

@@ -15,6 +15,7 @@ import param
 
 from dashboard import session as sessions
 from dashboard.upload_guard import UploadGuard
+from dashboard.widgets import ruled_heading
 
 
 class NameBox(pn.custom.JSComponent):
@@ -62,8 +63,9 @@ class ReviewPanel:
         self.w_present = pn.widgets.Toggle(name="Present: the others follow my frame", button_type="light",
                                            sizing_mode="stretch_width")
         self.w_follow = pn.widgets.Toggle(name="Follow the presenter", value=True, button_type="light", sizing_mode="stretch_width")
-        self.w_link = pn.pane.Markdown(f"Share this page: `?shot={self.hub.shot_id}`", css_classes=["fr-muted"],
-                                       sizing_mode="stretch_width")
+        # the link and the name's heading in one pane (each Panel object costs every page ~30 KB)
+        self.w_link = pn.pane.Markdown(f"<span style='color:#666;font-size:0.86em'>Share this page: `?shot={self.hub.shot_id}`</span>\n\n"
+                                       "**Your name**", sizing_mode="stretch_width")
         self.w_note = pn.widgets.TextAreaInput(placeholder="a note at this frame…", height=60, sizing_mode="stretch_width")
         self.w_note_range = pn.widgets.IntInput(name="…until frame (0: this frame only)", value=0, start=0,
                                                 sizing_mode="stretch_width")
@@ -79,10 +81,9 @@ class ReviewPanel:
                                                 label="Download the review (.zip)", button_type="light",
                                                 sizing_mode="stretch_width")
         self.card = pn.Card(
-            self.w_link, pn.pane.Markdown("**Your name**", margin=(0, 10)), self.w_name, self.w_people,
-            self.w_present, self.w_follow, pn.layout.Divider(),
-            pn.pane.Markdown("**Notes**", margin=(0, 10)), self.w_note, self.w_note_range, self.w_add_note,
-            self.w_show_resolved, self.w_notes, pn.layout.Divider(), self.w_export,
+            self.w_link, self.w_name, self.w_people, self.w_present, self.w_follow,
+            pn.pane.HTML(ruled_heading("Notes"), sizing_mode="stretch_width"),
+            self.w_note, self.w_note_range, self.w_add_note, self.w_show_resolved, self.w_notes, self.w_export,
             title="Shared review", collapsed=False, sizing_mode="stretch_width")
         doc = mirror.doc
         def run(f):  # a dormant page (dashboard.warm) draws the people and the frame when it wakes

@@ -1,4 +1,5 @@
-"""How the generated setting cards draw a stage's settings (shared by the sidebar and the tabs)."""
+"""How the generated setting cards draw a stage's settings (shared by the sidebar and the tabs),
+and the small static pieces the pages share."""
 
 from __future__ import annotations
 
@@ -20,3 +21,15 @@ def param_widgets(stage, names, extra=None) -> dict:
     out.update({k: v for k, v in TYPED.items() if k in names})
     out.update({k: v for k, v in (extra or {}).items() if k in names})
     return out
+
+
+#: a thin rule, as HTML: put in one pane with the heading under it (a Divider and a heading are two
+#: Panel objects, and each costs every page ~25-35 KB of server memory)
+RULE = "<hr style='border:none;border-top:1px solid #ddd;margin:4px 0 8px 0'>"
+
+
+def ruled_heading(text: str, note: str = "") -> str:
+    """HTML of a rule and a bold heading ``text`` (plain text) with an optional ``note`` after it."""
+    import html
+
+    return f"{RULE}<p><strong>{html.escape(text)}</strong>{(' ' + html.escape(note)) if note else ''}</p>"
