@@ -87,3 +87,29 @@ def test_collapsed_cards_fill_when_opened_and_the_shape_table_is_current():
     W = app.s.snapshot["weights"]
     assert np.allclose(app.w_shape_table.value["now"].to_numpy(), np.round(np.nan_to_num(W[437]), 3))
     assert np.abs(W[437]).max() > 0.01  # a frame where the face moves: the check means something
+
+
+def test_a_settings_card_makes_its_widgets_when_opened_with_the_current_values():
+    """A collapsed settings card makes its widgets only when first opened (dashboard/lazy.py
+    ``build``); a setting changed before (by code, or another page of a shot) shows in them, and
+    from then on they follow the pipeline both ways."""
+    from dashboard.app import DashboardApp
+    from dashboard.session import Session
+
+    app = DashboardApp(Session(cache=StageCache()))
+    card = next(c for c, _ in app._setting_cards if c.title == "Source & calibration")
+    assert card.collapsed and len(card.objects) == 0
+    assert not [p for st, p in app._setting_panes if st.stage_name == "calibrate"]  # not made yet
+    app.pipe.configure(rbf_smoothing=0.03, calibrate=False)
+    assert card.visible  # its stages have settings to show
+    card.collapsed = False
+    panes = [p for st, p in app._setting_panes if st.stage_name == "calibrate"]
+    assert len(panes) == 1 and panes[0] in card.objects
+    w = panes[0]._widgets
+    assert w["rbf_smoothing"].value == 0.03 and w["calibrate"].value is False
+    w["rbf_smoothing"].value = 0.05  # the widget drives the setting
+    assert app.pipe.calibrate.rbf_smoothing == 0.05
+    app.pipe.configure(rbf_smoothing=0.01)  # and follows it
+    assert w["rbf_smoothing"].value == 0.01
+    card.collapsed, card.collapsed = True, False  # made once
+    assert len([p for st, p in app._setting_panes if st.stage_name == "calibrate"]) == 1
