@@ -24,7 +24,7 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
         for Panel's OAuth (see docs/review.md)
     warm_pages : pages of every opened shot built ahead while the server is idle, so that this many
         reviewers opening it at once are served without waiting for Bokeh to build their pages
-        (:mod:`dashboard.warm`; 0: none; each costs ~5 MB while it waits)
+        (:mod:`dashboard.warm`; 0: none; each costs ~4.5 MB while it waits)
     """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     return_large_buffers()
