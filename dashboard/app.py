@@ -275,7 +275,7 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_csv = pn.widgets.FileDownload(callback=lambda: self._download("csv"), filename="result.csv",
                                              label="Download CSV", button_type="light", width=140)
         # markers on a rig without a layout (a user's own character), and the per-shape controls:
-        # their widgets are made when the card is first opened (see _marker_widgets)
+        # their widgets are made when the card is first opened (_shape_widgets, _marker_widgets)
         self.shape_card = lazy_card(build=self._shape_widgets, title="Shapes (per-shape controls)", collapsed=True,
                                     sizing_mode="stretch_width")
         # while collapsed the table is not kept up to date (a frame change would patch it): opened, it shows now

@@ -88,10 +88,10 @@ class CurvePlot:
             selected = [names[i] for i in np.argsort(-act)[:8]]
         idx = [names.index(n) for n in selected if n in names]
         t = np.asarray(times, dtype=float)
-        ys = [columns[i] for i in idx] if columns is not None else [curve_columns(W)[i] for i in idx]
+        cols = columns if columns is not None else curve_columns(W)
         self.source.data = dict(
             xs=[t] * len(idx),
-            ys=ys,
+            ys=[cols[i] for i in idx],
             name=[names[i] for i in idx],
             color=[Category10_10[j % 10] for j in range(len(idx))],
         )

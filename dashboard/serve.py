@@ -72,7 +72,7 @@ def return_large_buffers() -> bool:
     the websocket frames, the mesh blobs' writes); glibc's own threshold rises after the first
     such buffer is freed, the later ones are then carved from the heap, which they fragment, and
     the server's resident memory grew by ~1 MB a page that was never returned (measured with 30
-    pages of a shot: 5.5 → 4.6 MB a page, and 47 MB less after the first). No library sets
+    pages of a shot: 5.5 → 4.5 MB a page, and 47 MB less after the first). No library sets
     ``mallopt``; ctypes does. A no-op (False) off glibc."""
     import ctypes
     import ctypes.util
