@@ -79,7 +79,9 @@ def file_key(path: str) -> str:
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such file")
     st = p.stat()
-    memo = (str(p.resolve()), st.st_size, st.st_mtime_ns)
+    # the file itself (device, inode: any path or link to it), as last written; not resolve(),
+    # a syscall per path component, and every page of a shared shot keys its stages per change
+    memo = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
     if memo not in _FILE_HASHES:
         _FILE_HASHES[memo] = file_hash(p)
     return _FILE_HASHES[memo]

@@ -22,6 +22,7 @@ Nothing here imports panel.
 from __future__ import annotations
 
 import copy
+import functools
 from types import SimpleNamespace
 from typing import ClassVar, Iterable, Optional
 
@@ -29,6 +30,12 @@ import param
 
 #: stage name -> Stage subclass, in registration order (the pipeline sorts by dependencies)
 STAGES: dict = {}
+
+
+@functools.lru_cache(maxsize=None)
+def _names(cls) -> tuple:
+    """The setting names of a stage class (its parameters but ``name``; classes declare them)."""
+    return tuple(k for k in cls.param if k != "name")
 
 
 class Stage(param.Parameterized):
@@ -43,10 +50,12 @@ class Stage(param.Parameterized):
 
     def settings(self) -> dict:
         """This stage's setting values (deep copies: lists of edits are not shared)."""
-        return {k: copy.deepcopy(v) for k, v in self.param.values().items() if k != "name"}
+        # getattr per name, not param.values(): half the time, and a pipeline snapshots every
+        # stage's settings several times for each change (a shared shot: on every page)
+        return {k: copy.deepcopy(getattr(self, k)) for k in _names(type(self))}
 
     def setting_names(self) -> list:
-        return [k for k in self.param if k != "name"]
+        return list(_names(type(self)))
 
     def relevant(self, cfg) -> Optional[Iterable[str]]:
         """Settings that change the output now; None = all of them."""

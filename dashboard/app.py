@@ -34,6 +34,7 @@ from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
 from dashboard.transfer_view import TransferView  # noqa: E402
 from dashboard.viewer import MeshViewer, error_colors  # noqa: E402
+from dashboard import widgets  # noqa: E402
 from dashboard.widgets import param_widgets, ruled_heading  # noqa: E402
 
 log = logging.getLogger("face_retarget.dashboard")
@@ -71,9 +72,10 @@ def visible_settings(stage, cfg) -> list:
     return [n for n in names if not isinstance(stage.param[n], (param.List, param.Dict))]
 
 
-def stage_params(pipe, groups) -> list:
-    """``[(stage, [setting names])]`` of the stages in ``groups`` with something to show now."""
-    cfg = pipe.config()
+def stage_params(pipe, groups, cfg=None) -> list:
+    """``[(stage, [setting names])]`` of the stages in ``groups`` with something to show now
+    (``cfg``: the pipeline's config, when the caller has it)."""
+    cfg = pipe.config() if cfg is None else cfg
     out = []
     for st in pipe.stages.values():
         if type(st).group in groups:
@@ -96,7 +98,8 @@ def _frozen_rig(rig, track):
 
 
 def _shown(pipe) -> tuple:
-    return tuple(tuple((st.stage_name, tuple(n)) for st, n in stage_params(pipe, groups)) for _, groups, _ in SIDEBAR_CARDS)
+    cfg = pipe.config()  # one snapshot for the three cards (a deep copy of every setting)
+    return tuple(tuple((st.stage_name, tuple(n)) for st, n in stage_params(pipe, groups, cfg)) for _, groups, _ in SIDEBAR_CARDS)
 
 
 class DashboardApp(pn.viewable.Viewer):
@@ -208,15 +211,22 @@ class DashboardApp(pn.viewable.Viewer):
             return
         # the changed widgets reach the browser first (alone: every change costs the browser a
         # layout), the recompute's result right after
+        self._said = said
+        if self._refresh_due:
+            return  # changes that came in quick succession: one refresh shows the last of them
+        self._refresh_due = True
 
         def later():
             from dashboard.review import on_page
 
+            self._refresh_due = False
             with on_page(doc):
                 self.refresh()
-                self.w_status.object = html.escape(said)
+                self.w_status.object = html.escape(self._said)
 
         doc.add_timeout_callback(later, 15)
+
+    _refresh_due = False  # a refresh for other pages' changes is scheduled
 
     def _draw_note_marks(self, notes) -> None:
         self.curves.set_notes([self._time_of(int(n.get("frame", 0))) for n in notes],
@@ -239,9 +249,10 @@ class DashboardApp(pn.viewable.Viewer):
         self.w_apply = pn.widgets.Button(name="Apply", button_type="primary", sizing_mode="stretch_width")
         self.w_apply.on_click(lambda e: self.refresh())
         self.w_progress = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width", height=12, bar_color="primary")
-        self.w_status = pn.pane.Markdown("", css_classes=["fr-status"], sizing_mode="stretch_width")
-        self.w_timings = pn.pane.HTML(TIMINGS_HEAD, sizing_mode="stretch_width")
-        self.w_summary = pn.pane.Markdown("", sizing_mode="stretch_width")
+        # the texts every change rewrites on every page of a shot: updates send the text alone
+        self.w_status = widgets.Markdown("", css_classes=["fr-status"], sizing_mode="stretch_width")
+        self.w_timings = widgets.HTML(TIMINGS_HEAD, sizing_mode="stretch_width")
+        self.w_summary = widgets.Markdown("", sizing_mode="stretch_width")
         # errors: a banner in the page (Panel's toast area rendered without its text outside a template)
         self.w_alert = pn.pane.Alert("", alert_type="danger", visible=False, sizing_mode="stretch_width", css_classes=["fr-error"])
         # frame control: one slider + play, linked to the source viewer; both viewers share a clock
@@ -671,6 +682,8 @@ class DashboardApp(pn.viewable.Viewer):
 
     # -- events -----------------------------------------------------------------------------
     def _on_setting(self, *events):
+        if getattr(self, "mirror", None) is not None and self.mirror._applying:
+            return  # another page's change: _remote_change shows the widgets first, then recomputes
         # a new method (or switch) shows its own widgets before the (possibly long) recompute starts
         if _shown(self.pipe) != self._shown:
             self._show_settings()
@@ -811,6 +824,7 @@ class DashboardApp(pn.viewable.Viewer):
                                      "selection." if last else "No result yet.")
             for box in (self.source_box, self.target_box):
                 box.css_classes = ["fr-stale"]
+            self._drawn = None  # the summary says the views are stale: the next good result is drawn
             if needs:
                 self.marker_card.collapsed = False
             return
@@ -818,7 +832,13 @@ class DashboardApp(pn.viewable.Viewer):
         for box in (self.source_box, self.target_box):
             box.css_classes = []
         self._shown_files = f"{self.s.source} → {self.s.target_rig}"
+        drawn = (self.s.package, self.s.source, self.s.target_rig)  # what _draw shows: the results and the files' names
+        if self._drawn is not None and drawn[0] is self._drawn[0] and drawn[1:] == self._drawn[1:]:
+            return  # shown already (e.g. a shared shot's change this page had drawn)
         self._draw()
+        self._drawn = drawn
+
+    _drawn = None  # (package, source, target) last drawn
 
     def _draw(self):
         snap = self.s.snapshot
@@ -940,6 +960,12 @@ def create_app():
     shared shot and a page without one offers to create a shot or open a recent one; otherwise a
     page of its own."""
     pn.extension("tabulator", raw_css=[CSS])
+    # The page's Location is made from its request now, before any pane: making it empties the
+    # document's stylesheet cache (panel.io.location.Location._sync_pathname), and Panel makes it
+    # only after building the page — every HTML/Markdown pane's first update then got new
+    # stylesheet objects, and each of those made Bokeh walk the whole document's ~230 models
+    # again (~50 ms a pane; ~0.15 s a page on its first shared change, 3 s over 20 pages).
+    _ = pn.state.location
     from dashboard import review
 
     if review.SERVER is None and os.environ.get("FACE_RETARGET_REVIEW_DIR"):  # `panel serve dashboard/app.py` with a store

@@ -210,9 +210,11 @@ class Mirror:
             for k, v in vals.items():
                 if mine.settings.get(stage, {}).get(k, object()) != v:
                     changed[k] = v
+        files = False
         for role, ref in shot.files.items():
             if role not in mine.files or mine.files[role].sha != ref.sha:
                 changed[role] = self.hub.store.locate(role, ref)
+                files = True
         if changed:
             pipe.configure(**changed)
         from core.shot import EDITORS
@@ -222,7 +224,8 @@ class Mirror:
             if pipe.edits(editor) != theirs:
                 pipe._set_edits(editor, theirs)
         pipe.notes = list(shot.notes)
-        self.session.sync_selection()
+        if files or initial:  # the file lists (paths resolved, contents hashed) only when a file changed
+            self.session.sync_selection()
         self.version = version
         if self.on_change is not None and not initial:
             self.on_change(self.hub.last_change)

@@ -133,6 +133,7 @@ class Session(param.Parameterized):
         # the dense transfer starts on 300 frames (2,000 ICT frames take minutes)
         self.pipeline.configure(method="spacetime", target_shapes="arkit", transfer_last_frame=299)
         self.snapshot: dict = {}
+        self.package = None
         self._lock = threading.Lock()
         self._apply_selection()
         # the pipeline always holds the selected files (views may run stages without a recompute)
@@ -366,7 +367,11 @@ class Session(param.Parameterized):
     def recompute(self) -> bool:
         """Run the stale retargeting stages and publish a snapshot; False on error (see ``error``)."""
         with self._lock:
-            self.busy, self.error, self.progress = True, "", 0
+            # busy and the progress bar move only once a stage takes a while (see _progress): the
+            # pages of a shared shot recompute every change from the cache, and each of their
+            # widget updates costs the server, on every page
+            if self.error:
+                self.error = ""
             t0 = self._t0 = time.perf_counter()
             try:
                 self._apply_selection()
@@ -374,7 +379,9 @@ class Session(param.Parameterized):
                     warnings.simplefilter("always")
                     res = self.pipeline.results(RETARGET_STAGES, progress=self._progress)
                 timings = {k: v * 1e3 for k, v in self.pipeline.timings.items()}
-                self.snapshot = dict(self._shared_package(res, [str(w.message) for w in caught]))
+                #: the results as every page showing them shares them (snapshot = it + this page's timings)
+                self.package = self._shared_package(res, [str(w.message) for w in caught])
+                self.snapshot = dict(self.package)
                 self.snapshot["timings"] = timings
                 self.snapshot["server_ms"] = (time.perf_counter() - t0) * 1e3
                 self.status = self._status_line()
@@ -387,7 +394,7 @@ class Session(param.Parameterized):
                 self.status = "error — see the message at the top of the page"  # the message itself is shown once
                 return False
             finally:
-                self.busy, self.progress = False, 100
+                self.param.update(busy=False, progress=100)
 
     def dense(self, progress=None) -> dict:
         """Run the dense-transfer stages (Xu 2014) of this session's shot; returns their results
@@ -423,8 +430,7 @@ class Session(param.Parameterized):
     def _progress(self, fraction: float, message: str):
         if time.perf_counter() - self._t0 < 0.2:
             return  # a quick recompute (cached stages) shows its result, not eight progress steps
-        self.progress = int(round(100 * min(max(fraction, 0), 1)))
-        self.status = message
+        self.param.update(busy=True, progress=int(round(100 * min(max(fraction, 0), 1))), status=message)
 
     def _shared_package(self, res: dict, warnings_: list) -> dict:
         """The snapshot of these results, shared by every session whose pipeline has the same
