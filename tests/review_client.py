@@ -141,7 +141,11 @@ class Page:
         self.session_id = _session_id(token)
         t0 = time.monotonic()
         ws = self.base.replace("http://", "ws://") + self.app.rstrip("/") + "/ws"
-        self.socket = await asyncio.wait_for(websocket_connect(HTTPRequest(ws), subprotocols=["bokeh", token],
+        # the handshake waits while the server builds the other pages' documents, one after another:
+        # Tornado's default 20 s request timeout failed the 20th cold page on a slow run
+        self.socket = await asyncio.wait_for(websocket_connect(HTTPRequest(ws, connect_timeout=self.timeout,
+                                                                           request_timeout=self.timeout),
+                                                               subprotocols=["bokeh", token],
                                                                max_message_size=2**30), self.timeout)
         self.conn = WebSocketClientConnectionWrapper(self.socket)
         ack = await self._read()
@@ -160,6 +164,11 @@ class Page:
         self.doc_bytes = len(reply._content_json or "") + sum(memoryview(b.data).nbytes for b in reply.buffers)
         await self._fetch_meshes(reply._content_json or "")
         return self if defer else await self.load()
+
+    async def get(self, path: str) -> bytes:
+        """GET ``path`` (from the server root) as the page's browser would, e.g. a viewer's track."""
+        reply = await AsyncHTTPClient().fetch(HTTPRequest(f"{self.base}/{path.lstrip('/')}", request_timeout=self.timeout))
+        return reply.body
 
     async def _fetch_meshes(self, content_json: str) -> None:
         """GET the viewers' meshes as a browser does after the document (dashboard.payloads):
@@ -386,7 +395,10 @@ async def review_load(base: str, shot_id: str, n: int, seconds: float, seed: int
     pending_scrub: dict = {}    # page index -> (frame, time sent)
     models: dict = {}
 
+    last_patch = [time.monotonic()]
+
     def on_patch(page, changes, t):
+        last_patch[0] = t
         m = models.get(page.index)
         if m is None:
             return
@@ -467,7 +479,11 @@ async def review_load(base: str, shot_id: str, n: int, seconds: float, seed: int
             await asyncio.sleep(0.02)
 
     await asyncio.gather(*(actor(p) for p in pages))
-    await asyncio.sleep(6.0)  # let the last recomputes and their patches arrive
+    # let the last recomputes and their patches arrive: until no page has heard anything for 3 s
+    # (a loaded server may still be working through the last changes; at most 60 s)
+    quiet_from = time.monotonic()
+    while time.monotonic() - last_patch[0] < 3.0 and time.monotonic() - quiet_from < 60.0:
+        await asyncio.sleep(0.5)
     final = [dict(alpha=p.value(models[p.index]["alpha"], "value"), beta=p.value(models[p.index]["beta"], "value"))
              for p in pages]
     errors = [e for p in pages for e in p.errors]
