@@ -63,6 +63,21 @@ def test_two_pages_see_each_others_changes(server, shot_id):
     assert note["text"] == "jaw opens late" and note["frame"] == 150 and note["author"] == "ana"
     b.mirror.set_note(note["id"], True)
     assert a.pipe.notes[0]["resolved"]
+    # the notes list is one model whose rows are data: a resolved note leaves the shown rows
+    # (unless asked for), its buttons come back as actions (reopen, jump to its frame)
+    assert a.review.w_notes.notes == [] and b.review.w_notes.notes == []
+    b.review.w_show_resolved.value = True
+    (row,) = b.review.w_notes.notes
+    assert row["text"] == "jaw opens late" and row["author"] == "ana" and row["frame"] == 150 and row["resolved"]
+    b.review.w_notes.action = {"op": "reopen", "id": note["id"], "frame": 150, "n": 1}
+    assert not a.pipe.notes[0]["resolved"] and [r["text"] for r in a.review.w_notes.notes] == ["jaw opens late"]
+    b.w_frame.value = 10
+    b.review.w_notes.action = {"op": "jump", "id": note["id"], "frame": 150, "n": 2}
+    assert b.w_frame.value == 150
+    # text is text: markup in a note reaches the other page as the characters typed
+    a.review.w_note.value = "<img src=x onerror=alert(1)> **bold**"
+    assert a.review.add_note()
+    assert "<img src=x onerror=alert(1)> **bold**" in [r["text"] for r in b.review.w_notes.notes]
     # the presenter's frame: b follows a
     a.review.w_present.value = True
     a.w_frame.value = 200

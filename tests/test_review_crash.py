@@ -50,7 +50,9 @@ def test_kill_minus_9_during_a_burst_keeps_every_acknowledged_change(tmp_path):
                     page.click(note_button)
                 else:
                     f, v = 20 + 6 * k, round(0.3 + 0.01 * k, 2)
-                    sent.append(f"frame {f}: `")  # the edit row starts so; the value is checked below
+                    # the edit row starts so (its Markdown arrives rendered: no backtick); the
+                    # frame is checked below
+                    sent.append(f"frame {f}: ")
                     page.set(frame, value=f, value_throttled=f)
                     page.set(value, value=v, value_throttled=v)
                     await asyncio.sleep(0.06)
@@ -89,7 +91,8 @@ def test_kill_minus_9_during_a_burst_keeps_every_acknowledged_change(tmp_path):
         async def look():
             (page,), _ = await rc.open_pages(srv2.base, sid, 1)
             await asyncio.sleep(1.0)
-            texts = " ".join(str(getattr(m, "text", "")) for m in page.doc.models) + json.dumps(
+            # the notes list's rows are data (review_view.NotesList), the rest text
+            texts = " ".join(str(getattr(m, "text", "")) + str(getattr(m, "notes", "")) for m in page.doc.models) + json.dumps(
                 list(page.values.values()), default=str)
             await page.close()
             return texts
