@@ -48,7 +48,11 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     origins = [f"{address}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"] + list(allow_websocket_origin or [])
     kwargs = dict(websocket_origin=origins, liveness=True, threaded=True,
                   # base64 of the largest file a page may send; beyond that Tornado closes the connection
-                  websocket_max_message_size=int(sessions.largest_message_file() * 1.37) + 2**20)
+                  websocket_max_message_size=int(sessions.largest_message_file() * 1.37) + 2**20,
+                  # a page whose websocket has not connected yet is kept this long: Bokeh's 15 s
+                  # dropped the first of 20 pages requested at once while the server built the
+                  # others (one after another), and built it a second time when its socket came
+                  unused_session_lifetime_milliseconds=UNUSED_SESSION_S * 1000)
     if password:
         import secrets
 
@@ -61,6 +65,9 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     assets.serve({"/": create_app}, port=port, address=address, show=show, title="face-retarget", **kwargs)
     return 0
 
+
+#: seconds a page's session waits for its websocket before Bokeh discards it
+UNUSED_SESSION_S = 120
 
 #: allocations at least this large get their own memory mapping (see return_large_buffers)
 MMAP_THRESHOLD = 256 * 1024
