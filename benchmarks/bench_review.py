@@ -4,9 +4,11 @@ time). The reference is today's per-tab app, ``face-retarget serve --no-review``
 
 * ``review_propagation_2pages`` / ``review_propagation_20pages``: page 0 of a shot changes the
   spacetime α (8 times, 1.5 s apart); ours = p50 over the other pages of the time until their
-  target viewer shows the recomputed curves (``setting_p50_s``: until their α slider shows the
-  value); ref = the same change on a per-tab page until that page's own viewer shows the result
-  (the round trip a user waits for today, with 1 resp. 19 more idle per-tab pages on the server).
+  target viewer has the recomputed curves (the new track's URL arrived and its blob fetched, as
+  the browser does; or the track itself when it travels inline) (``setting_p50_s``: until their
+  α slider shows the value); ref = the same change on a per-tab page until that page's own viewer
+  has the result (the round trip a user waits for today, with 1 resp. 19 more idle per-tab pages
+  on the server).
 * ``review_page_20th``: 20 pages of a computed shot requested at once; ours = time until the 20th
   is served (HTML + websocket + its document arrived), ``first_s`` the 1st; ref = 20 per-tab
   pages at once. The server runs with ``--warm-pages 20`` (:mod:`dashboard.warm`: pages built
@@ -45,13 +47,14 @@ def _models(page):
             {m.id for m in page.doc.models if type(m).__name__.startswith("MeshViewer")})
 
 
-async def _drive_alpha(base, sid, n, on_patch, mark, changes, gap, start, settle):
+async def _drive_alpha(base, sid, n, on_patch, on_track, mark, changes, gap, start, settle):
     """Open ``n`` pages (of shot ``sid``, or per-tab ones), then page 0 sets α ``changes`` times
-    ``gap`` s apart (``mark(value)`` just before each); ``on_patch`` sees every page's patches."""
+    ``gap`` s apart (``mark(value)`` just before each); ``on_patch`` sees every page's patches,
+    ``on_track`` every new track a page has (review_client.Page.on_track)."""
     pages, _ = await rc.open_pages(base, sid, n, on_patch=None)
     for p in pages:
         p.m = _models(p)
-        p.on_patch = on_patch
+        p.on_patch, p.on_track = on_patch, on_track
     await asyncio.sleep(2.0)
     for k in range(changes):
         v = round(start + 0.001 * k, 4)
@@ -75,10 +78,13 @@ async def _propagation(base, sid, n, changes=8, gap=1.5, start=0.02):
             if mid == alpha.id and attr == "value" and new in marks and page.index:
                 seen_setting.append(t - marks[new])
                 waiting[page.index] = (new, marks[new])
-            elif attr == "track" and mid in viewers and page.index in waiting:
-                seen_result.append(t - waiting.pop(page.index)[1])
 
-    await _drive_alpha(base, sid, n, on_patch, lambda v: marks.__setitem__(v, time.monotonic()), changes, gap, start, 5.0)
+    def on_track(page, mid, t):
+        if mid in page.m[1] and page.index in waiting:
+            seen_result.append(t - waiting.pop(page.index)[1])
+
+    await _drive_alpha(base, sid, n, on_patch, on_track, lambda v: marks.__setitem__(v, time.monotonic()), changes, gap,
+                       start, 5.0)
     return seen_setting, seen_result
 
 
@@ -86,14 +92,12 @@ async def _own_round_trip(base, n, changes=8, gap=1.5, start=0.02):
     """Ref: a per-tab page changes α; the time until its own viewer shows the result."""
     rt, pending = [], {}
 
-    def on_patch(page, changes_, t):
-        if page.index != 0:
-            return
-        for mid, attr, new in changes_:
-            if attr == "track" and mid in page.m[1] and "t" in pending:
-                rt.append(t - pending.pop("t"))
+    def on_track(page, mid, t):
+        if page.index == 0 and mid in page.m[1] and "t" in pending:
+            rt.append(t - pending.pop("t"))
 
-    await _drive_alpha(base, None, n, on_patch, lambda v: pending.__setitem__("t", time.monotonic()), changes, gap, start, 3.0)
+    await _drive_alpha(base, None, n, None, on_track, lambda v: pending.__setitem__("t", time.monotonic()), changes, gap,
+                       start, 3.0)
     return rt
 
 

@@ -1,4 +1,5 @@
-"""A viewer's mesh (neutral, faces, shape deltas) served once over HTTP, by content, to every page.
+"""A viewer's mesh (neutral, faces, shape deltas) and weight track served once over HTTP, by
+content, to every page.
 
 Inside a Bokeh document the mesh travels in every page's websocket: on the sample the two
 viewers of a page carry 17 MB, which the server serialises again for every page that opens
@@ -11,22 +12,33 @@ never changes (``Cache-Control: immutable``).
   a :class:`Payload` holding it; the same arrays (by identity, for read-only arrays) or the
   same bytes give the same object, so every page of a shot shares one blob;
 * only registered blobs are served, and only while a viewer holds its :class:`Payload` (the
-  registry keeps weak references): a key cannot be used to read anything else;
+  registry keeps weak references) or for :data:`KEEP_S` after it was last registered (the
+  newest :data:`KEEP_BYTES` of them): a page is sent a document naming a blob, and may be
+  changed (a new track) before its browser has fetched the old one; a key cannot be used to
+  read anything else;
 * the route (:func:`routes`, added by ``dashboard.assets.serve``) asks for the same login as
   the pages (Bokeh's auth provider: ``--password``, OAuth);
 * :func:`enable` is called by that server: until then (a notebook, ``panel serve`` without our
   routes) viewers send the blob inside the document, as before.
 
-Blob layout (little-endian): ``b"FRG1"``, then V, F, K as uint32, then neutral (V, 3) float32,
-faces (F, 3) uint32 and deltas (K, V, 3) float32 — what ``static/viewer.js`` reads
-(``decodeGeometry``).
+The weight track (T, K) goes the same way (:func:`register_track`): a shared shot's change
+gives every page a new track (1.4 MB on the sample), which Bokeh serialised and wrote into each
+page's websocket; now the server packs it once and every page gets its URL.
+
+Blob layouts (little-endian), what ``static/viewer.js`` reads:
+
+* mesh (``decodeGeometry``): ``b"FRG1"``, then V, F, K as uint32, then neutral (V, 3) float32,
+  faces (F, 3) uint32 and deltas (K, V, 3) float32;
+* track (``decodeTrack``): ``b"FRT1"``, then T, K and 0 as uint32, then the (T, K) float32 rows.
 """
 
 from __future__ import annotations
 
 import hashlib
 import threading
+import time
 import weakref
+from collections import OrderedDict
 
 import numpy as np
 
@@ -34,22 +46,29 @@ import numpy as np
 ROUTE = "face-retarget/payload"
 
 MAGIC = b"FRG1"
+TRACK_MAGIC = b"FRT1"
 
 #: bytes written to a connection before waiting for them to leave
 CHUNK = 1 << 20
+#: seconds a blob stays served after it was last registered, though no viewer holds it any more
+KEEP_S = 120.0
+#: ... and at most this many bytes of such blobs (the newest kept)
+KEEP_BYTES = 64 << 20
 
 _enabled = False
 _lock = threading.Lock()
 # key -> Payload, only while some viewer holds it
 _BY_KEY: "weakref.WeakValueDictionary[str, Payload]" = weakref.WeakValueDictionary()
-# (id(neutral), id(faces), id(deltas)) -> (weak refs of the three arrays, weak ref of the Payload):
-# read-only arrays are the pipeline's frozen results shared by every page, so packing and
-# hashing them once serves every page of the shot
+# (kind, id of each array) -> (weak refs of the arrays, weak ref of the Payload): read-only
+# arrays are the pipeline's frozen results shared by every page, so packing and hashing them
+# once serves every page of the shot
 _BY_SOURCE: dict = {}
+# key -> (Payload, time last registered): strong references for KEEP_S (see the module doc)
+_RECENT: "OrderedDict[str, tuple]" = OrderedDict()
 
 
 class Payload:
-    """One packed mesh: :attr:`key` (hex blake2b-128 of :attr:`data`), :attr:`data` (bytes)."""
+    """One packed blob: :attr:`key` (hex blake2b-128 of :attr:`data`), :attr:`data` (bytes)."""
 
     __slots__ = ("key", "data", "__weakref__")
 
@@ -98,26 +117,54 @@ def unpack(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return n, f, d
 
 
+def pack_track(track: np.ndarray) -> bytes:
+    """The blob of a (T, K) weight track (see the module doc)."""
+    t = np.ascontiguousarray(track, dtype="<f4")
+    if t.ndim != 2:
+        raise ValueError(f"track: expected (T, K), got shape {t.shape}")
+    return TRACK_MAGIC + np.array([t.shape[0], t.shape[1], 0], dtype="<u4").tobytes() + t.tobytes()
+
+
+def unpack_track(data: bytes) -> np.ndarray:
+    """Inverse of :func:`pack_track`."""
+    if data[:4] != TRACK_MAGIC:
+        raise ValueError("not a face-retarget track payload (bad magic)")
+    T, K = (int(x) for x in np.frombuffer(data, dtype="<u4", count=2, offset=4))
+    if len(data) != 16 + 4 * T * K:
+        raise ValueError(f"track payload: {len(data)} bytes, expected {16 + 4 * T * K}")
+    return np.frombuffer(data, dtype="<f4", count=T * K, offset=16).reshape(T, K)
+
+
 def register(neutral: np.ndarray, faces: np.ndarray, deltas: np.ndarray) -> Payload:
-    """The :class:`Payload` of these arrays, shared with every other holder of the same mesh.
+    """The :class:`Payload` of this mesh, shared with every other holder of the same mesh.
     Keep the returned object as long as a page may fetch it (the registry only refers to it)."""
-    arrays = (neutral, faces, deltas)
+    return _register((neutral, faces, deltas), pack)
+
+
+def register_track(track: np.ndarray) -> Payload:
+    """The :class:`Payload` of a (T, K) weight track, shared like a mesh (see :func:`register`)."""
+    return _register((track,), pack_track)
+
+
+def _register(arrays: tuple, packer) -> Payload:
     frozen = all(isinstance(a, np.ndarray) and not a.flags.writeable for a in arrays)
-    sid = tuple(id(a) for a in arrays)
+    sid = (packer.__name__,) + tuple(id(a) for a in arrays)
     with _lock:
         if frozen:
             hit = _BY_SOURCE.get(sid)
             if hit is not None and all(r() is a for r, a in zip(hit[0], arrays)):
                 p = hit[1]()
                 if p is not None:
+                    _keep(p)
                     return p
-    data = pack(*arrays)
+    data = packer(*arrays)
     key = hashlib.blake2b(data, digest_size=16).hexdigest()
     with _lock:
         p = _BY_KEY.get(key)
         if p is None:
             p = Payload(key, data)
             _BY_KEY[key] = p
+        _keep(p)
         if frozen:
             try:
                 refs = tuple(weakref.ref(a, lambda r, sid=sid: _BY_SOURCE.pop(sid, None)) for a in arrays)
@@ -125,6 +172,21 @@ def register(neutral: np.ndarray, faces: np.ndarray, deltas: np.ndarray) -> Payl
                 return p
             _BY_SOURCE[sid] = (refs, weakref.ref(p))
     return p
+
+
+def _keep(p: Payload) -> None:
+    """Hold ``p`` for :data:`KEEP_S` from now, dropping the oldest held beyond :data:`KEEP_BYTES`
+    (call with the lock held)."""
+    now = time.monotonic()
+    _RECENT[p.key] = (p, now)
+    _RECENT.move_to_end(p.key)
+    held = sum(len(q.data) for q, _ in _RECENT.values())
+    while _RECENT:
+        q, t = next(iter(_RECENT.values()))
+        if now - t <= KEEP_S and held <= KEEP_BYTES:
+            break
+        _RECENT.popitem(last=False)
+        held -= len(q.data)
 
 
 def lookup(key: str) -> Payload | None:
@@ -137,13 +199,13 @@ def _handler():
     from tornado.web import HTTPError, authenticated
 
     class PayloadHandler(AuthRequestHandler):
-        """``GET /face-retarget/payload/<key>``: a registered mesh blob, behind the pages' login."""
+        """``GET /face-retarget/payload/<key>``: a registered blob (mesh or track), behind the pages' login."""
 
         @authenticated
         async def get(self, key: str):
             p = lookup(key) if len(key) == 32 and all(c in "0123456789abcdef" for c in key) else None
             if p is None:
-                raise HTTPError(404, reason="no such mesh (it is no longer shown by any page)")
+                raise HTTPError(404, reason="no such mesh or track (it is no longer shown by any page)")
             etag = f'"{p.key}"'
             self.set_header("Content-Type", "application/octet-stream")
             # the key is the content's hash: the reply never changes; private: behind a login

@@ -2,9 +2,11 @@
 
 What travels, and when (measured numbers in ``docs/viewer.md``):
 
-* once per session, as binary websocket frames (bokeh ndarray buffers, no base64):
-  ``neutral`` (V, 3) float32, ``faces`` (F, 3) uint32, ``deltas`` (K, V, 3) float32, the
-  weight ``track`` (T, K) float32 and the marker layout or marker track;
+* once per session: ``neutral`` (V, 3) float32, ``faces`` (F, 3) uint32, ``deltas`` (K, V, 3)
+  float32 and the weight ``track`` (T, K) float32 — on our server each as one blob by URL
+  (:mod:`dashboard.payloads`, fetched once and shared by every page showing it; a new track
+  is a new URL), elsewhere as binary websocket frames (bokeh ndarray buffers, no base64) —
+  and the marker layout or marker track;
 * while playing: nothing per frame. The browser plays the track at ``fps`` on a clock shared
   by all viewers with the same ``sync_group``; the group's first viewer writes ``frame`` back
   to Python at most every ``sync_interval`` seconds (0: only when playback stops);
@@ -139,9 +141,14 @@ class MeshViewer(pn.custom.JSComponent):
                           "blob as uint8, sent in the document (binary).")
     inline_geometry = param.Boolean(
         default=False, precedence=-1,
-        doc="Send the mesh inside the document even when the server serves meshes by URL.")
+        doc="Send the mesh and the track inside the document even when the server serves them by URL.")
     shape_names = param.List(default=[], item_type=str, doc="K shape names.")
-    track = param.Array(default=None, doc="(T, K) float32 weight track played in the browser.")
+    track = param.Array(
+        default=None, doc="(T, K) float32 weight track played in the browser (set it with set_track). Sent inside "
+                          "the document only when `track_url` is empty.")
+    track_url = param.String(
+        default="", doc="Set with the track: the path (from the server root) of its packed blob "
+                        "(dashboard.payloads), fetched by the browser; empty when the track travels in `track`.")
     weights = param.List(default=[], doc="K floats shown instead of the track while non-empty.")
     frame = param.Integer(default=0, bounds=(0, None), doc="Frame of the track shown.")
     playing = param.Boolean(default=False, doc="Play the track in the browser.")
@@ -281,7 +288,7 @@ class MeshViewer(pn.custom.JSComponent):
             fps=float(fps),
         )
         values.setdefault("label", name)
-        values.update(cls._track_values(track, K, "track"))
+        values.update(cls._track_values(track, K, "track", params.get("inline_geometry", False)))
         values.update(cls._geometry_values(values["neutral"], values["faces"], values["deltas"],
                                            params.get("inline_geometry", False)))
         if layout is not None and marker_track is not None:
@@ -307,11 +314,21 @@ class MeshViewer(pn.custom.JSComponent):
 
     def __init__(self, **params):
         payload = params.pop("_payload", None)
+        track_payload = params.pop("_track_payload", None)
         super().__init__(**params)
-        self._payload = payload  # the registry only refers to a blob while a viewer holds it
+        # the registry only refers to a blob while a viewer holds it
+        self._payload, self._track_payload = payload, track_payload
         if self.neutral is not None and not self.geometry_url and self.geometry is None:
             self._set_geometry()
+        if self.track is not None and not self.track_url and payloads.enabled() and not self.inline_geometry:
+            self.set_track(self.track)
         self.param.watch(lambda *e: self._set_geometry(), ["neutral", "faces", "deltas", "inline_geometry"])
+        self.param.watch(lambda *e: self.track is not None and self.set_track(self.track), ["inline_geometry"])
+
+    def _process_param_change(self, params):
+        if self.track_url and "track" in params:  # the browser fetches it (dashboard.payloads)
+            params = {k: v for k, v in params.items() if k != "track"}
+        return super()._process_param_change(params)
 
     @staticmethod
     def _geometry_values(neutral, faces, deltas, inline: bool = False) -> dict:
@@ -334,13 +351,16 @@ class MeshViewer(pn.custom.JSComponent):
         self.param.update(**values, **more)
 
     @staticmethod
-    def _track_values(track, K: int, what: str) -> dict:
+    def _track_values(track, K: int, what: str, inline: bool = False) -> dict:
+        """``track`` checked as float32, its ``track_url`` and under ``_track_payload`` the
+        :class:`~dashboard.payloads.Payload` to hold (by URL on our server unless ``inline``)."""
         if track is None:
-            return {"track": None}
+            return {"track": None, "track_url": "", "_track_payload": None}
         arr = _f32(track, what, (None, K))
         if not len(arr):
             raise ValueError(f"{what}: expected at least one frame, got shape {arr.shape}")
-        return {"track": arr}
+        p = payloads.register_track(arr) if payloads.enabled() and not inline else None
+        return {"track": arr, "track_url": p.url if p is not None else "", "_track_payload": p}
 
     @staticmethod
     def _colors(colors, V: int) -> np.ndarray:
@@ -382,12 +402,16 @@ class MeshViewer(pn.custom.JSComponent):
 
         Raises ValueError when the track is not (T, K) for this rig's K or holds NaN.
         """
-        values = self._track_values(track, self.n_shapes, "track")
+        values = self._track_values(track, self.n_shapes, "track", self.inline_geometry)
+        self._track_payload = values.pop("_track_payload")
         T = 1 if values["track"] is None else len(values["track"])
         values["frame"] = min(self.frame, T - 1)
         if fps is not None:
             values["fps"] = float(fps)
+        inline_again = not values["track_url"] and self.track_url and values["track"] is self.track
         self.param.update(**values)
+        if inline_again:  # the same array, now inside the document: param saw no change of it
+            self.param.trigger("track")
 
     def set_weights(self, weights) -> None:
         """Show ``weights`` (K,) instead of the track; ``None`` or ``[]`` goes back to the track.
@@ -431,7 +455,8 @@ class MeshViewer(pn.custom.JSComponent):
         if len(names) != K:
             raise ValueError(f"shape_names: expected {K} names, got {len(names)}")
         values["shape_names"] = names
-        values.update(self._track_values(track, K, "track"))
+        values.update(self._track_values(track, K, "track", self.inline_geometry))
+        self._track_payload = values.pop("_track_payload")
         T = 1 if values["track"] is None else len(values["track"])
         values["frame"] = min(self.frame, T - 1)
         with param.discard_events(self):

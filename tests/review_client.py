@@ -108,12 +108,16 @@ class Page:
 
     ``on_patch(page, changes, t)`` is called for every patch from the server with its property
     changes ``[(model id, property, new value)]`` and the arrival time (``time.monotonic()``).
+    A viewer's new ``track_url`` is fetched at once, as the browser does (dashboard.payloads);
+    ``on_track(page, model id, t)`` is called when it has arrived (or, for a track sent inside the
+    patch, when the patch has).
     """
 
     def __init__(self, base: str, app: str = "/", args: Optional[dict] = None,
                  on_patch: Optional[Callable] = None, timeout: float = 120.0):
         self.base, self.app, self.args = base.rstrip("/"), app, dict(args or {})
         self.on_patch = on_patch
+        self.on_track: Optional[Callable] = None
         self.timeout = timeout
         self.protocol = Protocol()
         self.receiver = Receiver(self.protocol)
@@ -227,11 +231,26 @@ class Page:
                         key = (e["model"]["id"], e["attr"])
                         self.values[key] = e.get("new")
                         changes.append((key[0], key[1], e.get("new")))
+                        if key[1] == "track_url" and e.get("new"):
+                            asyncio.ensure_future(self._fetch_track(key[0], e["new"]))
                 self.patches += 1
                 if self.on_patch is not None:
                     self.on_patch(self, changes, t)
+                if self.on_track is not None:  # a track inside the patch: the page has it now
+                    for mid, attr, _ in changes:
+                        if attr == "track":
+                            self.on_track(self, mid, t)
             elif msg.msgtype == "ERROR":
                 self.errors.append(msg.content.get("text", "error"))
+
+    async def _fetch_track(self, model_id: str, url: str) -> None:
+        try:
+            await self.get(url)
+        except Exception as e:  # noqa: BLE001 - reported like a server error
+            self.errors.append(f"track {url}: {e}")
+            return
+        if self.on_track is not None:
+            self.on_track(self, model_id, time.monotonic())
 
     def value(self, model, attr: str):
         """``model.attr`` as the server last sent it (or as pulled, when it never changed)."""

@@ -1,7 +1,7 @@
-"""The viewers' meshes served by content (dashboard.payloads): the blob round-trips, every page of
-one mesh shares one blob, a blob is served only while a viewer holds it, a viewer sends its mesh by
-URL on our server and inline elsewhere, and a real server's page fetches the mesh it shows (the
-document carries none of it). The browser side (decodeGeometry, both paths) runs in
+"""The viewers' meshes and weight tracks served by content (dashboard.payloads): the blobs
+round-trip, every page of one mesh or track shares one blob, a blob is served only while a viewer
+holds it, a viewer sends its mesh and track by URL on our server and inline elsewhere, and a real
+server's page fetches the mesh and track it shows (the document carries none of them). The browser side (decodeGeometry, both paths) runs in
 tests/browser/test_viewer.py and every dashboard browser test."""
 
 from __future__ import annotations
@@ -62,7 +62,84 @@ def test_one_blob_per_mesh_held_only_while_a_viewer_holds_it():
     key = a.key
     del a, other
     gc.collect()
-    assert payloads.lookup(key) is None, "a blob nobody shows is still served"
+    # nobody shows it: still served for a while (a page sent its URL may not have fetched it yet)
+    assert payloads.lookup(key) is not None, "a blob was dropped the moment its last viewer let it go"
+    _expire_recent()
+    assert payloads.lookup(key) is None, "a blob nobody shows is still served after the grace period"
+
+
+def _expire_recent():
+    """The grace period of blobs nobody holds ends (dashboard.payloads.KEEP_S elapsed)."""
+    keep = payloads.KEEP_S
+    payloads.KEEP_S = -1.0
+    try:
+        payloads.register(*_mesh(seed=99))  # any registration expires the old ones, then itself
+    finally:
+        payloads.KEEP_S = keep
+    gc.collect()
+
+
+def test_recent_blobs_are_kept_within_a_byte_budget():
+    keep = payloads.KEEP_BYTES
+    payloads.KEEP_BYTES = 3 * len(payloads.pack(*_mesh()))
+    try:
+        keys = [payloads.register(*_mesh(seed=100 + i)).key for i in range(5)]
+        gc.collect()
+        assert [payloads.lookup(k) is not None for k in keys] == [False, False, True, True, True]
+    finally:
+        payloads.KEEP_BYTES = keep
+
+
+def test_track_blob_round_trips_and_is_shared_like_a_mesh():
+    W = np.random.default_rng(4).uniform(-0.5, 1.5, size=(7, 5)).astype(np.float32)
+    blob = payloads.pack_track(W)
+    assert len(blob) == 16 + W.nbytes and np.array_equal(payloads.unpack_track(blob), W)
+    with pytest.raises(ValueError, match="magic"):
+        payloads.unpack_track(payloads.pack(*_mesh()))
+    with pytest.raises(ValueError, match="bytes"):
+        payloads.unpack_track(blob[:-4])
+    (frozen,) = _frozen(W.copy())
+    a = payloads.register_track(frozen)
+    assert payloads.register_track(frozen) is a and payloads.register_track(W.copy()) is a
+    # a mesh whose bytes happen to be arranged otherwise is another blob: the kinds do not mix
+    assert payloads.register_track(W[:, :4].copy()).key != a.key
+    key = a.key
+    del a
+    _expire_recent()
+    assert payloads.lookup(key) is None
+
+
+def test_viewer_sends_its_track_by_url_and_every_page_of_a_result_shares_it(served):
+    n, f, d = _frozen(*_mesh(seed=5))
+
+    class Rig:
+        name, neutral, faces, deltas = "r", n, f, d
+        names = ["a", "b", "c"]
+        n_vertices, n_shapes = len(n), len(d)
+
+    (W,) = _frozen(np.random.default_rng(6).uniform(0, 1, size=(9, 3)))
+    pages = [MeshViewer.from_rig(Rig, track=W) for _ in range(3)]
+    assert len({v.track_url for v in pages}) == 1 and pages[0].track_url.startswith(payloads.ROUTE + "/")
+    blob = payloads.lookup(pages[0].track_url.rsplit("/", 1)[-1]).data
+    assert np.array_equal(payloads.unpack_track(blob), W.astype(np.float32))
+    # the document holds the URL, not the track; Python keeps the array (n_frames, tests)
+    model = pages[0].get_root()
+    assert model.data.track is None and model.data.track_url == pages[0].track_url
+    assert pages[0].n_frames == 9 and pages[0].track.dtype == np.float32
+    # a new track is a new URL, and only the URL changes on the model
+    W2 = np.zeros((4, 3))
+    pages[0].set_track(W2)
+    assert model.data.track_url == pages[0].track_url != pages[1].track_url and model.data.track is None
+    assert pages[0].frame <= 3
+    # inline (on request, or without our route): the track in the document, no URL
+    pages[1].inline_geometry = True
+    m1 = pages[1].get_root()
+    assert pages[1].track_url == "" and m1.data.track_url == "" and np.array_equal(m1.data.track, W.astype(np.float32))
+    payloads.enable(False)
+    v = MeshViewer.from_rig(Rig, track=W)
+    assert v.track_url == "" and np.array_equal(v.get_root().data.track, W.astype(np.float32))
+    with pytest.raises(ValueError, match="NaN"):
+        v.set_track(np.full((2, 3), np.nan))
 
 
 def test_viewer_sends_its_mesh_by_url_on_our_server_and_inline_elsewhere(served):
@@ -96,7 +173,7 @@ def test_viewer_sends_its_mesh_by_url_on_our_server_and_inline_elsewhere(served)
 
 
 @pytest.mark.slow
-def test_a_page_fetches_the_mesh_it_shows(tmp_path):
+def test_a_page_fetches_the_mesh_and_track_it_shows(tmp_path):
     rc.register_models()
     sid = rc.sample_shot(tmp_path / "data", "mesh", last_frame=59)
     with rc.Server("--data-dir", str(tmp_path / "data"), "--warm-pages", "0") as srv:
@@ -104,11 +181,16 @@ def test_a_page_fetches_the_mesh_it_shows(tmp_path):
             (p,), _ = await rc.open_pages(srv.base, sid, 1)
             viewers = [m for m in p.doc.models if hasattr(m, "data") and hasattr(m.data, "geometry_url")]
             await p.close()
-            return [(m.data.geometry_url, m.data.geometry) for m in viewers]
+            return [(m.data.geometry_url, m.data.geometry, (m.data.track_url, m.data.track)) for m in viewers]
 
         found = rc.run(scenario())
         assert len(found) >= 2, found
-        for url, inline in found:
+        tracks = [t for _, _, t in found]
+        assert all(u.startswith(payloads.ROUTE + "/") for u, _ in tracks), tracks
+        for u, _ in tracks:
+            W = payloads.unpack_track(requests.get(f"{srv.base}/{u}", timeout=30).content)
+            assert W.shape[0] == 60 and np.isfinite(W).all()
+        for url, inline, _ in found:
             assert url.startswith(payloads.ROUTE + "/") and inline is None, (url, inline)
             r = requests.get(f"{srv.base}/{url}", timeout=30)
             assert r.status_code == 200 and r.headers["Content-Type"] == "application/octet-stream"

@@ -3,8 +3,9 @@
 // Sent once: the mesh, neutral (V,3) f32, faces (F,3) u32 and deltas (K,V,3) f32 packed in one
 // blob (dashboard/payloads.py, decodeGeometry below), fetched from `geometry_url` (one copy on
 // the server for every page, cached by the browser under its content key) or, without that
-// route, inline in `geometry`; then (binary, bokeh ndarray buffers) the weight track (T,K) f32
-// and the marker layout / marker track.
+// route, inline in `geometry`; the weight track (T,K) f32 the same way (a blob fetched from
+// `track_url`, decodeTrack below, or inline in `track`, a bokeh ndarray buffer); the marker
+// layout / marker track as binary bokeh buffers.
 // Per frame nothing travels while playing: the browser plays the track at `fps` on a
 // clock shared by every viewer in the same `sync_group`; the group's first viewer writes
 // `frame` back to Python at most every `sync_interval` seconds (0 = only when playback
@@ -195,6 +196,17 @@ function decodeGeometry(buf, byteOffset = 0, byteLength = buf.byteLength - byteO
   return { V, F, K, neutral, faces, deltas, bytes: byteLength };
 }
 
+// The track blob of dashboard/payloads.py: "FRT1", T, K, 0 (uint32), then (T,K) f32 rows.
+const TRACK_MAGIC = 0x31545246; // "FRT1" read as a little-endian uint32
+function decodeTrack(buf) {
+  if (buf.byteLength < 16) throw new Error(`track payload of ${buf.byteLength} bytes`);
+  const head = new Uint32Array(buf, 0, 4);
+  if (head[0] !== TRACK_MAGIC) throw new Error("not a face-retarget track payload");
+  const T = head[1], K = head[2];
+  if (buf.byteLength !== 16 + 4 * T * K) throw new Error(`track payload of ${buf.byteLength} bytes, expected ${16 + 4 * T * K}`);
+  return { T, K, data: new Float32Array(buf, 16, T * K) };
+}
+
 function rows(a) {
   // (n, ...) ndarray -> n, or 0 for null / empty
   if (a == null || !a.length) return 0;
@@ -316,6 +328,8 @@ class Viewer {
     this.pickCount = 0;
     this.geo = null;        // the decoded mesh blob (decodeGeometry), or null
     this.geometryGen = 0;   // the latest mesh load; an older one that finishes later is dropped
+    this.trackData = null;  // the track as loaded (loadTrack): {T, K, data} or null
+    this.trackGen = 0;      // the latest track load (as geometryGen)
     this.buildDom();
     this.buildScene();
     this.ready = this.start();
@@ -324,7 +338,7 @@ class Viewer {
   // Everything after the mesh has arrived (fetched when it comes by URL); the viewer appears in
   // window.__faceRetarget.viewers only then.
   async start() {
-    await this.loadGeometry();
+    await Promise.all([this.loadGeometry(), this.loadTrack()]);
     if (this.disposed) return;
     this.setGeometry();
     this.setNormalMap();
@@ -341,8 +355,9 @@ class Viewer {
     this.showFrame(this.clock.frame, false);
     if (this.model.playing) this.clock.play(true);
     REGISTRY.viewers[this.label] = this.api();
-    // a new mesh sent while the first one was loading (before watch() listened)
+    // a new mesh or track sent while the first one was loading (before watch() listened)
     if (this.loadedFrom !== (this.model.geometry_url || this.model.geometry)) this.reloadGeometry();
+    if (this.trackFrom !== (this.model.track_url || this.model.track)) this.reloadTrack();
   }
 
   // -- DOM, renderer, camera -----------------------------------------------------------
@@ -545,6 +560,37 @@ class Viewer {
     return true;
   }
 
+  // The track from `track_url` (fetched like the mesh; a new track is a new URL) or the inline
+  // `track`, into this.trackData. Resolves true when this load is the latest.
+  async loadTrack() {
+    const gen = ++this.trackGen;
+    const m = this.model;
+    this.trackFrom = m.track_url || m.track;
+    let data = null, error = null;
+    try {
+      if (m.track_url) {
+        const r = await fetch(new URL(m.track_url, document.baseURI), { credentials: "same-origin" });
+        if (!r.ok) throw new Error(`HTTP ${r.status} ${r.statusText}`);
+        data = decodeTrack(await r.arrayBuffer());
+      } else if (rows(m.track)) {
+        data = { T: rows(m.track), K: m.track.shape[1], data: asF32(m.track) };
+      }
+    } catch (err) {
+      error = String(err && err.message || err);
+    }
+    if (gen !== this.trackGen || this.disposed) return false;
+    this.trackData = data;
+    this.stats.trackSource = m.track_url ? "url" : (data ? "inline" : "none");
+    this.stats.trackError = error;
+    if (error) console.error(`face-retarget viewer ${this.label}: the weight track could not be loaded (${error})`);
+    return true;
+  }
+
+  async reloadTrack() {
+    if (!(await this.loadTrack())) return;
+    this.setTrack(); this.showFrame(this.clock.clamp(this.clock.frame), false);
+  }
+
   async reloadGeometry() {
     if (!(await this.loadGeometry())) return;
     this.setGeometry(); this.setMarkers(); this.setHighlight(); this.showFrame(this.clock.clamp(this.clock.frame), false);
@@ -708,13 +754,14 @@ class Viewer {
   }
 
   setTrack() {
-    const tr = this.model.track;
-    const T = rows(tr);
-    if (T && tr.shape[1] === this.K) {
-      this.track = asF32(tr);
-      this.nFrames = T;
+    const tr = this.trackData;
+    if (tr && tr.T && tr.K === this.K) {
+      this.track = tr.data;
+      this.trackRows = tr.T;
+      this.nFrames = tr.T;
     } else {
       this.track = null;
+      this.trackRows = 0;
       this.nFrames = 1;
     }
     const mt = this.model.marker_track;
@@ -930,7 +977,7 @@ class Viewer {
     const w = this.model.weights;
     if (w && w.length === K && K) return w;
     if (this.track) {
-      const f = Math.min(frame, this.nFrames - 1, rows(this.model.track) - 1);
+      const f = Math.min(frame, this.nFrames - 1, this.trackRows - 1);
       return this.track.subarray(f * K, (f + 1) * K);
     }
     return null;
@@ -980,8 +1027,9 @@ class Viewer {
     const T = this.nFrames;
     this.overlay.textContent = `${this.model.label || ""}  frame ${frame} / ${T - 1}` +
       (this.override ? "  (probe)" : (this.model.weights && this.model.weights.length ? "  (weights from Python)" : "")) +
-      (this.stats.geometryError ? `  — the mesh could not be loaded (${this.stats.geometryError}); reload the page` : "");
-    this.overlay.style.color = this.stats.geometryError ? "#ff8a80" : "#ddd";
+      (this.stats.geometryError ? `  — the mesh could not be loaded (${this.stats.geometryError}); reload the page` : "") +
+      (this.stats.trackError ? `  — the weight track could not be loaded (${this.stats.trackError}); reload the page` : "");
+    this.overlay.style.color = this.stats.geometryError || this.stats.trackError ? "#ff8a80" : "#ddd";
   }
 
   // position = neutral + sum_k w_k delta_k, normal = n0 + sum_k w_k dn_k over non-zero w_k;
@@ -1193,7 +1241,7 @@ class Viewer {
     m.on("fps", () => this.clock.setFps(m.fps));
     m.on("loop", () => { this.clock.loop = m.loop; });
     m.on("weights", () => { this.applyFrame(this.clock.frame); this.requestRender(); });
-    m.on(["track"], () => { this.setTrack(); this.showFrame(this.clock.clamp(this.clock.frame), false); });
+    m.on(["track", "track_url"], () => this.reloadTrack());
     m.on(["geometry_url", "geometry"], () => this.reloadGeometry());
     m.on(["marker_vertices", "marker_weights", "marker_track", "marker_radius"], () => {
       this.setMarkers(); this.setTrack(); this.showFrame(this.clock.frame, false);
