@@ -173,7 +173,8 @@ def _serve(args) -> int:
                  "encryption_key": os.environ.get("FACE_RETARGET_OAUTH_ENCRYPTION_KEY")}
     return serve(port=args.port, address=args.address, show=args.show, allow_websocket_origin=args.allow_websocket_origin,
                  data_dir=args.data_dir, review=not args.no_review, password=args.password or os.environ.get("FACE_RETARGET_PASSWORD"),
-                 max_upload_mb=args.max_upload_mb, oauth=oauth, warm_pages=args.warm_pages)
+                 max_upload_mb=args.max_upload_mb, oauth=oauth, warm_pages=args.warm_pages,
+                 warm_wait=args.warm_wait)
 
 
 def _is_rig(p: Path) -> bool:
@@ -326,6 +327,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--oauth-redirect-uri", default=None, help="OAuth redirect URI (the address reviewers open)")
     s.add_argument("--warm-pages", type=int, default=4, help="pages of each opened shot built ahead while the server is "
                                                             "idle, for that many reviewers opening it at once (default: 4; 0: none)")
+    s.add_argument("--warm-wait", type=float, default=30.0,
+                   help="seconds without a change or a page request before a warm page is built while someone is on "
+                        "the shot (a change made during a build waits for it, ~1 s; default: 30; nobody on it: 3)")
     s.set_defaults(func=_serve)
 
     n = sub.add_parser("names", help="write the automatic channel->shape name map (JSON) for editing")

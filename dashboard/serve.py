@@ -9,7 +9,7 @@ from typing import Optional
 
 def serve(port: int = 5006, address: str = "localhost", show: bool = False, allow_websocket_origin=None,
           data_dir=None, review: bool = True, password: Optional[str] = None, max_upload_mb: float = 200.0,
-          oauth: Optional[dict] = None, warm_pages: int = 4) -> int:
+          oauth: Optional[dict] = None, warm_pages: int = 4, warm_wait: float = 30.0) -> int:
     """Serve the dashboard until interrupted. No browser opens unless ``show``.
 
     Parameters
@@ -25,6 +25,8 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     warm_pages : pages of every opened shot built ahead while the server is idle, so that this many
         reviewers opening it at once are served without waiting for Bokeh to build their pages
         (:mod:`dashboard.warm`; 0: none; each costs ~4.5 MB while it waits)
+    warm_wait : seconds of quiet (no change, no page asked for) before a warm page is built while
+        someone is on the shot (a change made during a build waits for it); 3 s when nobody is
     """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     return_large_buffers()
@@ -44,7 +46,7 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
         print(f"review store: {server.data_dir}", flush=True)
         from dashboard import warm
 
-        warm.configure(warm_pages)
+        warm.configure(warm_pages, busy_idle_s=warm_wait)
     origins = [f"{address}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"] + list(allow_websocket_origin or [])
     kwargs = dict(websocket_origin=origins, liveness=True, threaded=True,
                   # base64 of the largest file a page may send; beyond that Tornado closes the connection

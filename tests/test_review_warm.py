@@ -42,7 +42,8 @@ def test_a_warm_page_is_the_shot_as_it_is_now(tmp_path):
     rc.register_models()
     sid = rc.sample_shot(tmp_path / "data", "warm", last_frame=199)
     log = tmp_path / "server.log"
-    with rc.Server("--data-dir", str(tmp_path / "data"), "--warm-pages", "2", log=log) as srv:
+    # --warm-wait 3: build while ana is on the shot after 3 s of quiet (the default waits 30 s)
+    with rc.Server("--data-dir", str(tmp_path / "data"), "--warm-pages", "2", "--warm-wait", "3", log=log) as srv:
         async def scenario():
             (a,), _ = await rc.open_pages(srv.base, sid, 1)
             _name(a, "ana")
