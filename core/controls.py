@@ -937,7 +937,9 @@ def filter_weights(W, fps, kind: str = "one_euro", *, sigma: float = 1.0, min_cu
             raise ValueError("W: contains NaN/inf; fill the gaps first (core.gaps.fill_gaps)")
         _fps(fps)
         return smooth_weights(W, sigma)
-    return one_euro(W, fps, min_cutoff, beta, d_cutoff)
+    out = one_euro(W, fps, min_cutoff, beta, d_cutoff)
+    # each output is a convex combination of inputs: within their range but for rounding
+    return np.clip(out, W.min(axis=0), W.max(axis=0), out=out)
 
 
 # =============================================================================================

@@ -915,7 +915,10 @@ def smooth_weights(region_weights, sigma: float) -> np.ndarray:
         raise ValueError(f"sigma: expected >= 0 frames, got {sigma}")
     if sigma == 0 or len(U) < 2:
         return U.copy()
-    return gaussian_filter1d(U, float(sigma), axis=0, mode="nearest")
+    out = gaussian_filter1d(U, float(sigma), axis=0, mode="nearest")
+    # the kernel sums to 1 only up to rounding: a weight at its bound came out 1 ulp past it
+    # (1.0000000000000002 with scipy 1.17); a convex combination lies within its inputs' range
+    return np.clip(out, U.min(axis=0), U.max(axis=0), out=out)
 
 
 def region_curves(region_weights, shape_names: Sequence[str], region_names: Optional[Sequence[str]] = None) -> dict:
