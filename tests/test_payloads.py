@@ -25,6 +25,15 @@ def _mesh(V=50, F=40, K=3, seed=0):
     return n, f, d
 
 
+def _rig(n, f, d):
+    """A three-shape rig of these arrays, as MeshViewer.from_rig reads one."""
+    class Rig:
+        name, neutral, faces, deltas = "r", n, f, d
+        names = ["a", "b", "c"]
+        n_vertices, n_shapes = len(n), len(d)
+    return Rig
+
+
 def _frozen(*arrays):
     for a in arrays:
         a.flags.writeable = False
@@ -111,11 +120,7 @@ def test_track_blob_round_trips_and_is_shared_like_a_mesh():
 
 def test_viewer_sends_its_track_by_url_and_every_page_of_a_result_shares_it(served):
     n, f, d = _frozen(*_mesh(seed=5))
-
-    class Rig:
-        name, neutral, faces, deltas = "r", n, f, d
-        names = ["a", "b", "c"]
-        n_vertices, n_shapes = len(n), len(d)
+    Rig = _rig(n, f, d)
 
     (W,) = _frozen(np.random.default_rng(6).uniform(0, 1, size=(9, 3)))
     pages = [MeshViewer.from_rig(Rig, track=W) for _ in range(3)]
@@ -144,11 +149,7 @@ def test_viewer_sends_its_track_by_url_and_every_page_of_a_result_shares_it(serv
 
 def test_viewer_sends_its_mesh_by_url_on_our_server_and_inline_elsewhere(served):
     n, f, d = _frozen(*_mesh(seed=3))
-
-    class Rig:
-        name, neutral, faces, deltas = "r", n, f, d
-        names = ["a", "b", "c"]
-        n_vertices, n_shapes = len(n), len(d)
+    Rig = _rig(n, f, d)
 
     v = MeshViewer.from_rig(Rig, track=np.zeros((4, 3)))
     key = v.geometry_url.rsplit("/", 1)[-1]

@@ -196,6 +196,14 @@ function decodeGeometry(buf, byteOffset = 0, byteLength = buf.byteLength - byteO
   return { V, F, K, neutral, faces, deltas, bytes: byteLength };
 }
 
+// A blob of dashboard/payloads.py from its URL (relative to the page), with the page's cookies
+// (the route asks for the same login as the page); the browser's cache keeps it (immutable).
+async function fetchBlob(url) {
+  const r = await fetch(new URL(url, document.baseURI), { credentials: "same-origin" });
+  if (!r.ok) throw new Error(`HTTP ${r.status} ${r.statusText}`);
+  return r.arrayBuffer();
+}
+
 // The track blob of dashboard/payloads.py: "FRT1", T, K, 0 (uint32), then (T,K) f32 rows.
 const TRACK_MAGIC = 0x31545246; // "FRT1" read as a little-endian uint32
 function decodeTrack(buf) {
@@ -540,9 +548,7 @@ class Viewer {
     let geo = null, error = null;
     try {
       if (m.geometry_url) {
-        const r = await fetch(new URL(m.geometry_url, document.baseURI), { credentials: "same-origin" });
-        if (!r.ok) throw new Error(`HTTP ${r.status} ${r.statusText}`);
-        geo = decodeGeometry(await r.arrayBuffer());
+        geo = decodeGeometry(await fetchBlob(m.geometry_url));
       } else if (m.geometry && m.geometry.length) {
         const b = m.geometry;
         geo = decodeGeometry(b.buffer, b.byteOffset, b.byteLength);
@@ -569,9 +575,7 @@ class Viewer {
     let data = null, error = null;
     try {
       if (m.track_url) {
-        const r = await fetch(new URL(m.track_url, document.baseURI), { credentials: "same-origin" });
-        if (!r.ok) throw new Error(`HTTP ${r.status} ${r.statusText}`);
-        data = decodeTrack(await r.arrayBuffer());
+        data = decodeTrack(await fetchBlob(m.track_url));
       } else if (rows(m.track)) {
         data = { T: rows(m.track), K: m.track.shape[1], data: asF32(m.track) };
       }
