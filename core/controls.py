@@ -901,7 +901,8 @@ def one_euro(W, fps, min_cutoff: float = 1.0, beta: float = 0.0, d_cutoff: float
         a = r / (1.0 + r)
         y = a * x + (1.0 - a) * y
         out[n] = y
-    return out
+    # each output is a convex combination of inputs: within their range but for rounding
+    return np.clip(out, W.min(axis=0), W.max(axis=0), out=out)
 
 
 def filter_weights(W, fps, kind: str = "one_euro", *, sigma: float = 1.0, min_cutoff: float = 1.0,
@@ -937,9 +938,7 @@ def filter_weights(W, fps, kind: str = "one_euro", *, sigma: float = 1.0, min_cu
             raise ValueError("W: contains NaN/inf; fill the gaps first (core.gaps.fill_gaps)")
         _fps(fps)
         return smooth_weights(W, sigma)
-    out = one_euro(W, fps, min_cutoff, beta, d_cutoff)
-    # each output is a convex combination of inputs: within their range but for rounding
-    return np.clip(out, W.min(axis=0), W.max(axis=0), out=out)
+    return one_euro(W, fps, min_cutoff, beta, d_cutoff)
 
 
 # =============================================================================================
