@@ -71,7 +71,7 @@ def test_a_warm_page_is_the_shot_as_it_is_now(tmp_path):
             made = len(_said(log, "their documents made"))
             assert await _until(lambda: len(_said(log, "their documents made")) > made, 60), log.read_text()[-2000:]
             (c,), _ = await rc.open_pages(srv.base, sid, 1)
-            assert _said(log, "a warm page handed out")[-1].endswith("(its document made ahead)")
+            assert _said(log, "a warm page handed out")[-1].endswith("(its page and document made ahead)")
             assert c.value(c.one("Slider", title=ALPHA), "value") == 0.05
             assert c.value(c.one("Slider", title=BETA), "value") == 0.2
             _name(c, "cy")

@@ -168,3 +168,61 @@ def test_two_pages_one_shot_and_a_kill_minus_9(new_page, tmp_path, artifacts):
         (artifacts / "review_measurements.json").write_text(json.dumps(MEASURED, indent=2) + "\n")
     for k, v in MEASURED.items():  # the 1 s target is the benchmark's (benchmarks/bench_review.py); here: no hang
         assert v < 5.0, f"{k} took {v} s"
+
+
+@pytest.mark.browser
+def test_a_warm_page_made_ahead_works_in_chromium(new_page, tmp_path, artifacts):
+    """A page of the shot built, caught up and rendered while the server was idle
+    (dashboard.warm: its HTML made with a stand-in token) is handed out to Chromium: it connects
+    with the token written into it, shows the shot as it is now, and its changes reach the
+    first page."""
+    from playwright.sync_api import expect
+
+    log = artifacts / "server_review_warm.log"
+    log.write_text("")
+    port = free_port()
+    cmd = [sys.executable, "-m", "core.cli", "serve", "--address", "127.0.0.1", "--port", str(port),
+           "--data-dir", str(tmp_path / "data"), "--warm-pages", "1", "--warm-wait", "2"]
+    fh = open(log, "a")
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=fh,
+                            stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        base = f"http://127.0.0.1:{port}"
+        wait_http(f"{base}/liveness", 90, proc, log)
+        ctx_a, a = new_page()
+        a.goto(base + "/")
+        a.get_by_role("button", name=re.compile("New shared shot")).click()
+        a.wait_for_url(re.compile(r"\?shot="), timeout=30_000)
+        a.wait_for_function(VIEWERS_READY, timeout=120_000)
+        sid = re.search(r"shot=([^&]+)", a.url).group(1)
+        box = a.locator("input.fr-name")
+        box.fill("ana")
+        box.press("Enter")
+        # a change while the warm page waits: it catches up, then its page is made again
+        method_select(a).select_option(label=METHOD_LABEL["bounded"])
+        expect(summary(a)).to_contain_text("method bounded", timeout=30_000)
+        t0 = time.monotonic()
+        while "1 warm pages current, their documents made" not in log.read_text(errors="replace"):
+            assert time.monotonic() - t0 < 120, log.read_text(errors="replace")[-3000:]
+            time.sleep(0.5)
+        ctx_b, b = new_page()
+        b.goto(f"{base}/?shot={sid}")
+        b.wait_for_function(VIEWERS_READY, timeout=120_000)
+        handed = [ln for ln in log.read_text(errors="replace").splitlines() if "a warm page handed out" in ln]
+        assert handed and handed[-1].endswith("(its page and document made ahead)"), handed
+        expect(summary(b)).to_contain_text("method bounded", timeout=15_000)
+        box = b.locator("input.fr-name")
+        box.fill("bo")
+        box.press("Enter")
+        expect(a.get_by_text(re.compile(r"Here now: ana, bo"))).to_be_visible(timeout=15_000)
+        method_select(b).select_option(label=METHOD_LABEL["spacetime"])
+        expect(summary(a)).to_contain_text("method spacetime", timeout=30_000)
+        b.wait_for_timeout(500)
+        b.screenshot(path=str(artifacts / "review_warm_page.png"))
+        assert not b.console_errors, b.console_errors
+        assert not any("cdn" in u for u in b.requests), [u for u in b.requests if "cdn" in u]
+        ctx_a.close()
+        ctx_b.close()
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        fh.close()
