@@ -206,8 +206,13 @@ def test_a_warm_page_made_ahead_works_in_chromium(new_page, tmp_path, artifacts)
             assert time.monotonic() - t0 < 120, log.read_text(errors="replace")[-3000:]
             time.sleep(0.5)
         ctx_b, b = new_page()
+        encodings = []  # (url, Content-Encoding) of the blobs the page fetched
+        b.on("response", lambda r: encodings.append((r.url, r.headers.get("content-encoding")))
+             if "/face-retarget/payload/" in r.url else None)
         b.goto(f"{base}/?shot={sid}")
         b.wait_for_function(VIEWERS_READY, timeout=120_000)
+        # the meshes came gzip-compressed (dashboard.payloads) and the viewers decoded them
+        assert sum(enc == "gzip" for _, enc in encodings) >= 2, encodings
         handed = [ln for ln in log.read_text(errors="replace").splitlines() if "a warm page handed out" in ln]
         assert handed and handed[-1].endswith("(its page and document made ahead)"), handed
         expect(summary(b)).to_contain_text("method bounded", timeout=15_000)
