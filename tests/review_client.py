@@ -80,14 +80,31 @@ def register_models() -> None:
     import pkgutil
 
     import panel.models
+    from bokeh.model import Model
 
     for m in pkgutil.iter_modules(panel.models.__path__):
+        if m.name in CDN_MODULE_MODELS:
+            continue
         try:
             importlib.import_module(f"panel.models.{m.name}")
         except Exception:  # an optional model whose dependency is missing: no page of ours uses it
             pass
     import dashboard.review_view  # noqa: F401  (NameBox)
     import dashboard.viewer  # noqa: F401  (MeshViewer)
+
+    external = sorted({f"{c.__module__}.{c.__name__}" for c in Model.model_class_reverse_map.values()
+                       if any("://" in str(u) for u in (getattr(c, "__javascript_modules__", None) or []))})
+    if external:
+        raise RuntimeError(f"model classes whose ES modules come from a CDN were imported: {external}; "
+                           "every page an in-process server makes would ask for them (add their "
+                           "modules to CDN_MODULE_MODELS)")
+
+
+#: panel.models modules whose JavaScript is an ES module Panel does not bundle (a CDN URL). Panel
+#: puts the modules of every *imported* model class into every page it serves, so importing these
+#: here made the in-process test servers' pages (tests/browser/test_viewer.py) ask the CDN, when
+#: run after a test using this client; no dashboard page holds them.
+CDN_MODULE_MODELS = {"vizzu"}
 
 
 def _token(html: str) -> str:

@@ -656,7 +656,7 @@ def test_offsets_bump_shows_in_shading_picks_and_clears(offsets_page, offsets_se
         assert js(page, label, "v.positions()") is None
     np.testing.assert_allclose(js(page, label, "v.vertexPositions([arg])", apex)[0], want[apex] - O[apex],
                                rtol=0, atol=tol)
-    assert not page.console_errors, page.console_errors
+    assert not page.console_errors, (page.console_errors, [u for u in page.requests if "127.0.0.1" not in u])
 
     # plain, zero offsets, bump, cleared side by side, magnified around the bump, for a person to look at
     pad = 30
