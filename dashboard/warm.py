@@ -370,6 +370,7 @@ def handler_class():
                     self.set_header("Cache-Control", "no-store")
                     _set_request_route_context(self, *args, **kwargs)
                     session = await self.get_session()
+                    pulled.page = None  # written once: a reload is a new request, rendered by Panel
                     self.set_header("Content-Type", "text/html")
                     self.write(page.replace(TOKEN_SLOT, session.token))
                     return
