@@ -8,6 +8,7 @@ hold; :class:`NameBox` keeps the reviewer's name in the browser (asked once, ``l
 from __future__ import annotations
 
 import html
+from collections import Counter
 from typing import Callable, Optional
 
 import panel as pn
@@ -98,6 +99,15 @@ class NotesList(pn.custom.JSComponent):
     """]
 
 
+def people_text(names, presenter: str = "") -> str:
+    """The participants line: each name once, with how many pages carry it when more than one
+    (two unnamed reviewers are "someone ×2", not one "someone"), and the presenter."""
+    counts = Counter(names)
+    listed = ", ".join(n if k == 1 else f"{n} ×{k}" for n, k in sorted(counts.items()))
+    return (f"Here now: {html.escape(listed) or 'just you'}"
+            + (f" · presenting: **{html.escape(presenter)}**" if presenter else ""))
+
+
 class ReviewPanel:
     """Participants, presenter/follow, notes (see the module docstring).
 
@@ -165,10 +175,7 @@ class ReviewPanel:
         self.hub.join(self.mirror.session_id, self.mirror.name)
 
     def draw_people(self):
-        names = sorted(set(self.hub.participants.values()))
-        pres = self.hub.presenter
-        self.w_people.object = (f"Here now: {html.escape(', '.join(names)) or 'just you'}"
-                                + (f" · presenting: **{html.escape(pres)}**" if pres else ""))
+        self.w_people.object = people_text(self.hub.participants.values(), self.hub.presenter)
 
     # -- presenter and followers ----------------------------------------------------------------
     def _on_own_frame(self, *events):

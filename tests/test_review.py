@@ -145,3 +145,12 @@ def test_the_review_downloads_as_one_file_and_opens_on_another_server(server, sh
         assert len(other.store.recent(5)) == 1
     finally:
         other.store.close()
+
+
+def test_the_participants_line_counts_pages_that_share_a_name():
+    from dashboard.review_view import people_text
+
+    assert people_text(["bo", "ana"]) == "Here now: ana, bo"
+    assert people_text(["someone", "someone", "ana"], "ana") == "Here now: ana, someone ×2 · presenting: **ana**"
+    assert people_text([]) == "Here now: just you"
+    assert people_text(["<b>x</b>"]) == "Here now: &lt;b&gt;x&lt;/b&gt;"
