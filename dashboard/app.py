@@ -569,17 +569,23 @@ class DashboardApp(pn.viewable.Viewer):
             self._set_visible(cfg or self.pipe.config())
 
     def _set_visible(self, cfg):
-        # hidden by one stylesheet per stage, not by each widget's `visible`: Bokeh re-lays the
-        # page out for every `visible` change (~0.2 s each in Chromium here; a method change
-        # toggles ten), a stylesheet change is one
+        # hidden by one stylesheet per stage, not by each widget's `visible`: BokehJS lays the
+        # whole page out again, synchronously, for every change of a layout's `visible`,
+        # `stylesheets` or `css_classes` (LayoutDOMView.invalidate_layout: 0.15-0.2 s each in
+        # Chromium here; a method change toggles ten widgets). A stage with nothing to show hides
+        # itself in the same stylesheet (`:host`), not by `visible` on top: one change per stage
+        # (a method switch was three relayouts, a 0.35-0.46 s long task on every page)
         for st, pane in self._setting_panes:
             keep = set(visible_settings(st, cfg))
             hide = sorted(n for n in pane._widgets if n != "_title" and n not in keep)
-            sheet = [", ".join(f".fr-setting-{n}" for n in hide) + " { display: none !important; }"] if hide else []
+            if not keep:
+                sheet = [":host { display: none !important; }"]
+            elif hide:
+                sheet = [", ".join(f".fr-setting-{n}" for n in hide) + " { display: none !important; }"]
+            else:
+                sheet = []
             if pane.layout.stylesheets != sheet:
                 pane.layout.stylesheets = sheet
-            if pane.visible != bool(keep):
-                pane.visible = bool(keep)
         for card, groups in self._setting_cards:  # its panes may not be made yet
             card.visible = any(visible_settings(st, cfg) for st in self.pipe.stages.values() if type(st).group in groups)
         self._shown = _shown(self.pipe)
