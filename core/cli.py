@@ -326,7 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                           "key/secret from FACE_RETARGET_OAUTH_KEY/_SECRET (docs/review.md)")
     s.add_argument("--oauth-redirect-uri", default=None, help="OAuth redirect URI (the address reviewers open)")
     s.add_argument("--warm-pages", type=int, default=4, help="pages of each opened shot built ahead while the server is "
-                                                            "idle, for that many reviewers opening it at once (default: 4; 0: none)")
+                                                            "idle, for that many reviewers opening it at once; a shot that had more people on it at "
+                                                            "once keeps that many, up to 24 (default: 4; 0: none)")
     s.add_argument("--warm-wait", type=float, default=30.0,
                    help="seconds without a change or a page request before a warm page is built while someone is on "
                         "the shot (a change made during a build waits for it, ~1 s; default: 30; nobody on it: 3)")

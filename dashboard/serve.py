@@ -24,7 +24,8 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
         for Panel's OAuth (see docs/review.md)
     warm_pages : pages of every opened shot built ahead while the server is idle, so that this many
         reviewers opening it at once are served without waiting for Bokeh to build their pages
-        (:mod:`dashboard.warm`; 0: none; each costs ~4.5 MB while it waits)
+        (:mod:`dashboard.warm`; 0: none; each costs ~4.5 MB while it waits); a shot that has had
+        more people on it at once keeps that many (up to 24)
     warm_wait : seconds of quiet (no change, no page asked for) before a warm page is built while
         someone is on the shot (a change made during a build waits for it); 3 s when nobody is
     """

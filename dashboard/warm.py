@@ -10,8 +10,10 @@ what is left is Bokeh's per-document work, which no sharing removes: a bare Boke
 So the server builds a shot's pages before they are asked for, while it is idle. The pages of
 one shot are alike until someone opens them, and a review is opened by a few people at once
 (the lead mails the link). ``face-retarget serve --warm-pages N`` keeps up to N pages of every
-shot that was opened ready; ``/?shot=<id>`` hands one out and then costs only the HTML, a fresh
-session token and the document's serialisation.
+shot that was opened ready — or as many as have been on the shot at once, when that is more (up
+to :data:`MAX_PEAK_PAGES`: a review that met with twelve people finds twelve pages after a break);
+``/?shot=<id>`` hands one out and then costs only the HTML, a fresh session token and the
+document's serialisation.
 
 A warm page is *dormant* until it is handed out: it is not among the participants, and it does
 not follow the hub as changes come (twenty dormant pages recomputing every change would
@@ -58,6 +60,9 @@ IDLE_S = 3.0
 BUSY_IDLE_S = 30.0
 #: the most shots that keep warm pages (the most recently opened)
 MAX_SHOTS = 8
+#: the most warm pages a shot keeps because of how many people it has had at once (above
+#: ``--warm-pages``; ~4.5 MB each while they wait)
+MAX_PEAK_PAGES = 24
 
 
 class WarmPool:
@@ -73,7 +78,8 @@ class WarmPool:
         self.apps: dict = {}  # Bokeh session id -> the DashboardApp built for it (create_app puts it)
         self._filling: set = set()  # shot ids whose refill is running
         self._order: list = []  # shot ids, most recently opened last
-        self._watched: dict = {}  # shot id -> (hub, watcher) bumping the activity clock on changes
+        self._watched: dict = {}  # shot id -> (hub, watchers) bumping the activity clock on changes
+        self.peak: dict = {}  # shot id -> the most pages that have been on it at once
         self._ctx = None  # (Bokeh application context, application) of the page route, pages are built in
         self._loop = None  # the server's event loop (a shot may change on another thread)
         self.last_activity = time.monotonic()
@@ -94,6 +100,21 @@ class WarmPool:
     def count(self, shot_id: str) -> int:
         return len(self.ready.get(shot_id) or [])
 
+    def target(self, shot_id: str) -> int:
+        """How many pages ``shot_id`` keeps ready: ``--warm-pages``, or as many as have been on
+        it at once (up to :data:`MAX_PEAK_PAGES`) — a review that met with twelve people, who
+        come back after a break or reload, finds twelve pages ready."""
+        if self.size <= 0:
+            return 0
+        return max(self.size, min(self.peak.get(shot_id, 0), MAX_PEAK_PAGES))
+
+    def _people(self, shot_id: str, hub) -> None:
+        n = len(hub.participants)
+        if n > self.peak.get(shot_id, 0):
+            self.peak[shot_id] = n
+            if n > self.size:
+                self._changed(shot_id)
+
     def want(self, app_context, application, shot_id: str, hub=None) -> None:
         """Keep ``shot_id``'s pages topped up and current (on the event loop, while idle)."""
         if self.size <= 0:
@@ -109,11 +130,16 @@ class WarmPool:
             self._order.remove(old)
             for session, _ in self.ready.pop(old, []):
                 session.unblock_expiration()
+            self.peak.pop(old, None)
             hub_w = self._watched.pop(old, None)
             if hub_w is not None:
-                hub_w[0].param.unwatch(hub_w[1])
+                for w in hub_w[1]:
+                    hub_w[0].param.unwatch(w)
         if hub is not None and shot_id not in self._watched:
-            self._watched[shot_id] = (hub, hub.param.watch(lambda e, s=shot_id: self._changed(s), ["version"]))
+            self._watched[shot_id] = (hub, (hub.param.watch(lambda e, s=shot_id: self._changed(s), ["version"]),
+                                            hub.param.watch(lambda e, s=shot_id, h=hub: self._people(s, h),
+                                                            ["participants"])))
+            self._people(shot_id, hub)
         self._kick(shot_id)
 
     def _changed(self, shot_id: str) -> None:
@@ -154,7 +180,7 @@ class WarmPool:
         try:
             while shot_id in self._order:
                 stale = self._stale(shot_id)
-                if stale is None and self._unserialised(shot_id) is None and self.count(shot_id) >= self.size:
+                if stale is None and self._unserialised(shot_id) is None and self.count(shot_id) >= self.target(shot_id):
                     break
                 await self._idle(shot_id)
                 if shot_id not in self._order:
@@ -166,14 +192,14 @@ class WarmPool:
                     await pulled.session.with_document_locked(pulled.prepare, self._ctx[1])
                     if self._unserialised(shot_id) is None and self._stale(shot_id) is None:
                         log.info("shot %s: %d warm pages current, their documents made", shot_id[:6], self.count(shot_id))
-                elif self.count(shot_id) < self.size:
+                elif self.count(shot_id) < self.target(shot_id):
                     got = await self._build(*self._ctx, shot_id)
                     if got is None:
                         break
                     self.ready.setdefault(shot_id, []).append(got)
                     n = self.count(shot_id)
-                    if n == self.size:
-                        log.info("shot %s: %d of %d warm pages ready", shot_id[:6], n, self.size)
+                    if n == self.target(shot_id):
+                        log.info("shot %s: %d of %d warm pages ready", shot_id[:6], n, n)
                 await asyncio.sleep(0.05)  # the other sessions' work between two steps
         finally:
             self._filling.discard(shot_id)

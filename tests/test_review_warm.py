@@ -83,3 +83,25 @@ def test_a_warm_page_is_the_shot_as_it_is_now(tmp_path):
         rc.run(scenario())
         assert srv.alive()
     assert not _said(log, "ERROR"), _said(log, "ERROR")
+
+
+def test_a_shot_keeps_as_many_warm_pages_as_it_had_people_at_once(tmp_path):
+    rc.register_models()
+    sid = rc.sample_shot(tmp_path / "data", "peak", last_frame=59)
+    log = tmp_path / "server.log"
+    with rc.Server("--data-dir", str(tmp_path / "data"), "--warm-pages", "1", "--warm-wait", "3", log=log) as srv:
+        async def scenario():
+            pages, _ = await rc.open_pages(srv.base, sid, 3)  # three people at once; --warm-pages is 1
+            assert await _until(lambda: "someone ×3" in _people(pages[0])(), 30), _people(pages[0])()
+            assert await _until(lambda: _said(log, "3 of 3 warm pages ready"), 120), log.read_text()[-2000:]
+            assert not _said(log, "4 of 4 warm pages ready")
+            for p in pages:
+                await p.close()
+            # they come back: three pages ready for them
+            again, _ = await rc.open_pages(srv.base, sid, 3)
+            assert len(_said(log, "a warm page handed out")) == 3, _said(log, "warm page")
+            for p in again:
+                assert not p.errors, p.errors
+                await p.close()
+
+        rc.run(scenario())
