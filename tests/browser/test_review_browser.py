@@ -25,10 +25,10 @@ from test_dashboard import METHOD_LABEL, VIEWERS_READY
 MEASURED: dict = {}
 
 
-def start_server(data_dir, log):
+def start_server(data_dir, log, *extra: str):
     port = free_port()
     cmd = [sys.executable, "-m", "core.cli", "serve", "--address", "127.0.0.1", "--port", str(port),
-           "--data-dir", str(data_dir)]
+           "--data-dir", str(data_dir), *extra]
     fh = open(log, "a")
     proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=fh, stderr=subprocess.STDOUT,
                             start_new_session=True)
@@ -180,15 +180,8 @@ def test_a_warm_page_made_ahead_works_in_chromium(new_page, tmp_path, artifacts)
 
     log = artifacts / "server_review_warm.log"
     log.write_text("")
-    port = free_port()
-    cmd = [sys.executable, "-m", "core.cli", "serve", "--address", "127.0.0.1", "--port", str(port),
-           "--data-dir", str(tmp_path / "data"), "--warm-pages", "1", "--warm-wait", "2"]
-    fh = open(log, "a")
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=fh,
-                            stderr=subprocess.STDOUT, start_new_session=True)
+    proc, fh, base = start_server(tmp_path / "data", log, "--warm-pages", "1", "--warm-wait", "2")
     try:
-        base = f"http://127.0.0.1:{port}"
-        wait_http(f"{base}/liveness", 90, proc, log)
         ctx_a, a = new_page()
         a.goto(base + "/")
         a.get_by_role("button", name=re.compile("New shared shot")).click()
