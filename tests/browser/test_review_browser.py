@@ -36,6 +36,16 @@ def start_server(data_dir, log, *extra: str):
     return proc, fh, f"http://127.0.0.1:{port}"
 
 
+def new_shared_shot(new_page, base):
+    """A fresh page at ``base`` that turns what it shows into a shared shot: (context, page, shot id)."""
+    ctx, page = new_page()
+    page.goto(base + "/")
+    page.get_by_role("button", name=re.compile("New shared shot")).click()
+    page.wait_for_url(re.compile(r"\?shot="), timeout=30_000)
+    page.wait_for_function(VIEWERS_READY, timeout=120_000)
+    return ctx, page, re.search(r"shot=([^&]+)", page.url).group(1)
+
+
 def summary(page):
     return page.locator("p", has_text="marker error RMS").first
 
@@ -77,12 +87,7 @@ def test_two_pages_one_shot_and_a_kill_minus_9(new_page, tmp_path, artifacts):
     log.write_text("")
     proc, fh, base = start_server(tmp_path / "data", log)
     try:
-        ctx_a, a = new_page()
-        a.goto(base + "/")
-        a.get_by_role("button", name=re.compile("New shared shot")).click()
-        a.wait_for_url(re.compile(r"\?shot="), timeout=30_000)
-        a.wait_for_function(VIEWERS_READY, timeout=120_000)
-        sid = re.search(r"shot=([^&]+)", a.url).group(1)
+        ctx_a, a, sid = new_shared_shot(new_page, base)
         assert len(sid) >= 16  # >= 96 random bits, url-safe
         ctx_b, b = new_page()
         b.goto(f"{base}/?shot={sid}")
@@ -182,12 +187,7 @@ def test_a_warm_page_made_ahead_works_in_chromium(new_page, tmp_path, artifacts)
     log.write_text("")
     proc, fh, base = start_server(tmp_path / "data", log, "--warm-pages", "1", "--warm-wait", "2")
     try:
-        ctx_a, a = new_page()
-        a.goto(base + "/")
-        a.get_by_role("button", name=re.compile("New shared shot")).click()
-        a.wait_for_url(re.compile(r"\?shot="), timeout=30_000)
-        a.wait_for_function(VIEWERS_READY, timeout=120_000)
-        sid = re.search(r"shot=([^&]+)", a.url).group(1)
+        ctx_a, a, sid = new_shared_shot(new_page, base)
         box = a.locator("input.fr-name")
         box.fill("ana")
         box.press("Enter")
