@@ -29,6 +29,7 @@ import json
 import threading
 import time
 from collections import Counter, OrderedDict
+from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Callable, Optional
@@ -39,7 +40,7 @@ import param
 from . import stages as _stages  # noqa: F401  (registers every stage and method)
 from .progress import ProgressFn
 from .shot import EDITORS, EditHistory, FileRef, Shot, file_hash
-from .stage import STAGES
+from .stage import STAGES, SettingsView, is_table, setting_owners
 from .stages.methods import METHODS as _METHODS
 
 #: the registered solve methods, and the settings each reads (derived from the registrations)
@@ -66,25 +67,9 @@ def content_key(*parts) -> str:
     return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
 
 
-_FILE_HASHES: dict = {}
-
-
 def file_key(path: str) -> str:
-    """:func:`core.shot.file_hash` of a file (or folder), memoised on (path, size, mtime)."""
-    if not path:
-        return ""
-    p = Path(path)
-    if p.is_dir():
-        return file_hash(p)
-    if not p.exists():
-        raise FileNotFoundError(f"{p}: no such file")
-    st = p.stat()
-    # the file itself (device, inode: any path or link to it), as last written; not resolve(),
-    # a syscall per path component, and every page of a shared shot keys its stages per change
-    memo = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
-    if memo not in _FILE_HASHES:
-        _FILE_HASHES[memo] = file_hash(p)
-    return _FILE_HASHES[memo]
+    """:func:`core.shot.file_hash` of a file (or folder); "" for no file."""
+    return file_hash(path) if path else ""
 
 
 def _freeze(obj):
@@ -158,6 +143,27 @@ class StageCache:
         return len(self._data)
 
 
+def shot_from_settings(doc: dict) -> dict:
+    """A version-0 shot (a flat ``{setting: value}`` dict, as ``Pipeline(**settings)`` takes it,
+    file settings as paths) as a version-1 document, each setting routed to the stage that owns it."""
+    owners = setting_owners()
+    unknown = [k for k in doc if k not in owners]
+    if unknown:
+        raise ValueError(f"version-0 shot: unknown settings {unknown}")
+    out = {"schema_version": 1, "files": {}, "settings": {}, "edits": {}, "frame": 0, "notes": []}
+    editors = {setting: editor for editor, setting in EDITORS.items()}
+    for k, v in doc.items():
+        stage, is_file = owners[k]
+        if is_file:
+            if v:
+                out["files"][k] = {"path": str(v), "sha": file_hash(v)}
+        elif k in editors:
+            out["edits"][editors[k]] = {"done": list(v or []), "undone": []}
+        else:
+            out["settings"].setdefault(stage, {})[k] = v
+    return out
+
+
 # --------------------------------------------------------------------------------------
 # the stage graph
 
@@ -181,16 +187,6 @@ def _stage_order() -> list:
     for n in STAGES:
         visit(n)
     return order
-
-
-def setting_owners() -> dict:
-    """setting name -> (stage name, is a file setting), for every registered stage."""
-    out = {}
-    for n, cls in STAGES.items():
-        for p in cls.param:
-            if p != "name":
-                out[p] = (n, p in cls.files)
-    return out
 
 
 class Pipeline:
@@ -225,6 +221,7 @@ class Pipeline:
         self.frame = 0
         self.notes: list = []
         self._lock = threading.RLock()
+        self._told: Optional[list] = None  # edit operations heard when the open transaction completes
         self._owners = {p: st for st in self.stages.values() for p in st.setting_names()}
         self.configure(**settings)
 
@@ -282,8 +279,45 @@ class Pipeline:
             self.redo[editor] = history.undone
 
     def _tell(self, editor: str, op: str, arg=None) -> None:
+        if self._told is not None:  # inside a transaction: heard when it completes
+            self._told.append((editor, op, arg))
+            return
         for f in list(self.listeners):
             f(editor, op, arg)
+
+    @contextmanager
+    def transaction(self):
+        """Changes made inside the block — settings, edits and their redo stacks — are kept only if
+        it completes. On an exception everything returns to what it was before the block, the
+        listeners (a review page's store) hear nothing of it, and the exception propagates; on
+        success they hear every edit operation, in order. The pipeline stays locked meanwhile, so
+        a run inside the block (the check that the edit solves) sees exactly its changes::
+
+            with pipe.transaction():
+                pipe.add_edit("transfer", spec)
+                pipe.results(["transfer_edit"])   # raises: the edit is gone, redo stack as it was
+        """
+        with self._lock:
+            outer = self._told is None
+            saved = ({n: st.settings() for n, st in self.stages.items()}, copy.deepcopy(self.redo))
+            if outer:
+                self._told = []
+            try:
+                yield self
+            except BaseException:
+                settings, redo = saved
+                for n, st in self.stages.items():
+                    changed = {k: v for k, v in settings[n].items() if getattr(st, k) != v}
+                    if changed:
+                        st.param.update(**changed)
+                self.redo = redo
+                if outer:
+                    self._told = None
+                raise
+            if outer:
+                told, self._told = self._told, None
+                for args in told:
+                    self._tell(*args)
 
     def add_edit(self, editor: str, edit: dict) -> None:
         """Append an edit (clears that editor's redo stack)."""
@@ -340,7 +374,8 @@ class Pipeline:
 
         Parameters
         ----------
-        shot : Shot, or a path / JSON text of one (:meth:`Shot.from_json`)
+        shot : Shot, its plain-data dict, or a path / JSON text of one (:meth:`Shot.from_json`);
+            a version-0 document (flat settings) is upgraded by :func:`shot_from_settings`
         base : folder relative file paths are also looked for in (default: the shot file's folder)
         locate : ``(role, FileRef) -> path or None``, e.g. a review store's files by hash
         **overrides : settings that replace the shot's (like CLI flags); an overridden file is
@@ -352,10 +387,12 @@ class Pipeline:
             A file of the shot is missing or its content changed (see :meth:`Shot.resolve`);
             unknown settings in the shot.
         """
-        if not isinstance(shot, Shot):
+        if isinstance(shot, dict):
+            shot = Shot.from_dict(shot, flat=shot_from_settings)
+        elif not isinstance(shot, Shot):
             if base is None and isinstance(shot, (str, Path)) and not str(shot).lstrip().startswith("{"):
                 base = Path(shot).resolve().parent
-            shot = Shot.from_json(shot)
+            shot = Shot.from_json(shot, flat=shot_from_settings)
         owners = setting_owners()
         values = {}
         for stage, vals in shot.settings.items():
@@ -378,8 +415,21 @@ class Pipeline:
         return pipe
 
     # running ------------------------------------------------------------------------
+    def view(self, name: str, cfg=None) -> SettingsView:
+        """What stage ``name``'s ``run`` reads now: its declared settings (:meth:`Stage.declared`),
+        a file setting as the path it reads (:meth:`Stage.file_paths`, e.g. a rig's default layout)."""
+        cfg = cfg if cfg is not None else self.config()
+        stage = self.stages[name]
+        own = getattr(cfg, name)
+        values = {k: getattr(own, k) for k in stage.declared(cfg)}
+        for f, path in stage.file_paths(cfg).items():
+            if f in values:
+                values[f] = path
+        return SettingsView(name, values)
+
     def key(self, name: str, _memo=None, _cfg=None) -> str:
-        """The cache key stage ``name`` would have now (no computation)."""
+        """The cache key stage ``name`` would have now (no computation): a hash of exactly what its
+        ``run`` reads (:meth:`view`, files by content) and its dependencies' keys."""
         memo = {} if _memo is None else _memo
         cfg = _cfg if _cfg is not None else self.config()
         if name in memo:
@@ -388,13 +438,10 @@ class Pipeline:
         if not stage.active(cfg):
             memo[name] = content_key(name, "inactive")
             return memo[name]
-        values = dict(vars(getattr(cfg, name)))
-        keep = stage.relevant(cfg)
-        if keep is not None:
-            values = {k: v for k, v in values.items() if k in set(keep)}
-        for f, path in stage.file_paths(cfg).items():
+        values = self.view(name, cfg).values()
+        for f in stage.files:
             if f in values:
-                values[f] = file_key(path) if path else ""
+                values[f] = file_key(values[f])
         memo[name] = content_key(name, values, [self.key(d, memo, cfg) for d in stage.deps])
         return memo[name]
 
@@ -418,7 +465,7 @@ class Pipeline:
                     if progress:
                         lo, hi = i / len(order), (i + 1) / len(order)
                         inner = lambda f, m, lo=lo, hi=hi: progress(lo + f * (hi - lo), f"{name}: {m}")  # noqa: E731
-                    value = stage.run({d: results[d] for d in stage.deps}, getattr(cfg, name), inner)
+                    value = stage.run({d: results[d] for d in stage.deps}, self.view(name, cfg), inner)
                     _freeze(value)
                     return value
 
@@ -479,10 +526,8 @@ def cli_flags(pipeline_or_cls=None):
     objs = pipeline_or_cls.settings_objects if pipeline_or_cls is not None else Pipeline().settings_objects
     out = []
     for stage, obj in objs.items():
-        for pname, p in obj.param.objects("existing").items():
-            if pname == "name" or isinstance(p, (param.List, param.Dict)):
-                continue
-            out.append(("--" + pname.replace("_", "-"), pname, p, stage))
+        for pname in obj.tunable_names():
+            out.append(("--" + pname.replace("_", "-"), pname, obj.param[pname], stage))
     return out
 
 

@@ -15,8 +15,9 @@ A shot is plain data — JSON with a ``schema_version`` — holding
 
 :meth:`core.pipeline.Pipeline.from_shot` builds a pipeline from a shot and
 :meth:`core.pipeline.Pipeline.shot` writes one; the CLI's ``--shot`` / ``--save-shot`` and the
-dashboard's download/open use exactly these. Nothing here imports the pipeline except
-:func:`migrate` for version-0 documents (which need the pipeline's map of settings to stages).
+dashboard's download/open use exactly these. Nothing here imports the pipeline: a version-0
+document needs the map of settings to stages, so :meth:`~core.pipeline.Pipeline.from_shot` hands
+:func:`migrate` the upgrade (``flat``) that routes them.
 
 Schema history (:func:`migrate` upgrades any older document on load):
 
@@ -40,21 +41,34 @@ _deepcopy = copy.deepcopy  # the methods' ``copy`` arguments shadow the module
 EDITORS = {"spacetime": "edits", "transfer": "transfer_edits", "detail": "detail_edits"}
 
 
+_HASHES: dict = {}
+
+
 def file_hash(path) -> str:
-    """BLAKE2b-128 of a file's bytes; of a folder, of its files' names and hashes (sorted)."""
+    """BLAKE2b-128 of a file's bytes; of a folder, of its files' names and hashes (sorted).
+
+    A file's hash is remembered by the file itself as last written (device, inode, size,
+    modification time): a shot opened, a stage keyed or a page built again does not read a
+    20 MB rig again. Not ``resolve()``: a syscall per path component, and every page of a shared
+    shot keys its stages per change."""
     p = Path(path)
     if p.is_dir():
         h = hashlib.blake2b(digest_size=16)
         for c in sorted(q for q in p.iterdir() if q.is_file()):
             h.update(c.name.encode() + b"\0" + file_hash(c).encode())
         return h.hexdigest()
-    if not p.exists():
-        raise FileNotFoundError(f"{p}: no such file")
-    h = hashlib.blake2b(digest_size=16)
-    with open(p, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{p}: no such file") from None
+    memo = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    if memo not in _HASHES:
+        h = hashlib.blake2b(digest_size=16)
+        with open(p, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        _HASHES[memo] = h.hexdigest()
+    return _HASHES[memo]
 
 
 @dataclass
@@ -144,10 +158,11 @@ class Shot:
         }
 
     @classmethod
-    def from_dict(cls, doc: dict, copy: bool = True) -> "Shot":
+    def from_dict(cls, doc: dict, copy: bool = True, flat: Optional[Callable] = None) -> "Shot":
         """A shot from its plain-data form, migrated from an older schema when needed.
         ``copy=False`` lets the shot take over ``doc``'s lists and dicts instead of copying them
-        (for a document just parsed from JSON that nothing else holds).
+        (for a document just parsed from JSON that nothing else holds); ``flat`` upgrades a
+        version-0 document (see :func:`migrate`).
 
         Raises
         ------
@@ -155,7 +170,7 @@ class Shot:
             Not a shot, a newer schema than this program knows, or malformed fields (named).
         """
         if copy or not isinstance(doc, dict) or type(doc.get("schema_version")) is not int or doc["schema_version"] != SCHEMA_VERSION:
-            doc = migrate(doc)
+            doc = migrate(doc, flat)
         files = {}
         for role, ref in doc.get("files", {}).items():
             if not isinstance(ref, dict) or "path" not in ref:
@@ -181,8 +196,8 @@ class Shot:
         return text
 
     @classmethod
-    def from_json(cls, source) -> "Shot":
-        """A shot from a JSON file path or JSON text.
+    def from_json(cls, source, flat: Optional[Callable] = None) -> "Shot":
+        """A shot from a JSON file path or JSON text (``flat``: see :func:`migrate`).
 
         Raises
         ------
@@ -206,7 +221,7 @@ class Shot:
         if not isinstance(doc, dict):
             raise ValueError(f"{where}: not a shot file (expected a JSON object, got {type(doc).__name__})")
         try:
-            return cls.from_dict(doc)
+            return cls.from_dict(doc, flat=flat)
         except ValueError as e:
             raise ValueError(f"{where}: {e}") from None
 
@@ -255,37 +270,18 @@ class Shot:
 
 
 # -- migrations --------------------------------------------------------------------------------
-def _from_v0(doc: dict) -> dict:
-    """Version 0 (a flat ``{setting: value}`` dict) -> 1, routing each setting to its stage."""
-    from .pipeline import setting_owners
-
-    owners = setting_owners()
-    files_roles = {name for name, (stage, is_file) in owners.items() if is_file}
-    out = {"schema_version": 1, "files": {}, "settings": {}, "edits": {}, "frame": 0, "notes": []}
-    unknown = [k for k in doc if k not in owners]
-    if unknown:
-        raise ValueError(f"version-0 shot: unknown settings {unknown}")
-    for k, v in doc.items():
-        stage, _ = owners[k]
-        if k in files_roles:
-            if v:
-                out["files"][k] = {"path": str(v), "sha": file_hash(v)}
-        elif k in EDITORS.values():
-            editor = next(e for e, s in EDITORS.items() if s == k)
-            out["edits"][editor] = {"done": list(v or []), "undone": []}
-        else:
-            out["settings"].setdefault(stage, {})[k] = v
-    return out
+#: schema version -> upgrade of a document of that version to the next (version 0 is upgraded by
+#: the ``flat`` function :func:`migrate` is given: it needs the stage registry)
+MIGRATIONS: dict = {}
 
 
-MIGRATIONS = {0: _from_v0}
-
-
-def migrate(doc: dict) -> dict:
+def migrate(doc: dict, flat: Optional[Callable] = None) -> dict:
     """Upgrade a shot document of any older schema to :data:`SCHEMA_VERSION` (a new dict).
 
-    A dict without ``schema_version`` is version 0. Raises ValueError for a version newer
-    than this program's (a newer program wrote it) or one it has no migration for.
+    A dict without ``schema_version`` is version 0: a flat ``{setting: value}`` dict, upgraded by
+    ``flat(doc)`` (:func:`core.pipeline.shot_from_settings`, which knows which stage owns each
+    setting). Raises ValueError for a version newer than this program's (a newer program wrote
+    it), one it has no migration for, or a version-0 document without ``flat``.
     """
     if not isinstance(doc, dict):
         raise ValueError(f"shot: expected a JSON object, got {type(doc).__name__}")
@@ -295,6 +291,12 @@ def migrate(doc: dict) -> dict:
     if v > SCHEMA_VERSION:
         raise ValueError(f"shot: schema_version {v} is newer than this program's ({SCHEMA_VERSION}); update face-retarget")
     doc = copy.deepcopy(doc)
+    if v == 0:
+        if flat is None:
+            raise ValueError("shot: a version-0 document (flat settings, no schema_version) is opened by "
+                             "Pipeline.from_shot or `face-retarget retarget --shot`, which know each setting's stage")
+        doc = flat(doc)
+        v = doc["schema_version"]
     while v < SCHEMA_VERSION:
         if v not in MIGRATIONS:
             raise ValueError(f"shot: no migration from schema_version {v}")

@@ -5,14 +5,20 @@ dashboard widgets, CLI flags and the shot's ``settings[stage]``), and the class 
 
 * ``deps`` — the stages whose results ``run`` reads;
 * ``files`` — settings that name files: the cache key hashes their content, not their path;
-* ``relevant(cfg)`` — which settings change the output in the current configuration (a setting
-  of a disabled feature is not in the key, so changing it re-runs nothing);
+* ``relevant(cfg)`` — which of its settings change the output in the current configuration (a
+  setting of a disabled feature is not in the key, so changing it re-runs nothing);
 * ``active(cfg)`` — whether the stage runs at all (an inactive stage yields None and costs
   nothing; e.g. segmentation only for the local method);
 * ``file_paths(cfg)`` — the file each file setting actually reads (e.g. the default layout a rig
   falls back to when no layout is chosen): the key hashes these, and the shot records them;
 * ``run(inputs, s, progress)`` — the pure function: ``inputs[dep]`` are the upstream results,
-  ``s`` a frozen copy of the stage's settings taken when the key was computed.
+  ``s`` a :class:`SettingsView` of exactly the settings the key hashes (``relevant(cfg)``, file
+  settings as the paths ``file_paths`` reads), taken when the key was computed.
+
+**The contract.** What a stage's result depends on is declared once, and the declaration is both
+the cache key and the only door into the settings: reading a setting ``relevant`` did not name
+raises :class:`UndeclaredSetting` instead of giving a result its key does not describe. So a
+result changed in place, taken from the cache, or rebuilt fresh from its shot is the same.
 
 ``cfg`` is a frozen snapshot of every stage's settings: ``cfg.solve.method``. Stages register
 with :func:`register` and are instantiated per pipeline (:class:`core.pipeline.Pipeline`).
@@ -23,7 +29,6 @@ from __future__ import annotations
 
 import copy
 import functools
-from types import SimpleNamespace
 from typing import ClassVar, Iterable, Optional
 
 import param
@@ -36,6 +41,57 @@ STAGES: dict = {}
 def _names(cls) -> tuple:
     """The setting names of a stage class (its parameters but ``name``; classes declare them)."""
     return tuple(k for k in cls.param if k != "name")
+
+
+def is_table(p: param.Parameter) -> bool:
+    """A list or dict setting (edit lists, the per-shape controls): set from a shot or a JSON file,
+    never a widget or a command-line flag."""
+    return isinstance(p, (param.List, param.Dict))
+
+
+class UndeclaredSetting(AttributeError):
+    """A stage's ``run`` read a setting its cache key does not hash (see :class:`SettingsView`)."""
+
+
+class SettingsView:
+    """The settings a stage's ``run`` may read: exactly those its cache key hashes.
+
+    ``s.alpha`` is the value; reading a setting that is not declared (``Stage.relevant``) raises
+    :class:`UndeclaredSetting` naming the stage and the setting, so a stage cannot depend on what
+    its key leaves out. :meth:`with_values` adds derived values (e.g. the solve's per-shape bounds
+    resolved from the controls) for the functions a stage calls.
+    """
+
+    __slots__ = ("_stage", "_values")
+
+    def __init__(self, stage: str, values: dict):
+        object.__setattr__(self, "_stage", stage)
+        object.__setattr__(self, "_values", dict(values))
+
+    def __getattr__(self, key):
+        values = object.__getattribute__(self, "_values")
+        if key in values:
+            return values[key]
+        stage = object.__getattribute__(self, "_stage")
+        raise UndeclaredSetting(f"stage {stage!r} read setting {key!r}, which its cache key does not hash now: "
+                                f"declare it in the stage's relevant() (or its method's settings)")
+
+    def __setattr__(self, key, value):
+        raise AttributeError("a stage's settings are read-only inside run()")
+
+    def __contains__(self, key) -> bool:
+        return key in self._values
+
+    def __repr__(self):
+        return f"SettingsView({self._stage!r}, {sorted(self._values)})"
+
+    def values(self) -> dict:
+        """The declared settings as a dict (a copy)."""
+        return dict(self._values)
+
+    def with_values(self, **extra) -> "SettingsView":
+        """A view with ``extra`` added or replaced (values derived from the declared ones)."""
+        return SettingsView(self._stage, {**self._values, **extra})
 
 
 class Stage(param.Parameterized):
@@ -57,9 +113,25 @@ class Stage(param.Parameterized):
     def setting_names(self) -> list:
         return list(_names(type(self)))
 
+    def tunable_names(self) -> list:
+        """The settings that are widgets and command-line flags (not edit lists or tables)."""
+        return [k for k in _names(type(self)) if not is_table(self.param[k])]
+
     def relevant(self, cfg) -> Optional[Iterable[str]]:
         """Settings that change the output now; None = all of them."""
         return None
+
+    def declared(self, cfg) -> tuple:
+        """The settings the key hashes and ``run`` may read now (:meth:`relevant`, checked)."""
+        own = _names(type(self))
+        keep = self.relevant(cfg)
+        if keep is None:
+            return own
+        keep = tuple(keep)
+        foreign = [k for k in keep if k not in own]
+        if foreign:
+            raise ValueError(f"stage {self.stage_name!r} declares settings {foreign} it does not own")
+        return keep
 
     def active(self, cfg) -> bool:
         return True
@@ -99,6 +171,6 @@ def register(name: str):
     return deco
 
 
-def frozen(values: dict) -> SimpleNamespace:
-    """A namespace of setting values (the ``s`` a stage's ``run`` reads)."""
-    return SimpleNamespace(**values)
+def setting_owners() -> dict:
+    """setting name -> (stage name, is a file setting), for every registered stage."""
+    return {p: (n, p in cls.files) for n, cls in STAGES.items() for p in _names(cls)}

@@ -281,12 +281,11 @@ class DetailPanel:
             self.host.status = f"⚠ {e}"
             return False
         t0 = time.perf_counter()
-        self.host.pipe.add_edit("detail", spec)
         try:
-            self.host._recompute()
+            with self.host.pipe.transaction():  # an edit that does not solve leaves no trace, here or in a review
+                self.host.pipe.add_edit("detail", spec)
+                self.host._recompute()
         except (ValueError, RuntimeError) as e:
-            self.host.pipe.undo("detail")
-            self.host.pipe.redo["detail"].clear()
             self.host.status = f"⚠ detail edit failed: {e}"
             return False
         rep = self.host.dense["detail_edit"]["reports"][-1]

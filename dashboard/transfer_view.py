@@ -364,12 +364,11 @@ class TransferView(pn.viewable.Viewer):
                 "window": None if win is None else [int(win[0]), int(win[1])],
                 "lam_b": float(self.w_lam_b.value), "lam_w": float(self.w_lam_w.value), "lam_e": float(self.w_lam_e.value)}
         t0 = time.perf_counter()
-        self.pipe.add_edit("transfer", spec)
         try:
-            self._recompute()
+            with self.pipe.transaction():  # an edit that does not solve leaves no trace, here or in a review
+                self.pipe.add_edit("transfer", spec)
+                self._recompute()
         except (ValueError, TypeError, RuntimeError) as e:
-            self.pipe.undo("transfer")
-            self.pipe.redo["transfer"].clear()
             self.status = f"⚠ edit failed: {self.session.readable(e)}"
             return False
         rep = self.dense["transfer_edit"]["reports"][-1]

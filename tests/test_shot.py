@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from core.cli import main
-from core.pipeline import Pipeline, StageCache
+from core.pipeline import Pipeline, StageCache, shot_from_settings
 from core.shot import SCHEMA_VERSION, EditHistory, Shot, file_hash, migrate
 from datapaths import PERFORMANCES, RIGS
 
@@ -101,17 +101,19 @@ def test_relative_paths_are_found_beside_the_shot(tmp_path, monkeypatch):
 def test_migration_from_version_0_and_refusals():
     flat = {"source": FILES["source"], "target_rig": FILES["target_rig"], "alpha": 0.2, "method": "prior_pf",
             "edits": [POSE]}
-    doc = migrate(flat)
+    with pytest.raises(ValueError, match="version-0 document .* Pipeline.from_shot"):
+        Shot.from_dict(flat)  # the shot alone does not know which stage owns a setting
+    doc = migrate(flat, shot_from_settings)
     assert doc["schema_version"] == SCHEMA_VERSION
     assert doc["settings"]["solve"] == {"alpha": 0.2, "method": "prior_pf"}
     assert doc["files"]["source"]["sha"] == file_hash(FILES["source"])
     assert doc["edits"]["spacetime"]["done"] == [POSE]
-    pipe = Pipeline.from_shot(Shot.from_dict(flat))
+    pipe = Pipeline.from_shot(flat)
     assert pipe.solve.method == "prior_pf" and pipe.edit.edits == [POSE]
     with pytest.raises(ValueError, match="newer than this program"):
         Shot.from_dict({"schema_version": SCHEMA_VERSION + 1})
     with pytest.raises(ValueError, match="unknown settings"):
-        migrate({"alpah": 1})
+        migrate({"alpah": 1}, shot_from_settings)
     with pytest.raises(ValueError, match="settings.solve.regions: unknown setting .* belongs to stage 'segment'"):
         Pipeline.from_shot(Shot(settings={"solve": {"regions": 3}}))
 

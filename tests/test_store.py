@@ -20,6 +20,7 @@ import platformdirs
 import pytest
 
 from core import store as store_mod
+from core.pipeline import shot_from_settings
 from core.shot import EDITORS, FileRef, Shot, file_hash
 from core.store import (MAX_UPLOAD, SCHEMA_VERSION, Conflict, Store, UnknownShot, UnsafePath, UploadTooLarge, data_dir,
                         replay_edits, safe_name)
@@ -177,8 +178,8 @@ def test_shot_dicts_without_copies_hold_the_same_data_and_the_default_still_copi
     assert doc == shot.to_dict() and doc["settings"]["solve"]["shapes"] == ["a", "b"]
     old = {"alpha": 0.1}  # a version-0 document is still migrated when copy=False
     with pytest.raises(ValueError, match="unknown settings"):
-        Shot.from_dict({"nonsense": 1}, copy=False)
-    assert Shot.from_dict(old, copy=False).settings["solve"]["alpha"] == 0.1
+        Shot.from_dict({"nonsense": 1}, copy=False, flat=shot_from_settings)
+    assert Shot.from_dict(old, copy=False, flat=shot_from_settings).settings["solve"]["alpha"] == 0.1
 
 
 def test_check_hook_refuses_before_commit(tmp_path):

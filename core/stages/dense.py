@@ -163,7 +163,7 @@ class Deform(Stage):
         lines = default_feature_lines(rig, layout) if s.transfer_feature_lines else None
         report(progress, 0.2, f"deformation transfer of {len(inputs['bases']['source_bases'])} bases")
         bt = transfer_bases(inputs["weld"]["welded"], inputs["decompose"]["decomposition"], inputs["bases"]["source_bases"],
-                            inputs["register"]["target_welded"], _settings(feature_lines=lines, alpha=s.transfer_alpha))
+                            inputs["register"]["target_welded"], _settings(feature_lines=lines, alpha=s.transfer_alpha if lines is not None else 100.0))
         return {"transfer": bt, "feature_lines": lines}
 
 

@@ -27,9 +27,25 @@ from ..gaps import fill_gaps
 METHODS: dict = {}
 
 
+#: what a method may honour of the production controls (:mod:`core.controls`), besides the
+#: per-shape gain and offset every method's result gets after the solve (:class:`~.retarget.Synthesize`)
+CAPABILITIES = {
+    "bounds": "solves within each shape's lower…upper (the controls' table over lowest…highest)",
+    "active": "holds the shapes switched off at zero while solving",
+    "symmetry": "takes the symmetry pairs' term (symmetry_weight)",
+    "cancel": "re-solves with the weaker shape of a cancel pair held at zero (cancel_threshold)",
+    "filter": "is a per-frame result the jitter filter (weights_filter) smooths",
+}
+
+
 @dataclass(frozen=True)
 class Method:
-    """A registered solve method (see the module docstring)."""
+    """A registered solve method (see the module docstring).
+
+    ``params`` are the solve stage's settings the method reads; ``honours`` which of
+    :data:`CAPABILITIES` it implements. The two are the whole declaration: the solve stage's key
+    and what its ``run`` may read derive from them (:meth:`core.stages.retarget.Solve.relevant`),
+    so no other place lists methods by name."""
 
     name: str
     run: Callable
@@ -38,16 +54,22 @@ class Method:
     dense: bool = False
     doc: str = ""
     label: str = ""
+    honours: frozenset = frozenset()
 
 
-def solve_method(name: str, params=(), needs=(), dense: bool = False, label: str = ""):
-    """Decorator: register ``fn(inputs, s) -> {"weights", "info"}`` as method ``name``; ``label``
-    is what a person reads in the method list (plain words first, the paper after)."""
+def solve_method(name: str, params=(), needs=(), dense: bool = False, label: str = "", honours=()):
+    """Decorator: register ``fn(inputs, s) -> {"weights", "info", "edit"}`` as method ``name``;
+    ``label`` is what a person reads in the method list (plain words first, the paper after);
+    ``honours`` names the :data:`CAPABILITIES` it implements."""
 
     def deco(fn):
         if name in METHODS:
             raise ValueError(f"solve method {name!r} registered twice")
-        METHODS[name] = Method(name, fn, tuple(params), tuple(needs), dense, (fn.__doc__ or "").strip(), label or name)
+        unknown = set(honours) - set(CAPABILITIES)
+        if unknown:
+            raise ValueError(f"solve method {name!r}: unknown capabilities {sorted(unknown)}; known: {sorted(CAPABILITIES)}")
+        METHODS[name] = Method(name, fn, tuple(params), tuple(needs), dense, (fn.__doc__ or "").strip(), label or name,
+                               frozenset(honours))
         return fn
 
     return deco
@@ -116,7 +138,7 @@ def _weighted(inputs):
     return B * r[None], S * r[None], valid
 
 
-@solve_method("lsq", label='lsq — unregularised diagnostic (weights can explode)')
+@solve_method("lsq", params=("ridge",), honours=("filter",), label='lsq — unregularised diagnostic (weights can explode)')
 def _lsq(inputs, s):
     """Per-frame least squares, unbounded (a diagnostic: no regulariser keeps it in range)."""
     from ..solvers import baselines
@@ -125,7 +147,8 @@ def _lsq(inputs, s):
     return {"weights": baselines.no_const(B, S, valid), "edit": edit_options(s, alpha=0.01)}
 
 
-@solve_method("bounded", params=("lower", "upper", "ridge"), label='bounded — per frame, within lowest…highest')
+@solve_method("bounded", params=("lower", "upper", "ridge"), honours=("bounds", "active", "symmetry", "cancel", "filter"),
+              label='bounded — per frame, within lowest…highest')
 def _bounded(inputs, s):
     """Per-frame least squares with ``lower <= w <= upper`` (batched exact active set)."""
     from ..solvers import baselines
@@ -135,7 +158,7 @@ def _bounded(inputs, s):
             "edit": edit_options(s, alpha=0.01, lower=s.lower, upper=s.upper)}
 
 
-@solve_method("range_pf", params=("ridge",), label='range_pf — per frame, −0.5…1.5 (Seol §7)')
+@solve_method("range_pf", params=("ridge",), honours=("active", "symmetry", "cancel", "filter"), label='range_pf — per frame, −0.5…1.5 (Seol §7)')
 def _range_pf(inputs, s):
     """Seol 2012 §7 Range PF: per frame, -0.5 <= w <= 1.5."""
     from ..solvers import baselines
@@ -161,14 +184,16 @@ def _prior_pf_frames(inputs, s, frames):
     return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge, quadratic=s.quadratic, zero=zero)
 
 
-@solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",), label="prior_pf — per frame with the rig's prior (Seol §7)")
+@solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",), honours=("active", "symmetry", "cancel", "filter"),
+              label="prior_pf — per frame with the rig's prior (Seol §7)")
 def _prior_pf(inputs, s):
     """Seol 2012 §7 Prior PF: per frame with the PCA prior."""
     return {"weights": _prior_pf_frames(inputs, s, slice(None)), "edit": edit_options(s)}
 
 
 @solve_method("spacetime", params=("alpha", "beta", "boundary", "ridge", "spacetime_bounds", "lower", "upper", "l1",
-                                   "name_weight"), needs=("prior",), label='spacetime — the whole take at once (Seol 2012)')
+                                   "name_weight"), needs=("prior",), honours=("bounds", "active", "symmetry", "cancel"),
+              label='spacetime — the whole take at once (Seol 2012)')
 def _spacetime(inputs, s):
     """Seol 2012 movement matching + PCA prior (+ Sobolev), the whole take at once; by default
     within ``lower <= w <= upper`` (exact bounded solve), optionally with L1 sparsity and a pull
@@ -200,7 +225,8 @@ def _spacetime(inputs, s):
                                  beta=s.beta)}
 
 
-@solve_method("local", params=("constraint", "local_temporal", "alpha", "beta", "sigma"), needs=("segment",), label='local — face regions (Liu 2011)')
+@solve_method("local", params=("constraint", "local_temporal", "alpha", "beta", "sigma", "ridge"), needs=("segment",),
+              honours=("bounds", "active", "symmetry", "cancel"), label='local — face regions (Liu 2011)')
 def _local(inputs, s):
     """Liu 2011: per-region constrained QP (eq. 2), blended by the region masks (eq. 3)."""
     from ..solvers.local import blend_weights, local_precompute, local_spacetime, reconstruct_markers, smooth_weights
@@ -228,7 +254,8 @@ def _local(inputs, s):
             "edit": edit_options(s, lower=0.0, upper=1.0, beta=s.beta)}
 
 
-@solve_method("geometric", params=("geometric_prior", "mu", "lam"), needs=("prior",), label='geometric — smooth mesh, few shapes (Ribera 2017)')
+@solve_method("geometric", params=("geometric_prior", "mu", "lam", "ridge"), needs=("prior",),
+              honours=("active", "symmetry", "cancel", "filter"), label='geometric — smooth mesh, few shapes (Ribera 2017)')
 def _geometric(inputs, s):
     """Ribera 2017: cotangent-Laplacian (or PCA / L2) prior + L1 sparsity by IRLS."""
     from ..model import flatten
@@ -251,7 +278,7 @@ def _geometric(inputs, s):
     return {"weights": sol.weights, "info": {"iterations": sol.iterations}, "edit": edit_options(s, alpha=0.01)}
 
 
-@solve_method("names", label='names — copy curves by ARKit name')
+@solve_method("names", params=("ridge",), honours=("active",), label='names — copy curves by ARKit name')
 def _names(inputs, s):
     """Copy by canonical name: each target shape plays its namesake source curve (weight-curve
     sources only; shapes without a namesake stay at zero). The baseline a solver must beat where
@@ -261,7 +288,11 @@ def _names(inputs, s):
         src = inputs["load"]["source"]
         raise ValueError(f"the names method copies weight curves by name: {src.name!r} is "
                          + ("markers" if src.kind == "markers" else "curves whose channels share no name with the target's shapes"))
-    return {"weights": np.nan_to_num(W), "info": {"named": int(np.isfinite(W).all(0).sum())},
+    named = int(np.isfinite(W).all(0).sum())
+    W = np.nan_to_num(W)
+    if s.zero is not None:  # shapes switched off stay at zero
+        W[:, np.asarray(s.zero, bool)] = 0.0
+    return {"weights": W, "info": {"named": named},
             "edit": edit_options(s, alpha=0.01, lower=0.0, upper=1.0)}
 
 

@@ -25,6 +25,7 @@ from ..gaps import fill_gaps
 from ..progress import report
 from ..retarget import common_markers, source_marker_names, source_markers, target_markers
 from ..stage import Stage, register
+from ..controls import cancel_pairs, default_table, filter_weights, merge_table, resolve
 from .methods import METHODS, method_of
 
 #: a shape whose largest marker displacement is below this fraction of the largest shape's
@@ -322,7 +323,8 @@ class Calibrate(Stage):
     def run(self, inputs, s, progress=None):
         sh, st = inputs["shapes"], inputs["stabilize"]
         src = st["source"]
-        tm = target_markers(sh["rig"], sh["layout"], st["names"], src.neutral, s.calibrate, s.rbf_smoothing)
+        tm = target_markers(sh["rig"], sh["layout"], st["names"], src.neutral, s.calibrate,
+                            s.rbf_smoothing if s.calibrate else 0.0)
         scale = None
         if s.motion_scale == "rom":
             scale = rom_scale(tm.calibrated, src, inputs["load"]["source_rig"], inputs["correspond"]["source_layout"],
@@ -501,52 +503,50 @@ class Solve(Stage):
         "Pull of each target shape towards its namesake source curve (same canonical ARKit name), relative to "
         "sigma_max(B)^2; 0 = off. Only where the source is weight curves sharing names with the target"))
 
-    #: the settings every marker method reads (the production controls of core.controls)
-    CONTROLS = ("controls", "symmetry_weight", "cancel_threshold")
-    FILTERS = ("weights_filter", "filter_min_cutoff", "filter_beta", "sigma")
+    #: the settings each capability of a method (:data:`~.methods.CAPABILITIES`) adds to what it reads
+    BY_CAPABILITY = {"symmetry": ("symmetry_weight",), "cancel": ("cancel_threshold",)}
 
     def relevant(self, cfg):
+        """The method's own settings, the per-shape controls over lowest…highest (every method's
+        result gets their gain and offset after the solve), and what its capabilities read."""
         m = method_of(cfg)
-        out = ("method",) + m.params
-        if m.name not in ("lsq", "names"):
-            out += self.CONTROLS
-        if m.name not in ("spacetime", "names", "local"):
+        out = ("method",) + m.params + ("controls", "lower", "upper")
+        for cap in sorted(m.honours):
+            out += self.BY_CAPABILITY.get(cap, ())
+        if "filter" in m.honours:
             f = cfg.solve.weights_filter
             out += ("weights_filter",) + (("filter_min_cutoff", "filter_beta") if f == "one_euro" else
                                           ("sigma",) if f == "gaussian" else ())
-        return out
+        return tuple(dict.fromkeys(out))
 
     def active(self, cfg):
         return not method_of(cfg).dense
 
     def run(self, inputs, s, progress=None):
-        from types import SimpleNamespace
-
-        from ..controls import default_table, filter_weights, merge_table, resolve
-
         m = METHODS[s.method]
         names = list(inputs["shapes"]["rig"].names)
         ctl = resolve(merge_table(s.controls or {}, default_table(names, s.lower, s.upper)), names)
         lo, hi = ctl.bounds()
-        sym = ctl.symmetry_matrix(s.symmetry_weight) if s.symmetry_weight > 0 and len(ctl.symmetry) else None
-        zero = ctl.zero() if (~ctl.active).any() else None
-        aug = SimpleNamespace(**{**vars(s), "lower": lo, "upper": hi, "quadratic": sym, "zero": zero})
+        sym = None
+        if "symmetry" in m.honours and s.symmetry_weight > 0 and len(ctl.symmetry):
+            sym = ctl.symmetry_matrix(s.symmetry_weight)
+        zero = ctl.zero() if "active" in m.honours and (~ctl.active).any() else None
+        aug = s.with_values(lower=lo, upper=hi, quadratic=sym, zero=zero)
         out = m.run(inputs, aug)
         W = np.asarray(out["weights"], dtype=np.float64)
         info = dict(out.get("info", {}))
-        if len(ctl.cancel) and m.name not in ("lsq", "names"):
-            from ..controls import cancel_pairs
-
+        if "cancel" in m.honours and len(ctl.cancel):
             def again(z):
                 held = z if zero is None else z | zero[None]
-                return np.asarray(m.run(inputs, SimpleNamespace(**{**vars(aug), "zero": held}))["weights"], dtype=np.float64)
+                return np.asarray(m.run(inputs, aug.with_values(zero=held))["weights"], dtype=np.float64)
 
             W, cinfo = cancel_pairs(again, W, ctl.cancel, s.cancel_threshold)
             info["cancel"] = {k: v for k, v in cinfo.items() if k != "held"}
-        if s.weights_filter != "none" and m.name not in ("spacetime", "names", "local"):
+        if "filter" in m.honours and s.weights_filter != "none":
             fps = inputs["calibrate"]["source"].fps
-            W = filter_weights(np.nan_to_num(W), fps, s.weights_filter, sigma=max(s.sigma, 1e-3),
-                               min_cutoff=s.filter_min_cutoff, beta=s.filter_beta)
+            kw = ({"sigma": max(s.sigma, 1e-3)} if s.weights_filter == "gaussian" else
+                  {"min_cutoff": s.filter_min_cutoff, "beta": s.filter_beta})
+            W = filter_weights(np.nan_to_num(W), fps, s.weights_filter, **kw)
         return {"weights": W, "method": m.name, "info": info, "edit": out["edit"], "controls": ctl}
 
 
