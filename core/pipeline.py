@@ -9,7 +9,8 @@ and its dependencies' keys, so
 * changing alpha re-runs solve and what follows it, never calibrate or segment;
 * a setting of a disabled feature (``align_beta`` with personalisation off) re-runs nothing;
 * setting a value back is a cache hit (an LRU keeps recent results, not only the last);
-* cached arrays are read-only, so no consumer can corrupt a cached result.
+* cached arrays are read-only, so no consumer can corrupt a cached result;
+* the warnings a stage gave when it ran are kept with its result and given again on a hit.
 
 A run takes one snapshot of all settings under the pipeline's lock: keys and runs read that
 snapshot, so a widget moved during a long solve changes the next run, not this one.
@@ -28,6 +29,7 @@ import hashlib
 import json
 import threading
 import time
+import warnings
 from collections import Counter, OrderedDict
 from contextlib import contextmanager
 from pathlib import Path
@@ -465,12 +467,18 @@ class Pipeline:
                     if progress:
                         lo, hi = i / len(order), (i + 1) / len(order)
                         inner = lambda f, m, lo=lo, hi=hi: progress(lo + f * (hi - lo), f"{name}: {m}")  # noqa: E731
-                    value = stage.run({d: results[d] for d in stage.deps}, self.view(name, cfg), inner)
+                    with warnings.catch_warnings(record=True) as caught:
+                        warnings.simplefilter("always")
+                        value = stage.run({d: results[d] for d in stage.deps}, self.view(name, cfg), inner)
                     _freeze(value)
-                    return value
+                    return value, tuple((w.message, w.category, w.filename, w.lineno) for w in caught)
 
                 t0 = time.perf_counter()
-                hit, value = self.cache.compute((name, k), compute)
+                hit, (value, warned) = self.cache.compute((name, k), compute)
+                # a result's warnings are part of it: said again however it is reached (a page
+                # whose results came from another's run, a batch shot sharing a registration)
+                for message, category, filename, lineno in warned:
+                    warnings.warn_explicit(message, category, filename, lineno)
                 dt = time.perf_counter() - t0
                 # computed here: its time; a cache hit: 0, or the wait for another pipeline's run of it
                 self.timings[name] = dt if not hit or dt > 1e-3 else 0.0

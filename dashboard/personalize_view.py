@@ -60,7 +60,7 @@ def _default_shape(names, previous, similarity, key_frames):
 class PersonalizeView(pn.viewable.Viewer):
     """The range-of-motion alignment diagnostics of one session (see the module docstring).
 
-    ``update(snapshot)`` takes the session's snapshot (:meth:`dashboard.session.Session._package`);
+    ``update(snapshot)`` takes the session's snapshot (the pipeline's snapshot stage, :mod:`core.stages.snapshot`);
     ``__panel__()`` returns the layout. Widgets: ``w_shape`` (shape shown in the marker
     plots) and ``w_gain`` (magnification of the deltas). Data sources (for tests):
     ``sim_source`` (image), ``cum_source``/``key_source``/``row_source`` (Fig. 8 plot),

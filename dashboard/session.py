@@ -18,7 +18,6 @@ import threading
 import time
 import traceback
 import warnings
-from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -56,13 +55,6 @@ def too_large(name: str, size: int, limit: int | None = None, what: str = "") ->
             "ask whoever runs it to raise the upload limit")
 
 
-#: the stages a retargeting view needs
-#: snapshots shared between sessions (see Session._shared_package)
-_SNAPSHOTS: "OrderedDict" = OrderedDict()
-_SNAPSHOT_LOCK = threading.Lock()
-_SNAPSHOT_ENTRIES = 16
-
-RETARGET_STAGES = ["load", "frames", "stabilize", "calibrate", "personalize", "segment", "solve", "edit", "synthesize", "evaluate"]
 #: the stages the dense-transfer tab shows
 DENSE_STAGES = ["transfer", "transfer_edit", "detail_edit"]
 
@@ -377,11 +369,12 @@ class Session(param.Parameterized):
                 self._apply_selection()
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
-                    res = self.pipeline.results(RETARGET_STAGES, progress=self._progress)
+                    #: the results as every page showing them shares them (the pipeline's snapshot
+                    #: stage); this page's snapshot = it + its timings and the warnings its run gave
+                    self.package = self.pipeline.run("snapshot", progress=self._progress)
                 timings = {k: v * 1e3 for k, v in self.pipeline.timings.items()}
-                #: the results as every page showing them shares them (snapshot = it + this page's timings)
-                self.package = self._shared_package(res, [str(w.message) for w in caught])
                 self.snapshot = dict(self.package)
+                self.snapshot["warnings"] = list(dict.fromkeys(str(w.message) for w in caught))
                 self.snapshot["timings"] = timings
                 self.snapshot["server_ms"] = (time.perf_counter() - t0) * 1e3
                 self.status = self._status_line()
@@ -431,49 +424,6 @@ class Session(param.Parameterized):
         if time.perf_counter() - self._t0 < 0.2:
             return  # a quick recompute (cached stages) shows its result, not eight progress steps
         self.param.update(busy=True, progress=int(round(100 * min(max(fraction, 0), 1))), status=message)
-
-    def _shared_package(self, res: dict, warnings_: list) -> dict:
-        """The snapshot of these results, shared by every session whose pipeline has the same
-        stage keys (the pages of one shot): its arrays are made once, and a page whose results
-        came from the cache shows the warnings of the run that computed them."""
-        key = (tuple(self.pipeline.keys.get(n) for n in RETARGET_STAGES), self.pipeline.solve.method)
-        with _SNAPSHOT_LOCK:
-            hit = _SNAPSHOTS.get(key)
-            if hit is not None:
-                _SNAPSHOTS.move_to_end(key)
-                return hit
-        snap = self._package(res, warnings_)
-        for v in snap.values():
-            if isinstance(v, np.ndarray):
-                v.flags.writeable = False  # shared: nobody writes into it
-        with _SNAPSHOT_LOCK:
-            _SNAPSHOTS[key] = snap
-            while len(_SNAPSHOTS) > _SNAPSHOT_ENTRIES:
-                _SNAPSHOTS.popitem(last=False)
-        return snap
-
-    def _package(self, res: dict, warnings_: list) -> dict:
-        ld, st = res["load"], res["stabilize"]["source"]
-        tm = res["calibrate"]["target"]
-        W = np.asarray(res["synthesize"]["weights"])
-        ev = res["evaluate"]
-        times = st.times - st.times[0]
-        source_rig = ld["source_rig"]
-        return {
-            "times": times, "fps": st.fps, "weights": W, "valid": res["synthesize"]["valid"],
-            "first_frame": res["frames"]["first"], "target_rig": ld["target_rig"], "target_names": list(ld["target_rig"].names),
-            "source_rig": source_rig, "source_weights": st.source_weights, "source_markers": st.positions,
-            "target_markers": res["synthesize"]["target_markers"], "marker_names": list(st.names),
-            "target_layout": ld["target_layout"].select(tm.names), "source_layout": ld["source_layout"].select(tm.names) if ld["source_layout"] else None,
-            "evaluate": ev, "segment": res["segment"], "method": self.pipeline.solve.method,
-            "personalize": res["personalize"], "calibrated_deltas": tm.calibrated, "raw_deltas": tm.deltas,
-            "solver_names": list(res["calibrate"]["rig"].names),
-            "source_neutral": st.neutral,  # the shapes of the (K_solver, M, 3) deltas
-            "solve_info": res["solve"]["info"], "warnings": warnings_,
-            # an edit is solved under the method's own bounds: the edit slider spans them
-            "edit_bounds": (res["solve"]["edit"]["lower"], res["solve"]["edit"]["upper"]),
-            "derived": {},  # what views make of it, made once for every page sharing it (see derived())
-        }
 
     def _status_line(self) -> str:
         s = self.snapshot

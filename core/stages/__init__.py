@@ -2,7 +2,8 @@
 
 Importing this package registers them: the retargeting stages (:mod:`.retarget`), whose solve
 stage dispatches to the registered methods (:mod:`.methods`), the dense-transfer stages of
-Xu 2014 (:mod:`.dense`), a mesh-sequence source's own face (:mod:`.sequence`) and the normal-map stages of Liu 2011 §5 (:mod:`.normalmap`).
+Xu 2014 (:mod:`.dense`), a mesh-sequence source's own face (:mod:`.sequence`) and the normal-map stages of Liu 2011 §5 (:mod:`.normalmap`)
+and what a page shows of a retargeting result (:mod:`.snapshot`).
 """
 
 from .methods import METHODS, Method, method_of, solve_method  # noqa: F401
@@ -10,6 +11,7 @@ from . import retarget  # noqa: F401  (registers)
 from . import dense  # noqa: F401
 from . import sequence  # noqa: F401  (a mesh sequence's own source face)
 from . import normalmap  # noqa: F401
+from . import snapshot  # noqa: F401  (what a page shows of a result)
 from .retarget import INVISIBLE, solver_shapes  # noqa: F401
 
 #: methods that use the PCA prior stage (derived from the registrations)
