@@ -337,7 +337,7 @@ class NameMap:
 
     @classmethod
     def automatic(cls, source: Sequence[str], target: Sequence[str],
-                  vocabularies: Optional[Sequence[Vocabulary]] = None) -> "NameMap":
+                  vocabularies: Optional[Sequence[Vocabulary]] = None, exclusive: bool = True) -> "NameMap":
         """Pair shapes by name.
 
         1. Same canonical name; a target side-split shape (``browInnerUp_L``) is driven by the
@@ -347,11 +347,13 @@ class NameMap:
            with ``A`` (C, 52) the ARKit rows (eq. 1) of the recognised source channels, the ARKit
            weights are estimated by least squares, ``x̂ = A⁺ s`` (exact for ARKit curves, the mean
            for a split pair), and a target shape with row ``b`` gets ``w = b · x̂``, i.e. gains
-           ``b A⁺``. Each ARKit shape drives at most one target shape: a shape whose ARKit shapes a
-           step-1 pair or an earlier shape already drive is left unmapped, so a rig holding
-           several vocabularies (Rocketbox: ARKit, SRanipal, FACS, visemes) is not driven twice
-           over. Shapes made of fewer ARKit shapes come first, then by vocabulary (the one
-           recognising most target names first), then in target order.
+           ``b A⁺``. With ``exclusive`` (for driving a rig: the ``names`` method, the evaluation's
+           ground truth) each ARKit shape drives at most one target shape: a shape whose ARKit
+           shapes a step-1 pair or an earlier shape already drive is left unmapped, so a rig
+           holding several vocabularies (Rocketbox: ARKit, SRanipal, FACS, visemes) is not driven
+           twice over; shapes made of fewer ARKit shapes come first, then by vocabulary (the one
+           recognising most target names first), then in target order. Without it (a per-shape
+           guess such as the name prior) every recognised shape gets its own estimate.
         """
         src_by_canon = {}
         for s in source:
@@ -398,7 +400,7 @@ class NameMap:
                 comps = {a for a, _ in hit[1]}
                 candidates.append(((len(comps), rank[hit[0]], i), t, hit[1], comps))
         for _, t, row, comps in sorted(candidates, key=lambda c: c[0]):
-            if not comps <= available or comps & claimed:
+            if not comps <= available or (exclusive and comps & claimed):
                 continue
             claimed |= comps
             b = np.zeros(len(ARKIT_NAMES))
