@@ -217,7 +217,7 @@ def _names(args) -> int:
     for a user to edit."""
     from .io.performance import read_performance
     from .io.rigs import load_rig
-    from .names import NameMap, arkit_combination, load_vocabularies, recognise
+    from .names import NameMap, arkit_combination, load_vocabularies, rank_vocabularies, recognise
 
     vocabs = load_vocabularies(args.vocabulary or ())
     src = Path(args.source)
@@ -230,16 +230,17 @@ def _names(args) -> int:
     print(f"target {target.name}{' (' + str(len(names)) + ' shapes)' if args.target_shapes else ''}: {recognise(names, vocabs)}")
     nm = NameMap.automatic(source_names, names, vocabs)
     missing = nm.unmapped(names)
+    ranked = rank_vocabularies(vocabs, names)  # the order automatic looked the target names up in
     width = max(map(len, names))
     for t in names:
         pairs = nm.entries.get(t)
-        hit = arkit_combination(t, vocabs)
+        hit = arkit_combination(t, ranked)
         how = f"  [{hit[0]}]" if hit else ""
         if pairs:
             print(f"  {t:<{width}} <- " + " + ".join(s if g == 1 else f"{g:.4g}*{s}" for s, g in pairs) + how)
         elif not args.mapped_only:
-            why = ("no ARKit counterpart" if hit and not hit[1] else "its ARKit shapes drive another shape or the source lacks them"
-                   if hit else "name not recognised")
+            why = ("name not recognised" if not hit else "no ARKit counterpart" if not hit[1]
+                   else "its ARKit shapes drive another shape or the source lacks them")
             print(f"  {t:<{width}} -- ({why}){how}")
     print(f"{len(nm.entries)} of {len(names)} shapes of {target.name} mapped"
           + (f"; unmapped (edit the map to drive them): {', '.join(missing[:12])}{' ...' if len(missing) > 12 else ''}" if missing else ""))

@@ -272,7 +272,8 @@ def read_vocabulary(path) -> Vocabulary:
         raise ValueError(f"{path}: field 'vocabulary' (the vocabulary's name, e.g. \"sranipal\") is missing or empty; "
                          "a vocabulary file is a name map with a 'vocabulary' field (docs/names.md)")
     if data.get("source", "arkit") != "arkit":
-        raise ValueError(f"{path}: field 'source' must be \"arkit\" (vocabularies are written in ARKit shapes), got {data['source']!r}")
+        raise ValueError(f"{path}: field 'source' must be \"arkit\" (vocabularies are written in ARKit shapes), "
+                         f"got {data['source']!r}")
     for f in ("title", "prefix", "notes"):
         if not isinstance(data.get(f, ""), str):
             raise ValueError(f"{path}: field {f!r} must be a string, got {data[f]!r}")
@@ -378,7 +379,7 @@ class NameMap:
         if not vocabs:
             return cls(entries)
         # step 2: the source's ARKit estimate
-        src_vocabs = _ranked(vocabs, source)
+        src_vocabs = rank_vocabularies(vocabs, source)
         rows = [(s, arkit_combination(s, src_vocabs)) for s in source]
         rows = [(s, r[1]) for s, r in rows if r is not None and r[1]]
         if not rows:
@@ -391,7 +392,7 @@ class NameMap:
         P = np.linalg.pinv(A)  # (52, C): x̂ = P s
         available = {a for a in ARKIT_NAMES if np.any(A[:, col[a]] != 0)}
         claimed = {canonical(t) if canonical(t) in _ARKIT else split_base(t) for t in entries}
-        tgt_vocabs = _ranked(vocabs, target)
+        tgt_vocabs = rank_vocabularies(vocabs, target)
         rank = {v.name: i for i, v in enumerate(tgt_vocabs)}
         candidates = []
         for i, t in enumerate(rest):
@@ -464,8 +465,9 @@ class NameMap:
         return cls(entries)
 
 
-def _ranked(vocabularies: Sequence[Vocabulary], names: Sequence[str]) -> tuple:
-    """``vocabularies`` with those recognising most of ``names`` first (file order on ties)."""
+def rank_vocabularies(vocabularies: Sequence[Vocabulary], names: Sequence[str]) -> tuple:
+    """``vocabularies`` with those recognising most of ``names`` first (file order on ties): the
+    order :meth:`NameMap.automatic` looks names up in."""
     order = recognise(names, vocabularies).vocabularies
     by = {v.name: v for v in vocabularies}
     return tuple(by[n] for n in order) + tuple(v for v in vocabularies if v.name not in order)
