@@ -212,20 +212,42 @@ def _info(args) -> int:
 
 
 def _names(args) -> int:
-    """Write the automatic name map (same canonical ARKit names) for a user to edit."""
+    """Show the vocabularies of the source's and the target's names and which source channels
+    drive each target shape (:meth:`core.names.NameMap.automatic`); ``--out`` writes that map
+    for a user to edit."""
     from .io.performance import read_performance
     from .io.rigs import load_rig
-    from .names import NameMap
+    from .names import NameMap, arkit_combination, load_vocabularies, rank_vocabularies, recognise
 
+    vocabs = load_vocabularies(args.vocabulary or ())
     src = Path(args.source)
     source_names = load_rig(src).names if _is_rig(src) else read_performance(src).names
     target = load_rig(args.target_rig)
-    nm = NameMap.automatic(source_names, target.names)
-    missing = nm.unmapped(target.names)
-    # unmapped shapes are written with an empty list: the keys a user fills in
-    NameMap({t: nm.entries.get(t, []) for t in target.names}).to_json(args.out)
-    print(f"wrote {args.out}: {len(nm.entries)} of {target.n_shapes} shapes of {target.name} mapped by ARKit name"
-          + (f"; unmapped (edit the file to drive them): {', '.join(missing[:12])}{' ...' if len(missing) > 12 else ''}" if missing else ""))
+    names = list(target.names)
+    if args.target_shapes:
+        names = [target.names[target.index(n.strip())] for n in args.target_shapes.split(",") if n.strip()]
+    print(f"source {src.name}: {recognise(source_names, vocabs)}")
+    print(f"target {target.name}{' (' + str(len(names)) + ' shapes)' if args.target_shapes else ''}: {recognise(names, vocabs)}")
+    nm = NameMap.automatic(source_names, names, vocabs)
+    missing = nm.unmapped(names)
+    ranked = rank_vocabularies(vocabs, names)  # the order automatic looked the target names up in
+    width = max(map(len, names))
+    for t in names:
+        pairs = nm.entries.get(t)
+        hit = arkit_combination(t, ranked)
+        how = f"  [{hit[0]}]" if hit else ""
+        if pairs:
+            print(f"  {t:<{width}} <- " + " + ".join(s if g == 1 else f"{g:.4g}*{s}" for s, g in pairs) + how)
+        elif not args.mapped_only:
+            why = ("name not recognised" if not hit else "no ARKit counterpart" if not hit[1]
+                   else "its ARKit shapes drive another shape or the source lacks them")
+            print(f"  {t:<{width}} -- ({why}){how}")
+    print(f"{len(nm.entries)} of {len(names)} shapes of {target.name} mapped"
+          + (f"; unmapped (edit the map to drive them): {', '.join(missing[:12])}{' ...' if len(missing) > 12 else ''}" if missing else ""))
+    if args.out:
+        # unmapped shapes are written with an empty list: the keys a user fills in
+        NameMap({t: nm.entries.get(t, []) for t in names}).to_json(args.out)
+        print(f"wrote {args.out}")
     return 0
 
 
@@ -333,10 +355,19 @@ def build_parser() -> argparse.ArgumentParser:
                         "the shot (a change made during a build waits for it, ~1 s; default: 30; nobody on it: 3)")
     s.set_defaults(func=_serve)
 
-    n = sub.add_parser("names", help="write the automatic channel->shape name map (JSON) for editing")
+    n = sub.add_parser("names", help="show the vocabularies of the names and the automatic channel->shape map; "
+                                     "--out writes it (JSON) for editing",
+                       description="Which vocabularies (ARKit, SRanipal, FACS, Unified Expressions, Meta, visemes ...; "
+                                   "data/namemaps/vocabulary_*.json) the source's and the target's names use, and which "
+                                   "source channels drive each target shape. See docs/names.md.")
     n.add_argument("--source", required=True, help="performance or rig whose channel/shape names drive")
     n.add_argument("--target-rig", required=True, help="rig whose shapes are driven")
-    n.add_argument("--out", required=True, help="name map JSON to write (pass it back with --name-map)")
+    n.add_argument("--out", default=None, help="name map JSON to write (pass it back with --name-map)")
+    n.add_argument("--vocabulary", action="append", default=None, metavar="FILE_OR_FOLDER",
+                   help="more vocabulary JSON (or a folder of vocabulary_*.json) on top of the bundled ones; repeatable "
+                        "(also $FACE_RETARGET_NAMEMAPS)")
+    n.add_argument("--target-shapes", default=None, help="comma-separated target shapes to map (default: all)")
+    n.add_argument("--mapped-only", action="store_true", help="list only the target shapes that are driven")
     n.set_defaults(func=_names)
 
     i = sub.add_parser("info", help="describe rigs and performances")
