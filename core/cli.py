@@ -364,8 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--target-rig", required=True, help="rig whose shapes are driven")
     n.add_argument("--out", default=None, help="name map JSON to write (pass it back with --name-map)")
     n.add_argument("--vocabulary", action="append", default=None, metavar="FILE_OR_FOLDER",
-                   help="more vocabulary JSON (or a folder of vocabulary_*.json) on top of the bundled ones; repeatable "
-                        "(also $FACE_RETARGET_NAMEMAPS)")
+                   help="more vocabulary JSON (or a folder of vocabulary_*.json) on top of the bundled ones; repeatable")
     n.add_argument("--target-shapes", default=None, help="comma-separated target shapes to map (default: all)")
     n.add_argument("--mapped-only", action="store_true", help="list only the target shapes that are driven")
     n.set_defaults(func=_names)

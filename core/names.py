@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import difflib
 import json
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -90,9 +89,6 @@ def split_base(name: str):
 
 #: the bundled vocabularies: ``data/namemaps/vocabulary_*.json``, one file per vocabulary
 NAMEMAPS = Path(__file__).resolve().parents[1] / "data" / "namemaps"
-#: environment variable naming more vocabulary files or folders (``os.pathsep``-separated), read
-#: after the bundled ones: an entry there replaces the bundled entry of the same vocabulary and shape
-NAMEMAPS_ENV = "FACE_RETARGET_NAMEMAPS"
 
 _ARKIT = frozenset(ARKIT_NAMES)
 #: numbered prefixes such as Rocketbox's AK_25_, SR_21_, AA_VI_10_, HB_07_ (not FACS' AU_12_: its number is the name)
@@ -294,28 +290,32 @@ def read_vocabulary(path) -> Vocabulary:
         raise ValueError(f"{path}: {e}") from None
 
 
+def bundled_vocabulary_files() -> list:
+    """The bundled vocabulary files (what a cache key of their use hashes)."""
+    return _vocabulary_files(NAMEMAPS)
+
+
 def _vocabulary_files(folder: Path) -> list:
     files = sorted(folder.glob("vocabulary_*.json"))
     return sorted(files, key=lambda p: p.name != "vocabulary_arkit.json")  # ARKit first, then by name
 
 
 def load_vocabularies(paths: Sequence = ()) -> tuple:
-    """The bundled vocabularies (``data/namemaps/vocabulary_*.json``, ARKit first), then those
-    of ``$FACE_RETARGET_NAMEMAPS``, then ``paths`` (files, or folders of ``vocabulary_*.json``).
+    """The bundled vocabularies (``data/namemaps/vocabulary_*.json``, ARKit first), then those of
+    ``paths`` (files, or folders of ``vocabulary_*.json``; the pipeline's ``vocabularies`` setting).
     A later file of an existing vocabulary replaces its entries shape by shape (and its title or
     prefix when it gives one); a new vocabulary name adds a vocabulary.
 
     Raises ValueError for a path that does not exist or a file that is not a vocabulary.
     """
     files = _vocabulary_files(NAMEMAPS)
-    extra = [p for p in os.environ.get(NAMEMAPS_ENV, "").split(os.pathsep) if p] + [str(p) for p in paths]
-    for p in map(Path, extra):
+    for p in map(Path, paths):
         if p.is_dir():
             files += _vocabulary_files(p)
         elif p.is_file():
             files.append(p)
         else:
-            raise ValueError(f"vocabulary path {str(p)!r} (from {NAMEMAPS_ENV} or the arguments) does not exist")
+            raise ValueError(f"vocabulary path {str(p)!r} does not exist")
     merged = {}
     for f in files:
         v = read_vocabulary(f)

@@ -224,6 +224,7 @@ class Pipeline:
         self.notes: list = []
         self._lock = threading.RLock()
         self._told: Optional[list] = None  # edit operations heard when the open transaction completes
+        self._warned: dict = {}  # the warnings registry of the stages' warnings given again
         self._owners = {p: st for st in self.stages.values() for p in st.setting_names()}
         self.configure(**settings)
 
@@ -444,7 +445,9 @@ class Pipeline:
         for f in stage.files:
             if f in values:
                 values[f] = file_key(values[f])
-        memo[name] = content_key(name, values, [self.key(d, memo, cfg) for d in stage.deps])
+        extra = stage.content(cfg)
+        memo[name] = content_key(name, values, [self.key(d, memo, cfg) for d in stage.deps],
+                                 *(() if extra is None else (extra,)))
         return memo[name]
 
     def _run(self, targets: list, progress: Optional[ProgressFn] = None) -> dict:
@@ -477,8 +480,8 @@ class Pipeline:
                 hit, (value, warned) = self.cache.compute((name, k), compute)
                 # a result's warnings are part of it: said again however it is reached (a page
                 # whose results came from another's run, a batch shot sharing a registration)
-                for message, category, filename, lineno in warned:
-                    warnings.warn_explicit(message, category, filename, lineno)
+                for message, category, filename, lineno in warned:  # once per pipeline, unless "always"
+                    warnings.warn_explicit(message, category, filename, lineno, registry=self._warned)
                 dt = time.perf_counter() - t0
                 # computed here: its time; a cache hit: 0, or the wait for another pipeline's run of it
                 self.timings[name] = dt if not hit or dt > 1e-3 else 0.0

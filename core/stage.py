@@ -9,6 +9,8 @@ dashboard widgets, CLI flags and the shot's ``settings[stage]``), and the class 
   setting of a disabled feature is not in the key, so changing it re-runs nothing);
 * ``active(cfg)`` — whether the stage runs at all (an inactive stage yields None and costs
   nothing; e.g. segmentation only for the local method);
+* ``content(cfg)`` — what else the result depends on that no setting names (the bundled
+  vocabularies' content): hashed into the key;
 * ``file_paths(cfg)`` — the file each file setting actually reads (e.g. the default layout a rig
   falls back to when no layout is chosen): the key hashes these, and the shot records them;
 * ``run(inputs, s, progress)`` — the pure function: ``inputs[dep]`` are the upstream results,
@@ -135,6 +137,11 @@ class Stage(param.Parameterized):
 
     def active(self, cfg) -> bool:
         return True
+
+    def content(self, cfg):
+        """What the result depends on that no setting names (e.g. the bundled vocabulary files),
+        as plain data the key hashes; None: nothing."""
+        return None
 
     def file_paths(self, cfg) -> dict:
         """file setting -> the path it reads now ("" for none); default: the setting's value."""

@@ -56,7 +56,7 @@ def test_name_map_json_roundtrip_and_errors(tmp_path):
 
 # --- vocabularies -------------------------------------------------------------------------
 
-from core.names import (NAMEMAPS_ENV, Vocabulary, arkit_combination, load_vocabularies, name_key,  # noqa: E402
+from core.names import (Vocabulary, arkit_combination, load_vocabularies, name_key,  # noqa: E402
                         read_vocabulary, recognise)
 
 
@@ -177,22 +177,21 @@ def test_vocabulary_json_round_trip(tmp_path, vocabs):
         assert (w.name, w.entries, w.title, w.prefix, w.notes) == (v.name, v.entries, v.title, v.prefix, v.notes)
 
 
-def test_an_edited_file_overrides_a_bundled_entry(tmp_path, monkeypatch):
+def test_an_edited_file_overrides_a_bundled_entry(tmp_path):
     edit = tmp_path / "vocabulary_sranipal.json"
     edit.write_text('{"vocabulary": "sranipal", "map": {"Mouth_Pout": [{"source": "mouthFunnel", "gain": 0.7}], '
                     '"Mouth_Smirk_Left": [{"source": "mouthSmile_L", "gain": 1}]}}')
     bundled = {v.name: v for v in load_vocabularies()}["sranipal"]
     given = load_vocabularies([edit])  # a file given ...
-    monkeypatch.setenv(NAMEMAPS_ENV, str(tmp_path))  # ... or a folder in the environment
-    for vocabs in (given, load_vocabularies()):
+    for vocabs in (given, load_vocabularies([tmp_path])):  # ... or a folder of them
         sr = {v.name: v for v in vocabs}["sranipal"]
         assert sr.entries["Mouth_Pout"] == (("mouthFunnel", 0.7),)
         assert sr.entries["Mouth_Smirk_Left"] == (("mouthSmileLeft", 1.0),)  # sources in any ARKit spelling
         assert {k: r for k, r in sr.entries.items() if k not in ("Mouth_Pout", "Mouth_Smirk_Left")} == \
             {k: r for k, r in bundled.entries.items() if k != "Mouth_Pout"}
         assert sr.prefix == bundled.prefix
-    # NameMap.automatic reads the environment's edits too
-    assert NameMap.automatic(list(ARKIT_NAMES), ["SR_31_Mouth_Pout"]).entries == {"SR_31_Mouth_Pout": [("mouthFunnel", 0.7)]}
+    assert NameMap.automatic(list(ARKIT_NAMES), ["SR_31_Mouth_Pout"], vocabularies=given).entries == \
+        {"SR_31_Mouth_Pout": [("mouthFunnel", 0.7)]}
 
 
 def test_bad_vocabulary_files_say_what_is_wrong(tmp_path):

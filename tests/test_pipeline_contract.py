@@ -51,6 +51,7 @@ STEPS = {
     "source_layout": [{"source_layout": str(LAYOUTS / "ict_facekit.json")}, {"source_layout": ""}],  # same content: a hit
     "name_map": [{"name_map": str(RIGS.parent / "namemaps" / "arkit_to_jeeliz.json")}, {"name_map": ""}],
     "target_rig": [{"target_rig": str(RIGS / "jeeliz_tiger.glb")}, {"target_rig": ROCKETBOX}],
+    "vocabularies": [{"vocabularies": str(RIGS.parent / "namemaps" / "vocabulary_sranipal.json")}, {"vocabularies": ""}],
     "target_layout": [{"target_layout": str(LAYOUTS / "rocketbox_female_adult_02.json")}, {"target_layout": ""}],
     "transfer_crop": [{"transfer_crop": "none"}, {"transfer_crop": "auto"}],
     "transfer_icp": [{"transfer_icp": False}, {"transfer_icp": True}],

@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 
 from ..gaps import fill_gaps
+from ..names import NameMap
 
 #: method name -> Method, in registration order
 METHODS: dict = {}
@@ -89,17 +90,20 @@ def edit_options(s, alpha=None, lower=None, upper=None, l1=0.0, name_weight=0.0,
             "l1": float(l1), "name_weight": float(name_weight), "quadratic": getattr(s, "quadratic", None)}
 
 
-def named_target(inputs) -> "np.ndarray | None":
-    """``W_named`` (T, K_solver): each solver shape's namesake source curve (canonical ARKit name,
-    :meth:`core.names.NameMap.automatic`), NaN for shapes without one; gaps (tracking loss) filled
-    as everywhere (:mod:`core.gaps`). None unless the source is weight curves with a namesake."""
-    from ..names import NameMap
-
+def named_target(inputs, exclusive: bool = False) -> "np.ndarray | None":
+    """``W_named`` (T, K_solver): each solver shape's estimate from the source curves through its
+    name (:meth:`core.names.NameMap.automatic` with the ``vocabulary`` stage's vocabularies: the
+    same canonical ARKit name, or a vocabulary's combination of ARKit shapes), NaN for shapes
+    without one; gaps (tracking loss) filled as everywhere (:mod:`core.gaps`). None unless the
+    source is weight curves with a namesake. ``exclusive``: each ARKit channel drives one shape at
+    most (driving a rig, the ``names`` method); off, every recognised shape gets its own estimate
+    (a per-shape pull, the name prior)."""
     src = inputs["load"]["source"]
     if src.kind != "curves":
         return None
     rig = inputs["shapes"]["rig"]
-    G = NameMap.automatic(src.names, rig.names).matrix(src.names, rig.names)  # (K, C)
+    G = NameMap.automatic(src.names, rig.names, vocabularies=inputs["vocabulary"]["vocabularies"],
+                          exclusive=exclusive).matrix(src.names, rig.names)  # (K, C)
     named = np.abs(G).sum(1) > 0
     if not named.any():
         return None
@@ -283,7 +287,7 @@ def _names(inputs, s):
     """Copy by canonical name: each target shape plays its namesake source curve (weight-curve
     sources only; shapes without a namesake stay at zero). The baseline a solver must beat where
     names do not match."""
-    W = named_target(inputs)
+    W = named_target(inputs, exclusive=True)
     if W is None:
         src = inputs["load"]["source"]
         raise ValueError(f"the names method copies weight curves by name: {src.name!r} is "

@@ -22,6 +22,8 @@ import numpy as np
 import param
 
 from ..gaps import fill_gaps
+from ..names import bundled_vocabulary_files, load_vocabularies
+from ..shot import file_hash
 from ..progress import report
 from ..retarget import common_markers, source_marker_names, source_markers, target_markers
 from ..stage import Stage, register
@@ -120,6 +122,25 @@ class TargetFace(Stage):
         report(progress, 0.2, "reading the target rig")
         rig = load_rig(s.target_rig)
         return {"target_rig": rig, "target_layout": read_layout_for(s.target_layout, s.target_rig, rig)}
+
+
+@register("vocabulary")
+class Vocabulary(Stage):
+    """The naming schemes rigs use (ARKit, SRanipal, FACS, Unified Expressions, Meta, visemes ...;
+    :mod:`core.names`, docs/names.md): the bundled ``data/namemaps/vocabulary_*.json`` and any
+    given here. What the name prior, the ``names`` method and ``auto`` read a shape's meaning from;
+    the bundled files' content is part of the key, so editing one re-runs what used it."""
+
+    files = ("vocabularies",)
+    group, title = "files", "Vocabularies"
+    vocabularies = param.String(default="", doc=(
+        "More vocabulary JSON, or a folder of vocabulary_*.json, on top of the bundled ones (docs/names.md)"))
+
+    def content(self, cfg):
+        return [file_hash(p) for p in bundled_vocabulary_files()]
+
+    def run(self, inputs, s, progress=None):
+        return {"vocabularies": load_vocabularies([s.vocabularies] if s.vocabularies else [])}
 
 
 @register("load")
@@ -452,7 +473,7 @@ class Solve(Stage):
     """The retargeting solver and its term weights. Each method is registered in
     :mod:`core.stages.methods` with the settings it reads and the stages it needs."""
 
-    deps = ("load", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior")
+    deps = ("load", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior", "vocabulary")
     group, title = "solve", "Solver"
     method = param.Selector(label='Method', default="bounded", objects={m.label: n for n, m in METHODS.items()}, doc=(
         "lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
@@ -554,7 +575,7 @@ class Solve(Stage):
 class Edit(Stage):
     """Spacetime edits (Seol 2012 §6) on top of any method's solution."""
 
-    deps = ("solve", "personalize", "calibrate", "prior", "shapes", "load", "frames")
+    deps = ("solve", "personalize", "calibrate", "prior", "shapes", "load", "frames", "vocabulary")
     edits = param.List(default=[], item_type=dict, doc="Edits: {frame, weights: {shape: value}, window: [a, b] or null}")
 
     def active(self, cfg):
@@ -581,7 +602,7 @@ class Edit(Stage):
         if opt["name_weight"] > 0:
             from .methods import named_target
 
-            named = named_target({"load": inputs["load"], "frames": inputs["frames"], "shapes": inputs["shapes"]})
+            named = named_target(inputs)
         solver = SpacetimeSolver(inputs["personalize"]["deltas"], st.deltas, alpha=opt["alpha"], beta=opt["beta"], prior=prior,
                                  known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["shapes"]["rig"].names,
                                  ridge=opt["ridge"], lower=opt["lower"], upper=opt["upper"], l1=opt["l1"],
