@@ -403,7 +403,9 @@ class GeometricSolver:
                 np.linalg.cholesky(H)
             except np.linalg.LinAlgError:  # shapes nothing sees: the spacetime solver's relative ridge
                 H = H + AUTO_RIDGE * max(np.linalg.eigvalsh(H)[-1], 1e-300) * np.eye(K)
-            # one unit-box Hessian per pattern of held weights (their columns: identity rows, f = 0)
+            # one unit-box Hessian per pattern of held weights; a held column is an identity row with
+            # f = c|a| (> 0, so z = 0 with a positive multiplier: a split pair's multipliers keep
+            # their sum when a frame of another pattern starts from this one)
             if free is None:
                 pats, pidx = np.zeros((1, K), bool), np.zeros(T, np.int64)
             else:
@@ -417,7 +419,7 @@ class GeometricSolver:
                 Hp = np.where(hc[:, None] | hc[None, :], 0.0, Hz)
                 Hp[hc, hc] = 1.0
                 Htab.append(Hp)
-                lin.append(np.where(hc, 0.0, a * (H @ bp)[kcol] + c * np.abs(a)))
+                lin.append(np.where(hc, 0.0, a * (H @ bp)[kcol]) + c * np.abs(a))
                 bases.append(bp)
             hcol = np.asarray(pats)[pidx][:, kcol]
             f = np.asarray(lin)[pidx] - np.where(hcol, 0.0, b[:, kcol] * a)
