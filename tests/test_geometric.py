@@ -378,6 +378,21 @@ def test_bounded_tiny_lambda_and_no_lambda():
         check_bounded(s, A, s.solve(A), lo, hi)
 
 
+def test_bounded_rank_deficient_gets_the_relative_ridge():
+    """More shapes than marker coordinates and no prior: H is singular, the bounded solve adds
+    AUTO_RIDGE λ_max(H) (as range_pf) and is exact for that; eq. 16's own energy is then within
+    that ridge's size of the general solver's."""
+    P, A, _, _ = random_case(K=12, M=3, T=30, seed=5)
+    K = len(P)
+    lo, hi = np.full(K, -0.5), np.ones(K)
+    s = GeometricSolver(P, "none", lam=0.5, lower=lo, upper=hi)
+    assert s.ridge_ == pytest.approx(1e-9 * np.linalg.eigvalsh(s.H)[-1])
+    sol = s.solve(A)
+    assert (sol.weights >= lo).all() and (sol.weights <= hi).all() and sol.polished.all() and sol.extras["kkt"] < 1e-12
+    e, er = sol.energy, s.energy(A, qp_reference(s, A, lo, hi))
+    assert (np.abs(e - er) <= 1e-8 * np.abs(er)).all()
+
+
 def test_bounded_wide_bounds_are_the_unbounded_solution(ict_case):
     S, A, _, Q = ict_case
     K = len(S)

@@ -74,8 +74,8 @@ the scaled multipliers of a split pair sum to ``2c > 0`` along the whole homotop
 cold or warm start), so p and n are never free together and every factorised block is a
 principal submatrix of H. (Its PDAS start from the unconstrained minimiser would need all of
 ``AᵀHA``, so it is off when a shape is split.) A singular H (shapes no marker and no prior
-sees) gets the spacetime solver's relative ridge ``AUTO_RIDGE · λ_max(H)`` for the bounded
-solve, as ``range_pf`` does. The result is checked once more against the optimality conditions
+sees) gets the spacetime solver's relative ridge ``AUTO_RIDGE · λ_max(H)`` (``ridge_``) for the
+bounded solve, as ``range_pf`` does: the minimiser is then the ridged energy's (unique). The result is checked once more against the optimality conditions
 of eq. 16 in w (:func:`core.solvers.bounded_spacetime.kkt_violation`, including the kink at 0);
 ``Solution.polished`` marks frames whose violation is at most ``KKT_RTOL`` relative to
 ``‖H‖₂ max(1, max|w|) + max|b| + c``, and ``extras["kkt"]`` holds the largest.
@@ -232,6 +232,8 @@ class GeometricSolver:
     ----------
     columns_ : tuple (shape (n,) int, coefficient (n,) float, base (K,) float) or None
         The bounded solve's change of variables w = base + A z (module docstring).
+    ridge_ : float
+        ``AUTO_RIDGE · λ_max(H)`` added to H by the bounded solve when H is singular, else 0.
 
     Raises
     ------
@@ -297,9 +299,14 @@ class GeometricSolver:
         if (lower is None) != (upper is None):
             raise ValueError("GeometricSolver: give both lower and upper (bounded) or neither (the paper's unbounded "
                              f"eq. 16), got lower={lower}, upper={upper}")
+        self.ridge_ = 0.0
         if lower is not None:
             self.lower, self.upper = _bounds(lower, upper, K, "GeometricSolver")
             self.columns_ = _columns(self.lower, self.upper, self.c)
+            try:
+                np.linalg.cholesky(self.H)
+            except np.linalg.LinAlgError:  # shapes nothing sees: the spacetime solver's relative ridge
+                self.ridge_ = AUTO_RIDGE * max(float(np.linalg.eigvalsh(self.H)[-1]), 1e-300)
 
     # -- pieces ---------------------------------------------------------------------------
     def rhs(self, frames):
@@ -398,11 +405,7 @@ class GeometricSolver:
         W = np.broadcast_to(base, (T, K)).copy()
         info = {}
         if len(kcol) and T:
-            H = self.H
-            try:
-                np.linalg.cholesky(H)
-            except np.linalg.LinAlgError:  # shapes nothing sees: the spacetime solver's relative ridge
-                H = H + AUTO_RIDGE * max(np.linalg.eigvalsh(H)[-1], 1e-300) * np.eye(K)
+            H = self.H + self.ridge_ * np.eye(K)
             # one unit-box Hessian per pattern of held weights; a held column is an identity row with
             # f = c|a| (> 0, so z = 0 with a positive multiplier: a split pair's multipliers keep
             # their sum when a frame of another pattern starts from this one)
@@ -444,10 +447,11 @@ class GeometricSolver:
         T, K = W.shape
         lo = np.full(K, -np.inf) if self.lower is None else self.lower
         hi = np.full(K, np.inf) if self.upper is None else self.upper
-        g = 2.0 * (W @ self.H - b)  # dE/dw of the smooth terms (H symmetric)
-        v = kkt_violation(W, g, lo, hi, np.full(K, 2.0 * self.c), 2.0 * np.linalg.norm(self.H, 2))
+        H = self.H + self.ridge_ * np.eye(K)
+        g = 2.0 * (W @ H - b)  # dE/dw of the smooth terms (H symmetric)
+        v = kkt_violation(W, g, lo, hi, np.full(K, 2.0 * self.c), 2.0 * np.linalg.norm(H, 2))
         v = np.where((hi > lo) if free is None else free & (hi > lo), v, 0.0)  # held and fixed weights are constraints
-        scale = 2.0 * (np.linalg.norm(self.H, 2) * np.maximum(1.0, np.abs(W).max(axis=1, initial=0.0))
+        scale = 2.0 * (np.linalg.norm(H, 2) * np.maximum(1.0, np.abs(W).max(axis=1, initial=0.0))
                        + np.abs(b).max(axis=1, initial=0.0) + self.c)
         return v.max(axis=1, initial=0.0) / scale
 
