@@ -250,7 +250,7 @@ def _geometric(inputs, s):
         warnings.warn(f"geometric: {int((~valid).sum())} missing marker samples filled by the per-frame fit")
     sol = GeometricSolver(B, s.geometric_prior, mu=s.mu, lam=s.lam, quadratic=s.quadratic, lower=s.lower, upper=s.upper,
                           **kw).solve(frames, zero=s.zero)
-    return {"weights": sol.weights, "info": {"iterations": sol.iterations, "kkt": sol.extras["kkt"]},
+    return {"weights": sol.weights, "info": {"iterations": sol.iterations, "kkt": sol.extras.get("kkt")},
             "edit": edit_options(s, alpha=0.01, lower=s.lower, upper=s.upper)}
 
 
