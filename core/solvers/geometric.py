@@ -347,7 +347,10 @@ class GeometricSolver:
         IRLS (module docstring) on all frames in lock-step; a coordinate whose weight has
         fallen below ``drop`` × the frame's largest weight is frozen at 0 and dropped from the
         frame's system, so later iterations solve small padded (T, k, k) systems with k the
-        largest support. The polish then makes the result exact (KKT-checked).
+        largest support. The polish then makes the result exact (KKT-checked). With bounds
+        (``lower``/``upper`` given) the frames are instead solved within them by the warm-started
+        batched box QP (module docstring, *Bounds*); ``iterations`` is then 0, ``extras`` holds
+        ``kkt`` (largest relative violation) and ``boxqp`` (the box solver's counters).
 
         Parameters
         ----------
