@@ -11,9 +11,11 @@ deltas, so the prior only needs the (K × K) Gram matrix Q = (LΔV)ᵀ(LΔV)/N, 
 rig (§5: "we pre-compute the matrix product LΔV"). The paper's μ = 0.3, λ = 0.6 hold for
 markers in centimetres.
 
-The weights are **not** bounded: the paper pairs ℓ1 with its prior precisely because valid
+The paper leaves the weights **unbounded**: it pairs ℓ1 with its prior precisely because valid
 expressions can need negative weights (§6.2: "less restrictive than non-negativity
-constraints"). The three priors of Fig. 14 are selectable: ``"geometric"`` (the above),
+constraints"). That is ``lower = upper = None`` here; with per-shape bounds ``lower ≤ w ≤
+upper`` (the pipeline's default, from the per-shape controls) the same energy is minimised
+exactly inside them (*Bounds* below). The three priors of Fig. 14 are selectable: ``"geometric"`` (the above),
 ``"pca"`` (any quadratic wᵀPw + 2qᵀw, e.g. ``core.prior.PCAPrior``'s ``P_``, ``q_``) and
 ``"l2"`` (‖w‖², the elastic net); ``"none"`` keeps only ℓ1.
 
@@ -31,8 +33,8 @@ which :func:`effective_weights` applies: λ = 0.6 for cm becomes 6e-5 for metres
 is normalised by the vertex count N as in eq. 15; ‖L x‖² per vertex still depends on the
 mesh resolution, so μ transfers between rigs of similar density only.)
 
-ℓ1 by IRLS
-----------
+ℓ1 by IRLS (unbounded)
+----------------------
 |w_k| ≤ w_k²/(2|w_k⁰|) + |w_k⁰|/2 turns each step into a (K × K) linear solve. Written with
 H = PᵀP/M + μQ, b = PᵀΔa/M − μq, c = λ/(2K) and D = diag(|w⁰|), w = D^½ z,
 
@@ -48,6 +50,38 @@ few rounds, all frames at once). Polished frames (``Solution.polished``) hold th
 optimum, not an ε-smoothed one; the tests compare it with L-BFGS-B on the split
 w = w⁺ − w⁻.
 
+Bounds
+------
+With ``lower ≤ w ≤ upper`` (per shape) eq. 16 is minimised over the box: a convex QP per frame.
+Halved and with H, b, c as above, the energy is ½wᵀHw − bᵀw + c‖w‖₁ + const.
+Every shape is written as
+``w_k = base_k + Σ_j a_j z_j`` with ``z ∈ [0, 1]``, columns pointing away from 0 so that
+``|w_k| = |base_k| + Σ_j |a_j| z_j`` on the feasible set:
+
+* ``lower ≥ 0``: ``base = lower``, one column ``a = upper − lower`` (ℓ1 is linear, +c);
+* ``upper ≤ 0``: ``base = upper``, one column ``a = lower − upper`` (ℓ1 is linear, −c);
+* ``lower < 0 < upper`` and c > 0 (the kink inside the box): the split ``w = p − n``,
+  ``base = 0`` and two columns ``a = upper`` (p ∈ [0, upper]) and ``a = lower`` (n ∈ [0, −lower]).
+  ``p + n ≥ |p − n|``, so the split problem has the same minimum; it is exact, not a bound;
+* ``lower == upper``: fixed, no column.
+
+Each frame is then the unit-box QP ``min ½zᵀ(AᵀHA)z + (Aᵀ(H base − b) + c|a|)ᵀz`` (A: the
+columns), solved for all frames by the batched parametric active-set method of
+:func:`core.solvers.boxqp.solve_box_sequence` (the one behind ``range_pf`` and the local
+method's box), each frame warm-started from the previous one, every frame's KKT conditions
+checked. ``AᵀHA`` is singular when a split shape has both columns, but never on a free set:
+the scaled multipliers of a split pair sum to ``2c > 0`` along the whole homotopy (also from a
+cold or warm start), so p and n are never free together and every factorised block is a
+principal submatrix of H. (Its PDAS start from the unconstrained minimiser would need all of
+``AᵀHA``, so it is off when a shape is split; the lanes' length follows the shape count, not
+the column count: 128 frames for K ≤ 64, which on the ICT ROM benchmark with [-0.5, 1.5] took
+1.0 s instead of 2.4-3.1 s with the column count's 64.) A singular H (shapes no marker and no prior
+sees) gets the spacetime solver's relative ridge ``AUTO_RIDGE · λ_max(H)`` (``ridge_``) for the
+bounded solve, as ``range_pf`` does: the minimiser is then the ridged energy's (unique). The result is checked once more against the optimality conditions
+of eq. 16 in w (:func:`core.solvers.bounded_spacetime.kkt_violation`, including the kink at 0);
+``Solution.polished`` marks frames whose violation is at most ``KKT_RTOL`` relative to
+``‖H‖₂ max(1, max|w|) + max|b| + c``, and ``extras["kkt"]`` holds the largest.
+
 Production controls (:mod:`core.controls`), off by default
 ----------------------------------------------------------
 ``quadratic`` C (K × K, PSD, e.g. the symmetry term of :func:`core.controls.symmetry_matrix`)
@@ -55,7 +89,9 @@ adds ``s_P wᵀCw`` with ``s_P = σ_max(P)²/M`` (relative to the data term, as 
 relative weights): it joins H, so IRLS and the polish are unchanged. ``zero`` in
 :meth:`GeometricSolver.solve` holds weights at 0: they never enter a frame's support (the
 first iterate, IRLS and the polish's active set all skip them), which is the exact optimum of
-eq. 16 with those weights fixed.
+eq. 16 with those weights fixed. With bounds a held weight sits at ``clip(0, lower, upper)``
+(as in ``range_pf``): its columns become identity rows of the unit-box Hessian, one Hessian
+per pattern of held weights.
 """
 
 from __future__ import annotations
@@ -64,6 +100,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.model import unit_scale
+from core.solvers.baselines import _bounds
+from core.solvers.bounded_spacetime import kkt_violation
+from core.solvers.boxqp import solve_box_sequence
+from core.solvers.spacetime import AUTO_RIDGE, KKT_RTOL
 
 #: Ribera 2017 §5 recommendations, for markers in centimetres
 MU = 0.3
@@ -185,17 +225,29 @@ class GeometricSolver:
     quadratic : (K, K) float, optional
         Relative symmetric PSD coupling C: ``σ_max(P)²/M · wᵀCw`` joins the energy (module
         docstring); the absolute matrix is ``coupling_``.
+    lower, upper : float or (K,) float, optional
+        Per-shape bounds ``lower ≤ w ≤ upper`` (finite, ``lower ≤ upper``; equal = fixed),
+        solved exactly (module docstring, *Bounds*). Both None (default): the paper's
+        unbounded eq. 16 by IRLS + polish.
+
+    Attributes
+    ----------
+    columns_ : tuple (shape (n,) int, coefficient (n,) float, base (K,) float) or None
+        The bounded solve's change of variables w = base + A z (module docstring).
+    ridge_ : float
+        ``AUTO_RIDGE · λ_max(H)`` added to H by the bounded solve when H is singular, else 0.
 
     Raises
     ------
     ValueError
         Bad shapes, unknown prior, a geometric prior without rig/gram, a rig whose shape count
-        differs from K, negative weights μ/λ.
+        differs from K, negative weights μ/λ, only one of lower/upper, bounds that are not
+        finite, of the wrong shape or with lower > upper.
     """
 
     def __init__(self, blendshapes, prior="geometric", rig=None, gram=None, linear=None,
                  mu=MU, lam=LAMBDA, units="cm", drop=0.05, max_iter=5, tol=1e-6, polish=True, greedy_rounds=3,
-                 quadratic=None):
+                 quadratic=None, lower=None, upper=None):
         P = np.asarray(blendshapes, dtype=np.float64)
         if P.ndim != 3 or P.shape[2] != 3:
             raise ValueError(f"blendshapes: expected (K, M, 3), got {P.shape}")
@@ -245,6 +297,18 @@ class GeometricSolver:
         if self.coupling_ is not None:
             self.H = self.H + self.coupling_
         self.c = self.lam / (2.0 * K)  # the ℓ1 weight in the halved gradient
+        self.lower = self.upper = self.columns_ = None
+        if (lower is None) != (upper is None):
+            raise ValueError("GeometricSolver: give both lower and upper (bounded) or neither (the paper's unbounded "
+                             f"eq. 16), got lower={lower}, upper={upper}")
+        self.ridge_ = 0.0
+        if lower is not None:
+            self.lower, self.upper = _bounds(lower, upper, K, "GeometricSolver")
+            self.columns_ = _columns(self.lower, self.upper, self.c)
+            try:
+                np.linalg.cholesky(self.H)
+            except np.linalg.LinAlgError:  # shapes nothing sees: the spacetime solver's relative ridge
+                self.ridge_ = AUTO_RIDGE * max(float(np.linalg.eigvalsh(self.H)[-1]), 1e-300)
 
     # -- pieces ---------------------------------------------------------------------------
     def rhs(self, frames):
@@ -283,15 +347,18 @@ class GeometricSolver:
         IRLS (module docstring) on all frames in lock-step; a coordinate whose weight has
         fallen below ``drop`` × the frame's largest weight is frozen at 0 and dropped from the
         frame's system, so later iterations solve small padded (T, k, k) systems with k the
-        largest support. The polish then makes the result exact (KKT-checked).
+        largest support. The polish then makes the result exact (KKT-checked). With bounds
+        (``lower``/``upper`` given) the frames are instead solved within them by the warm-started
+        batched box QP (module docstring, *Bounds*); ``iterations`` is then 0, ``extras`` holds
+        ``kkt`` (largest relative violation) and ``boxqp`` (the box solver's counters).
 
         Parameters
         ----------
         frames : (T, M, 3) or (M, 3) float
             Marker displacements from the neutral (metres), markers in the blendshapes' order.
         zero : (K,) or (T, K) bool, optional
-            Weights held at 0 (module docstring): an active set's off shapes, a cancel pair's
-            weaker shape.
+            Weights held at 0 (at ``clip(0, lower, upper)`` when bounded; module docstring): an
+            active set's off shapes, a cancel pair's weaker shape.
 
         Returns
         -------
@@ -313,6 +380,8 @@ class GeometricSolver:
             free = ~np.broadcast_to(z, (T, K))
             if free.all():
                 free = None
+        if self.columns_ is not None:
+            return self._solve_bounded(frames, b, free)
         if c == 0.0 or T == 0:  # no ℓ1: one linear solve
             if free is not None:
                 W = _reduced_solve(H, free, np.ones((T, K)), 0.0, b)
@@ -331,6 +400,68 @@ class GeometricSolver:
                 W[rows] = W2
                 polished[rows] = ok2
         return Solution(W, self.energy(frames, W), it, polished, {"unconverged": unconverged})
+
+    def _solve_bounded(self, frames, b, free):
+        """Eq. 16 within ``lower ≤ w ≤ upper`` (module docstring, *Bounds*) for all frames."""
+        T, K = b.shape
+        lo, hi, c = self.lower, self.upper, self.c
+        kcol, a, base = self.columns_
+        held = np.broadcast_to(np.clip(0.0, lo, hi), (T, K))
+        W = np.broadcast_to(base, (T, K)).copy()
+        info = {}
+        if len(kcol) and T:
+            H = self.H + self.ridge_ * np.eye(K)
+            # one unit-box Hessian per pattern of held weights; a held column is an identity row with
+            # f = c|a| (> 0, so z = 0 with a positive multiplier: a split pair's multipliers keep
+            # their sum when a frame of another pattern starts from this one)
+            if free is None:
+                pats, pidx = np.zeros((1, K), bool), np.zeros(T, np.int64)
+            else:
+                pats, pidx = np.unique(~free, axis=0, return_inverse=True)
+                pidx = np.asarray(pidx).ravel()
+            Hz = H[np.ix_(kcol, kcol)] * a[:, None] * a[None, :]
+            Htab, lin, bases = [], [], []
+            for pat in pats:
+                bp = np.where(pat, held[0], base)
+                hc = pat[kcol]
+                Hp = np.where(hc[:, None] | hc[None, :], 0.0, Hz)
+                Hp[hc, hc] = 1.0
+                Htab.append(Hp)
+                lin.append(np.where(hc, 0.0, a * (H @ bp)[kcol]) + c * np.abs(a))
+                bases.append(bp)
+            hcol = np.asarray(pats)[pidx][:, kcol]
+            f = np.asarray(lin)[pidx] - np.where(hcol, 0.0, b[:, kcol] * a)
+            # sizes by the shapes, not the columns: a free set never holds both halves of a split
+            # shape (module docstring), so a cold start costs as many breakpoints as without the split
+            n_shapes = len(np.unique(kcol))
+            Z, info = solve_box_sequence(np.asarray(Htab), f, pidx, block=128 if n_shapes <= 64 else 64,
+                                         pdas=0 if len(kcol) > n_shapes else None, return_info=True)
+            W = np.asarray(bases)[pidx]
+            np.add.at(W.T, kcol, (Z * a).T)  # the two columns of a split shape add up
+            # a column at its far end puts the weight exactly on the bound (base + a rounds)
+            single = np.bincount(kcol, minlength=K)[kcol] == 1
+            far = np.where(a > 0, hi[kcol], lo[kcol])
+            top = (Z == 1.0) & single & ~hcol
+            W[:, kcol] = np.where(top, far, W[:, kcol])
+            W = np.clip(W, lo, hi)
+        if free is not None:
+            W = np.where(free, W, held)
+        kkt = self._kkt(b, W, free)
+        return Solution(W, self.energy(frames, W), 0, kkt <= KKT_RTOL,
+                        {"kkt": float(kkt.max(initial=0.0)), "boxqp": info})
+
+    def _kkt(self, b, W, free=None):
+        """(T,) relative violation of eq. 16's optimality conditions within the bounds (module docstring)."""
+        T, K = W.shape
+        lo = np.full(K, -np.inf) if self.lower is None else self.lower
+        hi = np.full(K, np.inf) if self.upper is None else self.upper
+        H = self.H + self.ridge_ * np.eye(K)
+        g = 2.0 * (W @ H - b)  # dE/dw of the smooth terms (H symmetric)
+        v = kkt_violation(W, g, lo, hi, np.full(K, 2.0 * self.c), 2.0 * np.linalg.norm(H, 2))
+        v = np.where((hi > lo) if free is None else free & (hi > lo), v, 0.0)  # held and fixed weights are constraints
+        scale = 2.0 * (np.linalg.norm(H, 2) * np.maximum(1.0, np.abs(W).max(axis=1, initial=0.0))
+                       + np.abs(b).max(axis=1, initial=0.0) + self.c)
+        return v.max(axis=1, initial=0.0) / scale
 
     def _irls(self, b, drop, max_iter, free=None):
         T, K = b.shape
@@ -405,6 +536,19 @@ class GeometricSolver:
             sign[todo[bad]] = sg2
             todo = todo[bad]
         return out, done
+
+
+def _columns(lower, upper, c):
+    """``w = base + A z``, z ∈ [0, 1] (module docstring, *Bounds*): (shape of each column (n,),
+    coefficient (n,), base (K,)); columns point away from 0, so ``|w| = |base| + Σ |a_j| z_j``."""
+    move = upper > lower
+    split = move & (c > 0) & (lower < 0) & (upper > 0)
+    neg = move & ~split & (upper <= 0)
+    base = np.where(split, 0.0, np.where(neg, upper, lower))
+    one = np.flatnonzero(move)
+    a = np.where(split, upper, np.where(neg, lower - upper, upper - lower))[one]
+    two = np.flatnonzero(split)
+    return np.concatenate([one, two]), np.concatenate([a, lower[two]]), base
 
 
 def _reduced_solve(H, on, d, c, rhs):

@@ -259,9 +259,10 @@ def _local(inputs, s):
 
 
 @solve_method("geometric", params=("geometric_prior", "mu", "lam", "ridge"), needs=("prior",),
-              honours=("active", "symmetry", "cancel", "filter"), label='geometric — smooth mesh, few shapes (Ribera 2017)')
+              honours=("bounds", "active", "symmetry", "cancel", "filter"), label='geometric — smooth mesh, few shapes (Ribera 2017)')
 def _geometric(inputs, s):
-    """Ribera 2017: cotangent-Laplacian (or PCA / L2) prior + L1 sparsity by IRLS."""
+    """Ribera 2017: cotangent-Laplacian (or PCA / L2) prior + L1 sparsity, within ``lower <= w <= upper``
+    (exact batched box QP; ``GeometricSolver(lower=None, upper=None)`` is the paper's unbounded IRLS)."""
     from ..model import flatten
     from ..solvers import baselines
     from ..solvers.geometric import GeometricSolver
@@ -278,8 +279,10 @@ def _geometric(inputs, s):
         fill = np.einsum("tk,kmc->tmc", baselines.no_const(B, S, valid), B)
         frames = np.where(valid[..., None], S, fill)
         warnings.warn(f"geometric: {int((~valid).sum())} missing marker samples filled by the per-frame fit")
-    sol = GeometricSolver(B, s.geometric_prior, mu=s.mu, lam=s.lam, quadratic=s.quadratic, **kw).solve(frames, zero=s.zero)
-    return {"weights": sol.weights, "info": {"iterations": sol.iterations}, "edit": edit_options(s, alpha=0.01)}
+    sol = GeometricSolver(B, s.geometric_prior, mu=s.mu, lam=s.lam, quadratic=s.quadratic, lower=s.lower, upper=s.upper,
+                          **kw).solve(frames, zero=s.zero)
+    return {"weights": sol.weights, "info": {"iterations": sol.iterations, "kkt": sol.extras.get("kkt")},
+            "edit": edit_options(s, alpha=0.01, lower=s.lower, upper=s.upper)}
 
 
 @solve_method("names", params=("ridge",), honours=("active",), label='names — copy curves by ARKit name')
