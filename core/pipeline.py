@@ -25,8 +25,11 @@ from __future__ import annotations
 
 import copy
 import difflib
+import functools
 import hashlib
 import json
+import os
+import pickle
 import threading
 import time
 import warnings
@@ -38,6 +41,7 @@ from typing import Callable, Optional
 
 import numpy as np
 import param
+import platformdirs
 
 from . import stages as _stages  # noqa: F401  (registers every stage and method)
 from .progress import ProgressFn
@@ -87,6 +91,35 @@ def _freeze(obj):
     return obj
 
 
+def stage_cache_dir() -> Path:
+    """Where stage results kept across processes live: ``$FACE_RETARGET_CACHE`` or the per-user
+    cache folder (``platformdirs.user_cache_dir("face-retarget")/stages``)."""
+    return Path(os.environ.get("FACE_RETARGET_CACHE") or Path(platformdirs.user_cache_dir("face-retarget")) / "stages")
+
+
+@functools.lru_cache(maxsize=None)
+def code_version() -> str:
+    """A hash of this package's source: a result kept on disk by other code is not read back."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.blake2b(digest_size=16)
+    for p in sorted(root.rglob("*.py")):
+        h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes())
+    return h.hexdigest()
+
+
+def _write_atomic(path: Path, value) -> None:
+    """Pickle ``value`` to ``path`` through a temporary file (a reader never sees half a file);
+    a folder that cannot be written keeps nothing, it does not fail the run."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}")
+        with open(tmp, "wb") as f:
+            pickle.dump(value, f, protocol=pickle.HIGHEST_PROTOCOL)
+        os.replace(tmp, path)
+    except OSError:
+        pass
+
+
 class StageCache:
     """A thread-safe LRU of stage results keyed by content hash.
 
@@ -94,11 +127,14 @@ class StageCache:
     flight: :meth:`compute` of a key another thread is computing waits for that result
     instead of computing it again (20 pages of one shot recompute a setting change once)."""
 
-    def __init__(self, max_entries: int = 96):
+    def __init__(self, max_entries: int = 96, disk=True):
         self.max_entries = max_entries
         self._data: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
         self._inflight: dict = {}
+        #: where the results of stages marked ``persist`` (a rig pair's registration) are kept across
+        #: processes: a folder, True for :func:`stage_cache_dir`, None/False for nowhere
+        self.disk = stage_cache_dir() if disk is True else (Path(disk) if disk else None)
 
     def get(self, key):
         with self._lock:
@@ -114,10 +150,11 @@ class StageCache:
             while len(self._data) > self.max_entries:
                 self._data.popitem(last=False)
 
-    def compute(self, key, fn):
+    def compute(self, key, fn, persist: bool = False):
         """``(hit, value)``: the cached value of ``key`` (waiting for another thread computing
         it), or ``fn()`` computed here and cached (``hit`` False). When the other thread's
-        computation fails, this one computes (and raises its own error)."""
+        computation fails, this one computes (and raises its own error). ``persist``: the value
+        is also kept on :attr:`disk` and read from there by any process (a disk hit is a hit)."""
         while True:
             with self._lock:
                 if key in self._data:
@@ -129,13 +166,28 @@ class StageCache:
                     break
             ev.wait()
         try:
+            path = self._disk_path(key) if persist and self.disk is not None else None
+            if path is not None and path.exists():
+                try:
+                    with open(path, "rb") as f:
+                        value = pickle.load(f)
+                    self.put(key, value)
+                    return True, value
+                except Exception:  # a file cut short or from another numpy: computed again
+                    path.unlink(missing_ok=True)
             value = fn()
             self.put(key, value)
+            if path is not None:
+                _write_atomic(path, value)
             return False, value
         finally:
             with self._lock:
                 self._inflight.pop(key, None)
             ev.set()
+
+    def _disk_path(self, key) -> Path:
+        name, k = key
+        return self.disk / f"{name}-{content_key(k, code_version())}.pkl"
 
     def clear(self):
         with self._lock:
@@ -477,7 +529,7 @@ class Pipeline:
                     return value, tuple((w.message, w.category, w.filename, w.lineno) for w in caught)
 
                 t0 = time.perf_counter()
-                hit, (value, warned) = self.cache.compute((name, k), compute)
+                hit, (value, warned) = self.cache.compute((name, k), compute, persist=stage.persist)
                 # a result's warnings are part of it: said again however it is reached (a page
                 # whose results came from another's run, a batch shot sharing a registration)
                 for message, category, filename, lineno in warned:  # once per pipeline, unless "always"

@@ -102,6 +102,9 @@ class Stage(param.Parameterized):
     stage_name: ClassVar[str] = ""
     deps: ClassVar[tuple] = ()
     files: ClassVar[tuple] = ()
+    #: the result is worth keeping across processes (a rig pair's registration: tens of seconds,
+    #: the same for every take): the pipeline's cache keeps it on disk too
+    persist: ClassVar[bool] = False
     #: dashboard card the stage's settings belong to, and its title
     group: ClassVar[str] = ""
     title: ClassVar[str] = ""

@@ -155,8 +155,8 @@ class FullKeyCache(StageCache):
         self._full = {n: _full_key(pipe, n, cfg, memo) for n in pipe.stages}
         return self
 
-    def compute(self, key, fn):
-        return super().compute((key[0], self._full[key[0]]), fn)
+    def compute(self, key, fn, persist=False):
+        return super().compute((key[0], self._full[key[0]]), fn, persist)
 
 
 def _same(a, b, where: str, seen=None):
@@ -273,7 +273,7 @@ def _walk(method: str, steps: dict, targets: list, cache: StageCache, fresh_cach
 @pytest.fixture(scope="module")
 def caches():
     """One cache for the pipelines changed in place and one for the fresh ones, for every walk."""
-    return StageCache(max_entries=4096), FullKeyCache(max_entries=4096)
+    return StageCache(max_entries=4096), FullKeyCache(max_entries=4096, disk=None)
 
 
 def test_steps_cover_every_setting():
@@ -349,3 +349,23 @@ def test_a_failed_edit_rolls_back_through_the_pipeline():
         pipe.add_edit("spacetime", {**good, "frame": 16})
         pipe.results(["edit"])
     assert heard == [("spacetime", "add", {**good, "frame": 16})] and pipe.redo["spacetime"] == []
+
+
+def test_a_persisted_stage_is_read_back_by_another_process_cache(tmp_path, monkeypatch):
+    """A stage marked ``persist`` (a rig pair's registration) is kept on disk by content key and
+    read back by a new cache (another process): the same result, no run; a file cut short is
+    computed again, never an error."""
+    from core.stages.retarget import Shapes
+
+    monkeypatch.setattr(Shapes, "persist", True)  # a cheap stage standing in for the registration
+    first = Pipeline(cache=StageCache(disk=tmp_path), method="bounded", **BASE)
+    want = first.run("shapes")
+    files = list(tmp_path.glob("shapes-*.pkl"))
+    assert len(files) == 1 and first.runs["shapes"] == 1
+    again = Pipeline(cache=StageCache(disk=tmp_path), method="bounded", **BASE)
+    _same(again.run("shapes"), want, "shapes from disk")
+    assert again.runs["shapes"] == 0
+    files[0].write_bytes(files[0].read_bytes()[:100])
+    third = Pipeline(cache=StageCache(disk=tmp_path), method="bounded", **BASE)
+    _same(third.run("shapes"), want, "shapes recomputed")
+    assert third.runs["shapes"] == 1

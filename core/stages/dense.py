@@ -87,6 +87,7 @@ class Register(Stage):
     share) + non-rigid ICP + closest points. Depends on the rig pair only."""
 
     deps = ("source_face", "target_face", "weld", "sequence_face")
+    persist = True
     group, title = "dense", "Dense transfer (Xu 2014)"
     transfer_crop = param.Selector(label='Part of the source head fitted', default="auto", objects=["auto", "face", "none"], doc=(
         "Which part of the source head the registration fits: auto = the face crop when the target lacks the rest of "

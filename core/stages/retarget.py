@@ -175,6 +175,7 @@ class DenseCorrespondence(Stage):
     for ``correspondence = dense`` with a source rig (a capture is densified by ``correspond``)."""
 
     deps = ("source_face", "target_face", "weld", "register")
+    persist = True
 
     def active(self, cfg):
         return cfg.correspond.correspondence == "dense" and bool(cfg.source_face.source_rig)
