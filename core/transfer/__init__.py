@@ -25,7 +25,7 @@ from ..progress import ProgressFn, report
 from ..geometry import weld
 from ._mesh import bbox_size, check_faces, check_positions
 from .bases import BasisSelection, gram_from_factored, nnls_gram, select_bases
-from .correspond import Registration, landmarks_from_shapes, register, similarity_align
+from .correspond import Registration, landmarks_from_shapes, register
 from .decompose import (FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence,
                         laplacian_coating, laplacian_operator, taubin_smooth)
 from .deformation import DeformationTransfer, deformation_gradients, deformation_transfer, line_gradients
@@ -39,7 +39,7 @@ __all__ = [
     "TaubinFilter", "taubin_smooth", "laplacian_operator", "laplacian_coating", "PoissonReconstructor",
     "FactoredSequence", "factor_sequence", "nnls_gram", "select_bases", "BasisSelection",
     "DeformationTransfer", "deformation_transfer", "deformation_gradients", "line_gradients",
-    "DetailTransfer", "register", "Registration", "similarity_align", "landmarks_from_shapes",
+    "DetailTransfer", "register", "Registration", "landmarks_from_shapes",
     "line_edges", "hole_loops", "seam_loops", "loops_near", "marker_loop", "feature_lines_near",
 ]
 

@@ -57,14 +57,6 @@ def to_world(frames: tuple, x: np.ndarray) -> np.ndarray:
     return t * x[..., 0:1] + b * x[..., 1:2] + n * x[..., 2:3]
 
 
-def components(faces: np.ndarray, n: int) -> tuple[int, np.ndarray]:
-    """Connected components of the vertex graph: (count, label per vertex)."""
-    rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
-    A = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
-    return connected_components(A, directed=False)
-
-
 class PinnedSolver:
     """Factorisation of a symmetric PSD operator ``A`` whose null space is the constants on
     each connected component (a graph or cotangent Laplacian, plus any PSD edge terms).
