@@ -8,7 +8,7 @@ algorithm, its variants as explicit options):
   :func:`uniform_laplacian`, :func:`vertex_adjacency`, :func:`vertex_face_incidence`;
 * normals and frames: :func:`face_normals`, :func:`vertex_normals` (one mesh or a batch of
   poses, optionally across UV seams), :func:`vertex_frames` (Xu et al. 2014 §5.1);
-* topology: :func:`weld` (UV-seam copies merged), :func:`boundary_loops`, :func:`edges`,
+* topology: :func:`weld_vertices` (UV-seam copies merged), :func:`boundary_loops`, :func:`edges`,
   :func:`vertex_components`, :func:`largest_component` (the skin); :func:`flipped_faces`
   (fold-overs); :func:`face_vertices` (what the shapes move); :func:`farthest_points`
   (virtual markers);
@@ -65,7 +65,7 @@ from scipy.sparse.csgraph import connected_components
 
 #: relative area below which a triangle counts as degenerate (times size**2)
 DEGENERATE_EPS = 1e-14
-#: relative distance below which two vertices are one in :func:`weld` (times size)
+#: relative distance below which two vertices are one in :func:`weld_vertices` (times size)
 WELD_TOL = 1e-9
 #: face vertices: those some shape moves by more than this fraction of the largest move
 FACE_FRACTION = 0.01
@@ -436,7 +436,7 @@ def vertex_normals(V, F, *, weld_index=None, fallback=None, incidence=None) -> n
         float64.
     F : (F, 3) int
     weld_index : (n,) int, optional
-        Welded id of every vertex (``weld(V, F).index``): normals computed across seams.
+        Welded id of every vertex (``weld_vertices(V, F).index``): normals computed across seams.
     fallback : (3,) float, optional
         The normal of a vertex that has none: on no face, on degenerate faces only, or where
         its faces cancel (sum below ``DEGENERATE_EPS * size**2``). Default the zero vector;
@@ -552,7 +552,7 @@ def vertex_frames(V, F, neighbour=None, incidence=None):
 
 @dataclass(frozen=True, eq=False)
 class Weld:
-    """Result of :func:`weld`; unpacks as ``index, first, faces``.
+    """Result of :func:`weld_vertices`; unpacks as ``index, first, faces``.
 
     Attributes
     ----------
@@ -574,11 +574,11 @@ class Weld:
         return len(self.first)
 
     def __iter__(self):
-        # ``index, first, faces = weld(V, F)``, the form most callers take
+        # ``index, first, faces = weld_vertices(V, F)``, the form most callers take
         return iter((self.index, self.first, self.faces))
 
 
-def weld(V, F, tol=None, *, attributes=None) -> Weld:
+def weld_vertices(V, F, tol=None, *, attributes=None) -> Weld:
     r"""Merge coincident vertices: the copies a rig makes along its UV seams.
 
     A UV seam cuts the mesh into islands joined by nothing; every Laplacian, adjacency,
@@ -663,7 +663,7 @@ def vertex_components(F, n=None) -> tuple[int, np.ndarray]:
 
 def largest_component(V, F) -> np.ndarray:
     """(F,) bool: the triangles of the mesh's largest connected part (most triangles), after
-    merging the UV-seam copies (:func:`weld`, default tolerance) — the skin of a head, without
+    merging the UV-seam copies (:func:`weld_vertices`, default tolerance) — the skin of a head, without
     its separate eyeballs, teeth, tongue, hair cards or jewellery. Triangles that collapse in
     the weld are not part of it.
 
@@ -675,7 +675,7 @@ def largest_component(V, F) -> np.ndarray:
     -------
     (F,) bool
     """
-    w = weld(V, F)
+    w = weld_vertices(V, F)
     out = np.zeros(len(w.kept), dtype=bool)
     if not len(w.faces):
         return out

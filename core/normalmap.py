@@ -42,6 +42,7 @@ import numpy as np
 from .geometry import closest_points, vertex_normals
 from .geometry import decimate as quadric_decimation
 from .model import Rig
+from .segment import welded_graph
 
 
 @dataclass(frozen=True, eq=False)
@@ -186,11 +187,9 @@ def vertex_normals_seamless(rig: Rig, positions: Optional[np.ndarray] = None) ->
     """Area-weighted unit vertex normals computed on the seam-welded mesh, (V, 3).
 
     ``positions`` (V, 3) defaults to the neutral; seam copies of a vertex get one normal
-    (:func:`core.geometry.vertex_normals` with the ``weld_index`` of :func:`core.segment.weld`).
+    (:func:`core.geometry.vertex_normals` with the ``weld_index`` of :func:`core.segment.welded_graph`).
     """
-    from .segment import weld
-
-    g = weld(rig)
+    g = welded_graph(rig)
     P = rig.neutral if positions is None else np.asarray(positions, dtype=np.float64)
     if P.shape != rig.neutral.shape:
         raise ValueError(f"positions: expected {rig.neutral.shape}, got {P.shape}")
@@ -203,11 +202,9 @@ def shape_normal_maps(rig: Rig, raster: UVRaster, dtype=np.float32) -> np.ndarra
     Per-vertex normals of each pose, baked with :func:`bake` and renormalised per texel;
     zero where no triangle covers a texel.
     """
-    from .segment import weld
-
     if rig.uvs is None:
         raise ValueError(f"rig {rig.name!r} has no UVs; normal maps need texture coordinates")
-    g = weld(rig)
+    g = welded_graph(rig)
     S = bake_matrix(raster, rig.faces, rig.n_vertices)
     cov = raster.covered
     maps = np.zeros((rig.n_shapes + 1,) + raster.shape + (3,), dtype=dtype)

@@ -32,7 +32,7 @@ from typing import Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from .geometry import closest_points, decimate, face_vertices, largest_component, nonrigid_icp, nricp_steps, procrustes, weld
+from .geometry import closest_points, decimate, face_vertices, largest_component, nonrigid_icp, nricp_steps, procrustes, weld_vertices
 from .model import MarkerLayout, Rig
 
 #: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations):
@@ -56,14 +56,14 @@ def _apply(s, R, t, p):
 
 def merged_mesh(rig: Rig, mask_faces: Optional[np.ndarray] = None):
     """Merge the rig's UV-seam duplicates (identical positions) into one vertex
-    (:func:`core.geometry.weld`, default tolerance).
+    (:func:`core.geometry.weld_vertices`, default tolerance).
 
     Returns (positions (Vm, 3), faces (Fm, 3) merged ids, merged_of (V,) original -> merged,
     face_index (Fm,) original face of each merged face). Degenerate merged faces are dropped.
     Merged ids follow the first occurrence of each position.
     """
     fidx = np.arange(len(rig.faces)) if mask_faces is None else np.flatnonzero(mask_faces)
-    w = weld(rig.neutral, rig.faces[fidx])
+    w = weld_vertices(rig.neutral, rig.faces[fidx])
     return rig.neutral[w.first], w.faces, w.index, fidx[w.kept]
 
 

@@ -172,12 +172,12 @@ def test_old_normal_callers_are_the_shared_function(tiger):
     geometry.vertex_normals with their option (same bits)."""
     from core.io.gltf import vertex_normals as gltf_normals
     from core.normalmap import vertex_normals_seamless
-    from core.segment import weld as weld_rig
+    from core.segment import welded_graph
 
     V, F = tiger.neutral, tiger.faces
     poses = np.concatenate([V[None], V + tiger.deltas])
     assert np.array_equal(gltf_normals(poses, F), g.vertex_normals(poses, F, fallback=(0.0, 0.0, 1.0)))
-    assert np.array_equal(vertex_normals_seamless(tiger), g.vertex_normals(V, F, weld_index=weld_rig(tiger).index))
+    assert np.array_equal(vertex_normals_seamless(tiger), g.vertex_normals(V, F, weld_index=welded_graph(tiger).index))
     t, b, n = g.vertex_frames(poses, F)
     assert np.array_equal(n, g.vertex_normals(poses, F))
     np.testing.assert_allclose(np.einsum("...i,...i->...", t, n), 0, atol=1e-12)
@@ -188,7 +188,7 @@ def test_weld_hand_derived_seam():
     # two triangles of a square whose diagonal 0-2 is a seam: 3 and 4 copy 0 and 2
     V = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 0, 0], [1, 1, 0], [0, 1, 0]])
     F = np.array([[0, 1, 2], [3, 4, 5], [0, 3, 1]])  # the last collapses once 0 and 3 are one
-    w = g.weld(V, F)
+    w = g.weld_vertices(V, F)
     np.testing.assert_array_equal(w.index, [0, 1, 2, 0, 2, 3])
     np.testing.assert_array_equal(w.first, [0, 1, 2, 5])
     np.testing.assert_array_equal(w.faces, [[0, 1, 2], [0, 2, 3]])
@@ -199,34 +199,34 @@ def test_weld_hand_derived_seam():
     # within the tolerance (1e-9 of the size by default) a copy merges; beyond it, not
     near = V.copy()
     near[3] += 1e-13
-    assert g.weld(near, F).n == 4 and g.weld(near, F, tol=0).n == 5
+    assert g.weld_vertices(near, F).n == 4 and g.weld_vertices(near, F, tol=0).n == 5
     signed = V.copy()
     signed[3] = -0.0
-    assert g.weld(signed, F, tol=0).n == 4  # -0.0 and 0.0 are one value
+    assert g.weld_vertices(signed, F, tol=0).n == 4  # -0.0 and 0.0 are one value
     # attributes that differ keep vertices apart (closed lips: same rest position, other deltas)
     deltas = np.zeros((2, 6, 3))
     deltas[1, 3] = [0, 0, 1e-3]
-    assert g.weld(V, F, tol=0, attributes=deltas).n == 5
+    assert g.weld_vertices(V, F, tol=0, attributes=deltas).n == 5
     with pytest.raises(ValueError, match="attributes"):
-        g.weld(V, F, attributes=deltas[:, :4])
+        g.weld_vertices(V, F, attributes=deltas[:, :4])
     with pytest.raises(ValueError, match="tol"):
-        g.weld(V, F, tol=-1.0)
+        g.weld_vertices(V, F, tol=-1.0)
 
 
 def test_weld_identity_and_the_old_callers(ict, tiger):
     """A mesh without duplicates keeps its numbering; the segmentation's graph, the transfer's
-    weld and the layout transfer's merged mesh are geometry.weld with their options."""
+    welded_graph and the layout transfer's merged mesh are geometry.weld_vertices with their options."""
     from core.registration import merged_mesh
-    from core.segment import weld as weld_rig
+    from core.segment import welded_graph
 
-    w = g.weld(tiger.neutral, tiger.faces)
+    w = g.weld_vertices(tiger.neutral, tiger.faces)
     np.testing.assert_array_equal(w.index, np.arange(tiger.n_vertices))
     np.testing.assert_array_equal(w.faces, tiger.faces)
-    w = g.weld(ict.neutral, ict.faces)
+    w = g.weld_vertices(ict.neutral, ict.faces)
     assert w.n == 14062 and len(w.faces) == len(ict.faces)  # ICT: 14,629 vertices, 14,062 distinct
     np.testing.assert_array_equal(ict.neutral[w.first][w.index], ict.neutral)  # copies coincide
-    exact = g.weld(ict.neutral, ict.faces, tol=0, attributes=ict.deltas)
-    graph = weld_rig(ict)
+    exact = g.weld_vertices(ict.neutral, ict.faces, tol=0, attributes=ict.deltas)
+    graph = welded_graph(ict)
     np.testing.assert_array_equal(graph.index, exact.index)
     np.testing.assert_array_equal(graph.first, exact.first)
     np.testing.assert_array_equal(exact.index, w.index)  # ICT's seam copies share their deltas

@@ -11,14 +11,14 @@ import pytest
 
 from core.io.layout import read_layout
 from core.transfer import TransferSettings, register
-from core.geometry import flipped_faces, weld
+from core.geometry import flipped_faces, weld_vertices
 from core.transfer.correspond import face_crop
 from core.transfer.performance import shared_landmarks
 from datapaths import LAYOUTS
 
 
 def _case(ict, target, layout):
-    wi, rep, Fw = weld(ict.neutral, ict.faces)
+    wi, rep, Fw = weld_vertices(ict.neutral, ict.faces)
     ids, pts = shared_landmarks(read_layout(LAYOUTS / "ict_facekit.json", ict),
                                 read_layout(LAYOUTS / layout, target), target.neutral)
     return dict(S=ict.neutral[rep], F=Fw, wi=wi, lm=wi[ids], pts=pts, T=target.neutral, TF=target.faces)

@@ -1,7 +1,7 @@
 """Private mesh helpers for the transfer package.
 
 Only what no other package needs (mesh operators others use are public in
-:mod:`core.geometry`: weld, normals, frames, incidence, cross products):
+:mod:`core.geometry`: weld_vertices, normals, frames, incidence, cross products):
 
 * :func:`to_local` / :func:`to_world` change coordinates to and from the per-vertex frames
   of :func:`core.geometry.vertex_frames` (Xu 2014 §5.1);
