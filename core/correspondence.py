@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import face_vertices, vertex_components
+from .geometry import closest_points, face_vertices, farthest_points, vertex_components
 from .model import MarkerLayout, Rig
 
 #: the registration-fit weight's scale, relative to the target's size
@@ -65,8 +65,6 @@ def rig_correspondence(source_rig: Rig, source_layout: MarkerLayout, welded, reg
     -------
     source layout, target layout (both N points, names ``d0000``...), weights (N,) in (0, 1]
     """
-    from .registration import closest_on_faces
-
     V = source_rig.n_vertices
     cand = face_vertices(source_rig.deltas) & skin(source_rig.faces, V, source_layout.vertices.ravel())
     if registration is not None:
@@ -87,15 +85,13 @@ def rig_correspondence(source_rig: Rig, source_layout: MarkerLayout, welded, reg
     pick = ids[_farthest(P, n, start)]
     names = _names(n)
     src = MarkerLayout.from_vertices(names, pick, rig=source_rig.name, extras={"correspondence": "dense"})
-    tri, bary, _, _ = closest_on_faces(on_target[pick], target_rig.neutral, target_rig.faces)
+    _, _, tri, bary = closest_points(on_target[pick], target_rig.neutral, target_rig.faces)
     tgt = MarkerLayout(names, target_rig.faces[tri], bary, rig=target_rig.name, extras={"correspondence": "dense"})
     sigma = SIGMA_FRACTION * target_rig.size
     return src, tgt, 1.0 / (1.0 + (dist[pick] / sigma) ** 2)
 
 
 def _farthest(P, n, start):
-    from .geometry import farthest_points
-
     return farthest_points(P, n, start=start)
 
 

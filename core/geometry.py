@@ -700,7 +700,7 @@ def face_vertices(deltas, fraction: float = FACE_FRACTION) -> np.ndarray:
 
     Returns
     -------
-    (V,) bool
+    (V,) bool, True on the face
 
     Raises
     ------
