@@ -32,7 +32,8 @@ from typing import Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from .geometry import closest_points, decimate, face_vertices, largest_component, nonrigid_icp, nricp_steps, procrustes, weld_vertices
+from .geometry import (closest_points, decimate, face_vertices, largest_component, nonrigid_icp, nricp_steps, procrustes,
+                       weld_vertices)
 from .model import MarkerLayout, Rig
 
 #: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations):
