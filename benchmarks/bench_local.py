@@ -80,9 +80,9 @@ def bench_local_qp(setup, constraint: str) -> str:
 
 def _reference_segment_core(rig, R=12, seed=0):
     """Unvectorised PCA + Python BFS signs + naive Lloyd (see module docstring)."""
-    from core.segment import weld
+    from core.segment import welded_graph
 
-    g = weld(rig)
+    g = welded_graph(rig)
     P = rig.neutral[g.first]
     D = rig.deltas[:, g.first]
     n = g.n

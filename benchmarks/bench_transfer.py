@@ -48,7 +48,7 @@ def _setup(n_frames=363, subdivide=True):
     from core.io.livelink import read_livelink
     from core.names import NameMap
     from core.transfer import feature_lines_near, register
-    from core.geometry import weld
+    from core.geometry import weld_vertices
 
     ict = read_rig(DATA / "rigs" / "ict_facekit.glb")
     rb = read_rig(DATA / "rigs" / "rocketbox_female_adult_02.glb")
@@ -59,7 +59,7 @@ def _setup(n_frames=363, subdivide=True):
     G = NameMap.automatic(perf.names, ict.names).matrix(perf.names, ict.names)
     W = np.nan_to_num(perf.data[:n_frames]) @ G.T
 
-    wi, rep, F = weld(ict.neutral, ict.faces)
+    wi, rep, F = weld_vertices(ict.neutral, ict.faces)
     N = ict.neutral[rep]
     D = ict.deltas[:, rep]
     reg = register(N, F, rb.neutral, rb.faces, wi[li.vertices[[li.names.index(n) for n in names], 0]],

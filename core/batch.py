@@ -80,9 +80,9 @@ LIST_SUFFIXES = (".txt", ".lst", ".list")
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 #: the columns of summary.csv / summary.html (metrics from :func:`core.evaluate.summarize`)
 SUMMARY_COLUMNS = ("shot", "status", "seconds", "frames", "frames_without_data", "marker_mean_mm",
-                   "marker_p95_mm", "marker_max_mm", "velocity_error", "velocity_error_p95",
-                   "velocity_error_max", "weight_min", "weight_max", "active_per_frame", "runs", "worker",
-                   "finished", "content_hash", "error")
+                   "marker_p95_mm", "marker_max_mm", "velocity_error_mm_per_frame",
+                   "velocity_error_p95_mm_per_frame", "velocity_error_max_mm_per_frame", "weight_min", "weight_max",
+                   "active_per_frame", "runs", "worker", "finished", "content_hash", "error")
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 

@@ -107,7 +107,7 @@ def _evaluate(args) -> int:
         write_json(report, args.json)
     if args.html:
         write_html(report, args.html)
-    cols = ("mean_mm", "p95_mm", "curve_rmse", "marker_mean_mm", "velocity_error", "weight_min", "weight_max",
+    cols = ("mean_mm", "p95_mm", "curve_rmse", "marker_mean_mm", "velocity_error_mm_per_frame", "weight_min", "weight_max",
             "active_per_frame", "seconds")
     print(f"{'method':10s} " + " ".join(f"{c:>15s}" for c in cols))
     for m in ranking(report):

@@ -27,33 +27,20 @@ method, the calibration and the segmentation use it unchanged.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
+from .geometry import closest_points, face_vertices, farthest_points, vertex_components
 from .model import MarkerLayout, Rig
 
-#: a vertex is on the face when some shape moves it more than this fraction of the largest move
-FACE_FRACTION = 0.01
 #: the registration-fit weight's scale, relative to the target's size
 SIGMA_FRACTION = 0.005
 #: the most points a dense correspondence ranks
 MAX_POINTS = 20000
 
 
-def moving_vertices(rig: Rig, fraction: float = FACE_FRACTION) -> np.ndarray:
-    """(V,) bool: vertices some shape moves by more than ``fraction`` of the largest move."""
-    move = np.linalg.norm(rig.deltas, axis=2).max(0)
-    return move > fraction * move.max()
-
-
 def skin(faces, n_vertices: int, anchors) -> np.ndarray:
     """(V,) bool: the connected part of the mesh that holds most of ``anchors`` (vertex ids,
     e.g. the layout's markers) — the skin, not the eyeballs, teeth or tongue."""
-    F = np.asarray(faces, dtype=np.int64)
-    rows = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
-    cols = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
-    A = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_vertices, n_vertices))
-    _, labels = connected_components(A, directed=False)
+    _, labels = vertex_components(faces, n_vertices)
     best = np.bincount(labels[np.asarray(anchors, dtype=np.int64)]).argmax()
     return labels == best
 
@@ -78,10 +65,8 @@ def rig_correspondence(source_rig: Rig, source_layout: MarkerLayout, welded, reg
     -------
     source layout, target layout (both N points, names ``d0000``...), weights (N,) in (0, 1]
     """
-    from .registration import closest_on_faces
-
     V = source_rig.n_vertices
-    cand = moving_vertices(source_rig) & skin(source_rig.faces, V, source_layout.vertices.ravel())
+    cand = face_vertices(source_rig.deltas) & skin(source_rig.faces, V, source_layout.vertices.ravel())
     if registration is not None:
         w = welded.index
         cand &= registration.projected[w]
@@ -100,15 +85,13 @@ def rig_correspondence(source_rig: Rig, source_layout: MarkerLayout, welded, reg
     pick = ids[_farthest(P, n, start)]
     names = _names(n)
     src = MarkerLayout.from_vertices(names, pick, rig=source_rig.name, extras={"correspondence": "dense"})
-    tri, bary, _, _ = closest_on_faces(on_target[pick], target_rig.neutral, target_rig.faces)
+    _, _, tri, bary = closest_points(on_target[pick], target_rig.neutral, target_rig.faces)
     tgt = MarkerLayout(names, target_rig.faces[tri], bary, rig=target_rig.name, extras={"correspondence": "dense"})
     sigma = SIGMA_FRACTION * target_rig.size
     return src, tgt, 1.0 / (1.0 + (dist[pick] / sigma) ** 2)
 
 
 def _farthest(P, n, start):
-    from .geometry import farthest_points
-
     return farthest_points(P, n, start=start)
 
 
@@ -142,7 +125,7 @@ def capture_correspondence(source, target_rig: Rig, target_layout: MarkerLayout,
     # the reference the points are placed at: the take's first complete frame (stabilisation later
     # measures every frame against its own neutral frame, so the choice does not matter beyond that)
     f0 = int(np.flatnonzero(ok)[0])
-    cand = np.flatnonzero(moving_vertices(target_rig) & skin(target_rig.faces, target_rig.n_vertices, lay.vertices.ravel()))
+    cand = np.flatnonzero(face_vertices(target_rig.deltas) & skin(target_rig.faces, target_rig.n_vertices, lay.vertices.ravel()))
     n = min(int(n_points), len(cand))
     P = target_rig.neutral[cand]
     pick = cand[_farthest(P, n, int(np.argmax(P[:, 2])))]

@@ -10,6 +10,9 @@ import numpy as np
 
 from .metrics import marker_error_mm, velocity_error, weight_range
 
+#: a shape "is used" in a frame above this weight
+ACTIVE = 0.05
+
 
 def jitter(W, step: int = 1) -> np.ndarray:
     """Mean absolute second difference of the weights per frame (T,), a jitter measure:
@@ -31,9 +34,10 @@ def evaluate(B, W, S, valid=None, step: int = 1, predicted=None, frame_valid=Non
     finite and it has at least one valid marker sample. Per-frame arrays are NaN there.
 
     Returns a dict: ``marker_error_mm`` (T,) RMS per frame, ``marker_error_per_marker_mm`` (M,),
-    ``marker_distances_mm`` (T, M), ``velocity_error_mm2`` (T,) and its ``velocity_error_total``,
-    ``velocity_error_mm`` (T,) = sqrt(per-frame velocity error / M) (an RMS per marker per frame)
-    and its mean over the used frames ``velocity_error_mean_mm`` (None without any),
+    ``marker_distances_mm`` (T, M), ``velocity_error_mm2`` (T,) (Seol 2012 eq. 2 per frame, a sum
+    of squares over the markers, mm²) and its sum ``velocity_error_total_mm2``,
+    ``velocity_error_mm_per_frame`` (T,) = sqrt(``velocity_error_mm2`` / M) (an RMS per marker: mm
+    per frame) and its mean over the used frames ``velocity_error_mean_mm_per_frame`` (None without any),
     ``weight_min``/``weight_max`` (K,), ``weight_low``/``weight_high``, ``outside_01``, ``jitter`` (T,),
     ``frame_valid`` (T,) and ``n_valid_frames``.
     """
@@ -60,8 +64,8 @@ def evaluate(B, W, S, valid=None, step: int = 1, predicted=None, frame_valid=Non
     return {
         "marker_error_mm": me.per_frame, "marker_error_per_marker_mm": me.per_marker, "marker_distances_mm": me.distances,
         "marker_rms_mm": me.rms, "marker_max_mm": me.max,
-        "velocity_error_mm2": vpf, "velocity_error_total": ve.total, "velocity_error_mm": vrms,
-        "velocity_error_mean_mm": _stats(vrms)[0],
+        "velocity_error_mm2": vpf, "velocity_error_total_mm2": ve.total, "velocity_error_mm_per_frame": vrms,
+        "velocity_error_mean_mm_per_frame": _stats(vrms)[0],
         "weight_min": wr.min, "weight_max": wr.max, "weight_low": wr.low, "weight_high": wr.high, "outside_01": wr.outside,
         "jitter": jit, "frame_valid": fv, "n_valid_frames": int(fv.sum()),
     }
@@ -108,20 +112,19 @@ def summarize(ev, W, valid=None, names=None, active=None) -> dict:
     valid : (T,) bool frames with data (default: every frame); the others are left out of every
         statistic, as in :func:`evaluate`
     names : (K,) shape names, for the per-shape weight ranges
-    active : a shape is used in a frame where ``|w| > active`` (default :data:`core.report.ACTIVE`)
+    active : a shape is used in a frame where ``|w| > active`` (default :data:`ACTIVE`)
 
     Returns
     -------
     dict of floats/ints (None where a statistic has no frame to use): ``frames``, ``frames_without_data``,
     ``marker_mean_mm`` / ``marker_p95_mm`` / ``marker_max_mm`` (over frames of the per-frame RMS over
-    the markers, mm), ``velocity_error`` / ``velocity_error_p95`` / ``velocity_error_max`` (per frame,
-    the RMS per marker of Seol 2012 eq. 2, mm), ``velocity_error_total_mm2``, ``jitter``, ``weight_min``,
+    the markers, mm), ``velocity_error_mm_per_frame`` / ``velocity_error_p95_mm_per_frame`` /
+    ``velocity_error_max_mm_per_frame`` (over frames of the per-frame RMS per marker of Seol 2012
+    eq. 2, mm per frame), ``velocity_error_total_mm2`` (the eq. 2 sum, mm²), ``jitter``, ``weight_min``,
     ``weight_max``, ``outside_01`` (fraction of weights outside [0, 1]), ``active_per_frame`` /
     ``active_per_frame_max`` (shapes with ``|w| > active``), ``active_threshold`` and
     ``weight_range_per_shape`` ({name: [min, max]}).
     """
-    from .report import ACTIVE
-
     active = ACTIVE if active is None else float(active)
     W = np.asarray(W, dtype=np.float64)
     T, K = W.shape
@@ -133,8 +136,9 @@ def summarize(ev, W, valid=None, names=None, active=None) -> dict:
     out = {"frames": int(T), "frames_without_data": int(T - fv.sum())}
     if ev is not None:
         out["marker_mean_mm"], out["marker_p95_mm"], out["marker_max_mm"] = _stats(ev["marker_error_mm"])
-        out["velocity_error"], out["velocity_error_p95"], out["velocity_error_max"] = _stats(ev["velocity_error_mm"])
-        total = float(ev["velocity_error_total"])
+        (out["velocity_error_mm_per_frame"], out["velocity_error_p95_mm_per_frame"],
+         out["velocity_error_max_mm_per_frame"]) = _stats(ev["velocity_error_mm_per_frame"])
+        total = float(ev["velocity_error_total_mm2"])
         out["velocity_error_total_mm2"] = total if np.isfinite(total) else None
         jit = np.asarray(ev["jitter"], dtype=np.float64)
         out["jitter"] = float(np.nanmean(jit)) if np.isfinite(jit).any() else None

@@ -8,8 +8,10 @@ algorithm, its variants as explicit options):
   :func:`uniform_laplacian`, :func:`vertex_adjacency`, :func:`vertex_face_incidence`;
 * normals and frames: :func:`face_normals`, :func:`vertex_normals` (one mesh or a batch of
   poses, optionally across UV seams), :func:`vertex_frames` (Xu et al. 2014 §5.1);
-* topology: :func:`weld` (UV-seam copies merged), :func:`boundary_loops`, :func:`edges`;
-  :func:`farthest_points` (virtual markers);
+* topology: :func:`weld_vertices` (UV-seam copies merged), :func:`boundary_loops`, :func:`edges`,
+  :func:`vertex_components`, :func:`largest_component` (the skin); :func:`flipped_faces`
+  (fold-overs); :func:`face_vertices` (what the shapes move); :func:`farthest_points`
+  (virtual markers);
 * alignment: :func:`procrustes` (Kabsch / Umeyama, weighted, batched), :func:`nonrigid_icp`
   with the schedule :func:`nricp_steps` (Amberg et al. 2007: trimesh's loop, faster, coarse to
   fine, with progress); :class:`ClosestPoints` (exact closest points on a mesh, KD-trees),
@@ -59,11 +61,14 @@ from typing import Optional
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 #: relative area below which a triangle counts as degenerate (times size**2)
 DEGENERATE_EPS = 1e-14
-#: relative distance below which two vertices are one in :func:`weld` (times size)
+#: relative distance below which two vertices are one in :func:`weld_vertices` (times size)
 WELD_TOL = 1e-9
+#: face vertices: those some shape moves by more than this fraction of the largest move
+FACE_FRACTION = 0.01
 
 
 def _check_mesh(V, F, name="V"):
@@ -349,6 +354,31 @@ def face_cross(V, F) -> np.ndarray:
     return cross(V[..., F[:, 1], :] - p0, V[..., F[:, 2], :] - p0)
 
 
+def flipped_faces(reference, positions, F) -> np.ndarray:
+    r"""Fold-overs: triangles whose normal points against the reference's.
+
+    .. math:: n_f(\text{positions}) \cdot n_f(\text{reference}) < 0
+
+    with un-normalised normals (:func:`face_cross`), i.e. the normal turned by more than 90°;
+    a degenerate (zero-area) triangle is never flipped. Compare against a reference in the same
+    orientation (the neutral of a rig, the similarity-aligned source of a registration).
+
+    Parameters
+    ----------
+    reference : (n, 3) float
+    positions : (n, 3) or (..., n, 3) float, one mesh or a batch of poses
+    F : (F, 3) int
+
+    Returns
+    -------
+    (F,) or (..., F) bool
+    """
+    F = _check_faces(F)
+    n0 = face_cross(np.asarray(reference, dtype=np.float64), F)
+    n = face_cross(np.asarray(positions, dtype=np.float64), F)
+    return np.einsum("...fi,fi->...f", n, n0) < 0
+
+
 def vertex_face_incidence(F, n=None) -> sp.csr_matrix:
     """(n, F) 0/1 vertex-face incidence: ``I_vf = 1`` when face f has corner v.
 
@@ -406,7 +436,7 @@ def vertex_normals(V, F, *, weld_index=None, fallback=None, incidence=None) -> n
         float64.
     F : (F, 3) int
     weld_index : (n,) int, optional
-        Welded id of every vertex (``weld(V, F).index``): normals computed across seams.
+        Welded id of every vertex (``weld_vertices(V, F).index``): normals computed across seams.
     fallback : (3,) float, optional
         The normal of a vertex that has none: on no face, on degenerate faces only, or where
         its faces cancel (sum below ``DEGENERATE_EPS * size**2``). Default the zero vector;
@@ -522,7 +552,7 @@ def vertex_frames(V, F, neighbour=None, incidence=None):
 
 @dataclass(frozen=True, eq=False)
 class Weld:
-    """Result of :func:`weld`; unpacks as ``index, first, faces``.
+    """Result of :func:`weld_vertices`; unpacks as ``index, first, faces``.
 
     Attributes
     ----------
@@ -544,11 +574,11 @@ class Weld:
         return len(self.first)
 
     def __iter__(self):
-        # ``index, first, faces = weld(V, F)``, the form most callers take
+        # ``index, first, faces = weld_vertices(V, F)``, the form most callers take
         return iter((self.index, self.first, self.faces))
 
 
-def weld(V, F, tol=None, *, attributes=None) -> Weld:
+def weld_vertices(V, F, tol=None, *, attributes=None) -> Weld:
     r"""Merge coincident vertices: the copies a rig makes along its UV seams.
 
     A UV seam cuts the mesh into islands joined by nothing; every Laplacian, adjacency,
@@ -607,6 +637,81 @@ def weld(V, F, tol=None, *, attributes=None) -> Weld:
     wf = index[F]
     ok = (wf[:, 0] != wf[:, 1]) & (wf[:, 1] != wf[:, 2]) & (wf[:, 0] != wf[:, 2])
     return Weld(index, first[order].astype(np.int64), wf[ok], ok)
+
+
+def vertex_components(F, n=None) -> tuple[int, np.ndarray]:
+    """Connected components of the mesh's vertex graph (``scipy.sparse.csgraph``).
+
+    Parameters
+    ----------
+    F : (F, 3) int
+    n : int, optional
+        Vertex count (default ``F.max() + 1``); an isolated vertex is a component of its own.
+
+    Returns
+    -------
+    count : int, labels : (n,) int32 component of every vertex
+    """
+    F = _check_faces(F, n)
+    if n is None:
+        n = int(F.max()) + 1 if F.size else 0
+    rows = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
+    cols = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
+    A = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    return connected_components(A, directed=False)
+
+
+def largest_component(V, F) -> np.ndarray:
+    """(F,) bool: the triangles of the mesh's largest connected part (most triangles), after
+    merging the UV-seam copies (:func:`weld_vertices`, default tolerance) — the skin of a head, without
+    its separate eyeballs, teeth, tongue, hair cards or jewellery. Triangles that collapse in
+    the weld are not part of it.
+
+    Parameters
+    ----------
+    V : (n, 3) float, F : (F, 3) int
+
+    Returns
+    -------
+    (F,) bool
+    """
+    w = weld_vertices(V, F)
+    out = np.zeros(len(w.kept), dtype=bool)
+    if not len(w.faces):
+        return out
+    _, label = vertex_components(w.faces, w.n)
+    face_label = label[w.faces[:, 0]]
+    out[np.flatnonzero(w.kept)[face_label == np.bincount(face_label).argmax()]] = True
+    return out
+
+
+def face_vertices(deltas, fraction: float = FACE_FRACTION) -> np.ndarray:
+    r"""(V,) bool: the face, the vertices some shape moves by more than ``fraction`` of the
+    largest move,
+
+    .. math:: \max_k \|d_{kv}\| > \text{fraction} \cdot \max_{k, u} \|d_{ku}\|
+
+    (the skull, neck and eyeball interiors that no shape moves are left out).
+
+    Parameters
+    ----------
+    deltas : (K, V, 3) float, a rig's blendshape deltas
+    fraction : float in [0, 1), default :data:`FACE_FRACTION`
+
+    Returns
+    -------
+    (V,) bool, True on the face
+
+    Raises
+    ------
+    ValueError
+        ``deltas`` not (K, V, 3).
+    """
+    d = np.asarray(deltas)
+    if d.ndim != 3 or d.shape[2] != 3:
+        raise ValueError(f"deltas: expected blendshape deltas of shape (K, V, 3), got {d.shape}")
+    move = np.linalg.norm(d, axis=2).max(0)
+    return move > fraction * move.max()
 
 
 def boundary_loops(F):

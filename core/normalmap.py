@@ -39,7 +39,10 @@ from typing import Optional
 
 import numpy as np
 
+from .geometry import closest_points, vertex_normals
+from .geometry import decimate as quadric_decimation
 from .model import Rig
+from .segment import welded_graph
 
 
 @dataclass(frozen=True, eq=False)
@@ -184,12 +187,9 @@ def vertex_normals_seamless(rig: Rig, positions: Optional[np.ndarray] = None) ->
     """Area-weighted unit vertex normals computed on the seam-welded mesh, (V, 3).
 
     ``positions`` (V, 3) defaults to the neutral; seam copies of a vertex get one normal
-    (:func:`core.geometry.vertex_normals` with the ``weld_index`` of :func:`core.segment.weld`).
+    (:func:`core.geometry.vertex_normals` with the ``weld_index`` of :func:`core.segment.welded_graph`).
     """
-    from .geometry import vertex_normals
-    from .segment import weld
-
-    g = weld(rig)
+    g = welded_graph(rig)
     P = rig.neutral if positions is None else np.asarray(positions, dtype=np.float64)
     if P.shape != rig.neutral.shape:
         raise ValueError(f"positions: expected {rig.neutral.shape}, got {P.shape}")
@@ -202,12 +202,9 @@ def shape_normal_maps(rig: Rig, raster: UVRaster, dtype=np.float32) -> np.ndarra
     Per-vertex normals of each pose, baked with :func:`bake` and renormalised per texel;
     zero where no triangle covers a texel.
     """
-    from .geometry import vertex_normals
-    from .segment import weld
-
     if rig.uvs is None:
         raise ValueError(f"rig {rig.name!r} has no UVs; normal maps need texture coordinates")
-    g = weld(rig)
+    g = welded_graph(rig)
     S = bake_matrix(raster, rig.faces, rig.n_vertices)
     cov = raster.covered
     maps = np.zeros((rig.n_shapes + 1,) + raster.shape + (3,), dtype=dtype)
@@ -285,7 +282,7 @@ def decimate(rig: Rig, reduction: float = 0.9, masks: Optional[np.ndarray] = Non
     The neutral is decimated by :func:`core.geometry.decimate` (VTK's quadric decimation) with
     the UVs in the error metric, so texture coordinates are carried to the new vertices. Every new
     vertex takes the deltas (and ``masks``) of its closest point on the full neutral mesh
-    (trimesh proximity query, barycentric interpolation).
+    (:func:`core.geometry.closest_points`, barycentric interpolation).
 
     Parameters
     ----------
@@ -298,18 +295,12 @@ def decimate(rig: Rig, reduction: float = 0.9, masks: Optional[np.ndarray] = Non
     low : Rig
     low_masks : (R, V_low) or None
     """
-    import trimesh
-
-    from .geometry import decimate as quadric_decimation
-
     if not 0 < reduction < 1:
         raise ValueError(f"reduction: expected a fraction in (0, 1), got {reduction}")
     if rig.uvs is None:
         raise ValueError(f"rig {rig.name!r} has no UVs")
     P, F, uv = quadric_decimation(rig.neutral, rig.faces, reduction, uvs=rig.uvs)
-    tm = trimesh.Trimesh(rig.neutral, rig.faces, process=False)
-    closest, _, tri = trimesh.proximity.closest_point(tm, P)
-    bc = trimesh.triangles.points_to_barycentric(rig.neutral[rig.faces[tri]], closest)
+    closest, _, tri, bc = closest_points(P, rig.neutral, rig.faces)
     vid = rig.faces[tri]  # (n, 3)
     deltas = np.einsum("nj,knjc->knc", bc, rig.deltas[:, vid])
     low_rig = Rig(closest, F, deltas, rig.names, uv, rig.units, rig.name + "_low")

@@ -76,7 +76,7 @@ def _points(a, name, shape):
 
 # -- §4.1 facial motion similarity ------------------------------------------------------
 
-def similarity(actor_deltas, rig_deltas):
+def motion_similarity(actor_deltas, rig_deltas):
     r"""Correlation of every rig shape with every actor frame, in delta form.
 
     .. math:: c_{kf} = \frac{\Delta a_f \cdot \Delta s_k}{\|\Delta a_f\|\,\|\Delta s_k\|}
@@ -138,7 +138,7 @@ def trust(rig_deltas):
     K = len(s)
     d = np.linalg.norm(s.reshape(K, -1), axis=1)
     order = np.argsort(-d, kind="stable")
-    C = similarity(s[order], s[order])  # (K, K), C[i, j] between order[i] and order[j]
+    C = motion_similarity(s[order], s[order])  # (K, K), C[i, j] between order[i] and order[j]
     rows = np.tril(np.maximum(C, 0.0), k=-1).sum(axis=1)
     top = rows.max() if K else 0.0
     t_sorted = 1.0 - rows / top if top > 0 else np.ones(K)
@@ -165,7 +165,7 @@ def blended_similarity(actor_deltas, rig_deltas, r=STEEPNESS, trust_values=None)
 
     .. math:: \tilde c_{kf} = (1 - t_k)\, c^+_{kf} + t_k\, b(c^+_{kf})
 
-    with :math:`c^+ = \max(0, c)` from :func:`similarity`, :math:`t_k` from :func:`trust` and
+    with :math:`c^+ = \max(0, c)` from :func:`motion_similarity`, :math:`t_k` from :func:`trust` and
     b from :func:`contrast`.
 
     Parameters
@@ -181,7 +181,7 @@ def blended_similarity(actor_deltas, rig_deltas, r=STEEPNESS, trust_values=None)
     -------
     (K, T) float64 in [0, 1]
     """
-    cp = np.maximum(similarity(actor_deltas, rig_deltas), 0.0)
+    cp = np.maximum(motion_similarity(actor_deltas, rig_deltas), 0.0)
     t = trust(rig_deltas) if trust_values is None else np.asarray(trust_values, dtype=np.float64)
     if t.shape != (len(cp),):
         raise ValueError(f"trust_values: expected shape ({len(cp)},), got {t.shape}")
@@ -382,7 +382,7 @@ def cross_expression_laplacian(rig_deltas):
     G : (K, K) float64 (dense: the graph is complete).
     """
     s = _points(rig_deltas, "rig_deltas", (None, None, 3))
-    C = similarity(s, s)
+    C = motion_similarity(s, s)
     np.fill_diagonal(C, 0.0)
     n = np.abs(C).sum(axis=1)
     G = np.divide(C, n[:, None], out=np.zeros_like(C), where=n[:, None] > 0)
@@ -590,7 +590,7 @@ class Personalization:
     Attributes
     ----------
     deltas : (K, M, 3) personalised actor blendshapes Δp_k.
-    similarity : (K, T) c̃_kf over the whole take (Fig. 7).
+    blended_similarity : (K, T) c̃_kf over the whole take (Fig. 7, :func:`blended_similarity`).
     trust : (K,) t_k.
     key_frames : (F,) frame indices used in E_Match.
     cumulative : (T,) the summed filtered similarity the key frames are peaks of (Fig. 8).
@@ -601,7 +601,7 @@ class Personalization:
     """
 
     deltas: np.ndarray
-    similarity: np.ndarray
+    blended_similarity: np.ndarray
     trust: np.ndarray
     key_frames: np.ndarray
     cumulative: np.ndarray

@@ -32,7 +32,8 @@ from typing import Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from .geometry import decimate, nonrigid_icp, nricp_steps
+from .geometry import (closest_points, decimate, face_vertices, largest_component, nonrigid_icp, nricp_steps, procrustes,
+                       weld_vertices)
 from .model import MarkerLayout, Rig
 
 #: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations):
@@ -50,79 +51,21 @@ _FEATURE_SHAPES = {
 
 # ---------------------------------------------------------------------------------------------
 # small geometric helpers
-def similarity(src: np.ndarray, dst: np.ndarray, weights: Optional[np.ndarray] = None) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991, eq. 40-42):
-    :func:`core.geometry.procrustes` with ``scale=True``.
-
-    Parameters
-    ----------
-    src, dst : (N, 3) float, N >= 3 not collinear
-    weights : (N,) float >= 0, optional
-
-    Returns
-    -------
-    s : float, R : (3, 3) proper rotation, t : (3,)
-
-    Raises
-    ------
-    ValueError for mismatched shapes or fewer than 3 points.
-    """
-    from .geometry import procrustes
-
-    return procrustes(src, dst, weights, scale=True)
-
-
 def _apply(s, R, t, p):
     return s * np.asarray(p) @ R.T + t
 
 
 def merged_mesh(rig: Rig, mask_faces: Optional[np.ndarray] = None):
     """Merge the rig's UV-seam duplicates (identical positions) into one vertex
-    (:func:`core.geometry.weld`, default tolerance).
+    (:func:`core.geometry.weld_vertices`, default tolerance).
 
     Returns (positions (Vm, 3), faces (Fm, 3) merged ids, merged_of (V,) original -> merged,
     face_index (Fm,) original face of each merged face). Degenerate merged faces are dropped.
     Merged ids follow the first occurrence of each position.
     """
-    from .geometry import weld
-
     fidx = np.arange(len(rig.faces)) if mask_faces is None else np.flatnonzero(mask_faces)
-    w = weld(rig.neutral, rig.faces[fidx])
+    w = weld_vertices(rig.neutral, rig.faces[fidx])
     return rig.neutral[w.first], w.faces, w.index, fidx[w.kept]
-
-
-def skin_faces(rig: Rig) -> np.ndarray:
-    """(F,) bool: faces of the rig's largest edge-connected component (after merging seams):
-    the skin, without separate eyeballs, teeth, hair cards or jewellery."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
-    _, f, _, fidx = merged_mesh(rig)
-    n = f.max() + 1
-    e = np.vstack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    _, label = connected_components(sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
-    face_label = label[f[:, 0]]
-    big = np.bincount(face_label).argmax()
-    out = np.zeros(len(rig.faces), bool)
-    out[fidx[face_label == big]] = True
-    return out
-
-
-def closest_on_faces(points: np.ndarray, positions: np.ndarray, faces: np.ndarray, face_ids: Optional[np.ndarray] = None):
-    """Closest surface point of each query point on the triangles ``faces`` (optionally only
-    ``face_ids``): returns (face index (N,), barycentric (N, 3), point (N, 3), distance (N,)).
-
-    Uses trimesh's proximity query (an R-tree of triangle bounds + exact point-triangle distance).
-    """
-    import trimesh
-
-    ids = np.arange(len(faces)) if face_ids is None else np.asarray(face_ids)
-    mesh = trimesh.Trimesh(positions, faces[ids], process=False)
-    pt, dist, tri = trimesh.proximity.closest_point(mesh, np.asarray(points, dtype=np.float64))
-    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], pt)
-    bary = np.clip(bary, 0.0, None)
-    bary /= bary.sum(1, keepdims=True)
-    return ids[tri], bary, pt, dist
 
 
 def _feature_points(rig: Rig) -> Optional[np.ndarray]:
@@ -189,7 +132,7 @@ def transfer_layout(
     info : dict
         ``residual_mm`` (median, p90, max distance of the registered region to the target
         surface, mm), ``residual_rel`` (median / target size), ``snap_mm`` (M,) distance from each
-        registered marker to its projection, ``similarity`` (s, R, t), ``n_region`` vertices,
+        registered marker to its projection, ``similarity_transform`` (s, R, t), ``n_region`` vertices,
         ``seconds``, ``steps``.
 
     Raises
@@ -211,7 +154,7 @@ def transfer_layout(
     # -- normalised frame: source face region centred, unit diagonal ---------------------------
     centre = src_markers.mean(0)
     radius = np.linalg.norm(src_markers - centre, axis=1).max()
-    P, F, merged_of, _ = merged_mesh(source_rig, skin_faces(source_rig))
+    P, F, merged_of, _ = merged_mesh(source_rig, largest_component(source_rig.neutral, source_rig.faces))
     keep = np.linalg.norm(P - centre, axis=1) < region * radius
     keep[merged_of[layout.vertices.ravel()]] = True  # marker triangles always in the region
     fkeep = keep[F].all(1)
@@ -229,22 +172,25 @@ def transfer_layout(
     norm = lambda x: (np.asarray(x) - centre) / diag  # noqa: E731
     denorm = lambda x: np.asarray(x) * diag + centre  # noqa: E731
     src_n = norm(RV)
-    mk_face, mk_bary, _, _ = closest_on_faces(src_markers, RV, RF)
+    _, _, mk_face, mk_bary = closest_points(src_markers, RV, RF)
     mk_tri = RF[mk_face]
 
     # -- target skin ---------------------------------------------------------------------------
-    tskin = skin_faces(target_rig)
+    # the target's skin: its largest connected part, so eyeballs, teeth and hair cards are never chosen
+    tskin = largest_component(target_rig.neutral, target_rig.faces)
+    skin_ids = np.flatnonzero(tskin)
     T_all = target_rig.neutral
+    T_skin = target_rig.faces[skin_ids]
 
     fs_ft = (_feature_points(source_rig), _feature_points(target_rig))
     fs_ft = None if fs_ft[0] is None or fs_ft[1] is None else fs_ft
     # -- 1. similarity ----------------------------------------------------------------------------
     if len(lm_names) >= 3:
         idx = [layout.names.index(n) for n in lm_names]
-        s, R, t = similarity(src_markers[idx], lm_target)
+        s, R, t = procrustes(src_markers[idx], lm_target, scale=True)
         how = f"landmarks {list(lm_names)}"
     else:
-        s, R, t = _auto_similarity(source_rig, target_rig, fs_ft)
+        s, R, t = _auto_alignment(source_rig, target_rig, fs_ft)
         how = "automatic (bounding boxes)" if fs_ft is None else "automatic (bounding boxes + eye/jaw shape centres)"
     # target geometry near the aligned source face, in the normalised frame
     aligned = _apply(s, R, t, RV)
@@ -281,8 +227,8 @@ def transfer_layout(
             # the eye-close and jaw-open motion centres pull the registration (surface points
             # nearest them on both rigs)
             fs, ft = fs_ft
-            lf, lb, _, _ = closest_on_faces(fs, RV, RF)
-            _, _, ft_on, _ = closest_on_faces(ft, T_all, target_rig.faces, np.flatnonzero(tskin))
+            _, _, lf, lb = closest_points(fs, RV, RF)
+            ft_on = closest_points(ft, T_all, T_skin)[0]
             kw = dict(landmarks=(lf, lb), landmark_positions=norm(_inv(s, R, t, ft_on)))
         # threshold 0.1 of the face region's diagonal (the source is at unit diagonal here)
         registered = nonrigid_icp(src_init, RF, tmesh.vertices, tmesh.faces, steps=steps, distance_threshold=0.1, **kw)
@@ -290,13 +236,14 @@ def transfer_layout(
         registered = src_init
     # -- residual: registered region -> target surface (in metres, target frame) -------------
     reg_world = _apply(s, R, t, denorm(registered))
-    _, _, _, dist = closest_on_faces(reg_world, T_all, target_rig.faces, np.flatnonzero(tskin))
+    dist = closest_points(reg_world, T_all, T_skin)[1]
     # -- 3. project markers --------------------------------------------------------------------
     mk_world = np.einsum("mjc,mj->mc", reg_world[mk_tri], mk_bary)
     if len(lm_names):
         for n, p in zip(lm_names, lm_target):
             mk_world[layout.names.index(n)] = p
-    fid, bary, pt, snap = closest_on_faces(mk_world, T_all, target_rig.faces, np.flatnonzero(tskin))
+    _, snap, on_skin, bary = closest_points(mk_world, T_all, T_skin)
+    fid = skin_ids[on_skin]
     out = MarkerLayout(
         layout.names,
         target_rig.faces[fid],
@@ -308,7 +255,7 @@ def transfer_layout(
         residual_mm=(float(np.median(dist) * 1e3), float(np.percentile(dist, 90) * 1e3), float(dist.max() * 1e3)),
         residual_rel=float(np.median(dist) / target_rig.size),
         snap_mm=snap * 1e3,
-        similarity=(s, R, t),
+        similarity_transform=(s, R, t),
         alignment=how,
         n_region=len(RV),
         seconds=time.perf_counter() - t_start,
@@ -334,11 +281,11 @@ def _frame_matrix(M, diag, centre):
     return Ninv @ M @ N
 
 
-def _auto_similarity(source: Rig, target: Rig, fs_ft):
+def _auto_alignment(source: Rig, target: Rig, fs_ft):
     """The eye/jaw shape centres' similarity (3-point Umeyama) when both rigs have them
     (``fs_ft``), else a bounding-box similarity (no rotation: both rigs are glTF, +Y up, facing +Z)."""
     if fs_ft is not None:
-        return similarity(*fs_ft)
+        return procrustes(*fs_ft, scale=True)
     # bounding boxes of the heads: scale by the width (x extent, least affected by necks and
     # collars), centre the fronts
     smin, smax = source.neutral.min(0), source.neutral.max(0)
@@ -413,7 +360,6 @@ def place_markers(rig: Rig, from_layout=None, source_rig: Optional[Rig] = None, 
     report : dict — ``seconds``, ``residual_mm`` (median, p90, max), ``snap_mm`` {name: mm},
         ``off_face`` [names], ``off_surface`` [names], ``message`` (plain words for the page)
     """
-    from .correspondence import moving_vertices
     from .io.layout import layouts_dir, read_layout
     from .io.rigs import load_rig as read_rig
     from .progress import report as say
@@ -427,7 +373,7 @@ def place_markers(rig: Rig, from_layout=None, source_rig: Optional[Rig] = None, 
     say(progress, 0.05, f"placing {layout.n_markers} markers on {rig.name} (registration, a few seconds)")
     out, info = transfer_layout(layout, source_rig, rig, target_layout_name=f"{rig.name}")
     say(progress, 0.9, "checking where the markers landed")
-    moving = moving_vertices(rig)
+    moving = face_vertices(rig.deltas)
     src_move = np.linalg.norm(layout.points(source_rig.deltas), axis=2).max(0)
     expressive = src_move > 0.1 * src_move.max()
     off_face = [n for n, tri, e in zip(out.names, out.vertices, expressive) if e and not moving[tri].any()]

@@ -33,19 +33,14 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-#: a shape "is used" in a frame above this weight
-ACTIVE = 0.05
-#: face vertices: those some target shape moves by more than this fraction of the largest move
-FACE_FRACTION = 0.01
+from .evaluate import ACTIVE, summarize
+from .geometry import face_vertices, flipped_faces
+
 #: fold-overs are counted on at most this many frames (evenly spaced)
 FOLD_FRAMES = 60
-
-
-def face_vertices(rig) -> np.ndarray:
-    """Vertex ids of the face: moved by some shape more than :data:`FACE_FRACTION` of the largest
-    move (the skull, neck and eyeball interiors the shapes never move are not scored)."""
-    move = np.linalg.norm(rig.deltas, axis=2).max(0)
-    return np.flatnonzero(move > FACE_FRACTION * move.max())
+#: the keys of :func:`core.evaluate.summarize` a method's row reports (same meaning, same value)
+SUMMARY_KEYS = ("frames", "frames_without_data", "marker_mean_mm", "marker_p95_mm", "velocity_error_mm_per_frame",
+                "jitter", "weight_min", "weight_max", "active_per_frame")
 
 
 def ground_truth(load: dict, frames: dict) -> Optional[dict]:
@@ -95,51 +90,41 @@ def _vertex_errors(rig, W, Wt, face, valid, chunk: int = 128):
 
 
 def fold_overs(rig, W, frames_valid, n_frames: int = FOLD_FRAMES) -> float:
-    """Mean count of triangles whose normal turns by more than 90° against the neutral's, on up
-    to ``n_frames`` evenly spaced valid frames."""
+    """Mean count of triangles whose normal turns by more than 90° against the neutral's
+    (:func:`core.geometry.flipped_faces`), on up to ``n_frames`` evenly spaced valid frames."""
     idx = np.flatnonzero(frames_valid)
     if not len(idx):
         return float("nan")
     idx = idx[np.linspace(0, len(idx) - 1, min(n_frames, len(idx))).round().astype(int)]
-    F = rig.faces
-
-    def normals(P):
-        return np.cross(P[:, F[:, 1]] - P[:, F[:, 0]], P[:, F[:, 2]] - P[:, F[:, 0]])
-
-    n0 = normals(rig.neutral[None])[0]
     P = rig.neutral[None] + np.einsum("tk,kvc->tvc", np.nan_to_num(W[idx]), rig.deltas)
-    return float(((normals(P) * n0).sum(-1) < 0).sum(1).mean())
+    return float(flipped_faces(rig.neutral, P, rig.faces).sum(1).mean())
 
 
 def method_metrics(pipe, truth: Optional[dict] = None, face=None) -> dict:
-    """Run the pipeline's current method and score it (see the module docstring)."""
+    """Run the pipeline's current method and score it (see the module docstring).
+
+    The marker, velocity, jitter and weight numbers are :func:`core.evaluate.summarize`'s
+    (:data:`SUMMARY_KEYS`, NaN where it has None); this adds ``seconds``, ``fold_overs`` and,
+    with a ``truth``, the vertex and curve errors against it. ``face``: vertex ids scored
+    (default: :func:`core.geometry.face_vertices` of the target rig)."""
     t0 = time.perf_counter()
     res = pipe.results(["load", "frames", "synthesize", "evaluate"])
     seconds = time.perf_counter() - t0
     syn, ev, rig = res["synthesize"], res["evaluate"], res["load"]["target_rig"]
     W, valid = np.asarray(syn["weights"]), np.asarray(syn["valid"]) & ev["frame_valid"]
-    Wv = W[valid]
-    me = ev["marker_error_mm"][valid]
-    out = {
-        "seconds": seconds,
-        "frames": int(len(W)), "frames_without_data": int((~valid).sum()),
-        "marker_mean_mm": float(np.nanmean(me)), "marker_p95_mm": float(np.nanpercentile(me, 95)),
-        "velocity_error": float(np.nanmean(ev["velocity_error_mm"][valid])),
-        "jitter": float(np.nanmean(ev["jitter"])),
-        "weight_min": float(Wv.min()) if len(Wv) else float("nan"),
-        "weight_max": float(Wv.max()) if len(Wv) else float("nan"),
-        "active_per_frame": float((np.abs(Wv) > ACTIVE).sum(1).mean()) if len(Wv) else float("nan"),
-        "fold_overs": fold_overs(rig, W, valid),
-    }
+    summary = summarize(ev, W, valid, rig.names, ACTIVE)
+    out = {"seconds": seconds}
+    out.update({k: float("nan") if summary[k] is None else summary[k] for k in SUMMARY_KEYS})
+    out["fold_overs"] = fold_overs(rig, W, valid)
     if truth is not None:
         Wt = truth["weights"]
         tvalid = valid & np.isfinite(Wt).all(1)
-        face = face_vertices(rig) if face is None else face
+        face = np.flatnonzero(face_vertices(rig.deltas)) if face is None else face
         mean, p95, vel = _vertex_errors(rig, W, Wt, face, tvalid)
         named = truth["named"]
         per_shape = np.sqrt(np.nanmean((W[tvalid][:, named] - Wt[tvalid][:, named]) ** 2, axis=0))
         out.update({
-            "mean_mm": float(np.nanmean(mean)), "p95_mm": p95, "vertex_velocity_error_mm": float(np.nanmean(vel)),
+            "mean_mm": float(np.nanmean(mean)), "p95_mm": p95, "vertex_velocity_error_mm_per_frame": float(np.nanmean(vel)),
             "curve_rmse": float(per_shape.mean()),
             "curve_rmse_per_shape": {n: float(v) for n, v in zip(np.asarray(rig.names)[named], per_shape)},
         })
@@ -164,7 +149,7 @@ def evaluate_methods(settings: dict, methods: Sequence[str], progress=None, cach
     base = pipe.results(["load", "frames"])
     truth = ground_truth(base["load"], base["frames"])
     rig = base["load"]["target_rig"]
-    face = face_vertices(rig)
+    face = np.flatnonzero(face_vertices(rig.deltas))
     out = {"methods": {}, "ground_truth": truth is not None,
            "inputs": {k: settings.get(k, "") for k in ("source", "source_rig", "target_rig")},
            "settings": {k: v for k, v in settings.items() if k not in ("source", "source_rig", "target_rig")},
@@ -202,7 +187,7 @@ def write_json(report: dict, path) -> None:
 # -- HTML --------------------------------------------------------------------------------------
 METRICS = [("mean_mm", "vertex error mean (mm)", "{:.3f}"), ("p95_mm", "p95 (mm)", "{:.3f}"),
            ("curve_rmse", "curve RMSE vs namesake", "{:.3f}"), ("marker_mean_mm", "marker error (mm)", "{:.3f}"),
-           ("velocity_error", "velocity error (mm/frame)", "{:.4f}"), ("jitter", "jitter", "{:.4f}"),
+           ("velocity_error_mm_per_frame", "velocity error (mm/frame)", "{:.4f}"), ("jitter", "jitter", "{:.4f}"),
            ("weight_min", "w min", "{:.2f}"), ("weight_max", "w max", "{:.2f}"),
            ("active_per_frame", "shapes > 0.05 / frame", "{:.1f}"), ("fold_overs", "fold-overs", "{:.1f}"),
            ("seconds", "seconds", "{:.2f}")]

@@ -2,7 +2,7 @@
 
 Steps, each a pure function below, chained by :func:`segment` (or :class:`Segmenter`):
 
-1. **Weld** (:func:`weld`, on :func:`core.geometry.weld`): rigs with UVs split vertices along
+1. **Weld** (:func:`welded_graph`, on :func:`core.geometry.weld_vertices`): rigs with UVs split vertices along
    seams (ICT: 14,629 vertices, 14,062 distinct). Every graph operation runs on the welded mesh
    so a seam is not a cut.
 2. **Principal directions** (:func:`principal_directions`): for vertex v, PCA of its K+1
@@ -53,6 +53,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse import csgraph
 
+from .geometry import weld_vertices
 from .model import MarkerLayout, Rig
 
 
@@ -88,8 +89,8 @@ class WeldedGraph:
         return len(self.first)
 
 
-def weld(rig: Rig) -> WeldedGraph:
-    """The rig's welded mesh graph: :func:`core.geometry.weld` of vertices with bit-identical
+def welded_graph(rig: Rig) -> WeldedGraph:
+    """The rig's welded mesh graph: :func:`core.geometry.weld_vertices` of vertices with bit-identical
     neutral position *and* deltas (UV-seam copies), plus its adjacency and edge lengths.
 
     Requiring identical deltas too keeps apart distinct vertices that merely touch at rest
@@ -99,8 +100,6 @@ def weld(rig: Rig) -> WeldedGraph:
     -------
     WeldedGraph
     """
-    from .geometry import weld as weld_vertices
-
     _check_rig(rig)
     w = weld_vertices(rig.neutral, rig.faces, tol=0, attributes=rig.deltas)
     index, first, fg, n = w.index, w.first, w.faces, w.n
@@ -618,7 +617,7 @@ def segment(
     from scipy.cluster.vq import kmeans2
 
     t0 = time.perf_counter()
-    graph = weld(rig)
+    graph = welded_graph(rig)
     n = graph.n
     R = int(n_regions)
     if not 1 <= R <= n:
@@ -762,7 +761,7 @@ def marker_weights(rig: Rig, layout: MarkerLayout, masks: np.ndarray, radius: Op
         Cell radius in metres along the mesh; default the median distance from a marker to
         its nearest other marker (in space), i.e. about one marker spacing.
     graph : WeldedGraph, optional
-        Reuse a ``weld(rig)`` result.
+        Reuse a ``welded_graph(rig)`` result.
 
     Returns
     -------
@@ -780,7 +779,7 @@ def marker_weights(rig: Rig, layout: MarkerLayout, masks: np.ndarray, radius: Op
         raise ValueError(f"masks: expected (R, {rig.n_vertices}) for rig {rig.name!r}, got {masks.shape}")
     if (masks < -1e-12).any():
         raise ValueError("masks: expected non-negative values")
-    graph = graph or weld(rig)
+    graph = graph or welded_graph(rig)
     M = layout.n_markers
     dom = layout.vertices[np.arange(M), np.argmax(layout.weights, axis=1)]
     src = graph.index[dom]

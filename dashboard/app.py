@@ -860,7 +860,7 @@ class DashboardApp(pn.viewable.Viewer):
             self.w_edit_shape.param.update(options=names, value=keep)
         self._draw_curves()
         ev = snap["evaluate"]
-        self.diag.update(snap["times"], ev["marker_error_mm"], ev["velocity_error_mm"])
+        self.diag.update(snap["times"], ev["marker_error_mm"], ev["velocity_error_mm_per_frame"])
         self._draw_heat()
         self._draw_edits()
         self._draw_regions()
@@ -868,7 +868,7 @@ class DashboardApp(pn.viewable.Viewer):
             f"**{self.s.source}** → **{self.s.target_rig}** · {T} frames @ {snap['fps']:g} fps · "
             f"{len(snap['marker_names'])} markers · method **{snap['method']}** · marker error RMS "
             f"**{ev['marker_rms_mm']:.2f} mm** (max {ev['marker_max_mm']:.1f}) · velocity error "
-            f"{ev['velocity_error_mean_mm'] or float('nan'):.3f} mm per frame (RMS per marker, Seol 2012 eq. 2) · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
+            f"{ev['velocity_error_mean_mm_per_frame'] or float('nan'):.3f} mm per frame (RMS per marker, Seol 2012 eq. 2) · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
             f"({100 * ev['outside_01']:.1f}% outside 0..1)")
         notes = list(dict.fromkeys(snap.get("warnings", [])))  # data-quality notes stay on the page, not as toasts
         if notes:

@@ -121,8 +121,8 @@ class DiagnosticsPlot:
         self.fig.add_layout(self.cursor)
 
     @_page_safe
-    def update(self, times, marker_error_mm, velocity_error_mm):
-        self.source.data = dict(t=np.asarray(times, float), err=np.asarray(marker_error_mm, float), vel=np.asarray(velocity_error_mm, float))
+    def update(self, times, marker_error_mm, velocity_error_mm_per_frame):
+        self.source.data = dict(t=np.asarray(times, float), err=np.asarray(marker_error_mm, float), vel=np.asarray(velocity_error_mm_per_frame, float))
 
     @_page_safe
     def set_time(self, t: float):

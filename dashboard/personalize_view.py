@@ -222,7 +222,7 @@ class PersonalizeView(pn.viewable.Viewer):
             f"{f' ({left_out} move no marker and are left out)' if left_out > 0 else ''} on {len(self.marker_names)} markers "
             f"over {T} frames ({times[-1] - times[0]:.1f} s): {F} key expressions; the **{html.escape(str(snapshot.get('method', '')))}** "
             f"solve uses the personalised shapes.")
-        shape = _default_shape(self.names, self.w_shape.value, diag.similarity, diag.key_frames)
+        shape = _default_shape(self.names, self.w_shape.value, diag.blended_similarity, diag.key_frames)
         self.w_shape.options = self.names
         if self.w_shape.value != shape:
             self.w_shape.value = shape  # draws the shape
@@ -240,7 +240,7 @@ class PersonalizeView(pn.viewable.Viewer):
         return X[full[0] if len(full) else 0]
 
     def _draw_similarity(self, diag, times):
-        S = np.asarray(diag.similarity, dtype=np.float32)  # (K, T)
+        S = np.asarray(diag.blended_similarity, dtype=np.float32)  # (K, T)
         K, T = S.shape
         dt = (times[-1] - times[0]) / (T - 1) if T > 1 else 1.0
         x0, x1 = times[0] - dt / 2, times[-1] + dt / 2
@@ -302,7 +302,7 @@ class PersonalizeView(pn.viewable.Viewer):
         name = self.names[k]
         self.initial_fig.title.text = f"RBF initial guess Δg (Seol 2012 §3.2) ×{gain:g}"
         self.personal_fig.title.text = f"Personalised Δp (Ribera 2017 §4) ×{gain:g}"
-        self.row_source.data = dict(t=self.times, c=np.asarray(self._diag.similarity[k], dtype=float))
+        self.row_source.data = dict(t=self.times, c=np.asarray(self._diag.blended_similarity[k], dtype=float))
         self.row_axis.axis_label = f"c̃ of {name}"
         self.shape_band.update(top=k - 0.5, bottom=k + 0.5, fill_alpha=0.0)
         self._label_ticks(k)

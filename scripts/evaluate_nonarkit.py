@@ -17,12 +17,15 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from core.geometry import face_vertices  # noqa: E402
 from core.names import ARKIT_NAMES, canonical  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
-from core.report import face_vertices, ground_truth, method_metrics  # noqa: E402
+from core.report import ground_truth, method_metrics  # noqa: E402
 
 FILES = dict(source=str(ROOT / "data/performances/livelinkface_take_s07.csv"), source_rig=str(ROOT / "data/rigs/ict_facekit.glb"),
              target_rig=str(ROOT / "data/rigs/rocketbox_female_adult_02.glb"))
@@ -42,8 +45,6 @@ ORACLE_STEP = 4
 def oracle(rig, truth, face, shapes):
     """Mean and p95 face-vertex error (mm) of the per-frame bounded [0, 1] least-squares fit of the
     true face by ``shapes`` on every face vertex: the best any method could reach with them."""
-    import numpy as np
-
     from core.report import _vertex_errors
     from core.solvers.baselines import range_pf
 
@@ -68,7 +69,7 @@ def main(argv=None) -> int:
     shapes = [n for n in rig.names if canonical(n) not in ARKIT_NAMES]
     pipe.configure(target_shapes=",".join(shapes))
     base = pipe.results(["load", "frames"])
-    truth, face = ground_truth(base["load"], base["frames"]), face_vertices(rig)
+    truth, face = ground_truth(base["load"], base["frames"]), np.flatnonzero(face_vertices(rig.deltas))
     rows = []
     for label, cfg in CONFIGS:
         pipe.configure(**cfg)

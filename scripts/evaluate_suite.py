@@ -38,7 +38,7 @@ ADVANCED = [
     ("dense+names", {"correspondence": "dense", "name_weight": 0.01, "alpha": 0.01}, ["spacetime"]),
 ]
 SHOWN = [("mean_mm", "vertex mm", "{:.3f}"), ("p95_mm", "p95 mm", "{:.2f}"), ("curve_rmse", "curve RMSE", "{:.3f}"),
-         ("marker_mean_mm", "marker mm", "{:.2f}"), ("velocity_error", "velocity", "{:.4f}"),
+         ("marker_mean_mm", "marker mm", "{:.2f}"), ("velocity_error_mm_per_frame", "velocity", "{:.4f}"),
          ("weight_min", "w min", "{:.2f}"), ("weight_max", "w max", "{:.2f}"), ("active_per_frame", "shapes/frame", "{:.1f}"),
          ("seconds", "s", "{:.1f}")]
 

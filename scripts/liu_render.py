@@ -82,18 +82,14 @@ def main():
     ras = uv_raster(sym.uvs, sym.faces, 512)
     maps = shape_normal_maps(sym, ras)
     Nb = blend_normal_maps(maps, Ul[0], mask_maps(ras, sym.faces, seg.masks))
-    from core.geometry import vertex_normals
+    from core.geometry import closest_points, vertex_normals
 
     # numbers: angle to the full-resolution local result's normals, at face vertices
     N_loc = vertex_normals_seamless(sym, loc)
     moving = np.linalg.norm(sym.deltas, axis=2).max(0) > 2e-3
     inside = sample(ras.covered[..., None].astype(float), ras, sym.uvs)[:, 0] > 1 - 1e-9
     sel = moving & inside
-    import trimesh
-
-    tm = trimesh.Trimesh(low.neutral, low.faces, process=False)
-    closest, _, tri = trimesh.proximity.closest_point(tm, sym.neutral[sel])
-    bc = trimesh.triangles.points_to_barycentric(low.neutral[low.faces[tri]], closest)
+    _, _, tri, bc = closest_points(sym.neutral[sel], low.neutral, low.faces)
     Nlow = vertex_normals(loc_low, low.faces)
     coarse = np.einsum("nj,njc->nc", bc, Nlow[low.faces[tri]])
     e_map = angle_deg(sample(Nb, ras, sym.uvs[sel]), N_loc[sel])

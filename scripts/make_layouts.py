@@ -50,7 +50,7 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.geometry import weld  # noqa: E402
+from core.geometry import weld_vertices  # noqa: E402
 from core.io.gltf import read_rig  # noqa: E402
 from core.io.layout import write_layout  # noqa: E402
 from core.model import MarkerLayout, Rig  # noqa: E402
@@ -99,7 +99,7 @@ class Features:
         self.rig = rig
         V = rig.n_vertices
         # merge UV-seam duplicates: unique positions (to 1e-7 of the rig's size)
-        inverse, first, mfaces = weld(rig.neutral, rig.faces, tol=1e-7 * rig.size)
+        inverse, first, mfaces = weld_vertices(rig.neutral, rig.faces, tol=1e-7 * rig.size)
         self.rep = first  # merged id -> one original vertex
         self.merged_of = inverse  # original vertex -> merged id
         mesh = trimesh.Trimesh(rig.neutral[first], mfaces, process=False)

@@ -80,7 +80,7 @@ def run(take: Path, target: str, cache: StageCache) -> list:
         out = pipe.results(["synthesize", "evaluate"])
         W = out["synthesize"]["weights"]  # every shape of the rig (unseen ones at zero)
         ev = out["evaluate"]
-        row = {"target": target, "method": label, "alpha": a, "velocity_error_mm2": ev["velocity_error_total"],
+        row = {"target": target, "method": label, "alpha": a, "velocity_error_mm2": ev["velocity_error_total_mm2"],
                "marker_rms_mm": ev["marker_rms_mm"], "w_min": float(W.min()), "w_max": float(W.max())}
         if gt is not None:
             row["gt_vertex_rms_mm"] = float(np.sqrt(((rig.evaluate(W) - gt) ** 2).sum(-1).mean()) * 1e3)

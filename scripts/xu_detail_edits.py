@@ -35,7 +35,7 @@ def transfer(fast: bool):
     from core.io.livelink import read_livelink
     from core.names import NameMap
     from core.transfer import register, transfer_sequence
-    from core.geometry import weld
+    from core.geometry import weld_vertices
     from core.transfer.performance import shared_landmarks
 
     ict = read_rig(DATA / "rigs" / "ict_facekit.glb")
@@ -46,7 +46,7 @@ def transfer(fast: bool):
     perf = read_livelink(DATA / "performances" / "livelinkface_take_s07.csv")
     G = NameMap.automatic(perf.names, ict.names).matrix(perf.names, ict.names)
     seq = ict.evaluate(np.nan_to_num(perf.data[:600:2]) @ G.T)
-    wi, rep, Fw = weld(ict.neutral, ict.faces)
+    wi, rep, Fw = weld_vertices(ict.neutral, ict.faces)
     t = time.time()
     reg = register(ict.neutral[rep], Fw, rb.neutral, rb.faces, wi[src_lm], tgt_pts, icp=not fast)
     print(f"registration {time.time() - t:.1f} s")

@@ -13,7 +13,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.geometry import weld  # noqa: E402
+from core.geometry import weld_vertices  # noqa: E402
 from core.io.gltf import read_rig  # noqa: E402
 from core.io.layout import read_layout  # noqa: E402
 from core.transfer import register  # noqa: E402
@@ -23,7 +23,7 @@ from core.transfer.performance import shared_landmarks  # noqa: E402
 def main(targets=("rocketbox_female_adult_02", "jeeliz_tiger", "jeeliz_triceratops")):
     D = ROOT / "data"
     ict = read_rig(D / "rigs" / "ict_facekit.glb")
-    wi, rep, Fw = weld(ict.neutral, ict.faces)
+    wi, rep, Fw = weld_vertices(ict.neutral, ict.faces)
     li = read_layout(D / "layouts" / "ict_facekit.json", ict)
     for name in targets:
         t = read_rig(D / "rigs" / f"{name}.glb")

@@ -66,7 +66,7 @@ def main(fast: bool = False, animals_only: bool = False):
     from core.io.livelink import read_livelink
     from core.names import NameMap
     from core.transfer import feature_lines_near
-    from core.geometry import weld
+    from core.geometry import weld_vertices
 
     OUT.mkdir(parents=True, exist_ok=True)
     ict = read_rig(DATA / "rigs" / "ict_facekit.glb")
@@ -83,7 +83,7 @@ def main(fast: bool = False, animals_only: bool = False):
     eye_mouth = ["Leye_Up", "Leye_Down", "Reye_Up", "Reye_Down", "Mouth_Up", "Mouth_Down", "Mouth_Lend", "Mouth_Rend"]
     lines = feature_lines_near(ict.neutral, ict.faces, li.select(eye_mouth).points(ict.neutral), 0.012)
 
-    wi, rep, Fw = weld(ict.neutral, ict.faces)
+    wi, rep, Fw = weld_vertices(ict.neutral, ict.faces)
     reports = {}
     if not animals_only:
         reports["rocketbox"] = _rocketbox(ict, li, rb, src_lm, tgt_pts, seq, lines, wi, rep, Fw, fast)

@@ -117,12 +117,13 @@ def test_collect_shots_from_folders_lists_globs_and_a_template(tmp_path):
 def test_summarize_by_hand():
     W = np.array([[0.0, 0.5], [0.02, 1.2], [np.nan, np.nan]])
     ev = {"frame_valid": np.array([True, True, False]), "marker_error_mm": np.array([1.0, 3.0, np.nan]),
-          "velocity_error_mm": np.array([0.0, 2.0, np.nan]), "velocity_error_total": 8.0,
+          "velocity_error_mm_per_frame": np.array([0.0, 2.0, np.nan]), "velocity_error_total_mm2": 8.0,
           "jitter": np.array([np.nan, np.nan, np.nan])}
     s = summarize(ev, W, np.array([True, True, False]), ["a", "b"], active=0.01)
     assert s["frames"] == 3 and s["frames_without_data"] == 1
     assert s["marker_mean_mm"] == 2.0 and s["marker_max_mm"] == 3.0
     assert s["marker_p95_mm"] == pytest.approx(1.0 + 0.95 * 2.0)
+    assert s["velocity_error_mm_per_frame"] == 1.0 and s["velocity_error_max_mm_per_frame"] == 2.0
     assert s["velocity_error_total_mm2"] == 8.0 and s["jitter"] is None
     assert s["weight_min"] == 0.0 and s["weight_max"] == 1.2 and s["outside_01"] == 0.25
     assert s["active_per_frame"] == 1.5 and s["active_per_frame_max"] == 2  # |w| > 0.01: b in frame 0, both in frame 1

@@ -5,7 +5,8 @@ its layout."""
 import numpy as np
 import pytest
 
-from core.correspondence import capture_correspondence, moving_vertices, rig_correspondence, skin
+from core.correspondence import capture_correspondence, rig_correspondence, skin
+from core.geometry import face_vertices
 from core.pipeline import Pipeline, StageCache
 from datapaths import LAYOUTS, PERFORMANCES, RIGS
 
@@ -22,7 +23,7 @@ def test_same_topology_is_the_identity_and_points_are_on_the_skin(ict):
     np.testing.assert_allclose(tgt.points(ict.neutral), src.points(ict.neutral), atol=1e-12)
     np.testing.assert_array_equal(w, 1.0)
     ids = src.vertices[:, 0]
-    on = moving_vertices(ict) & skin(ict.faces, ict.n_vertices, layout.vertices.ravel())
+    on = face_vertices(ict.deltas) & skin(ict.faces, ict.n_vertices, layout.vertices.ravel())
     assert on[ids].all()
     # farthest-point: well spread (no two points closer than a fraction of the face's size)
     P = ict.neutral[ids]

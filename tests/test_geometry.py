@@ -172,12 +172,12 @@ def test_old_normal_callers_are_the_shared_function(tiger):
     geometry.vertex_normals with their option (same bits)."""
     from core.io.gltf import vertex_normals as gltf_normals
     from core.normalmap import vertex_normals_seamless
-    from core.segment import weld as weld_rig
+    from core.segment import welded_graph
 
     V, F = tiger.neutral, tiger.faces
     poses = np.concatenate([V[None], V + tiger.deltas])
     assert np.array_equal(gltf_normals(poses, F), g.vertex_normals(poses, F, fallback=(0.0, 0.0, 1.0)))
-    assert np.array_equal(vertex_normals_seamless(tiger), g.vertex_normals(V, F, weld_index=weld_rig(tiger).index))
+    assert np.array_equal(vertex_normals_seamless(tiger), g.vertex_normals(V, F, weld_index=welded_graph(tiger).index))
     t, b, n = g.vertex_frames(poses, F)
     assert np.array_equal(n, g.vertex_normals(poses, F))
     np.testing.assert_allclose(np.einsum("...i,...i->...", t, n), 0, atol=1e-12)
@@ -188,7 +188,7 @@ def test_weld_hand_derived_seam():
     # two triangles of a square whose diagonal 0-2 is a seam: 3 and 4 copy 0 and 2
     V = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 0, 0], [1, 1, 0], [0, 1, 0]])
     F = np.array([[0, 1, 2], [3, 4, 5], [0, 3, 1]])  # the last collapses once 0 and 3 are one
-    w = g.weld(V, F)
+    w = g.weld_vertices(V, F)
     np.testing.assert_array_equal(w.index, [0, 1, 2, 0, 2, 3])
     np.testing.assert_array_equal(w.first, [0, 1, 2, 5])
     np.testing.assert_array_equal(w.faces, [[0, 1, 2], [0, 2, 3]])
@@ -199,34 +199,34 @@ def test_weld_hand_derived_seam():
     # within the tolerance (1e-9 of the size by default) a copy merges; beyond it, not
     near = V.copy()
     near[3] += 1e-13
-    assert g.weld(near, F).n == 4 and g.weld(near, F, tol=0).n == 5
+    assert g.weld_vertices(near, F).n == 4 and g.weld_vertices(near, F, tol=0).n == 5
     signed = V.copy()
     signed[3] = -0.0
-    assert g.weld(signed, F, tol=0).n == 4  # -0.0 and 0.0 are one value
+    assert g.weld_vertices(signed, F, tol=0).n == 4  # -0.0 and 0.0 are one value
     # attributes that differ keep vertices apart (closed lips: same rest position, other deltas)
     deltas = np.zeros((2, 6, 3))
     deltas[1, 3] = [0, 0, 1e-3]
-    assert g.weld(V, F, tol=0, attributes=deltas).n == 5
+    assert g.weld_vertices(V, F, tol=0, attributes=deltas).n == 5
     with pytest.raises(ValueError, match="attributes"):
-        g.weld(V, F, attributes=deltas[:, :4])
+        g.weld_vertices(V, F, attributes=deltas[:, :4])
     with pytest.raises(ValueError, match="tol"):
-        g.weld(V, F, tol=-1.0)
+        g.weld_vertices(V, F, tol=-1.0)
 
 
 def test_weld_identity_and_the_old_callers(ict, tiger):
     """A mesh without duplicates keeps its numbering; the segmentation's graph, the transfer's
-    weld and the layout transfer's merged mesh are geometry.weld with their options."""
+    welded_graph and the layout transfer's merged mesh are geometry.weld_vertices with their options."""
     from core.registration import merged_mesh
-    from core.segment import weld as weld_rig
+    from core.segment import welded_graph
 
-    w = g.weld(tiger.neutral, tiger.faces)
+    w = g.weld_vertices(tiger.neutral, tiger.faces)
     np.testing.assert_array_equal(w.index, np.arange(tiger.n_vertices))
     np.testing.assert_array_equal(w.faces, tiger.faces)
-    w = g.weld(ict.neutral, ict.faces)
+    w = g.weld_vertices(ict.neutral, ict.faces)
     assert w.n == 14062 and len(w.faces) == len(ict.faces)  # ICT: 14,629 vertices, 14,062 distinct
     np.testing.assert_array_equal(ict.neutral[w.first][w.index], ict.neutral)  # copies coincide
-    exact = g.weld(ict.neutral, ict.faces, tol=0, attributes=ict.deltas)
-    graph = weld_rig(ict)
+    exact = g.weld_vertices(ict.neutral, ict.faces, tol=0, attributes=ict.deltas)
+    graph = welded_graph(ict)
     np.testing.assert_array_equal(graph.index, exact.index)
     np.testing.assert_array_equal(graph.first, exact.first)
     np.testing.assert_array_equal(exact.index, w.index)  # ICT's seam copies share their deltas
@@ -332,13 +332,10 @@ def test_procrustes_hand_derived_rotation_and_reflection():
 
 
 def test_procrustes_batch_and_the_old_callers():
-    """A batch equals item by item; the stabilisation's Kabsch, the layout transfer's and the
-    dense correspondence's similarities are procrustes with their option (same bits)."""
+    """A batch equals item by item; the stabilisation's Kabsch is procrustes (same bits)."""
     from scipy.spatial.transform import Rotation
 
-    from core.registration import similarity
     from core.stabilize import kabsch
-    from core.transfer import similarity_align
 
     rng = np.random.default_rng(4)
     Y = rng.normal(size=(9, 3))
@@ -353,11 +350,6 @@ def test_procrustes_batch_and_the_old_callers():
         np.testing.assert_allclose(tb[k], tk, atol=1e-14)
     Rk, tk = kabsch(Y, X, W)
     assert np.array_equal(Rk, Rb) and np.array_equal(tk, tb)
-    ws = g.procrustes(Y, X[0], W[0], scale=True)
-    assert all(np.array_equal(a, b) for a, b in zip(similarity(Y, X[0], W[0]), ws))
-    plain = g.procrustes(Y, X[0], scale=True)
-    assert all(np.array_equal(a, b) for a, b in zip(similarity(Y, X[0]), plain))
-    assert all(np.array_equal(a, b) for a, b in zip(similarity_align(Y, X[0]), plain))
 
 
 def test_nricp_steps_are_the_old_schedules():
@@ -510,6 +502,68 @@ def test_closest_points_against_brute_force():
     _, d2, f2, _ = g.ClosestPoints(V, F).query(P, max_distance=0.2)
     assert np.array_equal(np.isinf(d2), d > 0.2) and (f2[d > 0.2] == -1).all()
     np.testing.assert_array_equal(d2[d <= 0.2], d[d <= 0.2])
+
+
+def test_closest_points_against_dense_sampling():
+    """A second reference (moved from the layout transfer's own closest-point query): every
+    triangle sampled on a fine barycentric grid."""
+    import trimesh
+
+    rng = np.random.default_rng(1)
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    V = mesh.vertices * rng.uniform(0.8, 1.2, size=(len(mesh.vertices), 1))
+    F = mesh.faces
+    q = rng.normal(scale=1.3, size=(25, 3))
+    pt, dist, fid, bary = g.closest_points(q, V, F)
+    # the result is a point of the returned triangle, at the returned distance
+    np.testing.assert_allclose(np.einsum("nj,njc->nc", bary, V[F[fid]]), pt, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(q - pt, axis=1), dist, atol=1e-12)
+    assert (bary >= 0).all() and np.allclose(bary.sum(1), 1)
+    # reference: every triangle sampled on a fine barycentric grid
+    n = 80
+    i, j = np.mgrid[0 : n + 1, 0 : n + 1]
+    keep = i + j <= n
+    B = np.c_[i[keep], j[keep], n - i[keep] - j[keep]] / n
+    samples = np.einsum("sj,fjc->fsc", B, V[F]).reshape(-1, 3)
+    ref = np.min(np.linalg.norm(q[:, None] - samples[None], axis=2), axis=1)
+    edge = mesh.edges_unique_length.max() * 1.2
+    assert (dist <= ref + 1e-12).all()  # never worse than any surface sample
+    assert (ref - dist <= edge / n).all()  # and within the grid spacing of the sampled optimum
+
+
+def test_largest_component_hand_derived():
+    """Two triangles sharing an edge through seam copies (welded: one part) and a separate
+    triangle: the pair is the largest part; vertex_components counts the three parts of the
+    unwelded mesh plus an isolated vertex."""
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0],
+                  [5, 5, 5], [6, 5, 5], [5, 6, 5], [9, 9, 9]], float)
+    F = np.array([[0, 1, 2], [3, 5, 4], [6, 7, 8]])
+    assert g.largest_component(V, F).tolist() == [True, True, False]
+    n, label = g.vertex_components(F, len(V))
+    assert n == 4 and label[0] == label[2] != label[3] == label[5] != label[6] != label[9]
+
+
+def test_flipped_faces_single_triangle_and_batch():
+    ref = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    F = np.array([[0, 1, 2]])
+    assert not g.flipped_faces(ref, ref * 2 + 5, F).any()
+    assert g.flipped_faces(ref, ref * [1, -1, 1], F).all()  # mirrored: the normal points down
+    # a rotation by 180° counts too: compare against a reference in the same orientation
+    assert g.flipped_faces(ref, ref @ np.diag([1.0, -1.0, -1.0]), F).all()
+    assert not g.flipped_faces(ref, ref * [1, 0, 1], F).any()  # degenerate: not counted
+    poses = np.stack([ref, ref * [1, -1, 1], ref * [-1, 1, 1]])
+    assert g.flipped_faces(ref, poses, F).tolist() == [[False], [True], [True]]
+
+
+def test_face_vertices_hand_derived():
+    d = np.zeros((2, 4, 3))
+    d[0, 0] = [0, 0, 1.0]  # the largest move
+    d[1, 1] = [0.02, 0, 0]  # 2 % of it: face
+    d[1, 2] = [0.005, 0, 0]  # 0.5 %: not face
+    assert g.face_vertices(d).tolist() == [True, True, False, False]
+    assert g.face_vertices(d, fraction=0.001).tolist() == [True, True, True, False]
+    with pytest.raises(ValueError, match="deltas"):
+        g.face_vertices(np.zeros((4, 3)))
 
 
 def test_closest_on_triangles_single_triangle_regions():

@@ -11,7 +11,7 @@ from core.names import NameMap
 from datapaths import face_markers
 from core.personalize import (AlignmentProblem, amplitude, blended_similarity, contact_edges, contrast,
                               cross_expression_laplacian, key_expressions, marker_laplacian,
-                              marker_triangulation, personalize, similarity, support_masks, trust)
+                              marker_triangulation, motion_similarity, personalize, support_masks, trust)
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -93,16 +93,16 @@ def test_similarity_eq5_hand_cases():
     a[1, 0] = [-1, 0, 0]         # anti-parallel
     a[2] = np.nan                # a missing frame
     # a[3] stays neutral (zero displacement)
-    c = similarity(a, s)
+    c = motion_similarity(a, s)
     np.testing.assert_allclose(c[:, 0], [1, 0, 1 / np.sqrt(2)])
     np.testing.assert_allclose(c[:, 1], [-1, 0, -1 / np.sqrt(2)])
     np.testing.assert_array_equal(c[:, 2:], 0)
     rng = np.random.default_rng(0)
     A, S = rng.normal(size=(7, 5, 3)), rng.normal(size=(4, 5, 3))
-    np.testing.assert_allclose(similarity(3.7 * A, 0.2 * S), similarity(A, S))  # scale invariant
+    np.testing.assert_allclose(motion_similarity(3.7 * A, 0.2 * S), motion_similarity(A, S))  # scale invariant
     ref = np.array([[np.corrcoef(np.r_[A[f].ravel(), -A[f].ravel()], np.r_[S[k].ravel(), -S[k].ravel()])[0, 1]
                      for f in range(7)] for k in range(4)])  # Pearson about the neutral (zero mean)
-    np.testing.assert_allclose(similarity(A, S), ref)
+    np.testing.assert_allclose(motion_similarity(A, S), ref)
 
 
 def test_trust_eq6_hand_case():
@@ -131,7 +131,7 @@ def test_contrast_eq7_and_blend_eq8():
     assert np.isfinite(contrast(c, 5000)).all()
     rng = np.random.default_rng(1)
     A, S = rng.normal(size=(9, 6, 3)), rng.normal(size=(5, 6, 3))
-    cp = np.maximum(similarity(A, S), 0)
+    cp = np.maximum(motion_similarity(A, S), 0)
     t = trust(S)
     np.testing.assert_allclose(blended_similarity(A, S), (1 - t)[:, None] * cp + t[:, None] * contrast(cp))
     np.testing.assert_allclose(blended_similarity(A, S, trust_values=np.zeros(5)), cp)
@@ -164,7 +164,7 @@ def test_masks_amplitude_and_cross_expression_graph():
     np.testing.assert_allclose(u[0], np.linalg.norm(S[0], axis=1) / np.linalg.norm(S[0], axis=1).max())
     G = cross_expression_laplacian(S)
     np.testing.assert_allclose(G @ np.ones(5), 0, atol=1e-14)
-    C = similarity(S, S)
+    C = motion_similarity(S, S)
     for k in (0, 1, 2, 4):
         off = [l for l in range(5) if l != k]
         np.testing.assert_allclose(np.abs(G[k, off]).sum(), 1)
@@ -263,7 +263,7 @@ def test_personalize_real_rom_similarity_follows_the_driving_curves(ict_setup):
     A = A + np.random.default_rng(0).normal(scale=2e-4, size=A.shape)  # ~0.2 mm capture noise
     res = personalize(A, S, N0)
     big = np.linalg.norm(S, axis=(1, 2)) > 5e-3
-    corr = np.array([np.corrcoef(res.similarity[k], W[:, k])[0, 1] for k in np.flatnonzero(big)])
+    corr = np.array([np.corrcoef(res.blended_similarity[k], W[:, k])[0, 1] for k in np.flatnonzero(big)])
     assert np.median(corr) > 0.5
     assert (corr > 0.25).mean() >= 0.75
     assert 20 < len(res.key_frames) < len(W) / 4
@@ -316,7 +316,7 @@ def test_missing_frames_and_validation(ict_setup):
     res = personalize(A, S, N0)
     assert res.extras["n_invalid_frames"] == 10
     assert not np.isin(res.key_frames, np.arange(50, 60)).any()
-    assert (res.similarity[:, 50:60] == 0).all()
+    assert (res.blended_similarity[:, 50:60] == 0).all()
     assert np.isnan(A[50, 3]).all()  # input untouched
     with pytest.raises(ValueError, match="initial_guess"):
         personalize(A, S[:, :5], N0)

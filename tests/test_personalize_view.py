@@ -54,8 +54,8 @@ def test_similarity_image_and_key_frames(view, snap):
     K, T = len(names), len(snap["times"])
     assert view.body.visible and not view.hint.visible
     img = view.sim_source.data["image"][0]
-    assert img.shape == (K, T) == diag.similarity.shape
-    np.testing.assert_allclose(img, diag.similarity, rtol=1e-6, atol=1e-7)  # float32 for transport
+    assert img.shape == (K, T) == diag.blended_similarity.shape
+    np.testing.assert_allclose(img, diag.blended_similarity, rtol=1e-6, atol=1e-7)  # float32 for transport
     # the image covers the take's time span, one row per shape
     x0, dw = view.sim_source.data["x"][0], view.sim_source.data["dw"][0]
     assert x0 <= snap["times"][0] and x0 + dw >= snap["times"][-1]
@@ -90,7 +90,7 @@ def test_shape_selection_changes_the_deltas(view, snap):
         g = view.initial_source.data
         np.testing.assert_allclose(np.column_stack([g["dx"], g["dy"], g["dz"]]), G[k] * MM)
         np.testing.assert_allclose(d["mask"], diag.masks[k])
-        np.testing.assert_allclose(view.row_source.data["c"], diag.similarity[k])
+        np.testing.assert_allclose(view.row_source.data["c"], diag.blended_similarity[k])
         assert f"{diag.trust[k]:.2f}" in view.shape_info.object
         assert names[k] in view.shape_info.object
     assert not np.allclose(shown[a], shown[b])
@@ -170,7 +170,7 @@ def test_off_state_shows_the_hint(session):
         assert session.recompute(), session.error
     v.update(session.snapshot)
     assert v.body.visible and not v.hint.visible
-    assert v.sim_source.data["image"][0].shape == session.snapshot["personalize"]["diagnostics"].similarity.shape
+    assert v.sim_source.data["image"][0].shape == session.snapshot["personalize"]["diagnostics"].blended_similarity.shape
 
 
 def test_layout_is_panel(view):

@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 from datapaths import LAYOUTS, RIGS
 from core.io.layout import LayoutRigMismatch, read_layout
 from core.model import MarkerLayout, Rig
-from core.registration import closest_on_faces, layout_command, similarity, skin_faces, transfer_layout
+from core.geometry import largest_component, procrustes
+from core.registration import layout_command, transfer_layout
 
 
 @pytest.fixture(scope="module")
@@ -31,16 +32,16 @@ def moved_copy(rig, s, angles, t, shapes=True, name="moved"):
 
 
 # -- building blocks against slow references --------------------------------------------------------
-def test_similarity_exact_and_least_squares():
+def test_similarity_transform_exact_and_least_squares():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(12, 3))
     R = Rotation.from_rotvec([0.3, -1.1, 0.4]).as_matrix()
     dst = 2.5 * src @ R.T + [1.0, -2.0, 0.5]
-    s, R_, t = similarity(src, dst)
+    s, R_, t = procrustes(src, dst, scale=True)
     assert np.isclose(s, 2.5) and np.allclose(R_, R) and np.allclose(t, [1.0, -2.0, 0.5])
     # noisy: no general least-squares solver finds a lower cost (Umeyama is the global optimum)
     noisy = dst + rng.normal(scale=0.3, size=dst.shape)
-    s, R_, t = similarity(src, noisy)
+    s, R_, t = procrustes(src, noisy, scale=True)
     ours = ((s * src @ R_.T + t - noisy) ** 2).sum()
     assert np.isclose(np.linalg.det(R_), 1.0)
 
@@ -56,44 +57,19 @@ def test_similarity_exact_and_least_squares():
     assert best <= ours * (1 + 1e-6)  # and the optimiser does reach it: same optimum
 
 
-def test_similarity_rejects_bad_input():
+def test_similarity_transform_rejects_bad_input():
     with pytest.raises(ValueError, match=r"\(N>=3, 3\)"):
-        similarity(np.zeros((2, 3)), np.zeros((2, 3)))
+        procrustes(np.zeros((2, 3)), np.zeros((2, 3)), scale=True)
     with pytest.raises(ValueError, match="src and dst"):
-        similarity(np.zeros((4, 3)), np.zeros((5, 3)))
+        procrustes(np.zeros((4, 3)), np.zeros((5, 3)), scale=True)
 
 
-def test_closest_on_faces_against_dense_sampling():
-    import trimesh
-
-    rng = np.random.default_rng(1)
-    mesh = trimesh.creation.icosphere(subdivisions=1)
-    V = mesh.vertices * rng.uniform(0.8, 1.2, size=(len(mesh.vertices), 1))
-    F = mesh.faces
-    q = rng.normal(scale=1.3, size=(25, 3))
-    fid, bary, pt, dist = closest_on_faces(q, V, F)
-    # the result is a point of the returned triangle, at the returned distance
-    np.testing.assert_allclose(np.einsum("nj,njc->nc", bary, V[F[fid]]), pt, atol=1e-12)
-    np.testing.assert_allclose(np.linalg.norm(q - pt, axis=1), dist, atol=1e-12)
-    assert (bary >= 0).all() and np.allclose(bary.sum(1), 1)
-    # reference: every triangle sampled on a fine barycentric grid
-    n = 80
-    i, j = np.mgrid[0 : n + 1, 0 : n + 1]
-    keep = i + j <= n
-    B = np.c_[i[keep], j[keep], n - i[keep] - j[keep]] / n
-    samples = np.einsum("sj,fjc->fsc", B, V[F]).reshape(-1, 3)
-    ref = np.min(np.linalg.norm(q[:, None] - samples[None], axis=2), axis=1)
-    edge = mesh.edges_unique_length.max() * 1.2
-    assert (dist <= ref + 1e-12).all()  # never worse than any surface sample
-    assert (ref - dist <= edge / n).all()  # and within the grid spacing of the sampled optimum
-
-
-def test_skin_faces_drop_eyeballs_and_hair(rocketbox, tiger):
+def test_largest_component_drops_eyeballs_and_hair(rocketbox, tiger):
     for rig in (rocketbox, tiger):
-        skin = skin_faces(rig)
+        skin = largest_component(rig.neutral, rig.faces)
         assert 0.7 * len(rig.faces) < skin.sum() < len(rig.faces)
     # Rocketbox eyeballs (separate components at the eye holes) are not skin
-    eye_faces = ~skin_faces(rocketbox)
+    eye_faces = ~largest_component(rocketbox.neutral, rocketbox.faces)
     c = rocketbox.neutral[rocketbox.faces[eye_faces]].mean(1)
     assert ((np.abs(np.abs(c[:, 0]) - 0.03) < 0.02) & (np.abs(c[:, 1] - 1.613) < 0.02)).sum() >= 200
 
@@ -125,7 +101,7 @@ def test_transfer_recovers_a_similarity_copy(rocketbox, rb_layout):
     out, info = transfer_layout(rb_layout, rocketbox, target)
     expect = s * rb_layout.points(rocketbox.neutral) @ R.T + t
     assert np.linalg.norm(out.points(target.neutral) - expect, axis=1).max() < 1e-4 * target.size
-    assert np.isclose(info["similarity"][0], 1.7, rtol=1e-3)
+    assert np.isclose(info["similarity_transform"][0], 1.7, rtol=1e-3)
     assert "eye/jaw" in info["alignment"]
 
 

@@ -11,7 +11,7 @@ from scipy.sparse import csgraph
 
 from core.model import MarkerLayout, Rig
 from core.segment import (Segmenter, coordinate_signs, marker_weights, principal_directions, segment,
-                          sign_energy, smooth_masks, voronoi_cells, weld)
+                          sign_energy, smooth_masks, voronoi_cells, welded_graph)
 
 
 def grid(n=20, size=0.1):
@@ -90,7 +90,7 @@ def test_sign_coordination_exact_on_a_tree_and_recovers_a_flipped_smooth_field()
     assert info["energy_final"] == pytest.approx(_brute_force_energy(A, d), abs=1e-12)
     # a smooth field on a grid with random sign flips: the flips are undone (up to one global sign)
     P, F = grid(12)
-    g = weld(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
+    g = welded_graph(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
     field = np.stack([np.cos(P[:, 0] * 20), np.sin(P[:, 0] * 20), np.ones(len(P))], 1)
     field /= np.linalg.norm(field, axis=1, keepdims=True)
     flips = rng.choice([-1.0, 1.0], size=len(P))
@@ -104,7 +104,7 @@ def test_sign_coordination_exact_on_a_tree_and_recovers_a_flipped_smooth_field()
 def test_sign_coordination_is_locally_optimal_and_never_worse_than_the_tree():
     rng = np.random.default_rng(2)
     P, F = grid(8)
-    g = weld(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
+    g = welded_graph(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
     for trial in range(5):
         d = rng.normal(size=(len(P), 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -119,7 +119,7 @@ def test_sign_coordination_is_locally_optimal_and_never_worse_than_the_tree():
 def test_sign_coordination_against_brute_force_on_a_small_mesh():
     rng = np.random.default_rng(3)
     P, F = grid(4)  # 16 vertices: 2^15 sign patterns
-    g = weld(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
+    g = welded_graph(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
     gaps, opt = [], []
     for trial in range(6):
         base = np.array([0.3, 0.2, 1.0]) + 0.6 * rng.normal(size=(len(P), 3))
@@ -204,7 +204,7 @@ def test_segment_validation():
 
 def test_smooth_masks_row_stochastic():
     P, F = grid(6)
-    g = weld(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
+    g = welded_graph(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
     X = np.eye(3)[np.arange(len(P)) % 3]
     Y = smooth_masks(g.adjacency, X, 5)
     assert np.allclose(Y.sum(1), 1) and Y.min() >= 0 and not np.array_equal(X, Y)
@@ -217,7 +217,7 @@ def test_voronoi_cells_match_single_source_dijkstra():
     rng = np.random.default_rng(4)
     P, F = grid(15)
     P[:, 2] = 0.01 * rng.random(len(P))
-    g = weld(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
+    g = welded_graph(Rig(P, F, np.zeros((1, len(P), 3)) + [0, 0, 1e-3], ["z"]))
     src = rng.choice(len(P), size=6, replace=False)
     cells = voronoi_cells(g, src)
     dist = csgraph.dijkstra(g.lengths, directed=False, indices=src)

@@ -7,7 +7,7 @@ import trimesh
 
 from core.transfer import (PoissonReconstructor, TaubinFilter, factor_sequence, laplacian_coating,
                            laplacian_operator, taubin_smooth)
-from core.geometry import vertex_frames, weld
+from core.geometry import vertex_frames, weld_vertices
 
 
 def _noisy_sphere(subdiv=2, seed=0):
@@ -102,7 +102,7 @@ def test_taubin_validation():
 def test_poisson_reconstruction_recovers_unsmoothed_mesh(kind, tiger):
     # eq. 2: S = L^{-1}(L S̄ + ξ) on a real mesh and a random one
     for V, F in ((tiger.neutral, tiger.faces), _noisy_sphere(2, 3)):
-        wi, rep, Fw = weld(V, F)
+        wi, rep, Fw = weld_vertices(V, F)
         S = V[rep]
         Sb = taubin_smooth(S, Fw, 40)
         P = PoissonReconstructor(Fw, len(S), kind, S)
@@ -199,7 +199,7 @@ def test_local_frames_orthonormal_right_handed(tiger):
 
 
 def test_screened_poisson_returns_prior_and_matches_dense_solve(tiger):
-    wi, rep, Fw = weld(tiger.neutral, tiger.faces)
+    wi, rep, Fw = weld_vertices(tiger.neutral, tiger.faces)
     S = tiger.neutral[rep]
     Sb = taubin_smooth(S, Fw, 40)
     P = PoissonReconstructor(Fw, len(S), screening=0.01)
@@ -216,7 +216,7 @@ def test_screened_poisson_returns_prior_and_matches_dense_solve(tiger):
 @pytest.mark.parametrize("screening", [0.0, 0.05])
 def test_poisson_block_solve_matches_dense(screening, tiger):
     """(V, m) right-hand sides at once (any m, blocks of 16 inside) = dense solves column by column."""
-    wi, rep, Fw = weld(tiger.neutral, tiger.faces)
+    wi, rep, Fw = weld_vertices(tiger.neutral, tiger.faces)
     V = len(rep)
     P = PoissonReconstructor(Fw, V, screening=screening)
     rng = np.random.default_rng(1)

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from core.transfer import (DeformationTransfer, deformation_gradients, deformation_transfer, line_edges,
                            line_gradients)
-from core.geometry import weld
+from core.geometry import weld_vertices
 
 
 def _sphere(subdiv=2):
@@ -117,7 +117,7 @@ def test_matches_dense_least_squares_reference():
 
 def test_feature_lines_pull_the_line_towards_the_source_motion(ict):
     """Fig. 3: with α = 100 the transferred mouth line follows the source line motion closer."""
-    wi, rep, Fw = weld(ict.neutral, ict.faces)
+    wi, rep, Fw = weld_vertices(ict.neutral, ict.faces)
     S0 = ict.neutral[rep]
     T0 = S0 * [1.15, 0.9, 1.0]
     X = (ict.neutral + ict.deltas[ict.index("jawOpen")] + ict.deltas[ict.index("mouthSmile_L")])[rep]

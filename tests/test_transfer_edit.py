@@ -7,7 +7,7 @@ import scipy.sparse as sp
 from scipy.optimize import lsq_linear
 
 from core.transfer import DeformationTransfer, taubin_smooth
-from core.geometry import weld
+from core.geometry import weld_vertices
 from core.transfer.detail_edit import (_reference_propagation, detail_window, propagate_details, region_near_curve,
                                        scale_details)
 from core.transfer.edit import DistanceConstraint, LargeScaleEditor, PointConstraint, _reference_weights
@@ -15,7 +15,7 @@ from core.transfer.edit import DistanceConstraint, LargeScaleEditor, PointConstr
 
 @pytest.fixture(scope="module")
 def editor(tiger):
-    wi, rep, F = weld(tiger.neutral, tiger.faces)
+    wi, rep, F = weld_vertices(tiger.neutral, tiger.faces)
     S0 = taubin_smooth(tiger.neutral[rep], F)
     T0 = S0 * [1.1, 0.95, 1.0]
     dt = DeformationTransfer(S0, T0, F)
@@ -127,7 +127,7 @@ def test_edit_validation(editor):
 
 
 def test_fine_propagation_matches_sparse_spacetime_solve(tiger):
-    wi, rep, F = weld(tiger.neutral, tiger.faces)
+    wi, rep, F = weld_vertices(tiger.neutral, tiger.faces)
     V = len(rep)
     region = np.argsort(np.linalg.norm(tiger.neutral[rep] - tiger.neutral[rep][100], axis=1))[:60]
     rng = np.random.default_rng(0)

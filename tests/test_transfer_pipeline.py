@@ -11,7 +11,7 @@ from core.transfer import (TransferSettings, feature_lines_near, line_edges, nai
                            transfer_sequence)
 from core.transfer import DetailTransfer, FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence
 from core.transfer import details
-from core.geometry import first_neighbour, vertex_face_incidence, vertex_frames, weld
+from core.geometry import first_neighbour, vertex_face_incidence, vertex_frames, weld_vertices
 from core.transfer.details import _FramedSequence
 from tests.conftest import LAYOUTS, PERFORMANCES
 
@@ -121,7 +121,7 @@ def test_ict_to_rocketbox_close_to_naive_per_frame_transfer(ict, rocketbox, take
 
 
 def test_feature_lines_from_seams_near_markers(ict):
-    wi, rep, Fw = weld(ict.neutral, ict.faces)
+    wi, rep, Fw = weld_vertices(ict.neutral, ict.faces)
     li = read_layout(LAYOUTS / "ict_facekit.json", ict)
     loops = seam_loops(ict.faces, wi, Fw)
     pts = li.select(["Leye_Up", "Reye_Up", "Mouth_Up", "Mouth_Down"]).points(ict.neutral)
@@ -145,7 +145,7 @@ def test_other_topology_needs_landmarks(ict, rocketbox):
 @pytest.mark.slow
 def test_nonrigid_icp_registration_residual(ict, rocketbox, ict_rocketbox):
     src, tgt = ict_rocketbox
-    wi, rep, Fw = weld(ict.neutral, ict.faces)
+    wi, rep, Fw = weld_vertices(ict.neutral, ict.faces)
     coarse = register(ict.neutral[rep], Fw, rocketbox.neutral, rocketbox.faces, wi[src], tgt, icp=False)
     reg = register(ict.neutral[rep], Fw, rocketbox.neutral, rocketbox.faces, wi[src], tgt)
     assert reg.report["surface_distance_mm_median"] < 0.5 * coarse.report["surface_distance_mm_median"]
@@ -164,7 +164,7 @@ def test_nonrigid_icp_registration_residual(ict, rocketbox, ict_rocketbox):
 def tiger_detail_case(tiger):
     """Welded tiger: a factored smoothed source, its coating, a deformed target with its own
     factored smoothed frames (3 bases), all as transfer_sequence builds them."""
-    wi, rep, Fw = weld(tiger.neutral, tiger.faces)
+    wi, rep, Fw = weld_vertices(tiger.neutral, tiger.faces)
     N = tiger.neutral[rep]
     V = len(N)
     rng = np.random.default_rng(7)

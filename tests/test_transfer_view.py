@@ -111,7 +111,7 @@ def test_drag_becomes_a_point_constraint_and_apply_edits_the_window(view, tiger_
     # the same edit by core's editor directly (the view only glues): identical weights
     e = view.editor
     ed = LargeScaleEditor(e.transfer, np.asarray(res.neutral)[e.rep], np.asarray(res.deltas)[:, e.rep], res.weights)
-    direct = ed.edit([PointConstraint(f, int(e.welded[v]), tuple(target))], 0.0, 1.0, 100.0, (16, 24))
+    direct = ed.edit([PointConstraint(f, int(e.welded_index[v]), tuple(target))], 0.0, 1.0, 100.0, (16, 24))
     np.testing.assert_allclose(direct.weights, W1, rtol=0, atol=1e-12)
 
     # a second edit with λ_b > 0 edits the bases (every frame using them moves) but not the

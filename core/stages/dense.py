@@ -302,7 +302,7 @@ class DenseOutput(Stage):
 
             reg, w = r.registration, r.welded
             # the face skin the motion is carried from: the registration's crop, or the face crop
-            crop = reg.crop if reg.crop is not None else face_crop(w.welded, w.faces, w.index[inputs["register"]["landmarks"][0]])
+            crop = reg.crop if reg.crop is not None else face_crop(w.welded_neutral, w.faces, w.index[inputs["register"]["landmarks"][0]])
             trusted = crop[w.index]
             carry = carry_back(r.neutral, r.faces, target.neutral, trusted, target_faces=target.faces)
             rig = Rig(target.neutral, target.faces, carry.apply(deltas), names, target.uvs, "m", name)

@@ -22,10 +22,10 @@ import numpy as np
 
 from ..progress import ProgressFn, report
 
-from ..geometry import weld
+from ..geometry import weld_vertices
 from ._mesh import bbox_size, check_faces, check_positions
 from .bases import BasisSelection, gram_from_factored, nnls_gram, select_bases
-from .correspond import Registration, landmarks_from_shapes, register, similarity_align
+from .correspond import Registration, landmarks_from_shapes, register
 from .decompose import (FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence,
                         laplacian_coating, laplacian_operator, taubin_smooth)
 from .deformation import DeformationTransfer, deformation_gradients, deformation_transfer, line_gradients
@@ -39,7 +39,7 @@ __all__ = [
     "TaubinFilter", "taubin_smooth", "laplacian_operator", "laplacian_coating", "PoissonReconstructor",
     "FactoredSequence", "factor_sequence", "nnls_gram", "select_bases", "BasisSelection",
     "DeformationTransfer", "deformation_transfer", "deformation_gradients", "line_gradients",
-    "DetailTransfer", "register", "Registration", "similarity_align", "landmarks_from_shapes",
+    "DetailTransfer", "register", "Registration", "landmarks_from_shapes",
     "line_edges", "hole_loops", "seam_loops", "loops_near", "marker_loop", "feature_lines_near",
 ]
 
@@ -203,7 +203,8 @@ class WeldedSource:
         return len(self.rep)
 
     @property
-    def welded(self) -> np.ndarray:
+    def welded_neutral(self) -> np.ndarray:
+        """(V_w, 3) the source reference's welded positions."""
         return self.neutral[self.rep]
 
     def unweld(self, a: np.ndarray) -> np.ndarray:
@@ -215,7 +216,7 @@ def weld_source(source_ref, source_faces) -> WeldedSource:
     """Check and weld the source reference (see :class:`WeldedSource`)."""
     S0 = check_positions(source_ref, "source_ref")
     Fs = check_faces(source_faces, len(S0), "source_faces")
-    wi, rep, Fw = weld(S0, Fs)
+    wi, rep, Fw = weld_vertices(S0, Fs)
     return WeldedSource(S0, Fs, wi, rep, Fw)
 
 
@@ -238,7 +239,7 @@ def register_target(src: WeldedSource, target_ref, target_faces, settings: Trans
     if src_lm.size and (src_lm.min() < 0 or src_lm.max() >= Vs):
         raise ValueError(f"settings.landmarks: source vertex ids must lie in [0, {Vs})")
     report(progress, 0.0, "registration (landmarks + non-rigid ICP)")
-    reg = register(src.welded, src.faces, T0in, Ft_in, src.index[src_lm], tgt_pts, settings.icp_steps,
+    reg = register(src.welded_neutral, src.faces, T0in, Ft_in, src.index[src_lm], tgt_pts, settings.icp_steps,
                    settings.max_distance, settings.icp, crop=settings.crop, crop_index=src.index, progress=progress)
     report(progress, 1.0, "registration done")
     return reg.resampled, reg
@@ -273,7 +274,7 @@ def decompose_sequence(src: WeldedSource, source_seq, settings: TransferSettings
     block = np.concatenate([fac.base[:, :, None], fac.basis.transpose(1, 2, 0)], axis=2)
     block = filt.apply(block.reshape(V, 3 * (r + 1))).reshape(V, 3, r + 1)
     smooth = FactoredSequence(block[:, :, 0].copy(), fac.coeffs, block[:, :, 1:].transpose(2, 0, 1).copy(), fac.residual_rms)
-    poisson = PoissonReconstructor(src.faces, V, settings.laplacian, src.welded if settings.laplacian == "cotangent" else None,
+    poisson = PoissonReconstructor(src.faces, V, settings.laplacian, src.welded_neutral if settings.laplacian == "cotangent" else None,
                                    settings.detail_screening)
     # eq. 1 on base and basis: ξ = L (S - S̄), linear, one sparse product for the whole block
     detail = np.concatenate([(fac.base - smooth.base)[None], fac.basis - smooth.basis])  # (r+1, V, 3)
@@ -321,7 +322,7 @@ def transfer_details(src: WeldedSource, dec: Decomposition, sel: BasisSelection,
     if not settings.details:
         return None
     Tw0 = np.asarray(target_welded, dtype=np.float64)
-    gain = settings.detail_gain if settings.detail_gain is not None else bbox_size(Tw0) / max(bbox_size(src.welded), 1e-300)
+    gain = settings.detail_gain if settings.detail_gain is not None else bbox_size(Tw0) / max(bbox_size(src.welded_neutral), 1e-300)
     det = DetailTransfer(src.faces, dec.reconstructor, dec.smooth.base, dec.coating.base, Tw0, bt.target_smooth_ref, gain,
                          settings.rotate_reference_details)
     # T̄_t = T̄_0 + W_t Δ (eq. 8) as a factored sequence; details relative to the neutral
@@ -434,7 +435,7 @@ def naive_transfer(source_ref, target_ref, faces, frames, feature_edges=None, al
     """
     S0 = check_positions(source_ref, "source_ref")
     Fs = check_faces(faces, len(S0))
-    wi, rep, Fw = weld(S0, Fs)
+    wi, rep, Fw = weld_vertices(S0, Fs)
     dt = factorised or DeformationTransfer(S0[rep], np.asarray(target_ref, dtype=np.float64)[rep], Fw, feature_edges, alpha)
     fr = np.asarray(frames, dtype=np.float64)
     out = np.empty(fr.shape)

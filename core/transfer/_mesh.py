@@ -1,7 +1,7 @@
 """Private mesh helpers for the transfer package.
 
 Only what no other package needs (mesh operators others use are public in
-:mod:`core.geometry`: weld, normals, frames, incidence, cross products):
+:mod:`core.geometry`: weld_vertices, normals, frames, incidence, cross products):
 
 * :func:`to_local` / :func:`to_world` change coordinates to and from the per-vertex frames
   of :func:`core.geometry.vertex_frames` (Xu 2014 §5.1);
@@ -55,14 +55,6 @@ def to_world(frames: tuple, x: np.ndarray) -> np.ndarray:
     """Local coordinates (..., V, 3) -> world vectors ``F x`` for frames ``(t, b, n)``."""
     t, b, n = frames
     return t * x[..., 0:1] + b * x[..., 1:2] + n * x[..., 2:3]
-
-
-def components(faces: np.ndarray, n: int) -> tuple[int, np.ndarray]:
-    """Connected components of the vertex graph: (count, label per vertex)."""
-    rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
-    A = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
-    return connected_components(A, directed=False)
 
 
 class PinnedSolver:

@@ -7,8 +7,9 @@ non-rigid ICP ... The corresponding points of the remaining vertices of the sour
 obtained by searching for the closest points on the target mesh ... we resample the target
 mesh using the topology of the source mesh."
 
-1. :func:`similarity_align`: scale + rotation + translation of the source landmarks onto the
-   target landmarks (Umeyama 1991), so the non-rigid stage starts close;
+1. the similarity transform (:func:`core.geometry.procrustes`, ``scale=True``): scale + rotation
+   + translation of the source landmarks onto the target landmarks (Umeyama 1991), so the
+   non-rigid stage starts close;
 2. non-rigid ICP of the aligned source onto the target surface with the landmarks as soft
    constraints (:func:`core.geometry.nonrigid_icp`, trimesh's ``nricp_amberg`` loop made fast
    and coarse to fine, Amberg et al. 2007 — the optimal step NICP that Huang et al. 2011
@@ -35,47 +36,11 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from ..geometry import ClosestPoints, face_cross, nonrigid_icp, nricp_steps, procrustes, weld
+from ..geometry import ClosestPoints, flipped_faces, largest_component, nonrigid_icp, nricp_steps, procrustes
 from ..progress import report as report_progress
-from ._mesh import bbox_size, check_faces, check_positions, components
+from ._mesh import bbox_size, check_faces, check_positions
 
-__all__ = ["similarity_align", "Registration", "register", "resample_onto", "barycentric_map", "landmarks_from_shapes",
-           "face_crop", "flipped_triangles"]
-
-
-def similarity_align(source_points, target_points) -> tuple[float, np.ndarray, np.ndarray]:
-    r"""Least-squares similarity ``x -> s R x + t`` taking ``source_points`` onto ``target_points``.
-
-    .. math:: \min_{s, R \in SO(3), t} \sum_i \|s R p_i + t - q_i\|^2
-
-    (Umeyama 1991, closed form by SVD with the reflection fix): :func:`core.geometry.procrustes`
-    with ``scale=True``.
-
-    Returns
-    -------
-    s : float, R : (3, 3), t : (3,)
-
-    Raises
-    ------
-    ValueError
-        Fewer than 3 points or mismatched shapes.
-    """
-    return procrustes(source_points, target_points, scale=True)
-
-
-def barycentric_map(points, mesh_positions, mesh_faces):
-    """Closest point of each of ``points`` (n, 3) on a triangle mesh.
-
-    Returns
-    -------
-    triangles : (n,) int, barycentric : (n, 3), distance : (n,), closest : (n, 3)
-    """
-    import trimesh
-
-    mesh = trimesh.Trimesh(np.asarray(mesh_positions, dtype=np.float64), np.asarray(mesh_faces), process=False)
-    closest, dist, tri = trimesh.proximity.closest_point(mesh, np.asarray(points, dtype=np.float64))
-    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], closest)
-    return tri, bary, dist, closest
+__all__ = ["Registration", "register", "resample_onto", "landmarks_from_shapes", "face_crop"]
 
 
 def resample_onto(values, faces, triangles, barycentric) -> np.ndarray:
@@ -83,22 +48,6 @@ def resample_onto(values, faces, triangles, barycentric) -> np.ndarray:
     v = np.asarray(values)
     corners = v[..., np.asarray(faces)[triangles], :]  # (..., n, 3, c)
     return np.einsum("...nkc,nk->...nc", corners, barycentric)
-
-
-def flipped_triangles(reference, positions, faces, mask=None) -> int:
-    r"""Number of triangles whose normal points against the reference's (fold-overs).
-
-    .. math:: \#\{f : n_f(\text{positions}) \cdot n_f(\text{reference}) < 0\}
-
-    with un-normalised face normals; degenerate (zero-area) triangles are not counted.
-    ``mask`` (F,) bool restricts the count to some triangles. Compare against a reference in
-    the same orientation (e.g. :attr:`Registration.aligned`, the similarity-aligned source).
-    """
-    F = np.asarray(faces)
-    d = np.einsum("fi,fi->f", face_cross(np.asarray(reference, dtype=np.float64), F),
-                  face_cross(np.asarray(positions, dtype=np.float64), F))
-    flipped = d < 0
-    return int(flipped[mask].sum() if mask is not None else flipped.sum())
 
 
 def face_crop(positions, faces, landmarks, margin: float = 0.06, depth: float = 0.05,
@@ -292,7 +241,8 @@ def register(source_ref, source_faces, target_ref, target_faces, source_landmark
     then closest points. When the target lacks most of what the source head has (an animal
     head without neck, a face mask) only the source's face region takes part (``crop``):
 
-    1. the similarity ``x -> s R x + t`` from the landmarks (:func:`similarity_align`);
+    1. the similarity transform ``x -> s R x + t`` from the landmarks (Umeyama 1991,
+       :func:`core.geometry.procrustes` with ``scale=True``);
     2. non-rigid ICP of the crop's triangles onto the target's skin (its largest connected
        part, so eyeballs and whiskers never attract the face), landmarks as soft constraints;
     3. closest-point resampling of the crop's vertices within ``max_distance``, except
@@ -335,7 +285,7 @@ def register(source_ref, source_faces, target_ref, target_faces, source_landmark
     Registration; ``report`` holds, in mm, the landmark residuals, the surface distance of
     the crop's registered vertices, the projected fractions and the fold-overs
     (``flipped_triangles``: triangles of ``resampled`` whose normal flips against
-    ``aligned``'s, :func:`flipped_triangles`).
+    ``aligned``'s, :func:`core.geometry.flipped_faces`).
 
     Raises
     ------
@@ -344,8 +294,6 @@ def register(source_ref, source_faces, target_ref, target_faces, source_landmark
         a crop mask of the wrong length or ids out of range, a crop that leaves out a
         landmark or holds no whole triangle.
     """
-    import trimesh
-
     S = check_positions(source_ref, "source_ref")
     Fs = check_faces(source_faces, len(S), "source_faces")
     Tt = check_positions(target_ref, "target_ref")
@@ -365,7 +313,7 @@ def register(source_ref, source_faces, target_ref, target_faces, source_landmark
         raise ValueError("crop: expected 'auto', 'face' or 'none' (not a bool), or a mask / vertex ids")
     mask = None if word is not None else _crop_mask(crop, len(S), crop_index)
     size = bbox_size(Tt)
-    s, R, t = similarity_align(S[lm], q)
+    s, R, t = procrustes(S[lm], q, scale=True)
     aligned = s * S @ R.T + t
     target = ClosestPoints(Tt, Ft)
     max_distance = 0.02 * size if max_distance is None else float(max_distance)
@@ -421,7 +369,7 @@ def register(source_ref, source_faces, target_ref, target_faces, source_landmark
         ids = np.flatnonzero(inside)
         local = np.full(len(S), -1, np.int64)
         local[ids] = np.arange(len(ids))
-        skin = _largest_part(Tt, Ft)
+        skin = largest_component(Tt, Ft)
         target = ClosestPoints(Tt, Ft[skin])
         if icp:
             reg_in = nonrigid_icp(aligned[ids], local[Fs[fmask]], Tt, Ft[skin], local[lm], q, steps,
@@ -446,6 +394,7 @@ def register(source_ref, source_faces, target_ref, target_faces, source_landmark
     mm = 1000.0
     d_crop = dist[inside]
     in_faces = inside[Fs].all(1)
+    flipped = flipped_faces(aligned, resampled, Fs)
     report.update({
         "surface_distance_mm_median": float(np.median(d_crop) * mm),
         "surface_distance_mm_p95": float(np.percentile(d_crop, 95) * mm),
@@ -457,8 +406,8 @@ def register(source_ref, source_faces, target_ref, target_faces, source_landmark
         "crop_fraction": float(inside.mean()),
         "crop_projected_fraction": float(projected[inside].mean()),
         "kept_off_surface": int((near & ~projected).sum()),
-        "flipped_triangles": flipped_triangles(aligned, resampled, Fs),
-        "flipped_triangles_crop": flipped_triangles(aligned, resampled, Fs, in_faces),
+        "flipped_triangles": int(flipped.sum()),
+        "flipped_triangles_crop": int(flipped[in_faces].sum()),
     })
     return Registration(aligned, registered, resampled, projected, dist, lres, float(s), report,
                         None if mask is None else inside)
@@ -493,27 +442,16 @@ def _snap(reference, registered, closest, near, faces, max_rounds: int = 20):
     target flipped ~150 more triangles there (ICT -> Rocketbox: 247). Returns (positions
     (n, 3), projected (n,) bool).
     """
-    n_ref = face_cross(reference, faces)
-    was = np.einsum("fi,fi->f", n_ref, face_cross(registered, faces)) < 0
+    was = flipped_faces(reference, registered, faces)
     proj = near.copy()
     for _ in range(max_rounds):
         out = np.where(proj[:, None], closest, registered)
-        bad = (np.einsum("fi,fi->f", n_ref, face_cross(out, faces)) < 0) & ~was
+        bad = flipped_faces(reference, out, faces) & ~was
         bad &= proj[faces].any(1)
         if not bad.any():
             break
         proj[faces[bad].ravel()] = False
     return np.where(proj[:, None], closest, registered), proj
-
-
-def _largest_part(positions, faces) -> np.ndarray:
-    """(F,) bool: triangles of the largest connected part after welding seams (the skin,
-    without separate eyeballs, teeth, whiskers or jewellery)."""
-    wi, _, _ = weld(positions, faces)
-    wf = wi[faces]
-    _, label = components(wf, int(wi.max()) + 1)
-    fl = label[wf[:, 0]]
-    return fl == np.bincount(fl).argmax()
 
 
 def landmarks_from_shapes(source_deltas, source_names, target_deltas, target_names, pairs):

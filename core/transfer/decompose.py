@@ -30,8 +30,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..geometry import cotangent_laplacian, uniform_laplacian, vertex_adjacency
-from ._mesh import PinnedSolver, bbox_size, check_faces, components
+from ..geometry import cotangent_laplacian, uniform_laplacian, vertex_adjacency, vertex_components
+from ._mesh import PinnedSolver, bbox_size, check_faces
 
 __all__ = [
     "TaubinFilter",
@@ -197,7 +197,7 @@ class PoissonReconstructor:
         if screening < 0:
             raise ValueError(f"screening: expected >= 0, got {screening}")
         self.L = laplacian_operator(faces, n_vertices, kind, positions)
-        ncomp, labels = components(faces, n_vertices)
+        ncomp, labels = vertex_components(faces, n_vertices)
         self.n = n_vertices
         self.labels = labels
         self.n_components = int(ncomp)

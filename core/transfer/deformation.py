@@ -32,9 +32,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..geometry import gradient
+from ..geometry import gradient, vertex_components
 from ..geometry import cross, face_cross
-from ._mesh import PinnedSolver, bbox_size, check_faces, check_positions, components
+from ._mesh import PinnedSolver, bbox_size, check_faces, check_positions
 
 __all__ = ["triangle_frames", "deformation_gradients", "line_gradients", "DeformationTransfer", "deformation_transfer"]
 
@@ -179,7 +179,7 @@ class DeformationTransfer:
         self.reg = float(regularization) * A.diagonal().sum() / max(Lu.diagonal().sum(), 1e-300)
         self.reg_rhs = self.reg * np.asarray(Lu @ T0)  # (V, 3)
         A = (A + self.reg * Lu).tocsr()
-        ncomp, labels = components(faces, V)
+        ncomp, labels = vertex_components(faces, V)
         self.solver = PinnedSolver(A, labels, ncomp)
         self.scale = bbox_size(T0) / max(bbox_size(S0), 1e-300)
 

@@ -40,7 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..geometry import uniform_laplacian, vertex_adjacency, vertex_normals, weld
+from ..geometry import uniform_laplacian, vertex_adjacency, vertex_normals, weld_vertices
 from .decompose import PoissonReconstructor
 
 __all__ = ["region_near_curve", "region_near_points", "detail_window", "scale_details", "propagate_details",
@@ -317,7 +317,7 @@ class DetailEditor:
         if d.ndim != 3 or d.shape[1:] != (V, 3) or len(d) == 0:
             raise ValueError(f"details: expected (T, {V}, 3), got {d.shape}")
         self.details = d
-        self.wi, self.rep, self.faces = weld(self.neutral, faces)
+        self.wi, self.rep, self.faces = weld_vertices(self.neutral, faces)
         n = len(self.rep)
         self.poisson = PoissonReconstructor(self.faces, n, laplacian, self.neutral[self.rep] if laplacian == "cotangent" else None,
                                             screening)
@@ -822,7 +822,7 @@ def benchmark(n_frames: int = 1300):
 
     root = Path(__file__).resolve().parents[2]
     ict = read_rig(root / "data" / "rigs" / "ict_facekit.glb")
-    wi, rep, F = weld(ict.neutral, ict.faces)
+    wi, rep, F = weld_vertices(ict.neutral, ict.faces)
     # details: the high-pass part (shape minus its Taubin smoothing) of three real ICT shapes,
     # each with its own temporal profile — the content does not change the cost, the sizes do
     names = [n for n in ("browInnerUp_L", "noseSneer_L", "eyeSquint_R") if n in ict.names]

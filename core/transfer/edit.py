@@ -310,7 +310,7 @@ class TransferEditor:
         self.result = result
         V = len(result.neutral)
         if result.system is not None and result.welded is not None:
-            self.welded, self.rep = result.welded.index, result.welded.rep
+            self.welded_index, self.rep = result.welded.index, result.welded.rep
             self.transfer = result.system
         else:
             if source_rig is None:
@@ -320,9 +320,9 @@ class TransferEditor:
                                  f"({V} vertices, {len(result.faces)} faces), got {source_rig.n_vertices} vertices")
             s = settings or TransferSettings()
             src = weld_source(source_rig.neutral, source_rig.faces)
-            self.welded, self.rep = src.index, src.rep
-            smooth_src = TaubinFilter(src.faces, src.n, s.iterations, s.lam, s.mu).apply(src.welded)
-            edges = (line_edges([self.welded[np.asarray(ln, dtype=np.int64)] for ln in s.feature_lines], closed=True)
+            self.welded_index, self.rep = src.index, src.rep
+            smooth_src = TaubinFilter(src.faces, src.n, s.iterations, s.lam, s.mu).apply(src.welded_neutral)
+            edges = (line_edges([self.welded_index[np.asarray(ln, dtype=np.int64)] for ln in s.feature_lines], closed=True)
                      if s.feature_lines is not None else None)
             self.transfer = DeformationTransfer(smooth_src, np.asarray(result.target_smooth_ref)[self.rep], src.faces, edges,
                                                 s.alpha)
@@ -344,7 +344,7 @@ class TransferEditor:
 
     def constraint(self, spec: dict):
         """A core constraint (welded ids) from a spec in result vertex ids (see the class docstring)."""
-        w = self.welded
+        w = self.welded_index
         kind = spec.get("kind")
         if kind in ("point", "fixed"):
             return PointConstraint(int(spec["frame"]), int(w[spec["vertex"]]), tuple(float(x) for x in spec["target"]))
@@ -360,7 +360,7 @@ class TransferEditor:
         D = np.asarray(deltas, dtype=np.float64)
         editor = LargeScaleEditor(self.transfer, self.reference, D[:, self.rep], weights)
         res = editor.edit([self.constraint(s) for s in specs], lam_b, lam_w, lam_e, window)
-        return np.ascontiguousarray(res.deltas[:, self.welded]), res.weights, res
+        return np.ascontiguousarray(res.deltas[:, self.welded_index]), res.weights, res
 
     def miss_mm(self, spec: dict, deltas, weights) -> float:
         """How far (mm) the state ``(deltas, weights)`` is from a constraint, on the shown mesh."""
@@ -449,14 +449,14 @@ def benchmark(n_frames: int = 1300):
     import time
 
     from ..io.gltf import read_rig
-    from ..geometry import weld
+    from ..geometry import weld_vertices
     from .detail_edit import _reference_propagation, propagate_details
     from .decompose import taubin_smooth
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
     ict = read_rig(root / "data" / "rigs" / "ict_facekit.glb")
-    wi, rep, F = weld(ict.neutral, ict.faces)
+    wi, rep, F = weld_vertices(ict.neutral, ict.faces)
     S0 = ict.neutral[rep]
     Sb0 = taubin_smooth(S0, F)
     Tb0 = Sb0 * [1.1, 0.95, 1.0]

@@ -143,9 +143,9 @@ def feature_lines_near(positions, faces, points, radius: float) -> list:
     list of (m,) int arrays of *input* vertex ids (one representative per welded vertex), the
     form ``TransferSettings.feature_lines`` takes.
     """
-    from ..geometry import weld
+    from ..geometry import weld_vertices
 
     p = np.asarray(positions, dtype=np.float64)
-    wi, rep, wf = weld(p, faces)
+    wi, rep, wf = weld_vertices(p, faces)
     loops = seam_loops(faces, wi, wf) + hole_loops(wf)
     return [rep[ln] for ln in loops_near(loops, p[rep], points, radius)]
