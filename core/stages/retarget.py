@@ -57,7 +57,7 @@ class Take(Stage):
         report(progress, 0.1, "reading source")
         perf = read_performance(s.source, kind=s.source_kind, fps=s.source_fps or None)
         if s.mirror_source:
-            from ..controls import mirror_performance
+            from ..controls.mirror import mirror_performance
 
             perf = mirror_performance(perf)
         return {"source": perf}
@@ -522,7 +522,8 @@ class Solve(Stage):
     def run(self, inputs, s, progress=None):
         from types import SimpleNamespace
 
-        from ..controls import default_table, filter_weights, merge_table, resolve
+        from ..controls.filters import filter_weights
+        from ..controls.table import default_table, merge_table, resolve
 
         m = METHODS[s.method]
         names = list(inputs["shapes"]["rig"].names)
@@ -535,7 +536,7 @@ class Solve(Stage):
         W = np.asarray(out["weights"], dtype=np.float64)
         info = dict(out.get("info", {}))
         if len(ctl.cancel) and m.name not in ("lsq", "names"):
-            from ..controls import cancel_pairs
+            from ..controls.pairs import cancel_pairs
 
             def again(z):
                 held = z if zero is None else z | zero[None]
