@@ -36,13 +36,15 @@ equations and references; this package re-exports their public names.
 
 from __future__ import annotations
 
-from .filters import FILTERS, filter_weights, gaussian_response, lowpass_alpha, lowpass_response, one_euro, one_euro_cutoff
+from .filters import (FILTERS, filter_weights, gaussian_response, lowpass_alpha, lowpass_response, one_euro,
+                      one_euro_cutoff)
 from .keys import INTERPOLATIONS, Keys, evaluate_sampler, reduce_keys
 from .mirror import mirror_edit, mirror_markers, mirror_performance, mirror_weights
 from .pairs import (cancel_clamp, cancel_conflicts, cancel_pairs, pair_indices, suggested_cancel_pairs, symmetry_matrix,
                     symmetry_pairs)
 from .sides import mirror_map, mirror_pairs
-from .table import FORMAT, SHAPE_FIELDS, Controls, default_table, merge_table, read_table, remap, resolve, validate_table, write_table
+from .table import (FORMAT, SHAPE_FIELDS, Controls, default_table, merge_table, read_table, remap, resolve, validate_table,
+                    write_table)
 
 __all__ = [
     "SHAPE_FIELDS", "FORMAT", "Controls", "default_table", "validate_table", "read_table", "write_table",
