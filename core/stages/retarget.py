@@ -522,8 +522,7 @@ class Solve(Stage):
     def run(self, inputs, s, progress=None):
         from types import SimpleNamespace
 
-        from ..controls.filters import filter_weights
-        from ..controls.table import default_table, merge_table, resolve
+        from ..controls import default_table, filter_weights, merge_table, resolve
 
         m = METHODS[s.method]
         names = list(inputs["shapes"]["rig"].names)
@@ -536,7 +535,7 @@ class Solve(Stage):
         W = np.asarray(out["weights"], dtype=np.float64)
         info = dict(out.get("info", {}))
         if len(ctl.cancel) and m.name not in ("lsq", "names"):
-            from ..controls.pairs import cancel_pairs
+            from ..controls import cancel_pairs
 
             def again(z):
                 held = z if zero is None else z | zero[None]
