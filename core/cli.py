@@ -50,7 +50,7 @@ def _settings(args) -> dict:
     """The pipeline settings of a command's flags; ``--controls FILE`` reads the per-shape table."""
     settings = {k: v for k, v in vars(args).items() if k not in OUTPUT_OPTIONS}
     if getattr(args, "controls_file", None):
-        from .controls import read_table
+        from .controls.table import read_table
 
         settings["controls"] = read_table(args.controls_file)
     return settings

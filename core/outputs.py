@@ -137,7 +137,7 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
     written, paths = [], []
     reduced = None
     if keys:
-        from .controls import reduce_keys
+        from .controls.keys import reduce_keys
 
         reduced = reduce_keys(W, st.fps, keys_tolerance, {"linear": "LINEAR", "cubic": "CUBICSPLINE"}[keys],
                               names=rig.names)

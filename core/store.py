@@ -28,7 +28,7 @@ settings_history  shot_id, version, author, at, stage, setting, old, new (JSON);
                   stage ``files`` (old/new: content hashes)
 edits             shot_id, version, author, at, editor (``spacetime``/``transfer``/``detail``),
                   op (add/undo/redo/remove), position (index in ``done`` added at/taken from),
-                  edit (JSON): :func:`replay_edits` rebuilds every done/undone list from these rows
+                  edit (JSON): :func:`core.changes.replay_edits` rebuilds every done/undone list from these rows
 notes             shot_id, note_id (``n1``, ``n2`` … per shot), frame, frame_end (NULL: one frame),
                   author, text, resolved (0/1), created, updated
 participants      shot_id, name, first_seen, last_seen
@@ -64,7 +64,8 @@ what) when someone else, since that version, changed the same setting or file ro
 value, changed the same note, or did anything but add to the same edit list (undo/redo/remove
 act on the list as the writer saw it). A change whose result already holds (a setting set to its
 value, a resolved note resolved) is a no-op: ``Applied.change`` is None and no version is made.
-Nothing is dropped silently.
+Nothing is dropped silently. These rules, and parsing, applying, describing and replaying a change,
+are the pure functions of :mod:`core.changes`; this module keeps SQLite, the files and persistence.
 
 Security of the data directory: every path the store builds is checked to stay inside it
 (:meth:`Store._path`: no ``..``, no absolute path, no separator in a name, no symbolic link
@@ -81,7 +82,6 @@ Nothing here imports panel or the pipeline.
 from __future__ import annotations
 
 import copy
-import difflib
 import hashlib
 import json
 import math
@@ -101,7 +101,9 @@ from typing import Callable, Iterable, NamedTuple, Optional
 
 import platformdirs
 
-from .shot import EDITORS, EditHistory, FileRef, Shot, file_hash
+from .changes import (CONTENT_HASH, apply_change, canonical_json, checked_sha, checked_text, conflict_reason, describe,
+                      drop_noops, initial_edit_rows, normal_note, parse_change, replay_changes, safe_name)
+from .shot import FileRef, Shot, file_hash
 
 #: the database schema this program writes (see the module docstring)
 SCHEMA_VERSION = 2
@@ -115,17 +117,9 @@ MAX_UPLOAD = 200 * 2**20
 EXPORT_FORMAT = 1
 EXPORT_KIND = "face-retarget-review"
 CHUNK = 1 << 20
-MAX_NAME = 200          # characters of an author, a title or a file name
-MAX_TEXT = 20_000       # characters of a note
-MAX_CHANGE = 4 * 2**20  # bytes of one change as JSON
 MAX_JSON = 64 * 2**20   # bytes of a JSON member of an archive
-NOTE_OPS = ("add", "resolve", "reopen", "edit")
-EDIT_OPS = ("add", "undo", "redo", "remove")
-KINDS = ("settings", "files", "edit", "frame", "note")
 
-_SHA = re.compile(r"[0-9a-f]{32}\Z")
 _SHOT_ID = re.compile(r"[A-Za-z0-9_-]{8,64}\Z")
-_ROLE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}\Z")
 
 
 # -- errors and results --------------------------------------------------------------------------
@@ -179,60 +173,11 @@ def data_dir(path=None, create: bool = True) -> Path:
     return p
 
 
-def safe_name(name, default: str = "file") -> str:
-    """A user-given file name reduced to a plain name: its last component (``/`` and ``\\``
-    both separate), printable characters only, at most :data:`MAX_NAME` characters (the
-    suffix kept); ``""``, ``.`` and ``..`` become ``default``. Metadata only: files are stored
-    under their hash."""
-    n = str(name or "").replace("\\", "/").split("/")[-1]
-    n = "".join(c for c in n if c.isprintable()).strip()
-    if n in ("", ".", ".."):
-        return default
-    if len(n) > MAX_NAME:
-        suffix = Path(n).suffix[:20]
-        n = n[:MAX_NAME - len(suffix)] + suffix
-    return n
-
-
 def _member_name(name) -> str:
     """A folder member's name, refused (not changed: the folder's hash covers it) when unsafe."""
     if not isinstance(name, str) or safe_name(name, default="") != name:
         raise UnsafePath(f"folder member name {name!r}: expected a plain file name (no path, no control characters)")
     return name
-
-
-def _text(value, what: str, limit: int = MAX_NAME, allow_empty: bool = False) -> str:
-    if not isinstance(value, str):
-        raise ValueError(f"{what}: expected text, got {type(value).__name__}")
-    v = value.strip()
-    if not v and not allow_empty:
-        raise ValueError(f"{what}: must not be empty")
-    if len(v) > limit:
-        raise ValueError(f"{what}: {len(v)} characters, at most {limit}")
-    if any(not c.isprintable() and c not in "\n\t" for c in v):
-        raise ValueError(f"{what}: contains control characters")
-    return v
-
-
-def _sha(value, what: str = "file") -> str:
-    if not isinstance(value, str) or not _SHA.match(value):
-        raise ValueError(f"{what}: {value!r} is not a content hash (32 lowercase hex digits, core.shot.file_hash)")
-    return value
-
-
-def _dumps(value) -> str:
-    return json.dumps(value, sort_keys=True, allow_nan=False, separators=(",", ":"))
-
-
-def _same(a, b) -> bool:
-    """Equal as JSON (so ``True`` differs from ``1``)."""
-    return _dumps(a) == _dumps(b)
-
-
-def _int(value, what: str, low: int = 0) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ValueError(f"{what}: expected an integer >= {low}, got {value!r}")
-    return int(value)
 
 
 def _chunks(data) -> Iterable[bytes]:
@@ -376,336 +321,6 @@ def _migrate_2(db: sqlite3.Connection) -> None:
 MIGRATIONS: dict = {1: _migrate_1, 2: _migrate_2}
 
 
-# -- changes: pure functions on a Shot -------------------------------------------------------------
-def _did_you_mean(word: str, options) -> str:
-    close = difflib.get_close_matches(str(word), [str(o) for o in options], n=3)
-    return f"; did you mean {', '.join(map(repr, close))}?" if close else ""
-
-
-def _parse(change: dict, shot: Shot) -> dict:
-    """Check a change's shape and normalise it (settings by stage, indices non-negative later).
-
-    Raises ValueError naming the field that is wrong."""
-    if not isinstance(change, dict):
-        raise ValueError(f"change: expected a dict, got {type(change).__name__}")
-    kind = change.get("kind")
-    if kind not in KINDS:
-        raise ValueError(f"change: unknown kind {kind!r}; expected one of {KINDS}" + _did_you_mean(kind, KINDS))
-    try:
-        size = len(_dumps(change))
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"change: not plain JSON data ({e})") from None
-    if size > MAX_CHANGE:
-        raise ValueError(f"change: {size} bytes as JSON, at most {MAX_CHANGE}")
-    if kind == "settings":
-        values = change.get("values")
-        if not isinstance(values, dict) or not values:
-            raise ValueError("settings change: 'values' must be a non-empty {stage: {setting: value}} (or {setting: value})")
-        out: dict = {}
-        for key, val in values.items():
-            if key in shot.settings and isinstance(val, dict):
-                items = [(key, k, v) for k, v in val.items()]
-            else:
-                owners = [st for st, d in shot.settings.items() if key in d]
-                if len(owners) != 1:
-                    known = sorted({k for d in shot.settings.values() for k in d} | set(shot.settings))
-                    what = "is in several stages; give {stage: {setting: value}}" if owners else "is not a setting of this shot"
-                    raise ValueError(f"settings change: {key!r} {what}" + ("" if owners else _did_you_mean(key, known)))
-                items = [(owners[0], key, val)]
-            for stage, k, v in items:
-                if k not in shot.settings[stage]:
-                    raise ValueError(f"settings change: {stage}.{k} is not a setting of this shot"
-                                     + _did_you_mean(k, shot.settings[stage]))
-                out.setdefault(stage, {})[k] = copy.deepcopy(v)
-        return {"kind": "settings", "values": out}
-    if kind == "files":
-        values = change.get("values")
-        if not isinstance(values, dict) or not values:
-            raise ValueError("files change: 'values' must be a non-empty {role: content hash or None}")
-        out = {}
-        for role, sha in values.items():
-            if not isinstance(role, str) or not _ROLE.match(role):
-                raise ValueError(f"files change: {role!r} is not a file role (e.g. 'source', 'target_rig')")
-            if isinstance(sha, dict):  # as recorded: {"sha", "path"}
-                sha = {"sha": _sha(sha.get("sha"), f"files change: {role}"), "path": safe_name(sha.get("path"))}
-            elif sha is not None:
-                sha = _sha(sha, f"files change: {role}")
-            out[role] = sha
-        return {"kind": "files", "values": out}
-    if kind == "frame":
-        return {"kind": "frame", "frame": _int(change.get("frame"), "frame change: frame")}
-    if kind == "edit":
-        editor, op = change.get("editor"), change.get("op")
-        if editor not in EDITORS:
-            raise ValueError(f"edit change: unknown editor {editor!r}; expected one of {sorted(EDITORS)}"
-                             + _did_you_mean(editor, EDITORS))
-        if op not in EDIT_OPS:
-            raise ValueError(f"edit change: unknown op {op!r}; expected one of {EDIT_OPS}")
-        out = {"kind": "edit", "editor": editor, "op": op}
-        if op == "add":
-            if not isinstance(change.get("edit"), dict):
-                raise ValueError("edit change: op 'add' needs 'edit', a dict (the edit as the editor takes it)")
-            out["edit"] = copy.deepcopy(change["edit"])
-        if op == "remove":
-            index = change.get("index")
-            if isinstance(index, bool) or not isinstance(index, int):
-                raise ValueError(f"edit change: op 'remove' needs 'index', an integer, got {index!r}")
-            out["index"] = index
-        return out
-    # note
-    op = change.get("op")
-    if op not in NOTE_OPS:
-        raise ValueError(f"note change: unknown op {op!r}; expected one of {NOTE_OPS}")
-    out = {"kind": "note", "op": op}
-    if op != "add":
-        if not isinstance(change.get("note_id"), str):
-            raise ValueError(f"note change: op {op!r} needs 'note_id'")
-        out["note_id"] = change["note_id"]
-    elif "note_id" in change:  # as recorded
-        out["note_id"] = _text(change["note_id"], "note change: note_id", 32)
-    if op in ("add", "edit"):
-        fields = [f for f in ("frame", "frame_end", "text") if f in change]
-        if op == "add" and ("frame" not in change or "text" not in change):
-            raise ValueError("note change: op 'add' needs 'frame' and 'text'")
-        if op == "edit" and not fields:
-            raise ValueError("note change: op 'edit' needs one of 'frame', 'frame_end', 'text'")
-        if "frame" in change:
-            out["frame"] = _int(change["frame"], "note change: frame")
-        if "frame_end" in change:
-            out["frame_end"] = None if change["frame_end"] is None else _int(change["frame_end"], "note change: frame_end")
-        if "text" in change:
-            out["text"] = _text(change["text"], "note change: text", MAX_TEXT)
-        if op == "add":
-            out.setdefault("frame_end", None)
-    return out
-
-
-def _note(shot: Shot, note_id: str) -> Optional[dict]:
-    return next((n for n in shot.notes if isinstance(n, dict) and n.get("id") == note_id), None)
-
-
-def _drop_noops(ch: dict, shot: Shot) -> Optional[dict]:
-    """``ch`` without the parts whose result already holds in ``shot``; None when nothing is left."""
-    kind = ch["kind"]
-    if kind == "settings":
-        left = {st: {k: v for k, v in vals.items() if not _same(shot.settings[st][k], v)} for st, vals in ch["values"].items()}
-        left = {st: vals for st, vals in left.items() if vals}
-        return {**ch, "values": left} if left else None
-    if kind == "files":
-        def current(role):
-            return shot.files[role].sha if role in shot.files else None
-        left = {r: v for r, v in ch["values"].items() if current(r) != (v["sha"] if isinstance(v, dict) else v)}
-        return {**ch, "values": left} if left else None
-    if kind == "frame":
-        return None if shot.frame == ch["frame"] else ch
-    if kind == "note" and ch["op"] != "add":
-        n = _note(shot, ch["note_id"])
-        if n is None:
-            return ch  # refused by _apply with the reason
-        if ch["op"] in ("resolve", "reopen"):
-            return None if bool(n.get("resolved")) == (ch["op"] == "resolve") else ch
-        left = {f: ch[f] for f in ("frame", "frame_end", "text") if f in ch and not _same(n.get(f), ch[f])}
-        return {**{k: v for k, v in ch.items() if k not in ("frame", "frame_end", "text")}, **left} if left else None
-    return ch
-
-
-def describe(change: dict) -> str:
-    """A change in words, e.g. ``set solve.alpha to 0.05``, ``undid the last spacetime edit``."""
-    kind = change.get("kind")
-    if kind == "settings":
-        return "set " + ", ".join(f"{st}.{k} to {json.dumps(v)}" for st, vals in change["values"].items() for k, v in vals.items())
-    if kind == "files":
-        parts = []
-        for role, v in change["values"].items():
-            if v is None:
-                parts.append(f"removed the {role} file")
-            else:
-                sha, name = (v["sha"], v.get("path")) if isinstance(v, dict) else (v, None)
-                parts.append(f"set the {role} file to {name + ' ' if name else ''}({sha[:12]}…)")
-        return ", ".join(parts)
-    if kind == "frame":
-        return f"moved the review to frame {change['frame']}"
-    if kind == "edit":
-        e, op = change["editor"], change["op"]
-        return {"add": f"added a {e} edit", "undo": f"undid the last {e} edit", "redo": f"redid a {e} edit",
-                "remove": f"removed {e} edit {change.get('index')}"}[op]
-    if kind == "note":
-        nid = change.get("note_id", "")
-        if change["op"] == "add":
-            return f"added note {nid} at frame {change.get('frame')}".replace("note  ", "a note ")
-        return {"resolve": f"resolved note {nid}", "reopen": f"reopened note {nid}", "edit": f"edited note {nid}"}[change["op"]]
-    if kind in ("create", "import"):
-        return f"{'created' if kind == 'create' else 'imported'} the shot"
-    return str(kind)
-
-
-def _conflict(mine: dict, theirs: dict) -> Optional[str]:
-    """What ``mine`` (made before ``theirs`` was applied) and ``theirs`` both changed, when that
-    stops ``mine`` from being rebased over it; None when it can be."""
-    k, tk = mine["kind"], theirs.get("kind")
-    if k != tk:
-        return None
-    if k == "settings":
-        both = [f"{st}.{s}" for st, vals in mine["values"].items() for s, v in vals.items()
-                if s in theirs["values"].get(st, {}) and not _same(theirs["values"][st][s], v)]
-        return f"{', '.join(both)} changed" if both else None
-    if k == "files":
-        both = [r for r, v in mine["values"].items() if r in theirs["values"] and not _same(theirs["values"][r], v)]
-        return f"the {', '.join(both)} file changed" if both else None
-    if k == "edit" and mine["editor"] == theirs["editor"] and not (mine["op"] == "add" and theirs["op"] == "add"):
-        return f"the {mine['editor']} edit list changed"
-    if k == "note" and mine["op"] != "add" and theirs.get("note_id") == mine["note_id"]:
-        return f"note {mine['note_id']} changed"
-    return None
-
-
-def _normal_note(n, i: int, author: str, at: float, taken: set) -> dict:
-    """A note of a document as the store keeps it (id, frame, frame_end, author, text, resolved,
-    created, updated), from whatever subset a shot file carries."""
-    if not isinstance(n, dict):
-        raise ValueError(f"shot: notes[{i}]: expected a dict, got {type(n).__name__}")
-    nid = n.get("id")
-    if not isinstance(nid, str) or not nid or len(nid) > 32 or nid in taken:
-        nid = _next_note_id(taken)
-    taken.add(nid)
-    frame = _int(n.get("frame", 0), f"shot: notes[{i}].frame")
-    frame_end = n.get("frame_end")
-    if frame_end is not None:
-        frame_end = _int(frame_end, f"shot: notes[{i}].frame_end", frame)
-    created = n.get("created", at)
-    created = float(created) if isinstance(created, (int, float)) and not isinstance(created, bool) else at
-    updated = n.get("updated", created)
-    updated = float(updated) if isinstance(updated, (int, float)) and not isinstance(updated, bool) else created
-    return {**n, "id": nid, "frame": frame, "frame_end": frame_end,
-            "author": _text(str(n.get("author") or author), f"shot: notes[{i}].author"),
-            "text": _text(str(n.get("text", "")), f"shot: notes[{i}].text", MAX_TEXT, allow_empty=True),
-            "resolved": bool(n.get("resolved", False)), "created": created, "updated": updated}
-
-
-def _next_note_id(taken) -> str:
-    i = len(taken) + 1
-    while f"n{i}" in taken:
-        i += 1
-    return f"n{i}"
-
-
-def _apply(shot: Shot, ch: dict, author: str, at: float, file_name: Callable[[str], str] = lambda sha: "") -> tuple:
-    """Apply a parsed change to ``shot`` *in place* (callers pass a document they just parsed and
-    drop it when this raises): ``(shot, change as recorded, effects)``.
-
-    Effects are the rows of the derived tables: ``settings`` [(stage, setting, old, new)],
-    ``edits`` [(editor, op, position, edit)], ``notes`` [note], ``files`` [(role, sha or None, path)].
-    Deterministic given the recorded change (note ids, file paths and indices are in it), so
-    the changes log replays. Raises ValueError when the change cannot apply to this shot."""
-    new = shot
-    rec = copy.deepcopy(ch)
-    fx: dict = {"settings": [], "edits": [], "notes": [], "files": []}
-    kind = ch["kind"]
-    if kind == "settings":
-        for st, vals in ch["values"].items():
-            for k, v in vals.items():
-                fx["settings"].append((st, k, new.settings[st][k], v))
-                new.settings[st][k] = copy.deepcopy(v)
-    elif kind == "files":
-        for role, v in ch["values"].items():
-            old = new.files[role].sha if role in new.files else None
-            if v is None:
-                if role not in new.files:
-                    raise ValueError(f"files change: the shot has no {role} file to remove")
-                del new.files[role]
-                fx["files"].append((role, None, None))
-            else:
-                sha, path = (v["sha"], v["path"]) if isinstance(v, dict) else (v, safe_name(file_name(v)))
-                new.files[role] = FileRef(path, sha)
-                rec["values"][role] = {"sha": sha, "path": path}
-                fx["files"].append((role, sha, path))
-            fx["settings"].append(("files", role, old, None if v is None else rec["values"][role]["sha"]))
-    elif kind == "frame":
-        new.frame = ch["frame"]
-    elif kind == "edit":
-        e, op = ch["editor"], ch["op"]
-        hist = new.edits.setdefault(e, EditHistory())
-        if op == "add":
-            fx["edits"].append((e, op, len(hist.done), ch["edit"]))
-            hist.add(ch["edit"])
-        elif op == "undo":
-            if not hist.done:
-                raise ValueError(f"edit change: nothing to undo in the {e} edits")
-            fx["edits"].append((e, op, len(hist.done) - 1, hist.done[-1]))
-            hist.undo()
-        elif op == "redo":
-            if not hist.undone:
-                raise ValueError(f"edit change: nothing to redo in the {e} edits")
-            fx["edits"].append((e, op, len(hist.done), hist.undone[-1]))
-            hist.redo()
-        else:
-            n = len(hist.done)
-            if not -n <= ch["index"] < n:
-                raise ValueError(f"edit change: {e} edit {ch['index']} does not exist (there are {n})")
-            index = ch["index"] % n
-            rec["index"] = index
-            fx["edits"].append((e, op, index, hist.remove(index)))
-    else:  # note
-        op = ch["op"]
-        if op == "add":
-            taken = {n.get("id") for n in new.notes if isinstance(n, dict)}
-            nid = ch.get("note_id") or _next_note_id(taken)
-            if nid in taken:
-                raise ValueError(f"note change: note {nid} exists already")
-            if ch["frame_end"] is not None and ch["frame_end"] < ch["frame"]:
-                raise ValueError(f"note change: frame_end {ch['frame_end']} is before frame {ch['frame']}")
-            note = {"id": nid, "frame": ch["frame"], "frame_end": ch["frame_end"], "author": author, "text": ch["text"],
-                    "resolved": False, "created": at, "updated": at}
-            new.notes.append(note)
-            rec["note_id"] = nid
-        else:
-            note = _note(new, ch["note_id"])
-            if note is None:
-                ids = [n.get("id") for n in new.notes if isinstance(n, dict)]
-                raise ValueError(f"note change: no note {ch['note_id']!r} in this shot" + _did_you_mean(ch["note_id"], ids))
-            if op in ("resolve", "reopen"):
-                note["resolved"] = op == "resolve"
-            else:
-                for f in ("frame", "frame_end", "text"):
-                    if f in ch:
-                        note[f] = ch[f]
-                if note.get("frame_end") is not None and note["frame_end"] < note["frame"]:
-                    raise ValueError(f"note change: frame_end {note['frame_end']} is before frame {note['frame']}")
-            note["updated"] = at
-        fx["notes"].append(copy.deepcopy(note))
-    return new, rec, fx
-
-
-def replay_edits(rows) -> dict:
-    """The edit lists ``{editor: EditHistory}`` that the ``edits`` rows (in order; dicts with
-    editor, op, position, edit — :meth:`Store.edit_history`) produce."""
-    out = {e: EditHistory() for e in EDITORS}
-    for r in rows:
-        h = out[r["editor"]]
-        if r["op"] == "add":
-            h.add(r["edit"])
-        elif r["op"] == "undo":
-            h.undo()
-        elif r["op"] == "redo":
-            h.redo()
-        else:
-            h.remove(r["position"])
-    return out
-
-
-def _initial_edit_rows(shot: Shot) -> list:
-    """Rows that build a document's existing edit lists: its done edits added, its redo stack
-    added (most recently undone last) and undone."""
-    rows = []
-    for e in EDITORS:
-        h = shot.edits.get(e, EditHistory())
-        for i, ed in enumerate(h.done + h.undone[::-1]):
-            rows.append((e, "add", i, ed))
-        for j in range(len(h.undone)):
-            rows.append((e, "undo", len(h.done) + len(h.undone) - 1 - j, h.undone[j]))
-    return rows
-
-
 # -- the store ---------------------------------------------------------------------------------------
 class Store:
     """The review store of one data directory (see the module docstring).
@@ -793,7 +408,7 @@ class Store:
         return path
 
     def _blob(self, sha: str) -> Path:
-        return self._path("files", _sha(sha)[:2], sha)
+        return self._path("files", checked_sha(sha)[:2], sha)
 
     def _clean_tmp(self, age: float = 86400.0) -> None:
         """Remove uploads abandoned more than ``age`` seconds ago (a crashed process's)."""
@@ -961,7 +576,7 @@ class Store:
         return sha
 
     def _put_folder(self, members: dict, name: str, expect: Optional[str] = None) -> str:
-        members = {_member_name(k): _sha(v, f"folder member {k}") for k, v in members.items()}
+        members = {_member_name(k): checked_sha(v, f"folder member {k}") for k, v in members.items()}
         sha = _folder_hash(members)
         if expect is not None and sha != expect:
             raise ValueError(f"folder {name}: its members hash to {sha}, not {expect}")
@@ -981,7 +596,7 @@ class Store:
 
     def file_info(self, sha: str) -> Optional[dict]:
         """``{"sha", "kind", "size", "names", "members"}`` of a stored file (None if not stored)."""
-        _sha(sha)
+        checked_sha(sha)
         with self._read() as db:
             row = db.execute("SELECT kind, size FROM files WHERE sha = ?", (sha,)).fetchone()
             if row is None:
@@ -1012,7 +627,7 @@ class Store:
         """
         sha = ref.sha if isinstance(ref, FileRef) else (ref or {}).get("sha")
         path = ref.path if isinstance(ref, FileRef) else (ref or {}).get("path", "")
-        if not isinstance(sha, str) or not _SHA.match(sha):
+        if not isinstance(sha, str) or not CONTENT_HASH.match(sha):
             if strict:
                 raise ValueError(f"shot: {role} file {path!r}: {sha!r} is not a content hash")
             return None
@@ -1078,13 +693,13 @@ class Store:
         Raises ValueError for a malformed shot, title or author.
         """
         shot = _as_shot(shot)
-        author = _text(author or "anonymous", "author")
-        title = _text(title or "untitled", "title")
+        author = checked_text(author or "anonymous", "author")
+        title = checked_text(title or "untitled", "title")
         at = time.time()
         taken: set = set()
-        shot.notes = [_normal_note(n, i, author, at, taken) for i, n in enumerate(shot.notes)]
+        shot.notes = [normal_note(n, i, author, at, taken) for i, n in enumerate(shot.notes)]
         for role, ref in shot.files.items():
-            _sha(ref.sha, f"shot: files.{role}")
+            checked_sha(ref.sha, f"shot: files.{role}")
             if import_files and not self.has_file(ref.sha) and Path(ref.path).exists():
                 # read only when the recorded hash matches: a shot cannot make the store copy a file it
                 # does not already know the content of
@@ -1105,10 +720,10 @@ class Store:
     def _insert_shot(self, db, shot_id, title, created, at, version, shot: Shot, author, kind) -> None:
         doc = shot.to_dict()
         db.execute("INSERT INTO shots (id, title, created, updated, version, doc, content_hash) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                   (shot_id, title, created, at, version, _dumps(doc), shot.content_hash()))
+                   (shot_id, title, created, at, version, canonical_json(doc), shot.content_hash()))
         db.execute("INSERT INTO changes (shot_id, version, base_version, author, at, kind, change) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                   (shot_id, version, version - 1, author, at, kind, _dumps({"kind": kind, "doc": doc})))
-        fx = {"settings": [], "edits": _initial_edit_rows(shot), "notes": shot.notes,
+                   (shot_id, version, version - 1, author, at, kind, canonical_json({"kind": kind, "doc": doc})))
+        fx = {"settings": [], "edits": initial_edit_rows(shot), "notes": shot.notes,
               "files": [(r, f.sha, f.path) for r, f in shot.files.items()]}
         self._effects(db, shot_id, version, author, at, fx)
 
@@ -1116,9 +731,10 @@ class Store:
         """Write the derived rows of one change (settings history, edit history, notes, files, participant)."""
         db.executemany("INSERT INTO settings_history (shot_id, version, author, at, stage, setting, old, new) "
                        "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                       [(shot_id, version, author, at, st, k, _dumps(old), _dumps(new)) for st, k, old, new in fx["settings"]])
+                       [(shot_id, version, author, at, st, k, canonical_json(old), canonical_json(new))
+                        for st, k, old, new in fx["settings"]])
         db.executemany("INSERT INTO edits (shot_id, version, author, at, editor, op, position, edit) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                       [(shot_id, version, author, at, e, op, pos, _dumps(ed)) for e, op, pos, ed in fx["edits"]])
+                       [(shot_id, version, author, at, e, op, pos, canonical_json(ed)) for e, op, pos, ed in fx["edits"]])
         db.executemany("""INSERT INTO notes (shot_id, note_id, frame, frame_end, author, text, resolved, created, updated)
                           VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)
                           ON CONFLICT (shot_id, note_id) DO UPDATE SET frame = excluded.frame, frame_end = excluded.frame_end,
@@ -1198,13 +814,13 @@ class Store:
         UnknownShot
             No such shot.
         """
-        author = _text(author or "anonymous", "author")
+        author = checked_text(author or "anonymous", "author")
         at = time.time()
         with self._txn() as db:
             version, shot = self._head(db, shot_id)
             if isinstance(base_version, bool) or not isinstance(base_version, int) or not 1 <= base_version <= version:
                 raise ValueError(f"base_version {base_version!r}: shot {shot_id} has versions 1 to {version}")
-            ch = _drop_noops(_parse(change, shot), shot)
+            ch = drop_noops(parse_change(change, shot), shot)
             if ch is None:
                 return Applied(version, shot, None, False)
             if ch["kind"] == "files":
@@ -1216,12 +832,12 @@ class Store:
                 for v, who, theirs in db.execute("SELECT version, author, change FROM changes WHERE shot_id = ? AND version > ? "
                                                  "ORDER BY version", (shot_id, base_version)).fetchall():
                     theirs = json.loads(theirs)
-                    why = _conflict(ch, theirs)
+                    why = conflict_reason(ch, theirs)
                     if why:
                         raise Conflict(f"refused: you {describe(ch)} on version {base_version}, but {why} since: {who} "
                                        f"{describe(theirs)} in version {v}. Reload the shot (now version {version}) and "
                                        f"try again.", version=v, author=who, change=theirs, head=version)
-            new, rec, fx = _apply(shot, ch, author, at, self._file_name(db))
+            new, rec, fx = apply_change(shot, ch, author, at, self._file_name(db))
             if self.check is not None:
                 self.check(new)
             self._commit_change(db, shot_id, version + 1, base_version, author, at, rec, new, fx)
@@ -1229,11 +845,11 @@ class Store:
 
     def _commit_change(self, db, shot_id, version, base_version, author, at, rec, new: Shot, fx) -> None:
         cur = db.execute("UPDATE shots SET version = ?, updated = ?, doc = ?, content_hash = ? WHERE id = ? AND version = ?",
-                         (version, at, _dumps(new.to_dict(copy=False)), new.content_hash(), shot_id, version - 1))
+                         (version, at, canonical_json(new.to_dict(copy=False)), new.content_hash(), shot_id, version - 1))
         if cur.rowcount != 1:
             raise RuntimeError(f"shot {shot_id}: version {version - 1} is not the head")
         db.execute("INSERT INTO changes (shot_id, version, base_version, author, at, kind, change) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                   (shot_id, version, base_version, author, at, rec["kind"], _dumps(rec)))
+                   (shot_id, version, base_version, author, at, rec["kind"], canonical_json(rec)))
         self._effects(db, shot_id, version, author, at, fx)
 
     def at_version(self, shot_id: str, version: int) -> Shot:
@@ -1246,7 +862,7 @@ class Store:
             raise UnknownShot(f"no shot {shot_id!r} in the review store {self.root}")
         if not rows or rows[-1][0] != version:
             raise ValueError(f"shot {shot_id} has versions 1 to {head[0]}, not {version}")
-        return _replay([(v, a, t, json.loads(c)) for v, a, t, c in rows])
+        return replay_changes([(v, a, t, json.loads(c)) for v, a, t, c in rows])
 
     # -- queries ----------------------------------------------------------------------------------
     def notes(self, shot_id: str, unresolved_only: bool = False) -> list:
@@ -1288,7 +904,7 @@ class Store:
 
     def edit_history(self, shot_id: str, editor: Optional[str] = None) -> list:
         """Every edit-list change (dicts: version, author, at, editor, op, position, edit), oldest
-        first; :func:`replay_edits` turns them into the done/undone lists."""
+        first; :func:`core.changes.replay_edits` turns them into the done/undone lists."""
         self.info(shot_id)
         with self._read() as db:
             rows = db.execute("SELECT version, author, at, editor, op, position, edit FROM edits WHERE shot_id = ? "
@@ -1298,7 +914,7 @@ class Store:
 
     def touch(self, shot_id: str, name: str) -> None:
         """Record that ``name`` is looking at the shot now (participants' last seen)."""
-        name = _text(name or "anonymous", "participant")
+        name = checked_text(name or "anonymous", "participant")
         self.info(shot_id)
         now = time.time()
         with self._txn() as db:
@@ -1317,7 +933,7 @@ class Store:
     def missing_files(self, shot_id: str) -> dict:
         """``{role: FileRef}`` of the shot's files this store does not hold (after a light import)."""
         shot, _ = self.get(shot_id)
-        return {r: ref for r, ref in shot.files.items() if not (_SHA.match(ref.sha or "") and self.has_file(ref.sha))}
+        return {r: ref for r, ref in shot.files.items() if not (CONTENT_HASH.match(ref.sha or "") and self.has_file(ref.sha))}
 
     # -- export / import ----------------------------------------------------------------------------
     def export(self, shot_id: str, dest, with_files: bool = True) -> dict:
@@ -1338,7 +954,7 @@ class Store:
                                                    "WHERE shot_id = ? AND version <= ? ORDER BY version", (shot_id, version))]
         files, folders, blobs = {}, {}, []
         for role, ref in sorted(shot.files.items()):
-            fi = self.file_info(ref.sha) if _SHA.match(ref.sha or "") else None
+            fi = self.file_info(ref.sha) if CONTENT_HASH.match(ref.sha or "") else None
             files[role] = {"sha": ref.sha, "path": ref.path, "kind": fi["kind"] if fi else None,
                            "size": fi["size"] if fi else None, "names": fi["names"] if fi else []}
             if fi and fi["kind"] == "folder":
@@ -1382,7 +998,7 @@ class Store:
 
         Raises ValueError for anything that is not such an archive or does not add up (named).
         """
-        author = _text(author or "import", "author")
+        author = checked_text(author or "import", "author")
         try:
             z = zipfile.ZipFile(source)
         except zipfile.BadZipFile:
@@ -1414,16 +1030,16 @@ class Store:
                 else:
                     wanted[ref.sha] = Path(ref.path).name
             for sha, name in wanted.items():
-                if not isinstance(sha, str) or not _SHA.match(sha) or self.has_file(sha) or sha not in members:
+                if not isinstance(sha, str) or not CONTENT_HASH.match(sha) or self.has_file(sha) or sha not in members:
                     continue  # not a hash (the folder check below refuses it), held already, or a light export
                 with z.open(members[sha]) as f:
                     self._put(f, name, self.max_upload, expect=sha)
             for role, ref in shot.files.items():
                 fm = folders.get(ref.sha)
                 if isinstance(fm, dict) and not self.has_file(ref.sha):
-                    if all(isinstance(v, str) and _SHA.match(v) and self.has_file(v) for v in fm.values()):
-                        self._put_folder(fm, Path(ref.path).name, expect=_sha(ref.sha))
-        title = _text(str(review.get("title") or "untitled"), "title")
+                    if all(isinstance(v, str) and CONTENT_HASH.match(v) and self.has_file(v) for v in fm.values()):
+                        self._put_folder(fm, Path(ref.path).name, expect=checked_sha(ref.sha))
+        title = checked_text(str(review.get("title") or "untitled"), "title")
         wanted = review.get("id")
         with self._txn() as db:
             taken = not isinstance(wanted, str) or not _SHOT_ID.match(wanted) or \
@@ -1438,7 +1054,7 @@ class Store:
             else:
                 at = time.time()
                 taken_ids: set = set()
-                shot.notes = [_normal_note(n, i, author, at, taken_ids) for i, n in enumerate(shot.notes)]
+                shot.notes = [normal_note(n, i, author, at, taken_ids) for i, n in enumerate(shot.notes)]
                 self._insert_shot(db, shot_id, title, at, at, 1, shot, author, "import")
         return shot_id
 
@@ -1451,20 +1067,20 @@ class Store:
             raise ValueError("archive: history.json must start with the shot's creation (version 1)")
         at0 = float(first.get("at", time.time()))
         shot = _as_shot(first["change"].get("doc"))
-        author0 = _text(str(first.get("author") or "import"), "author")
+        author0 = checked_text(str(first.get("author") or "import"), "author")
         taken: set = set()
-        shot.notes = [_normal_note(n, i, author0, at0, taken) for i, n in enumerate(shot.notes)]
+        shot.notes = [normal_note(n, i, author0, at0, taken) for i, n in enumerate(shot.notes)]
         self._insert_shot(db, shot_id, title, at0, at0, 1, shot, author0, first["change"]["kind"])
         version = 1
         for i, row in enumerate(history[1:], start=2):
             if not isinstance(row, dict) or row.get("version") != i:
                 raise ValueError(f"archive: history.json entry {i}: expected version {i}")
-            who = _text(str(row.get("author") or "import"), f"archive: history.json entry {i}: author")
+            who = checked_text(str(row.get("author") or "import"), f"archive: history.json entry {i}: author")
             at = float(row.get("at", at0))
             base = row.get("base_version", version)
             base = base if isinstance(base, int) and 1 <= base <= version else version
-            ch = _parse(row.get("change"), shot)
-            shot, rec, fx = _apply(shot, ch, who, at, self._file_name(db))
+            ch = parse_change(row.get("change"), shot)
+            shot, rec, fx = apply_change(shot, ch, who, at, self._file_name(db))
             self._commit_change(db, shot_id, i, base, who, at, rec, shot, fx)
             version = i
 
@@ -1477,15 +1093,6 @@ def _as_shot(shot) -> Shot:
     if isinstance(shot, str) and shot.lstrip().startswith("{"):
         return Shot.from_json(shot)
     raise ValueError(f"shot: expected a Shot, its dict or its JSON text, got {type(shot).__name__}")
-
-
-def _replay(rows) -> Shot:
-    """The document a changes log (version, author, at, change) ends with."""
-    _, _, _, first = rows[0]
-    shot = Shot.from_dict(first["doc"])
-    for _, author, at, ch in rows[1:]:
-        shot, _, _ = _apply(shot, _parse(ch, shot), author, at)
-    return shot
 
 
 def _read_json(z: zipfile.ZipFile, name: str):

@@ -1,4 +1,4 @@
-"""The production controls through the pipeline and the CLI (core/controls.py wired into the
+"""The production controls through the pipeline and the CLI (core/controls/ wired into the
 solve, synthesize and take stages, and the exports)."""
 
 import csv

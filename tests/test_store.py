@@ -20,10 +20,10 @@ import platformdirs
 import pytest
 
 from core import store as store_mod
+from core.changes import replay_edits, safe_name
 from core.pipeline import shot_from_settings
 from core.shot import EDITORS, FileRef, Shot, file_hash
-from core.store import (MAX_UPLOAD, SCHEMA_VERSION, Conflict, Store, UnknownShot, UnsafePath, UploadTooLarge, data_dir,
-                        replay_edits, safe_name)
+from core.store import MAX_UPLOAD, SCHEMA_VERSION, Conflict, Store, UnknownShot, UnsafePath, UploadTooLarge, data_dir
 from datapaths import PERFORMANCES, RIGS, ROOT
 
 WRITER = ROOT / "tests" / "store_writer.py"

@@ -60,7 +60,7 @@ class Take(Stage):
         report(progress, 0.1, "reading source")
         perf = read_performance(s.source, kind=s.source_kind, fps=s.source_fps or None)
         if s.mirror_source:
-            from ..controls import mirror_performance
+            from ..controls.mirror import mirror_performance
 
             perf = mirror_performance(perf)
         return {"source": perf}
