@@ -26,7 +26,7 @@ def _problem(**settings):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # shapes no marker sees
         pipe = Pipeline(cache=StageCache(), **FILES, **settings)
-        r = pipe.results(["stabilize", "personalize", "shapes", "load", "frames", "prior", "solve", "synthesize"])
+        r = pipe.results(["stabilize", "personalize", "shapes", "load", "frames", "prior", "vocabulary", "solve", "synthesize"])
     st = r["stabilize"]["source"]
     return {"B": r["personalize"]["deltas"], "S": st.deltas, "valid": st.valid, "names": list(r["shapes"]["rig"].names),
             "named": named_target(r), "prior": r["prior"]["prior"] if r.get("prior") else None, "results": r}
