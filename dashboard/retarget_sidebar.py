@@ -166,7 +166,7 @@ class RetargetSidebar(pn.viewable.Viewer):
 
     # -- settings ---------------------------------------------------------------------------
     def _on_setting(self, *events):
-        mirror = getattr(self.host, "mirror", None)
+        mirror = self.host.mirror
         if mirror is not None and mirror._applying:
             return  # another page's change: the page shows the widgets first, then recomputes
         # a new method (or switch) shows its own widgets before the (possibly long) recompute starts
