@@ -46,7 +46,7 @@ import platformdirs
 from . import stages as _stages  # noqa: F401  (registers every stage and method)
 from .progress import ProgressFn
 from .shot import EDITORS, EditHistory, FileRef, Shot, file_hash
-from .stage import STAGES, SettingsView, is_table, setting_owners
+from .stage import STAGES, SettingsView, setting_owners
 from .stages.methods import METHODS as _METHODS
 
 #: the registered solve methods, and the settings each reads (derived from the registrations)

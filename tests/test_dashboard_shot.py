@@ -38,15 +38,15 @@ def test_widgets_to_shot_to_cli_bit_identical(app, tmp_path):
     widget(app, "ridge", "solve").value = 1e-4
     assert app.s.snapshot["method"] == "bounded" and len(app.s.snapshot["times"]) == 300
     # a spacetime edit from the Edit card
-    app.w_frame.value = 150
-    app.w_edit_shape.value = "AK_25_JawOpen"
-    app.w_edit_value.value = 0.7
-    app.w_edit_window.value = 10
-    app._add_edit()
+    app.playback.w_frame.value = 150
+    app.edits.w_shape.value = "AK_25_JawOpen"
+    app.edits.w_value.value = 0.7
+    app.edits.w_window.value = 10
+    app.edits.add()
     assert app.pipe.edit.edits == [{"frame": 150, "weights": {"AK_25_JawOpen": 0.7}, "window": [140, 160]}]
     W_page = np.asarray(app.s.snapshot["weights"])
     shot = tmp_path / "shot.json"
-    shot.write_bytes(app.w_shot.callback().read())  # what "Download shot" sends
+    shot.write_bytes(app.sidebar.w_shot.callback().read())  # what "Download shot" sends
     out = tmp_path / "w.csv"
     assert main(["retarget", "--shot", str(shot), "--weights-csv", str(out), "--csv-precision", "full", "--quiet"]) == 0
     rows = list(csv.reader(open(out)))
@@ -60,11 +60,11 @@ def test_uploading_the_shot_restores_the_page(app, tmp_path):
     from dashboard.app import DashboardApp
     from dashboard.session import Session
 
-    data = app.w_shot.callback().read()
+    data = app.sidebar.w_shot.callback().read()
     other = DashboardApp(Session(cache=StageCache()))
     assert other.pipe.solve.method != "bounded"
-    other.w_upload.filename = "review.json"
-    other.w_upload.value = data  # what the upload box does
+    other.sidebar.w_upload.filename = "review.json"
+    other.sidebar.w_upload.value = data  # what the upload box does
     other.refresh()
     assert other.pipe.solve.method == "bounded" and other.pipe.solve.upper == 0.8
     assert other.pipe.edit.edits == app.pipe.edit.edits and other.pipe.frame == 150
@@ -78,14 +78,14 @@ def test_collapsed_cards_fill_when_opened_and_the_shape_table_is_current():
     from dashboard.session import Session
 
     app = DashboardApp(Session(cache=StageCache()))
-    assert app.shape_card.collapsed and len(app.shape_card.objects) == 0
-    assert getattr(app, "w_shape_table", None) is None  # not even made while nobody looks at it
+    assert app.shape_controls.card.collapsed and len(app.shape_controls.card.objects) == 0
+    assert app.shape_controls.w_table is None  # not even made while nobody looks at it
     assert not app.layout.select(pn.widgets.Tabulator)
-    app.w_frame.value = 437
-    app.shape_card.collapsed = False
-    assert app.w_shape_table in app.shape_card.select(pn.widgets.Tabulator)
+    app.playback.w_frame.value = 437
+    app.shape_controls.card.collapsed = False
+    assert app.shape_controls.w_table in app.shape_controls.card.select(pn.widgets.Tabulator)
     W = app.s.snapshot["weights"]
-    assert np.allclose(app.w_shape_table.value["now"].to_numpy(), np.round(np.nan_to_num(W[437]), 3))
+    assert np.allclose(app.shape_controls.w_table.value["now"].to_numpy(), np.round(np.nan_to_num(W[437]), 3))
     assert np.abs(W[437]).max() > 0.01  # a frame where the face moves: the check means something
 
 
@@ -97,13 +97,13 @@ def test_a_settings_card_makes_its_widgets_when_opened_with_the_current_values()
     from dashboard.session import Session
 
     app = DashboardApp(Session(cache=StageCache()))
-    card = next(c for c, _ in app._setting_cards if c.title == "Source & calibration")
+    card = next(c for c, _ in app.sidebar.setting_cards if c.title == "Source & calibration")
     assert card.collapsed and len(card.objects) == 0
-    assert not [p for st, p in app._setting_panes if st.stage_name == "calibrate"]  # not made yet
+    assert not [p for st, p in app.sidebar.setting_panes if st.stage_name == "calibrate"]  # not made yet
     app.pipe.configure(rbf_smoothing=0.03, calibrate=False)
     assert card.visible  # its stages have settings to show
     card.collapsed = False
-    panes = [p for st, p in app._setting_panes if st.stage_name == "calibrate"]
+    panes = [p for st, p in app.sidebar.setting_panes if st.stage_name == "calibrate"]
     assert len(panes) == 1 and panes[0] in card.objects
     w = panes[0]._widgets
     assert w["rbf_smoothing"].value == 0.03 and w["calibrate"].value is False
@@ -112,4 +112,4 @@ def test_a_settings_card_makes_its_widgets_when_opened_with_the_current_values()
     app.pipe.configure(rbf_smoothing=0.01)  # and follows it
     assert w["rbf_smoothing"].value == 0.01
     card.collapsed, card.collapsed = True, False  # made once
-    assert len([p for st, p in app._setting_panes if st.stage_name == "calibrate"]) == 1
+    assert len([p for st, p in app.sidebar.setting_panes if st.stage_name == "calibrate"]) == 1

@@ -48,13 +48,13 @@ def test_two_pages_see_each_others_changes(server, shot_id):
     assert b.pipe.solve.alpha == 0.05
     np.testing.assert_array_equal(a.s.snapshot["weights"], b.s.snapshot["weights"])
     # an edit, and its undo
-    a.w_frame.value = 150
-    a.w_edit_shape.value = "AK_25_JawOpen"
-    a.w_edit_value.value = 0.6
-    a._add_edit()
+    a.playback.w_frame.value = 150
+    a.edits.w_shape.value = "AK_25_JawOpen"
+    a.edits.w_value.value = 0.6
+    a.edits.add()
     assert b.pipe.edit.edits == a.pipe.edit.edits and len(b.pipe.edit.edits) == 1
     np.testing.assert_array_equal(a.s.snapshot["weights"], b.s.snapshot["weights"])
-    b._undo(1)
+    b.edits.undo()
     assert a.pipe.edit.edits == [] and a.pipe.redo["spacetime"]
     # a note at a frame, resolved from the other page
     a.review.w_note.value = "jaw opens late"
@@ -71,18 +71,18 @@ def test_two_pages_see_each_others_changes(server, shot_id):
     assert row["text"] == "jaw opens late" and row["author"] == "ana" and row["frame"] == 150 and row["resolved"]
     b.review.w_notes.action = {"op": "reopen", "id": note["id"], "frame": 150, "n": 1}
     assert not a.pipe.notes[0]["resolved"] and [r["text"] for r in a.review.w_notes.notes] == ["jaw opens late"]
-    b.w_frame.value = 10
+    b.playback.w_frame.value = 10
     b.review.w_notes.action = {"op": "jump", "id": note["id"], "frame": 150, "n": 2}
-    assert b.w_frame.value == 150
+    assert b.playback.w_frame.value == 150
     # text is text: markup in a note reaches the other page as the characters typed
     a.review.w_note.value = "<img src=x onerror=alert(1)> **bold**"
     assert a.review.add_note()
     assert "<img src=x onerror=alert(1)> **bold**" in [r["text"] for r in b.review.w_notes.notes]
     # the presenter's frame: b follows a
     a.review.w_present.value = True
-    a.w_frame.value = 200
+    a.playback.w_frame.value = 200
     a.review._on_own_frame()
-    assert b.w_frame.value == 200
+    assert b.playback.w_frame.value == 200
 
 
 def test_a_stale_change_is_rebased_or_refused_with_a_message(server, shot_id):
