@@ -477,6 +477,7 @@ class Pipeline:
         stage = self.stages[name]
         own = getattr(cfg, name)
         values = {k: getattr(own, k) for k in stage.declared(cfg)}
+        values.update({k: v for k, v in stage.derived(cfg).items() if k in values})
         for f, path in stage.file_paths(cfg).items():
             if f in values:
                 values[f] = path

@@ -9,6 +9,8 @@ dashboard widgets, CLI flags and the shot's ``settings[stage]``), and the class 
   setting of a disabled feature is not in the key, so changing it re-runs nothing);
 * ``active(cfg)`` — whether the stage runs at all (an inactive stage yields None and costs
   nothing; e.g. segmentation only for the local method);
+* ``derived(cfg)`` — settings whose value follows from the rest of the configuration (the view
+  and the key carry the derived value);
 * ``content(cfg)`` — what else the result depends on that no setting names (the bundled
   vocabularies' content): hashed into the key;
 * ``file_paths(cfg)`` — the file each file setting actually reads (e.g. the default layout a rig
@@ -140,6 +142,12 @@ class Stage(param.Parameterized):
 
     def active(self, cfg) -> bool:
         return True
+
+    def derived(self, cfg) -> dict:
+        """Settings whose value here follows from the rest of the configuration, not from what the
+        user set (the ``auto`` method compares the faces densely): ``run`` sees, and the key
+        hashes, these values."""
+        return {}
 
     def content(self, cfg):
         """What the result depends on that no setting names (e.g. the bundled vocabulary files),

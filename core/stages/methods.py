@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from ..gaps import fill_gaps
-from ..names import NameMap
+from ..names import NameMap, recognise
 
 #: method name -> Method, in registration order
 METHODS: dict = {}
@@ -56,9 +56,12 @@ class Method:
     doc: str = ""
     label: str = ""
     honours: frozenset = frozenset()
+    #: the method chooses its own configuration from the pair and the take (``auto``): the stages
+    #: before the solve compare the faces densely where they can (:func:`.retarget.correspondence`)
+    chooses: bool = False
 
 
-def solve_method(name: str, params=(), needs=(), dense: bool = False, label: str = "", honours=()):
+def solve_method(name: str, params=(), needs=(), dense: bool = False, label: str = "", honours=(), chooses: bool = False):
     """Decorator: register ``fn(inputs, s) -> {"weights", "info", "edit"}`` as method ``name``;
     ``label`` is what a person reads in the method list (plain words first, the paper after);
     ``honours`` names the :data:`CAPABILITIES` it implements."""
@@ -70,7 +73,7 @@ def solve_method(name: str, params=(), needs=(), dense: bool = False, label: str
         if unknown:
             raise ValueError(f"solve method {name!r}: unknown capabilities {sorted(unknown)}; known: {sorted(CAPABILITIES)}")
         METHODS[name] = Method(name, fn, tuple(params), tuple(needs), dense, (fn.__doc__ or "").strip(), label or name,
-                               frozenset(honours))
+                               frozenset(honours), chooses)
         return fn
 
     return deco
@@ -140,6 +143,46 @@ def _weighted(inputs):
         return B, S, valid
     r = np.sqrt(w)[:, None]
     return B * r[None], S * r[None], valid
+
+
+#: what ``auto`` runs, by what the pair shares (measured on the sample: docs/evaluation.md,
+#: scripts/quality_cases.py): the whole take at once within the bounds, pulled towards each
+#: shape's estimate from its name where the target's shapes mean something to the take
+AUTO_NAMED = {"alpha": 0.01, "name_weight": 0.1}
+AUTO_UNNAMED = {"alpha": 0.01, "name_weight": 0.0}
+#: names are trusted when at least this fraction of the solver's shapes has an estimate
+AUTO_MIN_NAMED = 0.3
+
+
+def auto_choice(inputs) -> tuple:
+    """``(settings, sentence)``: what ``auto`` runs on these inputs and why, in one sentence."""
+    src, rig = inputs["load"]["source"], inputs["shapes"]["rig"]
+    named = named_target(inputs) if src.kind == "curves" else None
+    n = 0 if named is None else int(np.isfinite(named).all(0).sum())
+    w = inputs["shapes"].get("weights")
+    where = f"dense correspondence ({len(w)} face points)" if w is not None else f"the {len(inputs['shapes']['names'])} markers"
+    if n >= max(1, AUTO_MIN_NAMED * rig.n_shapes):
+        vocab = recognise(rig.names, inputs["vocabulary"]["vocabularies"]).vocabularies
+        return AUTO_NAMED, (f"auto: the whole take at once on {where}, each shape pulled towards its name's reading of "
+                            f"the take's curves — {n} of the {rig.n_shapes} target shapes mean something to them "
+                            f"({', '.join(vocab[:3]) or 'their names'})")
+    why = ("the take is markers, not named curves" if src.kind != "curves" else
+           "the target's shapes share no names with the take's curves")
+    return AUTO_UNNAMED, f"auto: the whole take at once within the bounds on {where}, by geometry alone — {why}"
+
+
+@solve_method("auto", params=("ridge",), needs=("prior",), honours=("bounds", "active", "symmetry", "cancel"),
+              chooses=True, label="auto — the best this pair and take allow (says what it chose)")
+def _auto(inputs, s):
+    """The default: looks at the pair and the take and runs what serves best — the whole take at
+    once (bounded spacetime) on dense correspondence, with the name prior where the target's
+    shapes share a vocabulary with the take's curves — and says what it chose and why
+    (``info["auto"]``)."""
+    chosen, sentence = auto_choice(inputs)
+    out = _spacetime(inputs, s.with_values(beta=0.0, boundary="perframe", spacetime_bounds=True, l1=0.0, **chosen))
+    out["info"]["auto"] = sentence
+    out["info"]["chosen"] = dict(chosen)
+    return out
 
 
 @solve_method("lsq", params=("ridge",), honours=("filter",), label='lsq — unregularised diagnostic (weights can explode)')

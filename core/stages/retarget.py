@@ -166,6 +166,14 @@ class Load(Stage):
         return out
 
 
+def correspondence(cfg) -> str:
+    """What the faces are compared at in this configuration: the ``correspondence`` setting, or
+    for a method that chooses (``auto``) dense points wherever there is a source rig to carry."""
+    if method_of(cfg).chooses:
+        return "dense" if cfg.source_face.source_rig else "markers"
+    return cfg.correspond.correspondence
+
+
 @register("dense_correspondence")
 class DenseCorrespondence(Stage):
     """The source rig's face points in farthest-point order (up to 20,000), each carried onto the
@@ -178,7 +186,7 @@ class DenseCorrespondence(Stage):
     persist = True
 
     def active(self, cfg):
-        return cfg.correspond.correspondence == "dense" and bool(cfg.source_face.source_rig)
+        return correspondence(cfg) == "dense" and bool(cfg.source_face.source_rig)
 
     def run(self, inputs, s, progress=None):
         from ..correspondence import MAX_POINTS, rig_correspondence
@@ -204,7 +212,10 @@ class Correspond(Stage):
     dense_points = param.Integer(label='Face points (dense)', default=1000, bounds=(10, 20000), doc="Number of face points of dense correspondence")
 
     def relevant(self, cfg):
-        return ("correspondence", "dense_points") if cfg.correspond.correspondence == "dense" else ("correspondence",)
+        return ("correspondence", "dense_points") if correspondence(cfg) == "dense" else ("correspondence",)
+
+    def derived(self, cfg):
+        return {"correspondence": correspondence(cfg)}
 
     def run(self, inputs, s, progress=None):
         ld = inputs["load"]
@@ -476,8 +487,8 @@ class Solve(Stage):
 
     deps = ("load", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior", "vocabulary")
     group, title = "solve", "Solver"
-    method = param.Selector(label='Method', default="bounded", objects={m.label: n for n, m in METHODS.items()}, doc=(
-        "lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
+    method = param.Selector(label='Method', default="auto", objects={m.label: n for n, m in METHODS.items()}, doc=(
+        "auto: what serves this pair and take best, said in one sentence (the default); lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
         "range_pf/prior_pf: Seol 2012 §7 baselines; spacetime: Seol 2012 movement matching; local: Liu 2011 "
         "regions; geometric: Ribera 2017 prior + L1; transfer: Xu 2014 dense transfer (a new rig)"))
     lower = param.Number(label='Lowest weight', default=0.0, softbounds=(-1, 0), doc="Lower weight bound (bounded, geometric, spacetime, local box; per shape in the controls)")
