@@ -190,6 +190,9 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
         + (f"; {gaps} frames without data (tracking loss) filled from their neighbours, flagged valid=0" if gaps else "")
         + f"\nstage timings: {timings}"
     )
+    chose = res["solve"]["info"].get("auto")
+    if chose:
+        summary = f"{chose}\n{summary}"
     return ShotOutputs(False, res, W, list(rig.names), valid, summary, written, paths)
 
 

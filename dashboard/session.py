@@ -122,8 +122,9 @@ class Session(param.Parameterized):
         self.target_rig = next((k for k in rigs if k.startswith("rocketbox")), next(iter(rigs), None))
         # the sample's target has 175 shapes of which 52 are ARKit: solving on those gives curves an
         # animator recognises (a rig without ARKit names keeps all its shapes, see core.stages.solver_shapes);
-        # the dense transfer starts on 300 frames (2,000 ICT frames take minutes)
-        self.pipeline.configure(method="spacetime", target_shapes="arkit", transfer_last_frame=299)
+        # the dense transfer starts on 300 frames (2,000 ICT frames take minutes); the page opens on the
+        # default method, auto, and says what it chose
+        self.pipeline.configure(target_shapes="arkit", transfer_last_frame=299)  # the method: auto, the default
         self.snapshot: dict = {}
         self.package = None
         self._lock = threading.Lock()

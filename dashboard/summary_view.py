@@ -51,6 +51,9 @@ class SummaryView(pn.viewable.Viewer):
             f"**{ev['marker_rms_mm']:.2f} mm** (max {ev['marker_max_mm']:.1f}) · velocity error "
             f"{ev['velocity_error_mean_mm_per_frame'] or float('nan'):.3f} mm per frame (RMS per marker, Seol 2012 eq. 2) · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
             f"({100 * ev['outside_01']:.1f}% outside 0..1)")
+        chose = snap["solve_info"].get("auto")
+        if chose:  # what the default chose, and why, in its own sentence
+            self.w_summary.object = f"{html.escape(chose)}\n\n{self.w_summary.object}"
         notes = list(dict.fromkeys(snap.get("warnings", [])))  # data-quality notes stay on the page, not as toasts
         if notes:
             self.w_summary.object += "\n\n" + "\n".join(f"ℹ {html.escape(n)}" for n in notes[:4])
