@@ -63,7 +63,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import numpy as np
 
+from core.geometry import cotangent_laplacian
 from core.model import unit_scale
+from core.solvers.inputs import as_coupling
 
 #: Ribera 2017 §5 recommendations, for markers in centimetres
 MU = 0.3
@@ -85,8 +87,6 @@ def laplacian_deltas(rig, laplacian=None):
     -------
     (K, N, 3) float64
     """
-    from core.geometry import cotangent_laplacian
-
     N = rig.n_vertices
     L = cotangent_laplacian(rig.neutral, rig.faces) if laplacian is None else laplacian
     if L.shape != (N, N):
@@ -237,10 +237,8 @@ class GeometricSolver:
         self.q = q
         self.coupling_ = None
         if quadratic is not None:
-            from core.solvers.baselines import _quadratic
-
             scale = float(np.linalg.norm(self.P, 2) ** 2) / M if self.P.size else 0.0
-            self.coupling_ = _quadratic(quadratic, K, scale, "GeometricSolver")
+            self.coupling_ = as_coupling(quadratic, K, scale, "GeometricSolver")
         self.H = self.P.T @ self.P / M + self.mu * self.Q
         if self.coupling_ is not None:
             self.H = self.H + self.coupling_
