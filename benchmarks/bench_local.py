@@ -43,7 +43,8 @@ def _liu():
 
 def bench_local_qp(setup, constraint: str) -> str:
     from core.segment import marker_weights, segment
-    from core.solvers.local import local_precompute, solve_qp_scipy
+    from core.solvers.local import local_precompute
+    from core.solvers.reference import solve_qp_scipy
 
     sym, layout, targets = setup["sym"], setup["layout"], setup["targets"][:FRAMES]
     T = len(targets)
@@ -55,9 +56,9 @@ def bench_local_qp(setup, constraint: str) -> str:
     t, c = time.perf_counter(), time.process_time()
     U = prob.solve(targets)
     ours, ours_cpu = time.perf_counter() - t, time.process_time() - c
-    from core.solvers.local import kkt_violation
+    from core.solvers.qp import max_kkt_violation
 
-    kkt = kkt_violation(prob.H, prob.linear_terms(targets).reshape(-1, prob.n_shapes), np.tile(np.arange(12), T),
+    kkt = max_kkt_violation(prob.H, prob.linear_terms(targets).reshape(-1, prob.n_shapes), np.tile(np.arange(12), T),
                         U.reshape(-1, prob.n_shapes), constraint)
     frames = np.linspace(0, T - 1, REF_FRAMES).astype(int)
     K = prob.n_shapes

@@ -6,7 +6,7 @@
   previous one and KKT-certified) vs SciPy's ``lsq_linear(method="bvls")`` called per frame on
   the same problems (40 frames, scaled to the take: ``ref_kind``). ``rel_cost_gap`` = max over
   the checked frames of (ours - BVLS) / BVLS's cost of the first; ``kkt`` = the largest relative
-  KKT violation over all frames (unit-box scaling, ``core.solvers.local.kkt_violation``).
+  KKT violation over all frames (unit-box scaling, ``core.solvers.qp.max_kkt_violation``).
 * ``setting_change_*``: server time to recompute after changing alpha on a 1,000-frame take
   (only the stale stages run: solve, edit, synthesize, evaluate) vs the same pipeline run
   from scratch (every stage, cold cache). The dashboard's budget is 150 ms for the baseline.
@@ -28,7 +28,7 @@ import scipy.optimize  # noqa: E402
 from core.model import flatten  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
 from core.solvers.baselines import range_pf  # noqa: E402
-from core.solvers.local import kkt_violation  # noqa: E402
+from core.solvers.qp import max_kkt_violation  # noqa: E402
 
 FILES = dict(source=str(ROOT / "data/performances/livelinkface_take_s07.csv"), source_rig=str(ROOT / "data/rigs/ict_facekit.glb"),
              target_rig=str(ROOT / "data/rigs/rocketbox_female_adult_02.glb"))
@@ -52,7 +52,7 @@ def bench_bounded(n_ref=40):
     gap = max(cost(W[t], t) - cost(ref[i], t) for i, t in enumerate(idx)) / max(cost(ref[0], idx[0]), 1e-30)
     H = Bm.T @ Bm
     H = H + 1e-9 * np.linalg.eigvalsh(H)[-1] * np.eye(len(H))  # range_pf's automatic ridge (rank 119 < 165)
-    kkt = kkt_violation(H[None], -(s @ Bm), np.zeros(T, np.int64), W, "box")
+    kkt = max_kkt_violation(H[None], -(s @ Bm), np.zeros(T, np.int64), W, "box")
     print(f"BENCH bounded_perframe_T{T}_K{B.shape[0]}_M{B.shape[1]} ours_s={ours:.4f} ref_s={ref_s:.4f} ratio={ref_s / ours:.1f} "
           f"ref_kind=lsq_linear_bvls_{n_ref}frames_scaled fps={T / ours:.0f} fps_cpu={T / ours_cpu:.0f} rel_cost_gap={gap:.1e} "
           f"kkt={kkt:.1e} fallback={info['fallback']} rounds={info['rounds']}", flush=True)

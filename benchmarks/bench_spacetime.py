@@ -49,7 +49,8 @@ import numpy as np
 
 from core.io.gltf import read_rig
 from core.names import NameMap
-from core.solvers.spacetime import SpacetimeSolver, solve_spacetime, spacetime_reference
+from core.solvers.reference import spacetime_reference
+from core.solvers.spacetime import SpacetimeSolver, solve_spacetime
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data"
@@ -140,8 +141,7 @@ def rocketbox_arkit(T: int):
 
 
 def bounded_case():
-    from core.solvers.bounded_spacetime import bounded_spacetime_reference
-    from core.solvers.spacetime import kronecker_system
+    from core.solvers.reference import bounded_spacetime_reference, kronecker_system
 
     B, S = rocketbox_arkit(1000)
     kw = dict(alpha=0.01, ridge=1e-5, lower=0.0, upper=1.0)

@@ -9,6 +9,7 @@ Shapes follow the house letters: T frames, V vertices, K shapes, M markers.
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
@@ -140,8 +141,6 @@ class Rig:
         try:
             return self.names.index(name)
         except ValueError:
-            import difflib
-
             close = difflib.get_close_matches(name, self.names, n=3)
             raise KeyError(f"rig {self.name!r} has no shape {name!r}" + (f"; did you mean {close}?" if close else "")) from None
 

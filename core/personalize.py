@@ -54,6 +54,10 @@ from typing import Optional, Sequence
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.ndimage import gaussian_filter1d
+from scipy.signal import find_peaks
+from scipy.sparse.linalg import LinearOperator, cg, splu
+from scipy.special import expit
 
 from core import geometry
 from core.geometry import marker_triangulation  # noqa: F401  (Ribera §4.4: part of this module's API)
@@ -155,8 +159,6 @@ def contrast(c, r=STEEPNESS):
     A logistic step centred at c = 1/2 with steepness ``r`` (15 in the paper); evaluated as
     :func:`scipy.special.expit` so large ``r`` does not overflow.
     """
-    from scipy.special import expit
-
     return expit(float(r) * (np.asarray(c, dtype=np.float64) - 0.5))
 
 
@@ -248,9 +250,6 @@ def key_expressions(sim, valid=None, sigma=1.0, distance=1, prominence=None):
     ValueError
         ``sim`` not 2-D or ``valid`` of the wrong length.
     """
-    from scipy.ndimage import gaussian_filter1d
-    from scipy.signal import find_peaks
-
     sim = np.asarray(sim, dtype=np.float64)
     if sim.ndim != 2:
         raise ValueError(f"sim: expected (K, T) similarities, got shape {sim.shape}")
@@ -543,8 +542,6 @@ class AlignmentProblem:
         if method in ("splu", "dense"):
             A, b = self.system()
             if method == "splu":
-                from scipy.sparse.linalg import splu
-
                 x = splu(A, permc_spec="MMD_ATA").solve(b)
             else:
                 x = np.linalg.solve(A.toarray(), b)
@@ -564,8 +561,6 @@ class AlignmentProblem:
 
         if method == "kron":
             return np.stack([kron_solve(b[:, :, c]) for c in range(3)], axis=-1)
-        from scipy.sparse.linalg import LinearOperator, cg
-
         n = K * M
         op = LinearOperator((n, n), matvec=lambda x: (d * x.reshape(K, M) + x.reshape(K, M) @ B + C @ x.reshape(K, M)).ravel(),
                             dtype=np.float64)

@@ -45,13 +45,17 @@ geodesic Voronoi cell, normalised over regions (the diagonal of M_k in eq. 2).
 
 from __future__ import annotations
 
+import heapq
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.cluster.vq import kmeans2
 from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
 
 from .geometry import weld_vertices
 from .model import MarkerLayout, Rig
@@ -403,8 +407,6 @@ def _nearest_labels(graph: WeldedGraph, P: np.ndarray, labelled: np.ndarray, lab
     out[reach] = labels[nearest[reach]]
     rest = np.flatnonzero(todo & (nearest < 0))
     if len(rest):
-        from scipy.spatial import cKDTree
-
         _, j = cKDTree(P[src]).query(P[rest])
         out[rest] = labels[src[j]]
     return out
@@ -415,8 +417,6 @@ def _merge_and_split(graph: WeldedGraph, P: np.ndarray, comp: np.ndarray, R: int
 
     A region's size is its number of ``counted`` (moving) vertices.
     """
-    import heapq
-
     n = len(comp)
     counted = np.asarray(counted, dtype=bool)
     ncomp = int(comp.max()) + 1
@@ -438,8 +438,6 @@ def _merge_and_split(graph: WeldedGraph, P: np.ndarray, comp: np.ndarray, R: int
 
     def spatial_neighbour(c):
         # an isolated piece (no shared edge): the region owning the nearest vertex in space
-        from scipy.spatial import cKDTree
-
         inside = np.fromiter(members[c], dtype=np.int64)
         outside = np.setdiff1d(np.arange(n), inside)
         _, j = cKDTree(P[outside]).query(P[inside])
@@ -614,8 +612,6 @@ def segment(
     TypeError
         ``rig`` is not a Rig.
     """
-    from scipy.cluster.vq import kmeans2
-
     t0 = time.perf_counter()
     graph = welded_graph(rig)
     n = graph.n
@@ -641,8 +637,6 @@ def segment(
     if position_weight > 0:
         feats = np.concatenate([feats, position_weight * (P[moving] - P[moving].mean(0)) / max(rig.size, 1e-300)], axis=1)
     k = min(R, int(moving.sum()))
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # kmeans2 warns about empty clusters; split/merge handles any count
         _, km = kmeans2(feats, k, iter=kmeans_iter, minit="++", seed=np.random.default_rng(seed))
@@ -785,8 +779,6 @@ def marker_weights(rig: Rig, layout: MarkerLayout, masks: np.ndarray, radius: Op
     src = graph.index[dom]
     if radius is None:
         if M > 1:
-            from scipy.spatial import cKDTree
-
             P = layout.points(rig.neutral)
             dd, _ = cKDTree(P).query(P, k=2)
             radius = float(np.median(dd[:, 1]))

@@ -17,9 +17,9 @@ import scipy.linalg
 import scipy.optimize
 
 from core.prior import PCAPrior
-from core.solvers.bounded_spacetime import bounded_spacetime_reference, kkt_violation, solve_bounded
-from core.solvers.spacetime import (KKT_RTOL, SpacetimeSolver, _capacitance_solve, _Tridiagonals, kronecker_system,
-                                    spacetime_reference)
+from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry, solve_bounded
+from core.solvers.reference import bounded_spacetime_reference, kronecker_system, spacetime_reference
+from core.solvers.spacetime import SpacetimeSolver, _capacitance_solve, _Tridiagonals
 from datapaths import PERFORMANCES, RIGS
 
 pytest.importorskip("clarabel")
@@ -208,16 +208,16 @@ def test_admm_restarts_reach_the_same_answer(max_iter):
     assert np.abs(W2 - W).max() <= 1e-7
 
 
-def test_kkt_violation_cases():
+def test_kkt_violation_per_entry_cases():
     lo, hi, l1 = np.array([0.0, -1.0, -1.0]), np.array([1.0, 1.0, 1.0]), np.array([0.0, 0.5, 0.5])
     W = np.array([[0.0, 0.0, 0.3], [1.0, -1.0, 1.5]])
     g = np.array([[2.0, 0.2, -0.5], [-3.0, 0.7, 0.0]])
-    v = kkt_violation(W, g, lo, hi, l1, scale=10.0)
+    v = kkt_violation_per_entry(W, g, lo, hi, l1, scale=10.0)
     # at lower with g >= 0: fine; at the kink |g| <= l1: fine; free: |g + l1 sign w| = 0
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.0])
     # at upper with g < 0: fine; at lower -1 with g - l1 = 0.2 >= 0: fine; 0.5 outside: 10 * 0.5
     np.testing.assert_allclose(v[1], [0.0, 0.0, 5.0])
-    v = kkt_violation(W, -g, lo, hi, l1, scale=10.0)
+    v = kkt_violation_per_entry(W, -g, lo, hi, l1, scale=10.0)
     np.testing.assert_allclose(v[0], [2.0, 0.0, 1.0])
 
 

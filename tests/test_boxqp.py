@@ -13,7 +13,7 @@ import scipy.optimize
 
 from core.solvers.baselines import range_pf
 from core.solvers.boxqp import _finish, solve_box_sequence
-from core.solvers.local import kkt_violation, solve_qp_batch
+from core.solvers.qp import max_kkt_violation, solve_qp_batch
 from datapaths import PERFORMANCES, RIGS
 
 
@@ -60,7 +60,7 @@ def test_sequence_matches_exhaustive_enumeration():
     scale = np.abs(J(H, ff, h, np.zeros_like(u)) - J(H, ff, h, r)) + 1e-300
     assert np.all(np.abs(J(H, ff, h, u) - J(H, ff, h, r)) <= 1e-10 * scale)
     assert np.abs(u - r).max() < 1e-7
-    assert kkt_violation(H, ff, h, u, "box") < 1e-10
+    assert max_kkt_violation(H, ff, h, u, "box") < 1e-10
     assert (u == 0).any() and (u == 1).any() and ((u > 0) & (u < 1)).any()  # both bounds and free variables
 
 
@@ -75,7 +75,7 @@ def test_schedule_does_not_change_the_result(kw):
     h, ff = idx.ravel(), f.reshape(-1, 12)
     scale = np.abs(J(H, ff, h, np.zeros_like(U)) - J(H, ff, h, ref)) + 1e-300
     assert np.all(np.abs(J(H, ff, h, U) - J(H, ff, h, ref)) <= 1e-9 * scale)
-    assert kkt_violation(H, ff, h, U, "box") < 1e-10
+    assert max_kkt_violation(H, ff, h, U, "box") < 1e-10
 
 
 def test_degenerate_sequences():
@@ -200,7 +200,7 @@ def test_range_pf_kkt_relative_to_scale():
     Hu = H[np.ix_(sol, sol)] * d[:, None] * d[None, :]
     fu = ((lo @ H)[sol] - S.reshape(len(S), -1) @ B[:, sol]) * d
     u = (W[:, sol] - lo[sol]) / d
-    assert kkt_violation(Hu[None], fu, np.zeros(len(S), int), u, "box") < 1e-10
+    assert max_kkt_violation(Hu[None], fu, np.zeros(len(S), int), u, "box") < 1e-10
 
 
 def test_range_pf_validation():
@@ -237,7 +237,7 @@ def test_real_sample_matches_bvls(sample):
     Bm, s = B.reshape(len(B), -1).T, S.reshape(len(S), -1)
     H = Bm.T @ Bm
     H = H + 1e-9 * np.linalg.eigvalsh(H)[-1] * np.eye(len(H))  # rank 119 < 165 shapes: automatic ridge
-    assert kkt_violation(H[None], -(s @ Bm), np.zeros(len(S), int), W, "box") < 1e-10
+    assert max_kkt_violation(H[None], -(s @ Bm), np.zeros(len(S), int), W, "box") < 1e-10
     cost = lambda w, t: np.sum((Bm @ w - s[t]) ** 2)  # noqa: E731
     for t in np.linspace(0, len(S) - 1, 8).astype(int):
         ref = scipy.optimize.lsq_linear(Bm, s[t], bounds=(0, 1), method="bvls", tol=1e-12).x

@@ -198,8 +198,8 @@ def test_range_pf_and_prior_pf_with_coupling_and_held_weights_match_bvls():
 
 
 def test_spacetime_coupling_is_exact_on_both_paths_and_zero_matches_the_qp_reference():
-    from core.solvers.bounded_spacetime import bounded_spacetime_reference
-    from core.solvers.spacetime import SpacetimeSolver, spacetime_reference
+    from core.solvers.reference import bounded_spacetime_reference, spacetime_reference
+    from core.solvers.spacetime import SpacetimeSolver
 
     rng = np.random.default_rng(1)
     K, M, T = 6, 5, 30

@@ -10,8 +10,10 @@ import pytest
 
 from core.model import MarkerLayout, Rig
 from core.segment import marker_weights, segment
-from core.solvers.local import (blend_weights, local_precompute, masks_at, project, reconstruct_markers,
-                                region_curves, smooth_weights, solve_local, solve_qp_batch, solve_qp_scipy, synthesize)
+from core.solvers.local import (blend_weights, local_precompute, masks_at, reconstruct_markers, region_curves,
+                                smooth_weights, solve_local, synthesize)
+from core.solvers.qp import project, solve_qp_batch
+from core.solvers.reference import solve_qp_scipy
 
 ROOT = Path(__file__).resolve().parents[1]
 

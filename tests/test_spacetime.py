@@ -16,7 +16,8 @@ from core.metrics import marker_error_mm, velocity_error, weight_range
 from core.names import NameMap
 from core.prior import PCAPrior
 from core.solvers.baselines import box_lsq, no_const, prior_pf, range_pf
-from core.solvers.spacetime import Edit, SpacetimeSolver, known_matrix, solve_spacetime, spacetime_reference
+from core.solvers.reference import spacetime_reference
+from core.solvers.spacetime import PoseEdit, SpacetimeSolver, known_matrix, solve_spacetime
 from datapaths import LAYOUTS, PERFORMANCES
 
 TOL = 1e-8  # relative agreement with the reference, max |W - W_ref| / max |W_ref|
@@ -436,7 +437,7 @@ def test_several_edits_merge(edit_setup):
     B, S, s, W = edit_setup
     K = B.shape[0]
     p1, p2, p3 = np.full(K, 0.2), np.full(K, 0.4), np.full(K, 0.1)
-    edits = [Edit(20, p1, window=(15, 30)), Edit(28, p2, window=(25, 40)), Edit(90, p3, window=(85, 95))]
+    edits = [PoseEdit(20, p1, window=(15, 30)), PoseEdit(28, p2, window=(25, 40)), PoseEdit(90, p3, window=(85, 95))]
     W2 = s.edit(W, edits=edits)
     # windows (15, 30) and (25, 40) merge into 15..40 with ends kept; 85..95 is separate
     R1 = spacetime_reference(B, S[15:41], 0.01, 0.02, None, {0: W[15], 5: p1, 13: p2, 25: W[40]}, boundary="none")

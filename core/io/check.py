@@ -10,8 +10,16 @@ says, a rig without blend shapes, a take without frames, a layout for a rig it d
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Optional
+
+from ..controls import validate_table
+from ..names import NameMap
+from ..shot import Shot
+from .layout import read_layout
+from .performance import read_performance
+from .rigs import load_rig
 
 TAKES = (".csv", ".trc", ".c3d")
 RIGS = (".glb", ".gltf", ".usd", ".usda", ".usdc", ".usdz")
@@ -71,8 +79,6 @@ MAX_HEADER_BYTES = 4 * 2**20
 
 
 def _take(path: Path, name: str) -> dict:
-    from .performance import read_performance
-
     with open(path, "rb") as fh:
         head = fh.read(4096)
         fh.seek(0)
@@ -87,8 +93,6 @@ def _take(path: Path, name: str) -> dict:
     if b"\0" in head:
         raise ValueError(f"{name} is not a text file: a take is a .csv from Live Link Face or a marker capture (.csv/.trc)"
                          if path.suffix.lower() != ".c3d" else f"{name} could not be read as a C3D capture")
-    import warnings
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         perf = read_performance(path)
@@ -108,8 +112,6 @@ def _take(path: Path, name: str) -> dict:
 
 
 def _rig(path: Path, name: str) -> dict:
-    from .rigs import load_rig
-
     if path.suffix.lower() == ".glb" and path.read_bytes()[:4] != b"glTF":
         raise ValueError(f"{name} is not a GLB file (it does not start like one): export the rig as binary glTF (.glb)")
     rig = load_rig(path)
@@ -130,26 +132,18 @@ def _json(path: Path, name: str, target_rig=None) -> dict:
     if not isinstance(doc, dict):
         raise ValueError(f"{name}: expected a JSON object (a shot, a marker layout or a name map)")
     if "schema_version" in doc:
-        from ..shot import Shot
-
         shot = Shot.from_dict(doc)
         return {"kind": "shot", "shot": shot, "summary": f"{name}: a shot with {len(shot.files)} files"}
     if doc.get("format") == "face-retarget controls":
-        from ..controls import validate_table
-
         table = validate_table(doc, where=name)
         return {"kind": "controls", "controls": table,
                 "summary": f"{name}: controls for {len(table.get('shapes', {}))} shapes"}
     if doc.get("format") == "face-retarget marker layout" or "markers" in doc:
-        from .layout import read_layout
-
         if target_rig is None:
             raise ValueError(f"{name} is a marker layout: choose the rig it belongs to as the target rig first")
         layout = read_layout(path, rig=target_rig)
         return {"kind": "layout", "layout": layout,
                 "summary": f"{name}: {layout.n_markers} markers on {target_rig.name}"}
-    from ..names import NameMap
-
     try:
         nm = NameMap.from_json(path)
     except ValueError:

@@ -17,6 +17,7 @@ from typing import Optional, Union
 
 import numpy as np
 
+from ..controls import Keys
 from ..model import Performance
 from .tabular import estimate_fps
 
@@ -132,8 +133,6 @@ def read_keys_csv(path, fps: Optional[float] = None, n_frames: Optional[int] = N
     ``fps`` defaults to ``frame / time_s`` of the keys (frames are integers, times rounded to
     microseconds); ``n_frames`` to the last key frame + 1.
     """
-    from ..controls import Keys
-
     path = Path(path)
     with open(path, newline="", encoding="utf-8-sig") as f:
         rows = list(csv.reader(f))

@@ -40,7 +40,9 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import pygltflib
 
+from .. import geometry
 from ..model import MarkerLayout, Performance, Rig
 from .tabular import estimate_fps
 
@@ -105,8 +107,6 @@ def _split_container(path: Path, data: bytes) -> tuple[bytes, Optional[bytes]]:
 
 def _load(path: Path):
     """Parse ``path`` into a pygltflib.GLTF2 whose binary blob is the GLB BIN chunk."""
-    import pygltflib
-
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file")
     if path.is_dir():
@@ -471,9 +471,7 @@ def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Unit area-weighted vertex normals of (V, 3) or (S, V, 3) positions, float64; a vertex on
     no (or only degenerate) triangles gets +Z, since glTF requires unit normals.
     """
-    from ..geometry import vertex_normals as normals
-
-    return normals(np.asarray(positions, dtype=np.float64), faces, fallback=(0.0, 0.0, 1.0))
+    return geometry.vertex_normals(np.asarray(positions, dtype=np.float64), faces, fallback=(0.0, 0.0, 1.0))
 
 
 class _Bin:

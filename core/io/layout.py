@@ -23,6 +23,7 @@ from typing import Optional, Union
 
 import numpy as np
 
+import core
 from ..model import MarkerLayout, Rig
 
 FORMAT = "face-retarget marker layout"
@@ -211,8 +212,6 @@ def write_layout(path, layout: MarkerLayout, rig_file: Optional[str] = None, not
 
 def layouts_dir() -> Path:
     """The bundled layouts folder: ``<repo>/data/layouts`` next to the ``core`` package."""
-    import core
-
     return Path(core.__file__).resolve().parents[1] / "data" / "layouts"
 
 

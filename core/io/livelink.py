@@ -58,7 +58,7 @@ import numpy as np
 from core.io.tabular import (DataQualityWarning, checked_rows, estimate_fps, line_runs, parse_cells, summarize_rows,
                              summarize_runs)
 from core.model import Performance
-from core.names import ARKIT_NAMES, canonical
+from core.names import ARKIT_NAMES, NameMap, canonical
 
 #: The 52 ARKit channels as Live Link Face spells and orders them in its CSV header.
 LIVELINK_CHANNELS = (
@@ -501,8 +501,6 @@ def arkit_curves(weights, names, fps: float, times=None, name: str = "arkit") ->
     ValueError
         ``weights`` not (T, K) or not finite, or no shape has an ARKit name.
     """
-    from core.names import NameMap
-
     W = np.asarray(weights, dtype=np.float64)
     names = [str(n) for n in names]
     if W.ndim != 2 or W.shape[1] != len(names):

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from core.io import livelink, markers
+from core.io import gltf, livelink, markers, sequence, usd
 from core.io.tabular import (FPS_SNAP_RTOL, STANDARD_FPS, DataQualityWarning, checked_rows, estimate_fps,
                              parse_cells, summarize_rows)
 from core.model import Performance
@@ -117,8 +117,6 @@ def read_performance(path, kind: str = "auto", fps=None, **kw) -> Performance:
     ImportError
         ``.c3d`` without ezc3d, USD without usd-core.
     """
-    from core.io import sequence, usd
-
     path = Path(path)
     if kind not in KINDS:
         raise ValueError(f"kind: expected one of {KINDS}, got {kind!r}")
@@ -138,14 +136,10 @@ def read_performance(path, kind: str = "auto", fps=None, **kw) -> Performance:
             raise ValueError(f"{path}: a glTF file holds weight curves or a mesh sequence, not markers")
         if kind == "meshes":
             return sequence.read_gltf_sequence(path, fps=fps)
-        try:
-            from core.io.gltf import read_animation
-        except ImportError as e:  # another module provides it; say so rather than fail obscurely
-            raise ImportError(
-                f"{path}: reading a glTF animation needs core.io.gltf.read_animation, which is not "
-                f"available in this build ({e})"
-            ) from None
-        return read_animation(path, **({"fps": fps} if fps else {}), **kw)
+        if not hasattr(gltf, "read_animation"):  # another module provides it; say so rather than fail obscurely
+            raise ImportError(f"{path}: reading a glTF animation needs core.io.gltf.read_animation, which is not "
+                              "available in this build")
+        return gltf.read_animation(path, **({"fps": fps} if fps else {}), **kw)
     if fps:
         raise ValueError(f"{path}: fps cannot be set for {suffix or 'this'} files: their times come from the file")
     perf = _read_clocked(path, suffix, kw)
@@ -205,8 +199,6 @@ def write_performance(path, perf: Performance, **kw) -> None:
         if perf.kind != "markers":
             raise ValueError(f"{path}: {suffix} holds marker trajectories; got a {perf.kind!r} performance")
         return (markers.write_trc if suffix == ".trc" else markers.write_c3d)(path, perf, **kw)
-    from core.io import sequence, usd
-
     if perf.kind == "meshes" and (suffix in usd.SUFFIXES or suffix in (".glb", ".gltf") or not suffix):
         return sequence.write_mesh_sequence(path, perf, **kw)
     if suffix in (".glb", ".gltf") or suffix in usd.SUFFIXES:

@@ -6,6 +6,11 @@ from pathlib import Path
 from typing import Optional
 
 from ..model import MarkerLayout, Rig
+from .gltf import read_rig
+from .layout import default_layout_path, read_layout, sidecar_layout_path
+from .objfolder import read_obj_folder
+from .usd import SUFFIXES as USD_SUFFIXES
+from .usd import read_rig as read_usd_rig
 
 RIG_FORMATS = (".glb, .gltf, .usd/.usda/.usdc/.usdz (UsdSkel blend shapes), or a folder of OBJs "
                "(neutral.obj + one OBJ per shape)")
@@ -16,20 +21,12 @@ def load_rig(path) -> Rig:
     accepted formats (ImportError naming the ``[usd]`` extra for USD without usd-core)."""
     path = Path(path)
     if path.is_dir():
-        from .objfolder import read_obj_folder
-
         return read_obj_folder(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such rig file")
     if path.suffix.lower() in (".glb", ".gltf"):
-        from .gltf import read_rig
-
         return read_rig(path)
-    from .usd import SUFFIXES as USD_SUFFIXES
-
     if path.suffix.lower() in USD_SUFFIXES:
-        from .usd import read_rig as read_usd_rig
-
         return read_usd_rig(path)
     raise ValueError(f"{path}: unsupported rig format {path.suffix!r}; expected {RIG_FORMATS}")
 
@@ -49,8 +46,6 @@ def read_layout_for(layout_path: Optional[str], rig_path, rig: Rig) -> MarkerLay
 
     Raises FileNotFoundError saying how to make one (``face-retarget layout``) when neither exists.
     """
-    from .layout import default_layout_path, read_layout, sidecar_layout_path
-
     if layout_path:
         return read_layout(layout_path, rig=rig)
     default = default_layout_path(rig_path)

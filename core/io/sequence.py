@@ -34,9 +34,15 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import trimesh
 
 from ..model import Performance, Rig, unit_scale
+from .gltf import read_animation, read_rig, write_rig
+from .objfolder import read_obj
 from .tabular import DataQualityWarning
+from .usd import SUFFIXES as USD_SUFFIXES
+from .usd import read_mesh_sequence as read_usd
+from .usd import write_mesh_sequence as write_usd
 
 #: per-frame file suffixes a sequence folder may hold
 FRAME_SUFFIXES = (".obj", ".ply")
@@ -76,8 +82,6 @@ def _sidecar(folder: Path) -> dict:
 
 
 def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
     try:
         mesh = trimesh.load(str(path), process=False, force="mesh")
     except Exception as e:  # trimesh raises many types on a malformed file
@@ -87,8 +91,6 @@ def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def _read_frame(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if path.suffix.lower() == ".obj":
-        from .objfolder import read_obj
-
         positions, faces, _ = read_obj(path)
         return positions, faces
     return _read_ply(path)
@@ -188,8 +190,6 @@ def read_gltf_sequence(path, fps: Optional[float] = None) -> Performance:
     ------
     FileNotFoundError; GltfError naming the file and field (no animation, no morph targets, ...).
     """
-    from .gltf import read_animation, read_rig
-
     path = Path(path)
     curves = read_animation(path, fps=fps)
     rig = read_rig(path, mesh=curves.extras.get("mesh"))
@@ -202,8 +202,6 @@ def read_gltf_sequence(path, fps: Optional[float] = None) -> Performance:
 def read_mesh_sequence(path, fps: Optional[float] = None, units: Optional[str] = None) -> Performance:
     """A mesh sequence from a folder of OBJ/PLY frames, a glTF/GLB or a USD file (see the
     module table); ``fps`` overrides the rate the files give, ``units`` a folder's units."""
-    from .usd import SUFFIXES as USD_SUFFIXES
-
     path = Path(path)
     if path.is_dir():
         return read_mesh_folder(path, fps=fps, units=units)
@@ -213,8 +211,6 @@ def read_mesh_sequence(path, fps: Optional[float] = None, units: Optional[str] =
     if suffix in (".glb", ".gltf"):
         return read_gltf_sequence(path, fps=fps)
     if suffix in USD_SUFFIXES:
-        from .usd import read_mesh_sequence as read_usd
-
         return read_usd(path, fps=fps)
     raise SequenceError(f"{path}: a mesh sequence is a folder of OBJ/PLY frames, a .glb/.gltf with morph-target frames, "
                         f"or a USD file ({', '.join(USD_SUFFIXES)}); got {suffix or 'no suffix'!r}")
@@ -256,21 +252,15 @@ def write_mesh_sequence(path, perf: Performance, frame_format: str = "obj", pref
     ValueError
         Not a mesh sequence, no faces, or an unknown ``frame_format`` / suffix.
     """
-    from .usd import SUFFIXES as USD_SUFFIXES
-
     path = Path(path)
     topo = topology_rig(perf)  # validates kind and faces
     suffix = path.suffix.lower()
     if suffix in (".glb", ".gltf"):
-        from .gltf import write_rig
-
         ok = np.flatnonzero(perf.valid)
         names = [f"{prefix}{i:04d}" for i in ok]
         rig = Rig(topo.neutral, topo.faces, perf.data[ok] - topo.neutral, names, None, perf.units, perf.name)
         return write_rig(path, rig, weights=np.eye(len(ok)), times=perf.times[ok] - perf.times[0], normals=False)
     if suffix in USD_SUFFIXES:
-        from .usd import write_mesh_sequence as write_usd
-
         return write_usd(path, perf)
     if suffix and not path.is_dir():
         raise ValueError(f"path: {path}: a sequence is written to a folder, a .glb/.gltf or a USD file")
@@ -285,8 +275,6 @@ def write_mesh_sequence(path, perf: Performance, frame_format: str = "obj", pref
             v = ("v %.17g %.17g %.17g\n" * len(perf.data[i])) % tuple(perf.data[i].ravel())
             f.write_text(f"# face-retarget mesh sequence {perf.name!r}, frame {i}\n" + v + obj_faces)
         else:
-            import trimesh
-
             trimesh.Trimesh(perf.data[i], faces, process=False).export(str(f))
     (path / SIDECAR).write_text(json.dumps({"fps": perf.fps, "units": "m"}) + "\n")
     return path

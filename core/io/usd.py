@@ -71,7 +71,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..model import Performance, Rig
+from ..model import UNIT_SCALE, Performance, Rig
+from .gltf import _animation_inputs, vertex_normals
 from .tabular import DataQualityWarning, estimate_fps
 
 #: suffixes read and written as USD
@@ -147,8 +148,6 @@ def _stage_metadata(stage, root_path: str, fps: float, tc: Optional[np.ndarray],
 def _define_mesh(stage, path: str, rig_like, normals: bool, UsdGeom, Vt, Gf, points: bool = True):
     """A Mesh prim with ``rig_like``'s triangles, and (``points``) its neutral as the points' default
     value with normals and UVs; returns it."""
-    from .gltf import vertex_normals
-
     mesh = UsdGeom.Mesh.Define(stage, path)
     neutral = np.asarray(rig_like.neutral, dtype=np.float64)
     faces = np.asarray(rig_like.faces, dtype=np.int64)
@@ -233,8 +232,6 @@ def write_rig(path, rig: Rig, weights=None, fps: float = 30.0, times=None, *, no
     ValueError
         Unknown suffix, weights not (T, K) or not finite, times not increasing.
     """
-    from .gltf import _animation_inputs, vertex_normals
-
     path = Path(path)
     suffix = _check_suffix(path)
     if not isinstance(rig, Rig):
@@ -374,8 +371,6 @@ def _frame_transform(stage, prim, UsdGeom, Usd, time=None) -> tuple[np.ndarray, 
 
     USD matrices act on row vectors (``p' = p M``); metres = ``metersPerUnit`` * units.
     """
-    from ..model import UNIT_SCALE
-
     tc = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
     M = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(tc), dtype=np.float64) \
         if prim.IsA(UsdGeom.Xformable) else np.eye(4)

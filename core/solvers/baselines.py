@@ -26,13 +26,13 @@ by default (then the solves are exactly the papers'):
 
 from __future__ import annotations
 
-
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 
 from core.prior import alpha_for_units, prior_quadratic
-from core.solvers.inputs import as_basis, as_sequence, as_valid, zero_filled
+from core.solvers.boxqp import solve_box_sequence
+from core.solvers.inputs import as_basis, as_bounds, as_coupling, as_sequence, as_valid, as_zero_mask, zero_filled
+from core.solvers.qp import solve_qp_batch
 from core.solvers.spacetime import AUTO_RIDGE
 
 __all__ = ["no_const", "range_pf", "prior_pf", "box_lsq"]
@@ -125,8 +125,8 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
     W = np.zeros((len(Sz), K))
     smax2 = _smax2(Bm)
     rho = ridge * smax2
-    Qs = _quadratic(quadratic, K, smax2, "prior_pf")
-    zero = _zero_mask(zero, len(Sz), K, "prior_pf")
+    Qs = as_coupling(quadratic, K, smax2, "prior_pf")
+    zero = as_zero_mask(zero, len(Sz), K, "prior_pf")
     for pat, frames in _groups(valid):
         rows = np.repeat(pat, 3)
         Bv = Bm[rows]
@@ -160,7 +160,7 @@ def box_lsq(H: np.ndarray, rhs: np.ndarray, lower, upper, max_iter: int = 30):
     ``min_w 1/2 w^T H w - r_t^T w  s.t.  lower <= w <= upper`` for every row ``r_t`` of ``rhs``.
     With ``w = lower + D u``, ``D = diag(upper - lower)``, this is the unit-box QP
     ``min_u 1/2 u^T (D H D) u + (D (H lower - r_t))^T u, 0 <= u <= 1`` solved exactly by the
-    batched primal-dual + primal active-set solver of :func:`core.solvers.local.solve_qp_batch`
+    batched primal-dual + primal active-set solver of :func:`core.solvers.qp.solve_qp_batch`
     (one implementation of the small-QP machinery for every method).
 
     Parameters
@@ -175,8 +175,6 @@ def box_lsq(H: np.ndarray, rhs: np.ndarray, lower, upper, max_iter: int = 30):
     n_fallback : int, rows the primal-dual iteration did not settle (finished by the primal
         active set, still exact)
     """
-    from core.solvers.local import solve_qp_batch
-
     K = H.shape[0]
     lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,))
     hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,))
@@ -194,54 +192,6 @@ def box_lsq(H: np.ndarray, rhs: np.ndarray, lower, upper, max_iter: int = 30):
 def _smax2(Bm) -> float:
     """sigma_max(B)^2: the scale relative ridges are quoted in (as the spacetime solver's)."""
     return float(np.linalg.norm(Bm, 2) ** 2) if Bm.size else 0.0
-
-
-def _quadratic(Q, K: int, scale: float, name: str):
-    """``scale * Q`` validated: (K, K), finite, symmetric, positive semi-definite; None -> None."""
-    if Q is None:
-        return None
-    Q = np.asarray(Q, dtype=np.float64)
-    if Q.shape != (K, K):
-        raise ValueError(f"{name}: quadratic must be a ({K}, {K}) matrix (one row and column per shape), got {Q.shape}")
-    if not np.isfinite(Q).all():
-        raise ValueError(f"{name}: quadratic contains NaN/inf")
-    top = max(float(np.abs(Q).max()), 1e-300)
-    if np.abs(Q - Q.T).max() > 1e-12 * top:
-        raise ValueError(f"{name}: quadratic must be symmetric")
-    if np.linalg.eigvalsh(Q)[0] < -1e-10 * top:
-        raise ValueError(f"{name}: quadratic must be positive semi-definite (a sum of squares such as "
-                         "core.controls.symmetry_matrix)")
-    return scale * 0.5 * (Q + Q.T)
-
-
-def _zero_mask(zero, T: int, K: int, name: str):
-    """(T, K) bool of the weights held at 0, from None, (K,) or (T, K); None when nothing is held."""
-    if zero is None:
-        return None
-    z = np.asarray(zero)
-    if z.dtype != bool:
-        raise ValueError(f"{name}: zero must be a bool mask, got dtype {z.dtype}")
-    if z.shape == (K,):
-        z = np.broadcast_to(z, (T, K))
-    if z.shape != (T, K):
-        raise ValueError(f"{name}: zero must be a ({K},) or ({T}, {K}) bool mask, got shape {z.shape}")
-    return z if z.any() else None
-
-
-def _bounds(lower, upper, K: int, name: str):
-    """(K,) float bounds from scalars or per-shape arrays, validated."""
-    try:
-        lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,))
-        hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,))
-    except ValueError:
-        raise ValueError(f"{name}: lower and upper must be scalars or ({K},) per-shape arrays, "
-                         f"got shapes {np.shape(lower)} and {np.shape(upper)}") from None
-    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
-        raise ValueError(f"{name}: bounds must be finite (use a large number for 'no bound'), got {lower}, {upper}")
-    if (lo > hi).any():
-        bad = np.flatnonzero(lo > hi)[:5].tolist()
-        raise ValueError(f"{name}: lower must be <= upper, violated for shapes {bad}")
-    return lo, hi
 
 
 def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: float = 0.0, return_info: bool = False,
@@ -289,19 +239,17 @@ def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: f
     ValueError
         ``lower > upper``, non-finite bounds, bounds of the wrong shape.
     """
-    from core.solvers.boxqp import solve_box_sequence
-
     Bm, Sz, valid = _setup(B, S, valid)
     K = Bm.shape[1]
-    lo, hi = _bounds(lower, upper, K, "range_pf")
+    lo, hi = as_bounds(lower, upper, K, "range_pf", finite=True)
     T = len(Sz)
-    zero = _zero_mask(zero, T, K, "range_pf")
+    zero = as_zero_mask(zero, T, K, "range_pf")
     held = np.clip(0.0, lo, hi)
     W = np.broadcast_to(held, (T, K)).copy()  # frames without any valid marker
     info = {"fallback": 0}
     smax2 = _smax2(Bm)
     rho = ridge * smax2
-    Qs = _quadratic(quadratic, K, smax2, "range_pf")
+    Qs = as_coupling(quadratic, K, smax2, "range_pf")
     sol = np.flatnonzero(hi > lo)  # shapes to solve for; the others are pinned at lower
     if len(sol):
         pats, inv = (valid[:1], np.zeros(T, np.int64)) if valid.all() else np.unique(valid, axis=0, return_inverse=True)

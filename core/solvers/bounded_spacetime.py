@@ -85,7 +85,7 @@ Tolerance
 ---------
 The optimality conditions: with ``g = dE/dW`` and ``h(w) = l1 |w| + indicator[lower, upper]``,
 ``-g`` lies in the subdifferential of ``h`` at ``w`` for every free (not known) weight. The
-violation of an entry (:func:`kkt_violation`) is ``|g + l1 sign(w)|`` inside the bounds,
+violation of an entry (:func:`kkt_violation_per_entry`) is ``|g + l1 sign(w)|`` inside the bounds,
 ``max(0, -(g + h'(lower+)))`` at a lower bound, ``max(0, g + h'(upper-))`` at an upper one,
 ``max(0, |g| - l1)`` at zero between them, and ``||B^T B||_2`` times the distance outside the
 bounds. The solve returns when the largest violation is at most::
@@ -117,10 +117,14 @@ import functools
 import warnings
 
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
-from core.solvers.spacetime import KKT_RTOL, RangeSystem, kronecker_system
+__all__ = ["solve_bounded", "kkt_violation_per_entry", "KKT_RTOL"]
 
-__all__ = ["solve_bounded", "kkt_violation", "bounded_spacetime_reference"]
+#: KKT tolerance of the bounded solver, relative: the largest violation of the optimality
+#: conditions (see :meth:`core.solvers.spacetime.SpacetimeSolver.kkt_residual`) must be at most
+#: ``KKT_RTOL * ||B^T B||_2 * max(1, max |W|)``
+KKT_RTOL = 1e-9
 
 
 def _slopes(lower, upper, l1):
@@ -128,7 +132,7 @@ def _slopes(lower, upper, l1):
     return np.where(lower >= 0, l1, -l1), np.where(upper > 0, l1, -l1)
 
 
-def kkt_violation(W, g, lower, upper, l1, scale: float) -> np.ndarray:
+def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
     """Per-entry violation of the optimality conditions (absolute, in gradient units).
 
     Parameters
@@ -183,7 +187,7 @@ def _prox_state(y, c, lo, hi, lam):
     return fixed, np.where(fixed, p, 0.0), sign
 
 
-def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, max_iter: int = 30,
+def solve_bounded(system, lower, upper, l1, tol: float = KKT_RTOL, max_iter: int = 30,
                   max_solves: int = 2000):
     """Minimise a range's spacetime energy + ``l1 ||W||_1`` with ``lower <= W <= upper``.
 
@@ -192,7 +196,7 @@ def solve_bounded(system: RangeSystem, lower, upper, l1, tol: float = KKT_RTOL, 
 
     Parameters
     ----------
-    system : RangeSystem
+    system : core.solvers.spacetime.RangeSystem
         The range and its known entries (:meth:`SpacetimeSolver.range_system`).
     lower, upper : (K,) float
         Bounds per shape (``-inf``/``inf`` for none), ``lower <= upper``.
@@ -226,8 +230,6 @@ def _blas_controller():
     """threadpoolctl's view of the loaded BLAS libraries, made once: ``threadpool_limits``
     looks them up again on every call (0.5 ms and a read of the process's library list; a
     whole bounded solve of the benchmark case takes 50 ms). NumPy's BLAS is loaded by then."""
-    from threadpoolctl import ThreadpoolController
-
     return ThreadpoolController()
 
 
@@ -247,7 +249,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
     def residual(X, g):
         if not anyfree:
             return 0.0
-        v = kkt_violation(X, g, lo[0], hi[0], lam[0], system.scale)
+        v = kkt_violation_per_entry(X, g, lo[0], hi[0], lam[0], system.scale)
         return float(v[free].max())
 
     def small(X, r):
@@ -305,7 +307,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
     X = np.clip(X, lo, hi)
     X[known] = system.values[known]
     gl = system.gradient(X)
-    v = kkt_violation(X, gl, lo[0], hi[0], lam[0], system.scale)[~known]
+    v = kkt_violation_per_entry(X, gl, lo[0], hi[0], lam[0], system.scale)[~known]
     info["kkt"] = float(v.max() / (system.scale * max(1.0, float(np.abs(X).max())))) if v.size else 0.0
     at = ((X == lo) | (X == hi) | ((lam > 0) & (X == 0))) & ~known
     info["active"] = int(at.sum())
@@ -387,119 +389,3 @@ def _admm_restarts(system, X, g, lo, hi, lam, c, known, info, max_solves, pdas, 
         if done:
             return True, X1, g1
     return False, z, system.gradient(z)
-
-
-def bounded_spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, lower=None, upper=None,
-                                l1=0.0, solver: str = "clarabel", tol: float = 1e-10, **kw):
-    """Slow reference: the literal Kronecker QP solved by a general sparse QP solver.
-
-    ``min x^T H x - 2 r^T x + l1^T |x|`` subject to ``lower <= x <= upper`` and the known
-    entries, with ``(H, r)`` from :func:`core.solvers.spacetime.kronecker_system` (known entries
-    eliminated). The L1 term is linear where the bounds have one sign and uses auxiliary
-    variables ``t >= |x|`` where they straddle zero.
-
-    Parameters
-    ----------
-    B, S, alpha, beta, prior, known
-        As :class:`SpacetimeSolver`; ``kw`` passes ``boundary``, ``valid``, ``marker_weights``,
-        ``frame_weights``, ``alpha_units``, ``ridge`` (absolute), ``name_target``,
-        ``name_weight`` (absolute), ``quadratic`` (absolute) on to :func:`kronecker_system`.
-    lower, upper : float or (K,) float, optional
-    l1 : float or (K,) float
-        Absolute L1 weight (use ``SpacetimeSolver(...).l1_``).
-    solver : {"clarabel", "osqp"}
-        Clarabel (interior point) or OSQP (ADMM), both optional: ``pip install clarabel osqp``
-        (the ``test`` extra).
-    tol : float
-        The solver's own tolerances (Clarabel: gap and feasibility; OSQP: eps_abs/eps_rel).
-
-    Returns
-    -------
-    W : (T, K) float
-    info : dict with the solver's ``status``, ``iterations`` and ``seconds``
-    """
-    import time
-
-    import scipy.sparse as sp
-
-    Bm = np.asarray(B)
-    K = Bm.shape[0] if Bm.ndim == 3 else Bm.shape[1]
-    T = len(S)
-    sysk = kronecker_system(B, S, alpha, beta, prior, known, **kw)
-    xk = sysk.known
-    kn = np.isfinite(xk)
-    fr = ~kn
-    H = sysk.H
-    Hf = H[fr][:, fr].tocsc()
-    q = -2.0 * (sysk.r[fr] - H[fr][:, kn] @ xk[kn])
-    nf = int(fr.sum())
-    lo = np.tile(np.broadcast_to(-np.inf if lower is None else np.asarray(lower, float), (K,)), T)[fr]
-    hi = np.tile(np.broadcast_to(np.inf if upper is None else np.asarray(upper, float), (K,)), T)[fr]
-    lam = np.tile(np.broadcast_to(np.asarray(l1, float), (K,)), T)[fr]
-    pos = (lam > 0) & (lo >= 0)
-    neg = (lam > 0) & (hi <= 0)
-    q = q + np.where(pos, lam, 0.0) - np.where(neg, lam, 0.0)
-    aux = np.flatnonzero((lam > 0) & ~pos & ~neg)
-    na = len(aux)
-    P = sp.block_diag([2.0 * Hf, sp.csc_matrix((na, na))], format="csc")
-    qq = np.concatenate([q, lam[aux]])
-    I = sp.identity(nf, format="csc")
-    rows_u = np.flatnonzero(np.isfinite(hi))
-    rows_l = np.flatnonzero(np.isfinite(lo))
-    t0 = time.perf_counter()
-    if solver == "clarabel":
-        try:
-            import clarabel
-        except ImportError:
-            raise ImportError("bounded_spacetime_reference(solver='clarabel') needs clarabel: pip install clarabel "
-                              "(or the test extra: pip install -e .[test])") from None
-        blocks, b = [], []
-        if len(rows_u):
-            blocks.append(sp.hstack([I[rows_u], sp.csc_matrix((len(rows_u), na))]))
-            b.append(hi[rows_u])
-        if len(rows_l):
-            blocks.append(sp.hstack([-I[rows_l], sp.csc_matrix((len(rows_l), na))]))
-            b.append(-lo[rows_l])
-        if na:
-            Ea = sp.csc_matrix((np.ones(na), (np.arange(na), aux)), shape=(na, nf))
-            Ia = sp.identity(na, format="csc")
-            blocks += [sp.hstack([Ea, -Ia]), sp.hstack([-Ea, -Ia])]
-            b += [np.zeros(na), np.zeros(na)]
-        Acon = sp.vstack(blocks, format="csc") if blocks else sp.csc_matrix((0, nf + na))
-        bcon = np.concatenate(b) if b else np.zeros(0)
-        st = clarabel.DefaultSettings()
-        st.verbose = False
-        st.tol_gap_abs = st.tol_gap_rel = st.tol_feas = tol
-        st.tol_ktratio = min(1e-6, st.tol_ktratio)
-        st.max_iter = 500
-        cones = [clarabel.NonnegativeConeT(Acon.shape[0])] if Acon.shape[0] else []
-        sol = clarabel.DefaultSolver(sp.triu(P, format="csc"), qq, Acon, bcon, cones, st).solve()
-        z = np.asarray(sol.x)
-        info = {"status": str(sol.status), "iterations": int(sol.iterations)}
-    elif solver == "osqp":
-        try:
-            import osqp
-        except ImportError:
-            raise ImportError("bounded_spacetime_reference(solver='osqp') needs osqp: pip install osqp "
-                              "(or the test extra: pip install -e .[test])") from None
-        blocks = [sp.hstack([I, sp.csc_matrix((nf, na))])]
-        lb, ub = [lo], [hi]
-        if na:
-            Ea = sp.csc_matrix((np.ones(na), (np.arange(na), aux)), shape=(na, nf))
-            Ia = sp.identity(na, format="csc")
-            blocks += [sp.hstack([Ea, -Ia]), sp.hstack([-Ea, -Ia])]
-            lb += [np.full(na, -np.inf)] * 2
-            ub += [np.zeros(na)] * 2
-        Acon = sp.vstack(blocks, format="csc")
-        m = osqp.OSQP()
-        m.setup(sp.triu(P, format="csc"), qq, Acon, np.concatenate(lb), np.concatenate(ub), verbose=False,
-                eps_abs=tol, eps_rel=tol, max_iter=200000, polishing=True, polish_refine_iter=10)
-        res = m.solve(raise_error=False)
-        z = np.asarray(res.x)
-        info = {"status": str(res.info.status), "iterations": int(res.info.iter)}
-    else:
-        raise ValueError(f"solver must be 'clarabel' or 'osqp', got {solver!r}")
-    info["seconds"] = time.perf_counter() - t0
-    x = xk.copy()
-    x[fr] = z[:nf]
-    return x.reshape(T, K), info

@@ -54,11 +54,11 @@ Exactness
 Every frame is accepted only after its KKT conditions are checked with a freshly computed
 gradient ``g = H u + f``: ``|g_F| <= eps_l``, ``-eps_u <= u_F <= 1 + eps_u``, ``g_L >= -eps_l``,
 ``g_U <= eps_l`` with ``eps_u = 1e-11`` and ``eps_l = 1e-11 (mean diag H + max |f|)`` (the tests
-of :func:`core.solvers.local.solve_qp_batch`). The updated inverses drift in ill-conditioned
+of :func:`core.solvers.qp.solve_qp_batch`). The updated inverses drift in ill-conditioned
 problems; they are refreshed from scratch every ``refresh`` updates, the point is refined by one
 step of iterative refinement before the check, and a frame that still fails (or a lane stuck in
 degenerate breakpoints) is finished by primal-dual active-set steps from its current set and the
-finite primal active-set method of :func:`core.solvers.local._primal_active_set` (counted in
+finite primal active-set method of :func:`core.solvers.qp.primal_active_set` (counted in
 ``info["fallback"]``). The answer is therefore the optimum to rounding, as before, not to an
 iteration tolerance.
 
@@ -75,6 +75,8 @@ References
 from __future__ import annotations
 
 import numpy as np
+
+from core.solvers.qp import primal_active_set, solve_eqp_batch
 
 __all__ = ["solve_box_sequence"]
 
@@ -154,8 +156,6 @@ def _finish(H, f, h, lower, upper, eps_l, pdas_steps=6):
     Primal-dual active-set steps [3] from the lane's (nearly right) working set, then the finite
     primal active-set method for whatever has not settled.
     """
-    from .local import _eqp, _primal_active_set
-
     n = len(f)
     u = np.zeros_like(f)
     todo = np.arange(n)
@@ -164,7 +164,7 @@ def _finish(H, f, h, lower, upper, eps_l, pdas_steps=6):
     same = np.zeros(0, bool)
     for _ in range(pdas_steps):
         lo, up = lower[todo], upper[todo]
-        ut, _ = _eqp(H, f[todo], h[todo], lo, up, np.zeros(len(todo), bool))
+        ut, _ = solve_eqp_batch(H, f[todo], h[todo], lo, up, np.zeros(len(todo), bool))
         g = _hmul(H, h[todo], ut) + f[todo]
         el = eps_l[todo][:, None]
         new_up = np.where(up, g <= el, ut > 1 + EPS_U)
@@ -176,7 +176,7 @@ def _finish(H, f, h, lower, upper, eps_l, pdas_steps=6):
         if not len(todo):
             return np.clip(u, 0.0, 1.0)
     start = np.clip(ut[~same], 0.0, 1.0)
-    u[todo], _ = _primal_active_set(H, f[todo], h[todo], False, EPS_U, eps_l[todo], init=start)
+    u[todo], _ = primal_active_set(H, f[todo], h[todo], False, EPS_U, eps_l[todo], init=start)
     return np.clip(u, 0.0, 1.0)
 
 
@@ -382,8 +382,6 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
 def _pdas_start(H, f, idx, eps_all, L, lanes, iters, U, info, refresh):
     """Solve the lanes' first frames by a few PDAS iterations [3] from the clipped unconstrained
     minimiser; lanes that settle (KKT verified) start their second frame warm."""
-    from .local import _eqp
-
     t, c, h = L.t[lanes], L.c[lanes], L.h[lanes]
     f1 = f[t, c]
     el = eps_all[t, c][:, None]
@@ -392,7 +390,7 @@ def _pdas_start(H, f, idx, eps_all, L, lanes, iters, U, info, refresh):
     todo = np.arange(len(lanes))
     for _ in range(iters):
         lo, up = lower[todo], upper[todo]
-        ut, _ = _eqp(H, f1[todo], h[todo], lo, up, np.zeros(len(todo), bool))
+        ut, _ = solve_eqp_batch(H, f1[todo], h[todo], lo, up, np.zeros(len(todo), bool))
         g = _hmul(H, h[todo], ut) + f1[todo]
         ok = _kkt_ok(ut, g, lo, up, el[todo])
         ln = lanes[todo[ok]]

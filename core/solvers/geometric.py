@@ -99,11 +99,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import numpy as np
 
+from core.geometry import cotangent_laplacian
 from core.model import unit_scale
-from core.solvers.baselines import _bounds
-from core.solvers.bounded_spacetime import kkt_violation
+from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry
 from core.solvers.boxqp import solve_box_sequence
-from core.solvers.spacetime import AUTO_RIDGE, KKT_RTOL
+from core.solvers.inputs import as_bounds, as_coupling
+from core.solvers.spacetime import AUTO_RIDGE
 
 #: Ribera 2017 §5 recommendations, for markers in centimetres
 MU = 0.3
@@ -125,8 +126,6 @@ def laplacian_deltas(rig, laplacian=None):
     -------
     (K, N, 3) float64
     """
-    from core.geometry import cotangent_laplacian
-
     N = rig.n_vertices
     L = cotangent_laplacian(rig.neutral, rig.faces) if laplacian is None else laplacian
     if L.shape != (N, N):
@@ -289,10 +288,8 @@ class GeometricSolver:
         self.q = q
         self.coupling_ = None
         if quadratic is not None:
-            from core.solvers.baselines import _quadratic
-
             scale = float(np.linalg.norm(self.P, 2) ** 2) / M if self.P.size else 0.0
-            self.coupling_ = _quadratic(quadratic, K, scale, "GeometricSolver")
+            self.coupling_ = as_coupling(quadratic, K, scale, "GeometricSolver")
         self.H = self.P.T @ self.P / M + self.mu * self.Q
         if self.coupling_ is not None:
             self.H = self.H + self.coupling_
@@ -303,7 +300,7 @@ class GeometricSolver:
                              f"eq. 16), got lower={lower}, upper={upper}")
         self.ridge_ = 0.0
         if lower is not None:
-            self.lower, self.upper = _bounds(lower, upper, K, "GeometricSolver")
+            self.lower, self.upper = as_bounds(lower, upper, K, "GeometricSolver", finite=True)
             self.columns_ = _columns(self.lower, self.upper, self.c)
             try:
                 np.linalg.cholesky(self.H)
@@ -457,7 +454,7 @@ class GeometricSolver:
         hi = np.full(K, np.inf) if self.upper is None else self.upper
         H = self.H + self.ridge_ * np.eye(K)
         g = 2.0 * (W @ H - b)  # dE/dw of the smooth terms (H symmetric)
-        v = kkt_violation(W, g, lo, hi, np.full(K, 2.0 * self.c), 2.0 * np.linalg.norm(H, 2))
+        v = kkt_violation_per_entry(W, g, lo, hi, np.full(K, 2.0 * self.c), 2.0 * np.linalg.norm(H, 2))
         v = np.where((hi > lo) if free is None else free & (hi > lo), v, 0.0)  # held and fixed weights are constraints
         scale = 2.0 * (np.linalg.norm(H, 2) * np.maximum(1.0, np.abs(W).max(axis=1, initial=0.0))
                        + np.abs(b).max(axis=1, initial=0.0) + self.c)

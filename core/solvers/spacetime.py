@@ -61,8 +61,8 @@ solver calls it once per active-set step.
 Bounds and sparsity (:mod:`core.solvers.bounded_spacetime`): with ``lower``/``upper`` (scalars
 or per shape) or ``l1 > 0`` the same energy plus ``l1 ||W||_1`` is minimised subject to the
 bounds, exactly to the KKT tolerance ``tol * ||B^T B||_2 * max(1, max |W|)`` (default
-:data:`KKT_RTOL` = 1e-9): a primal-dual active-set method whose inner solve is the
-``RangeSystem`` solve above (the fast path when it applies), restarted from ADMM iterates when
+:data:`~core.solvers.bounded_spacetime.KKT_RTOL` = 1e-9): a primal-dual active-set method whose
+inner solve is the ``RangeSystem`` solve above (the fast path when it applies), restarted from ADMM iterates when
 it cycles. Edits (§6) re-solve their windows the same way.
 
 General path (block tridiagonal), used with missing samples or per-frame *and* per-marker
@@ -83,6 +83,7 @@ rig's size either; the absolute values are ``ridge_``, ``l1_``, ``name_weight_``
 
 from __future__ import annotations
 
+import difflib
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -90,66 +91,24 @@ from typing import Callable, NamedTuple, Optional, Sequence
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse as sp
-import scipy.sparse.linalg
 from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs, dtrtrs
 
 from core.prior import PCAPrior, alpha_for_units, prior_quadratic
-from core.solvers.inputs import as_basis, as_sequence, as_valid, zero_filled
+from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry, solve_bounded
+from core.solvers.inputs import (as_basis, as_bounds, as_coupling, as_nonnegative, as_per_shape, as_sequence,
+                                 as_valid, zero_filled)
 
 __all__ = [
-    "SpacetimeSolver", "solve_spacetime", "spacetime_reference", "kronecker_system", "KroneckerSystem",
-    "RangeSystem", "Edit", "SpacetimeEnergy", "known_matrix", "known_rows", "KKT_RTOL",
+    "SpacetimeSolver", "solve_spacetime", "RangeSystem", "PoseEdit", "SpacetimeEnergy", "known_matrix", "known_rows",
 ]
 
 #: relative ridge used by ``ridge="auto"`` when ``B`` is rank deficient (times sigma_max(B)^2)
 AUTO_RIDGE = 1e-9
 
-#: KKT tolerance of the bounded solver, relative: the largest violation of the optimality
-#: conditions (see :meth:`SpacetimeSolver.kkt_residual`) must be at most
-#: ``KKT_RTOL * ||B^T B||_2 * max(1, max |W|)``
-KKT_RTOL = 1e-9
-
-
-def _nonneg(x, shape, name) -> np.ndarray:
-    x = np.asarray(x, dtype=np.float64)
-    if x.shape != shape:
-        raise ValueError(f"{name}: expected shape {shape}, got {x.shape}")
-    if not np.isfinite(x).all() or (x < 0).any():
-        raise ValueError(f"{name}: must be finite and >= 0")
-    return x
-
-
-def _per_shape(x, K: int, name: str, allow_inf: bool = False) -> np.ndarray:
-    """A scalar or (K,) setting -> (K,) float64 (finite and >= 0 unless ``allow_inf``)."""
-    try:
-        a = np.asarray(x, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a number or ({K},) numbers, got {x!r}") from None
-    if a.ndim == 0:
-        a = np.full(K, float(a))
-    if a.shape != (K,):
-        raise ValueError(f"{name}: expected a number or ({K},) per-shape values, got shape {a.shape}")
-    if np.isnan(a).any() or (not allow_inf and not np.isfinite(a).all()) or (not allow_inf and (a < 0).any()):
-        raise ValueError(f"{name}: must be finite and >= 0, got {x!r}")
-    return a.copy()
-
-
-def _bounds(lower, upper, K: int):
-    """(K,) lower and upper bounds from scalars, (K,) arrays or None (unbounded)."""
-    lo = _per_shape(-np.inf if lower is None else lower, K, "lower", allow_inf=True)
-    hi = _per_shape(np.inf if upper is None else upper, K, "upper", allow_inf=True)
-    if (lo == np.inf).any() or (hi == -np.inf).any():
-        raise ValueError("lower must be < inf and upper > -inf")
-    if (lo > hi).any():
-        k = int(np.flatnonzero(lo > hi)[0])
-        raise ValueError(f"lower must be <= upper for every shape: shape {k} has lower={lo[k]:g} > upper={hi[k]:g}")
-    return lo, hi
-
 
 def _name_term(target, weight, T: int, K: int):
     """``(W_named zero-filled (T, K) or None, gamma (K,))`` of the name term (relative gamma)."""
-    gam = _per_shape(weight, K, "name_weight")
+    gam = as_per_shape(weight, K, "name_weight")
     if target is None:
         if (gam > 0).any():
             raise ValueError("name_weight > 0 needs name_target, the (T, K) namesake curves (NaN = no namesake)")
@@ -171,23 +130,6 @@ def _name_term(target, weight, T: int, K: int):
     if not (gam > 0).any():
         return None, np.zeros(K)
     return np.where(has, Wn, 0.0), gam
-
-
-def _coupling(Q, K: int, scale: float):
-    """``scale * Q`` for a relative (K, K) symmetric PSD coupling, validated; None -> None."""
-    if Q is None:
-        return None
-    Q = np.asarray(Q, dtype=np.float64)
-    if Q.shape != (K, K):
-        raise ValueError(f"quadratic: expected a ({K}, {K}) matrix (one row and column per shape), got {Q.shape}")
-    if not np.isfinite(Q).all():
-        raise ValueError("quadratic: contains NaN/inf")
-    top = max(float(np.abs(Q).max()), 1e-300)
-    if np.abs(Q - Q.T).max() > 1e-12 * top:
-        raise ValueError("quadratic: must be symmetric")
-    if np.linalg.eigvalsh(Q)[0] < -1e-10 * top:
-        raise ValueError("quadratic: must be positive semi-definite (a sum of squares, e.g. core.controls.symmetry_matrix)")
-    return scale * 0.5 * (Q + Q.T)
 
 
 def known_rows(known, T: int, K: int, boundary="neutral", name: str = "known") -> dict:
@@ -263,7 +205,7 @@ class SpacetimeEnergy(NamedTuple):
 
 
 @dataclass(frozen=True)
-class Edit:
+class PoseEdit:
     """A user pose edit (Seol 2012, §6).
 
     Parameters
@@ -798,7 +740,8 @@ class SpacetimeSolver:
         Relative ``gamma``: ``gamma * sigma_max(B)^2 ||W - W_named||^2`` over the named shapes.
         0 (default): today's energy exactly.
     tol : float > 0 (keyword only)
-        Relative KKT tolerance of the bounded solver (default :data:`KKT_RTOL`).
+        Relative KKT tolerance of the bounded solver (default
+        :data:`~core.solvers.bounded_spacetime.KKT_RTOL`).
     quadratic : (K, K) float, optional (keyword only)
         Relative symmetric PSD ``Q``: ``sigma_max(B)^2 sum_t w_t^T Q w_t`` is added (joins ``C``,
         see the module docstring), e.g. :func:`core.controls.symmetry_matrix`. None: none.
@@ -806,7 +749,7 @@ class SpacetimeSolver:
     Attributes
     ----------
     alpha_ : float            internal prior weight ``alpha * s**2``
-    ridge_ : float            absolute ridge ``rho`` (m^2), pass it to :func:`spacetime_reference`
+    ridge_ : float            absolute ridge ``rho`` (m^2), pass it to :func:`~core.solvers.reference.spacetime_reference`
     known_ : (T, K) float     the known weights, NaN = free
     P_, q_ : prior quadratic for ``B``
     fast_ : bool              whether the fast path is available for these inputs
@@ -847,8 +790,8 @@ class SpacetimeSolver:
         if not np.isfinite(beta) or beta < 0:
             raise ValueError(f"beta must be a finite number >= 0, got {beta}")
         self.beta = beta
-        gam = np.ones(M) if marker_weights is None else _nonneg(marker_weights, (M,), "marker_weights")
-        fw = np.ones(T) if frame_weights is None else _nonneg(frame_weights, (T,), "frame_weights")
+        gam = np.ones(M) if marker_weights is None else as_nonnegative(marker_weights, (M,), "marker_weights")
+        fw = np.ones(T) if frame_weights is None else as_nonnegative(frame_weights, (T,), "frame_weights")
         self._gamma3 = np.repeat(gam, 3)
         self._bt = beta * fw  # per-frame Sobolev weight beta * f_t
         if method not in ("auto", "fast", "block"):
@@ -891,11 +834,11 @@ class SpacetimeSolver:
 
         self.scale_ = smax2
         # bounds, L1 and the name term: the options of the bounded solver (and gamma of the fast path)
-        self.lower_, self.upper_ = _bounds(lower, upper, K)
-        self.l1_ = _per_shape(l1, K, "l1") * smax2
+        self.lower_, self.upper_ = as_bounds(lower, upper, K)
+        self.l1_ = as_per_shape(l1, K, "l1") * smax2
         self._named, self.name_weight_ = _name_term(name_target, name_weight, T, K)
         self.name_weight_ = self.name_weight_ * smax2
-        self.quadratic_ = _coupling(quadratic, K, smax2)
+        self.quadratic_ = as_coupling(quadratic, K, smax2)
         tol = float(tol)
         if not (np.isfinite(tol) and tol > 0):
             raise ValueError(f"tol must be a finite number > 0, got {tol}")
@@ -1016,8 +959,8 @@ class SpacetimeSolver:
         W : (T, K) float
             Current solution (not modified).
         frame, weights, window, shapes
-            One edit (see :class:`Edit`); or
-        edits : sequence of Edit
+            One edit (see :class:`PoseEdit`); or
+        edits : sequence of PoseEdit
             Several edits applied together (then ``frame``/``weights`` must be None).
 
         Returns
@@ -1035,8 +978,8 @@ class SpacetimeSolver:
             raise ValueError(f"W: expected ({self.T}, {self.K}) weights, got {W.shape}")
         if edits is None:
             if frame is None or weights is None:
-                raise ValueError("edit: give frame and weights, or edits=[Edit(...), ...]")
-            edits = [Edit(frame, weights, shapes, window)]
+                raise ValueError("edit: give frame and weights, or edits=[PoseEdit(...), ...]")
+            edits = [PoseEdit(frame, weights, shapes, window)]
         elif frame is not None or weights is not None:
             raise ValueError("edit: give either frame/weights or edits, not both")
         if len(edits) == 0:
@@ -1046,8 +989,8 @@ class SpacetimeSolver:
         set_mask = {}
         intervals = []  # (a, b, pinned)
         for i, e in enumerate(edits):
-            if not isinstance(e, Edit):
-                raise ValueError(f"edits[{i}]: expected an Edit, got {type(e).__name__}")
+            if not isinstance(e, PoseEdit):
+                raise ValueError(f"edits[{i}]: expected a PoseEdit, got {type(e).__name__}")
             f = int(e.frame)
             if not 0 <= f < T:
                 raise ValueError(f"edits[{i}].frame: {f} is outside [0, {T})")
@@ -1124,16 +1067,14 @@ class SpacetimeSolver:
         at an upper one, ``max(0, |g| - l1)`` at zero between them; a weight outside its bounds
         counts as ``||B^T B||_2`` times its distance. Known weights are exempt. Without bounds
         and L1 this is ``max |g|`` over the free weights. The bounded solver stops when this is
-        at most ``tol`` (default :data:`KKT_RTOL`).
+        at most ``tol`` (default :data:`~core.solvers.bounded_spacetime.KKT_RTOL`).
         """
-        from core.solvers.bounded_spacetime import kkt_violation
-
         W = self._check_weights(W)
         g = self.gradient(W)
         free = np.ones(g.shape, bool)
         for t, w in self._known.items():
             free[t] = np.isnan(w)
-        v = kkt_violation(W, g, self.lower_, self.upper_, self.l1_, self.scale_)
+        v = kkt_violation_per_entry(W, g, self.lower_, self.upper_, self.l1_, self.scale_)
         scale = self.scale_ * max(1.0, float(np.abs(W).max()))
         return float(v[free].max() / scale) if free.any() else 0.0
 
@@ -1228,8 +1169,6 @@ class SpacetimeSolver:
                 if self.names is None:
                     raise ValueError(f"{what}: shape names need SpacetimeSolver(names=...)")
                 if s not in self.names:
-                    import difflib
-
                     close = difflib.get_close_matches(s, self.names, n=3)
                     raise ValueError(f"{what}: no shape {s!r}" + (f"; did you mean {close}?" if close else ""))
                 idx.append(self.names.index(s))
@@ -1260,8 +1199,6 @@ class SpacetimeSolver:
             return np.array([rows[t] for t in range(n)])
         system = self.range_system(lo, hi, rows, method)
         if self.bounded_:
-            from core.solvers.bounded_spacetime import solve_bounded
-
             X, self.info_ = solve_bounded(system, self.lower_, self.upper_, self.l1_, tol=self.tol)
             self.method_ = system.path + "+bounded"
             return X
@@ -1416,133 +1353,3 @@ def solve_spacetime(B, S, alpha: float = 0.01, beta: float = 0.0, prior=None, kn
     """
     return SpacetimeSolver(B, S, alpha, beta, prior, known, boundary, valid, marker_weights,
                            frame_weights, alpha_units, ridge, method=method, **options).solve()
-
-
-class KroneckerSystem(NamedTuple):
-    """The literal normal equations over all ``T K`` weights: ``E = x^T H x - 2 r^T x + const``.
-
-    ``x = vec(W)`` stacks the frames' weight vectors; ``known`` (T K,) holds the known entries
-    (NaN = free).
-    """
-
-    H: sp.csc_matrix
-    r: np.ndarray
-    known: np.ndarray
-
-
-def kronecker_system(B, S, alpha: float, beta: float, prior, known, *, boundary="neutral",
-                     valid=None, marker_weights=None, frame_weights=None, alpha_units: str = "cm",
-                     ridge: float = 0.0, name_target=None, name_weight=0.0, quadratic=None) -> KroneckerSystem:
-    """The paper's sparse Kronecker system, assembled literally (the slow references' core).
-
-    Stacks the least-squares rows of Seol et al. 2012 eq. 5 and §5, §7.1 with
-    ``scipy.sparse.kron`` (``vec(W)`` stacks the frames' weight vectors)::
-
-        J_match = diag(mask_e) (D (x) B),          y_match = diag(mask_e) (D (x) I_3M) vec(S)
-        J_prior = sqrt(alpha) (I_T (x) Lambda^-1/2 E^T B),  y_prior = sqrt(alpha) (1_T (x) Lambda^-1/2 E^T mean)
-        J_pos   = diag(sqrt(beta f_t gamma_m valid_tm)) (I_T (x) B),  y_pos = ... vec(S)
-        J_ridge = sqrt(rho) I
-        J_name  = diag(sqrt(gamma_k) [column k has a namesake]) (per frame),  y_name = ... vec(W_named)
-
-    and returns ``H = J^T J``, ``r = J^T y`` (with a (P, q) prior ``alpha (I (x) P)`` and
-    ``alpha (1 (x) q)`` are added instead of its rows).
-
-    Parameters
-    ----------
-    B, S, alpha, beta, prior, known, boundary, valid, marker_weights, frame_weights, alpha_units
-        As :class:`SpacetimeSolver` (``prior`` None = PCA of ``B``'s shapes).
-    ridge : float
-        Absolute ridge ``rho`` (m^2); use ``SpacetimeSolver(...).ridge_`` to compare.
-    name_target : (T, K) float, optional
-        Namesake curves, NaN columns = no namesake (as :class:`SpacetimeSolver`).
-    name_weight : float or (K,) float
-        Absolute name weight ``gamma`` (m^2); use ``SpacetimeSolver(...).name_weight_``.
-    quadratic : (K, K) float, optional
-        Absolute coupling ``Q`` (m^2), added as ``I_T (x) Q``; use ``SpacetimeSolver(...).quadratic_``.
-    """
-    Bm = as_basis(B)
-    n3, K = Bm.shape
-    M = n3 // 3
-    S3 = as_sequence(S, M)
-    T = len(S3)
-    valid = as_valid(valid, S3)
-    Sz = zero_filled(S3, valid)
-    a = alpha_for_units(alpha, alpha_units)
-    gam = np.ones(M) if marker_weights is None else _nonneg(marker_weights, (M,), "marker_weights")
-    fw = np.ones(T) if frame_weights is None else _nonneg(frame_weights, (T,), "frame_weights")
-    Kn = known_matrix(known, T, K, boundary)
-    vecS = Sz.ravel()
-    Bs = sp.csr_matrix(Bm)
-    blocks, rhs = [], []
-    if T > 1:
-        D = sp.diags([-np.ones(T - 1), np.ones(T - 1)], [0, 1], shape=(T - 1, T), format="csr")
-        me = np.repeat(valid[:-1] & valid[1:], 3, axis=1).ravel().astype(float)
-        Dm = sp.diags(me)
-        blocks.append(Dm @ sp.kron(D, Bs, format="csr"))
-        rhs.append(Dm @ (sp.kron(D, sp.identity(n3), format="csr") @ vecS))
-    Pextra = None
-    if a > 0:
-        if prior is None:
-            prior = PCAPrior().fit(Bm.T.reshape(K, M, 3))
-        if isinstance(prior, PCAPrior):
-            R, m = prior._factor(Bm)
-            blocks.append(np.sqrt(a) * sp.kron(sp.identity(T), sp.csr_matrix(R), format="csr"))
-            rhs.append(np.sqrt(a) * np.tile(m, T))
-        else:
-            P, q, _ = prior_quadratic(prior, Bm, K)
-            Pextra = (a * sp.kron(sp.identity(T), sp.csr_matrix(P), format="csr"), a * np.tile(q, T))
-    wpos = np.sqrt(beta * fw[:, None] * np.repeat(gam, 3)[None, :] * np.repeat(valid, 3, axis=1)).ravel()
-    if beta > 0:
-        Wp = sp.diags(wpos)
-        blocks.append(Wp @ sp.kron(sp.identity(T), Bs, format="csr"))
-        rhs.append(Wp @ vecS)
-    if ridge > 0:
-        blocks.append(np.sqrt(ridge) * sp.identity(T * K, format="csr"))
-        rhs.append(np.zeros(T * K))
-    if name_target is not None:
-        Wn = np.asarray(name_target, dtype=np.float64)
-        has = np.isfinite(Wn).all(0)
-        gn = np.broadcast_to(np.asarray(name_weight, dtype=np.float64), (K,)) * has
-        if (gn > 0).any():
-            wn = np.tile(np.sqrt(gn), T)
-            blocks.append(sp.diags(wn, format="csr"))
-            rhs.append(wn * np.where(has, Wn, 0.0).ravel())
-    J = sp.vstack(blocks, format="csc")
-    y = np.concatenate(rhs)
-    H = (J.T @ J).tocsc()
-    r = J.T @ y
-    if Pextra is not None:
-        H = (H + Pextra[0]).tocsc()
-        r = r + Pextra[1]
-    if quadratic is not None:
-        H = (H + sp.kron(sp.identity(T), sp.csr_matrix(np.asarray(quadratic, dtype=np.float64)), format="csc")).tocsc()
-    return KroneckerSystem(H, np.asarray(r).ravel(), Kn.ravel())
-
-
-def spacetime_reference(B, S, alpha: float, beta: float, prior, known, *, boundary="neutral",
-                        valid=None, marker_weights=None, frame_weights=None, alpha_units: str = "cm",
-                        ridge: float = 0.0, name_target=None, name_weight=0.0, quadratic=None) -> np.ndarray:
-    """Slow, literal reference: the paper's sparse Kronecker system solved by ``spsolve``.
-
-    :func:`kronecker_system`, then ``H_uu x_u = r_u - H_uk x_k`` for the free entries with
-    :func:`scipy.sparse.linalg.spsolve`.
-
-    Parameters
-    ----------
-    As :func:`kronecker_system`.
-
-    Returns
-    -------
-    (T, K) float
-    """
-    T, K = len(np.asarray(S)), as_basis(B).shape[1]
-    H, r, xk = kronecker_system(B, S, alpha, beta, prior, known, boundary=boundary, valid=valid,
-                                marker_weights=marker_weights, frame_weights=frame_weights,
-                                alpha_units=alpha_units, ridge=ridge, name_target=name_target,
-                                name_weight=name_weight, quadratic=quadratic)
-    kn = np.isfinite(xk)
-    fr = ~kn
-    x = xk.copy()
-    if fr.any():
-        x[fr] = scipy.sparse.linalg.spsolve(H[fr][:, fr].tocsc(), r[fr] - H[fr][:, kn] @ xk[kn])
-    return x.reshape(T, K)

@@ -597,7 +597,7 @@ class Edit(Stage):
         W = inputs["solve"]["weights"]
         if not s.edits:
             return {"weights": W, "edits": []}
-        from ..solvers.spacetime import Edit as PoseEdit
+        from ..solvers.spacetime import PoseEdit
         from ..solvers.spacetime import SpacetimeSolver
 
         st = inputs["calibrate"]["source"]  # the motion the solve fitted
