@@ -187,12 +187,15 @@ def _coat(P, fac, smooth):
 
 
 def _has_frame(P, F):
-    """(V,) bool: the vertex's face normals do not cancel, |Σ N_f| >= NORMAL_CANCEL Σ |N_f|."""
+    """(V,) bool: the vertex's normal is more than rounding noise,
+    |Σ N_f| >= NORMAL_CANCEL Σ |e1_f| |e2_f| (N_f = e1_f × e2_f)."""
     from core.geometry import face_cross
 
     N = face_cross(P, F)
+    e1, e2 = P[F[:, 1]] - P[F[:, 0]], P[F[:, 2]] - P[F[:, 0]]
     inc = vertex_face_incidence(F, len(P))
-    return np.linalg.norm(inc @ N, axis=1) >= details.NORMAL_CANCEL * (inc @ np.linalg.norm(N, axis=1))
+    bound = inc @ (np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1))
+    return np.linalg.norm(inc @ N, axis=1) >= details.NORMAL_CANCEL * bound
 
 
 def _reference_details(det, smooth, coat, tgt):
