@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from datapaths import LAYOUTS, RIGS
 from core.io.layout import LayoutRigMismatch, read_layout
 from core.model import MarkerLayout, Rig
-from core.registration import closest_on_faces, layout_command, similarity, skin_faces, transfer_layout
+from core.registration import DEFAULT_STEPS, closest_on_faces, layout_command, similarity, skin_faces, transfer_layout
 
 
 @pytest.fixture(scope="module")
@@ -200,7 +200,10 @@ def test_ict_to_other_rigs(rigs, ict, ict_layout):
             assert np.median(e) * 1e3 < median_mm and np.percentile(e, 90) * 1e3 < p90_mm
         else:
             assert np.median(e) / target.size < median_rel
-        assert info["seconds"] < 60
+        # the work that keeps it at seconds: the non-rigid ICP ran the default schedule on the
+        # source region decimated to about transfer_layout's max_vertices (2,500; 2,569 measured,
+        # the decimation stops near it), not ICT's ~12k
+        assert tuple(info["steps"]) == DEFAULT_STEPS and info["n_region"] < 1.1 * 2500
 
 
 def test_layout_command_finds_or_names_the_source_rig(tmp_path):
