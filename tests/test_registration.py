@@ -169,6 +169,7 @@ def test_bad_landmarks_and_layouts(rocketbox, ict, rb_layout, ict_layout):
 
 
 # -- real data: the human pair, against the hand-checked layouts -------------------------------------
+@pytest.mark.slow
 def test_rocketbox_to_ict_lands_near_the_hand_layout(tmp_path, ict, ict_layout):
     """Bound measured with scripts/layout_report.py (median 4.0 mm, p90 10.2 mm): the test allows
     a little slack for platform differences, not for a worse method."""
