@@ -431,6 +431,7 @@ def test_osqp_reference_agrees():
     assert np.abs(W - R).max() <= 1e-4
 
 
+@pytest.mark.slow
 def test_every_rocketbox_shape_converges_exactly():
     """All 165 Rocketbox shapes on 41 markers (rank 119, ridge 1e-5: nearly interchangeable shapes).
 

@@ -231,6 +231,7 @@ def sample():
     return r["personalize"]["deltas"], r["stabilize"]["source"].deltas
 
 
+@pytest.mark.slow
 def test_real_sample_matches_bvls(sample):
     B, S = sample
     W, info = range_pf(B, S, 0.0, 1.0, return_info=True)

@@ -106,6 +106,7 @@ def test_dense_transfer_method_writes_a_rig_of_transferred_bases(tmp_path, capsy
     assert len(names) == min(3, rig.n_shapes - n_detail) and all(n.startswith("xu_basis_") for n in names)
 
 
+@pytest.mark.slow
 def test_transfer_refuses_marker_sources(capsys):
     code = main(["retarget", "--method", "transfer", "--source", str(PERFORMANCES / "animface_markers_jaw_60hz.csv"),
                  "--source-rig", str(RIGS / "ict_facekit.glb"), "--target-rig", str(RIGS / "jeeliz_tiger.glb")])

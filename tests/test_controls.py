@@ -324,6 +324,7 @@ def test_symmetry_weight_lowers_the_blink_error_against_the_actor(arkit):
     assert m1 < 1.05 * m0  # the price in marker error is small
 
 
+@pytest.mark.slow
 def test_cancel_pairs_never_fire_together_and_cost_little(arkit):
     from core.solvers.baselines import range_pf
     from core.solvers.spacetime import SpacetimeSolver
@@ -446,6 +447,7 @@ def test_linear_reduction_is_optimal_against_brute_force():
 
 @pytest.mark.parametrize("interpolation", ["LINEAR", "CUBICSPLINE"])
 @pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.slow
 def test_reduced_curves_stay_within_tolerance_on_the_sample(dense_weights, interpolation, shared):
     W = dense_weights
     k = C.reduce_keys(W, FPS, 0.005, interpolation, shared=shared)

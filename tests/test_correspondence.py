@@ -31,6 +31,7 @@ def test_same_topology_is_the_identity_and_points_are_on_the_skin(ict):
     assert d.min() > 1e-3 * ict.size
 
 
+@pytest.mark.slow
 def test_dense_pipeline_on_the_tiger_uses_the_registration_once():
     pipe = Pipeline(cache=StageCache(), target_rig=str(RIGS / "jeeliz_tiger.glb"), method="bounded", last_frame=59,
                     **CURVES)

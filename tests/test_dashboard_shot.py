@@ -31,6 +31,7 @@ def app():
     return DashboardApp(Session(cache=StageCache()))
 
 
+@pytest.mark.slow
 def test_widgets_to_shot_to_cli_bit_identical(app, tmp_path):
     widget(app, "last_frame", "frames").value = 299
     widget(app, "method", "solve").value = "bounded"  # not the page default
@@ -56,6 +57,7 @@ def test_widgets_to_shot_to_cli_bit_identical(app, tmp_path):
     assert W_cli.shape == W_page.shape and np.array_equal(W_cli, W_page)  # to the last bit
 
 
+@pytest.mark.slow
 def test_uploading_the_shot_restores_the_page(app, tmp_path):
     from dashboard.app import DashboardApp
     from dashboard.session import Session
@@ -89,6 +91,7 @@ def test_collapsed_cards_fill_when_opened_and_the_shape_table_is_current():
     assert np.abs(W[437]).max() > 0.01  # a frame where the face moves: the check means something
 
 
+@pytest.mark.slow
 def test_a_settings_card_makes_its_widgets_when_opened_with_the_current_values():
     """A collapsed settings card makes its widgets only when first opened (dashboard/lazy.py
     ``build``); a setting changed before (by code, or another page of a shot) shows in them, and

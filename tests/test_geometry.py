@@ -579,6 +579,7 @@ def test_closest_on_triangles_single_triangle_regions():
 
 
 @pytest.mark.parametrize("landmarks", ["vertices", "barycentric"])
+@pytest.mark.slow
 def test_nonrigid_icp_equals_trimesh_with_exact_closest_points(landmarks, monkeypatch):
     """Our loop is trimesh's nricp_amberg (the reference): with the same (exact) closest points
     both give the same registration, to trimesh's float32 right-hand side."""
@@ -606,6 +607,7 @@ def test_nonrigid_icp_equals_trimesh_with_exact_closest_points(landmarks, monkey
     assert np.abs(ours - ref).max() < 2e-7
 
 
+@pytest.mark.slow
 def test_nonrigid_icp_coarse_to_fine_and_progress():
     """Coarse to fine lands as close to the target as the full-mesh schedule, keeps the
     landmarks, and reports every iteration with a time estimate."""

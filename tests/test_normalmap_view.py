@@ -121,6 +121,7 @@ def test_map_convention_reproduces_the_vertex_normals(view, ict):
     assert np.median(err) < 1.0 and np.median(flipped) > 20, (np.median(err), np.median(flipped))
 
 
+@pytest.mark.slow
 def test_toggle_and_resolution(view, ict):
     lo = view.mapped_viewer
     view.update(view._snap, 1)
@@ -161,6 +162,7 @@ def test_inactive_view_defers_work(ict, track):
     assert v.mapped_viewer is not None and v.mapped_viewer.frame == 2 and v.mapped_viewer.normal_map is not None
 
 
+@pytest.mark.slow
 def test_local_method_blends_with_region_masks(ict):
     """Local results (a real session: the Live Link take on ICT, 3 regions): eq. 3 with the
     regional weights and the masks of the pipeline's segmentation; after an edit (shown weights

@@ -11,7 +11,7 @@ from datapaths import LAYOUTS, RIGS
 from core.io.layout import LayoutRigMismatch, read_layout
 from core.model import MarkerLayout, Rig
 from core.geometry import largest_component, procrustes
-from core.registration import layout_command, transfer_layout
+from core.registration import DEFAULT_STEPS, layout_command, transfer_layout
 
 
 @pytest.fixture(scope="module")
@@ -145,6 +145,7 @@ def test_bad_landmarks_and_layouts(rocketbox, ict, rb_layout, ict_layout):
 
 
 # -- real data: the human pair, against the hand-checked layouts -------------------------------------
+@pytest.mark.slow
 def test_rocketbox_to_ict_lands_near_the_hand_layout(tmp_path, ict, ict_layout):
     """Bound measured with scripts/layout_report.py (median 4.0 mm, p90 10.2 mm): the test allows
     a little slack for platform differences, not for a worse method."""
@@ -176,7 +177,10 @@ def test_ict_to_other_rigs(rigs, ict, ict_layout):
             assert np.median(e) * 1e3 < median_mm and np.percentile(e, 90) * 1e3 < p90_mm
         else:
             assert np.median(e) / target.size < median_rel
-        assert info["seconds"] < 60
+        # the work that keeps it at seconds: the non-rigid ICP ran the default schedule on the
+        # source region decimated to about transfer_layout's max_vertices (2,500; 2,569 measured,
+        # the decimation stops near it), not ICT's ~12k
+        assert tuple(info["steps"]) == DEFAULT_STEPS and info["n_region"] < 1.1 * 2500
 
 
 def test_layout_command_finds_or_names_the_source_rig(tmp_path):

@@ -10,9 +10,14 @@ import re
 import time
 from pathlib import Path
 
+import pytest
+
 import review_client as rc
 
 ALPHA, BETA = re.compile(r"Seol α"), re.compile(r"Seol β")
+
+# a real server that builds warm pages after seconds of quiet: 30-40 s a test
+pytestmark = pytest.mark.slow
 
 
 def _said(log: Path, what: str) -> list:

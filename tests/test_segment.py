@@ -2,7 +2,6 @@
 answers, brute-force references, and the real ICT rig."""
 
 import itertools
-import time
 
 import numpy as np
 import pytest
@@ -157,10 +156,9 @@ def test_masks_are_soft_partitions_and_R_is_met(ict):
         assert ((seg.masks > 0.05).sum(0) >= 2).mean() > 0.01
 
 
-def test_ict_R12_regions_connected_sized_deterministic_and_fast(ict):
-    t = time.perf_counter()
+def test_ict_R12_regions_connected_sized_and_deterministic(ict):
+    """Its time is benchmarks/bench_local.py's ``segment_ict_R12`` case (against a reference)."""
     seg = segment(ict, n_regions=12, seed=3)
-    elapsed = time.perf_counter() - t
     g = seg.graph
     lab_w = seg.labels[g.first]
     for r in range(12):
@@ -172,8 +170,6 @@ def test_ict_R12_regions_connected_sized_deterministic_and_fast(ict):
     again = segment(ict, n_regions=12, seed=3)
     assert np.array_equal(again.labels, seg.labels) and np.array_equal(again.masks, seg.masks)
     assert seg.info["energy_final"] <= seg.info["energy_tree"]
-    # the brief's target is 1 s on a quiet machine; allow for 8 helpers sharing 2 cores
-    assert elapsed < 6.0, elapsed
 
 
 def test_segmenter_sklearn_style(ict):

@@ -154,6 +154,7 @@ def test_transfer_glb_is_the_targets_own_mesh(rocketbox_transfer, rocketbox, ict
 
 
 
+@pytest.mark.slow
 def test_switching_the_output_mesh_reruns_only_dense_output():
     from core.pipeline import Pipeline
     from datapaths import PERFORMANCES, RIGS

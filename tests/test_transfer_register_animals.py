@@ -82,6 +82,7 @@ def test_face_crop_rejects_bad_arguments(tiger_case):
 
 # -- the registration -----------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_tiger_crop_registration_measures(tiger_case, tiger_cropped):
     rep = tiger_cropped.report
     assert rep["crop"] == "auto" and rep["auto_crop_coverage"] < 0.8
@@ -99,6 +100,7 @@ def test_tiger_crop_registration_measures(tiger_case, tiger_cropped):
     assert rep["flipped_triangles"] == flipped_faces(tiger_cropped.aligned, tiger_cropped.resampled, F).sum()
 
 
+@pytest.mark.slow
 def test_tiger_crop_beats_the_whole_head_registration(tiger_case, tiger_cropped, tiger_whole_head):
     new, old = tiger_cropped.report, tiger_whole_head.report
     # the thresholds the crop passes, the whole-head registration of before fails
@@ -130,6 +132,7 @@ def test_outside_the_crop_follows_the_crop_without_overshoot(tiger_case):
     assert np.allclose(const, [0.01, -0.02, 0.005])
 
 
+@pytest.mark.slow
 def test_snapping_onto_the_target_adds_no_fold(tiger_case, tiger_cropped):
     """Resampled crop triangles flipped against the source are all flipped in the ICP result
     already: the closest-point snap keeps vertices whose move would fold a triangle."""

@@ -46,6 +46,7 @@ def test_bad_uploads_are_refused_in_plain_words(session, tmp_path, tiger):
     assert session.files == before
 
 
+@pytest.mark.slow
 def test_good_uploads_go_where_they_belong(session, tmp_path):
     msg = session.add_upload("take.csv", (PERFORMANCES / "livelinkface_rom.csv").read_bytes())
     assert "weight curves" in msg and session.source == "⤒ take.csv"
@@ -70,6 +71,7 @@ def test_good_uploads_go_where_they_belong(session, tmp_path):
     assert len(session.result_bytes("glb")) > 1000 and session.result_bytes("csv").startswith(b"time_s,frame,valid")
 
 
+@pytest.mark.slow
 def test_upload_folder_is_made_on_use_and_removed_with_the_session():
     """A page that never uploads leaves no folder; a session's uploads go when it does (a server
     kept one temp folder per page ever opened, with every file uploaded into it)."""
