@@ -63,9 +63,14 @@ import warnings
 import zipfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from importlib.metadata import version
 from pathlib import Path
 from typing import Callable, Iterable, Optional
 
+from .evaluate import summarize
+from .io.sequence import FRAME_SUFFIXES
+from .outputs import write_outputs
+from .pipeline import Pipeline, StageCache, file_key
 from .progress import ProgressFn
 from .shot import FileRef, Shot
 
@@ -88,7 +93,6 @@ _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 def _version() -> str:
     try:
-        from importlib.metadata import version
 
         return version("face-retarget")
     except Exception:  # a source checkout without an install
@@ -125,7 +129,6 @@ def _is_pattern(s: str) -> bool:
 
 
 def _is_sequence(folder: Path) -> bool:
-    from .io.sequence import FRAME_SUFFIXES
 
     return any(c.suffix.lower() in FRAME_SUFFIXES for c in folder.iterdir() if c.is_file())
 
@@ -274,7 +277,6 @@ def worker_cache(fresh: bool = False):
     """The stage cache of this process (one per worker: rigs load once per worker); ``fresh``
     starts a new, empty one (a cold start, as in a new worker)."""
     global _WORKER_CACHE
-    from .pipeline import StageCache
 
     with _CACHE_LOCK:
         if _WORKER_CACHE is None or fresh:
@@ -296,7 +298,6 @@ def _materialise(blobs: dict) -> dict:
     under their content hash; return ``{sha: path}``. A stored copy whose content no longer
     hashes to its name is written again; the caller's :meth:`Shot.resolve` checks each file
     against the shot's hash as it does any input."""
-    from .pipeline import file_key
 
     paths = {}
     for sha, (name, data) in blobs.items():
@@ -355,9 +356,6 @@ def run_shot(job: dict, blobs: Optional[dict] = None) -> dict:
     ``worker``, ``host``, ``pid``. Never raises for a
     bad shot: the error is the result.
     """
-    from .evaluate import summarize
-    from .outputs import write_outputs
-    from .pipeline import Pipeline
 
     name = job["name"]
     started, t0, c0 = _now(), time.perf_counter(), time.process_time()
@@ -713,10 +711,10 @@ def _check_workers(client, log, timeout: float) -> dict:
                              f"`dask worker {client.scheduler.address} --nthreads 1` on machines that have face-retarget") from None
 
     def probe():  # pickled by value: runs even where face-retarget is missing, and says so
-        import os as _os
+        import os as _os  # noqa: lazy (runs on a worker that may lack face-retarget)
 
         try:
-            import core.batch as b
+            import core.batch as b  # noqa: lazy (ditto)
 
             return {"ok": True, "path": _os.path.dirname(_os.path.dirname(b.__file__)), "version": b._version(),
                     "blas": _os.environ.get("OPENBLAS_NUM_THREADS", "")}
@@ -857,7 +855,6 @@ _RESOLVED: dict = {}
 
 def _resolve(job: BatchShot, role: str) -> str:
     """Where the client finds file ``role`` of a shot (hash checked, memoised per file)."""
-    from .pipeline import file_key
 
     ref = job.shot.files[role]
     key = (ref.path, ref.sha, job.base)
@@ -880,7 +877,7 @@ def _task():
     module = __name__
 
     def retarget_shot(job, blobs):
-        import importlib
+        import importlib  # noqa: lazy (pickled by value, runs on the worker)
 
         return importlib.import_module(module).run_shot(job, blobs)
 

@@ -16,11 +16,24 @@ from __future__ import annotations
 
 import argparse
 import os
+import runpy
 import signal
 import sys
 import threading
 import warnings
 from pathlib import Path
+
+from .batch import collect_shots, run_batch, zip_results
+from .controls.table import read_table
+from .io.performance import read_performance
+from .io.rigs import load_rig
+from .names import NameMap, arkit_combination, load_vocabularies, rank_vocabularies, recognise
+from .outputs import write_outputs
+from .pipeline import Pipeline, StageCache, add_cli_arguments
+from .progress import StderrBar
+from .registration import layout_command
+from .report import evaluate_methods, ranking, write_html, write_json
+from .stages.methods import METHODS as REGISTRY
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -39,7 +52,6 @@ OUTPUT_OPTIONS = ("func", "out", "weights_csv", "livelink_csv", "quiet", "comman
 
 def _cache():
     global _CACHE
-    from .pipeline import StageCache
 
     if _CACHE is None:
         _CACHE = StageCache(max_entries=64)
@@ -50,7 +62,6 @@ def _settings(args) -> dict:
     """The pipeline settings of a command's flags; ``--controls FILE`` reads the per-shape table."""
     settings = {k: v for k, v in vars(args).items() if k not in OUTPUT_OPTIONS}
     if getattr(args, "controls_file", None):
-        from .controls.table import read_table
 
         settings["controls"] = read_table(args.controls_file)
     return settings
@@ -58,7 +69,6 @@ def _settings(args) -> dict:
 
 def _pipeline(args):
     """The pipeline of a ``retarget`` run: the shot (``--shot``) with the flags given on top."""
-    from .pipeline import Pipeline
 
     settings = _settings(args)
     if getattr(args, "shot", None):
@@ -71,9 +81,6 @@ def _pipeline(args):
 
 
 def _retarget(args) -> int:
-    from .outputs import write_outputs
-    from .progress import StderrBar
-    from .stages.methods import METHODS as REGISTRY
 
     pipe = _pipeline(args)
     label = "transfer" if REGISTRY[pipe.solve.method].dense else "retarget"
@@ -85,9 +92,6 @@ def _retarget(args) -> int:
 
 def _evaluate(args) -> int:
     """``face-retarget evaluate``: score methods on one source + rig pair (core.report)."""
-    from .progress import StderrBar
-    from .report import evaluate_methods, ranking, write_html, write_json
-    from .stages.methods import METHODS as REGISTRY
 
     methods = [m.strip() for m in args.methods.split(",")] if args.methods else [n for n, m in REGISTRY.items() if not m.dense]
     unknown = [m for m in methods if m not in REGISTRY or REGISTRY[m].dense]
@@ -96,7 +100,6 @@ def _evaluate(args) -> int:
                          f"{[n for n, m in REGISTRY.items() if not m.dense]}")
     settings = {k: v for k, v in _settings(args).items() if k not in ("methods", "json", "html", "method")}
     if getattr(args, "shot", None):
-        from .pipeline import Pipeline
 
         base = Pipeline.from_shot(args.shot, **settings).shot()
         settings = {**{k: v for st in base.settings.values() for k, v in st.items()},
@@ -124,8 +127,6 @@ def _evaluate(args) -> int:
 
 def _batch(args) -> int:
     """``batch``: many shots on Dask (:func:`core.batch.run_batch`); the CLI only parses."""
-    from .batch import collect_shots, run_batch, zip_results
-    from .progress import StderrBar
 
     jobs = collect_shots(args.inputs, template=args.template)
     if not jobs:
@@ -157,7 +158,6 @@ def _batch(args) -> int:
 
 
 def _layout(args) -> int:
-    from .registration import layout_command
 
     print(layout_command(args.from_, args.rig, args.out, source_rig_path=args.source_rig))
     return 0
@@ -193,8 +193,6 @@ def _is_rig(p: Path) -> bool:
 
 
 def _info(args) -> int:
-    from .io.performance import read_performance
-    from .io.rigs import load_rig
 
     for f in args.files:
         p = Path(f)
@@ -215,9 +213,6 @@ def _names(args) -> int:
     """Show the vocabularies of the source's and the target's names and which source channels
     drive each target shape (:meth:`core.names.NameMap.automatic`); ``--out`` writes that map
     for a user to edit."""
-    from .io.performance import read_performance
-    from .io.rigs import load_rig
-    from .names import NameMap, arkit_combination, load_vocabularies, rank_vocabularies, recognise
 
     vocabs = load_vocabularies(args.vocabulary or ())
     src = Path(args.source)
@@ -252,7 +247,6 @@ def _names(args) -> int:
 
 
 def _bench(args) -> int:
-    import runpy
 
     script = ROOT / "benchmarks" / "run.py"
     if not script.exists():
@@ -264,7 +258,6 @@ def _bench(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .pipeline import add_cli_arguments
 
     p = argparse.ArgumentParser(prog="face-retarget", description="Facial performance retargeting onto blendshape rigs.")
     sub = p.add_subparsers(dest="command", required=True)

@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from .calibrate import RBFWarp
 from .geometry import closest_points, face_vertices, farthest_points, vertex_components
-from .model import MarkerLayout, Rig
+from .model import MarkerLayout, Performance, Rig
 
 #: the registration-fit weight's scale, relative to the target's size
 SIGMA_FRACTION = 0.005
@@ -110,8 +111,6 @@ def capture_correspondence(source, target_rig: Rig, target_layout: MarkerLayout,
     missing where the frame misses a marker — and the target layout of the N points; the points'
     weights are all 1 (the interpolation is exact at the markers).
     """
-    from .calibrate import RBFWarp
-    from .model import Performance
 
     common = [n for n in target_layout.names if n in set(source.names)]
     if len(common) < 4:

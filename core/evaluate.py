@@ -7,6 +7,7 @@ with a jitter measure, so the dashboard and the CLI read the same numbers.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .metrics import marker_error_mm, velocity_error, weight_range
 
@@ -75,7 +76,6 @@ def marker_error_field(rig, layout, per_marker_error, k: int = 3) -> np.ndarray:
     """Per-vertex error (V,) for a heat map: inverse-distance blend of the ``k`` nearest
     markers' errors (M,) on the neutral mesh. NaN marker errors are ignored (a vertex whose
     nearest markers all lack data is NaN, shown as missing, not as zero)."""
-    from scipy.spatial import cKDTree
 
     e = np.asarray(per_marker_error, dtype=np.float64)
     pts = layout.points(rig.neutral)

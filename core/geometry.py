@@ -56,12 +56,16 @@ References
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import trimesh
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 #: relative area below which a triangle counts as degenerate (times size**2)
 DEGENERATE_EPS = 1e-14
@@ -986,7 +990,6 @@ class ClosestPoints:
     """
 
     def __init__(self, V, F):
-        from scipy.spatial import cKDTree
 
         V, F = _check_mesh(V, F)
         if len(F) == 0:
@@ -1106,7 +1109,6 @@ def harmonic_extension(values, mask, F, n: Optional[int] = None) -> np.ndarray:
     -------
     (n, c) float64
     """
-    import scipy.sparse.linalg as spla
 
     mask = np.asarray(mask, bool)
     n = len(mask) if n is None else n
@@ -1130,7 +1132,6 @@ def _coarse_subset(V, F, n_coarse: int, keep) -> tuple:
     (:func:`decimate`) to about ``n_coarse`` vertices, each decimated vertex replaced by a
     distinct nearest vertex of ``V``, the ``keep`` vertices (landmarks) always among them.
     Returns ``(ids (m,) int into V, faces (F', 3) into ids)``."""
-    from scipy.spatial import cKDTree
 
     Vd, Fd, _ = decimate(V, F, max_vertices=n_coarse)
     tree = cKDTree(V)
@@ -1190,7 +1191,6 @@ def _block_pcg(A, B, X0, precond, rtol: float, maxiter: int):
 
 def _nicp_loop(Vn, F, target, tnormals, TF, lm, steps, X, threshold, eps, report, trimesh_normals):
     """The iterations of :func:`nonrigid_icp` in the unit frame; returns the maps X (n, 4, 3)."""
-    import scipy.sparse.linalg as spla
 
     n = len(Vn)
     lm_v, lm_r, lm_p = lm
@@ -1207,7 +1207,6 @@ def _nicp_loop(Vn, F, target, tnormals, TF, lm, steps, X, threshold, eps, report
     lm_rhs = np.zeros((n, 4, 3))
     np.add.at(lm_rhs, lm_v, lm_r[:, :, None] * lm_p[:, None, :])
     if trimesh_normals:
-        import trimesh
 
         DN = np.hstack([trimesh.Trimesh(Vn, F, process=False).vertex_normals, np.ones((n, 1))])
     inc = vertex_face_incidence(F, n)
@@ -1344,7 +1343,6 @@ def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=No
         Bad shapes, landmarks without positions (or the reverse) or of different lengths,
         an unknown ``normals``.
     """
-    import time
 
     V, F = _check_mesh(V, F, "V")
     T, TF = _check_mesh(target_V, target_F, "target_V")
@@ -1387,7 +1385,6 @@ def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=No
             lm = (ids, np.hstack([Vn[ids], np.ones((len(ids), 1))]), pos)
             lm_coarse = (ids, pos)
     target = ClosestPoints(Tn, TF)
-    import trimesh
 
     tnormals = np.asarray(trimesh.Trimesh(Tn, TF, process=False).vertex_normals)  # trimesh's (angle-weighted)
     use_coarse = coarse is not None and n > 2 * coarse
@@ -1505,7 +1502,6 @@ def marker_triangulation(points, up=(0.0, 1.0, 0.0), forward=(0.0, 0.0, 1.0), mi
     ValueError
         Fewer than 3 markers, non-finite positions, all markers on a line, unknown ``unroll``.
     """
-    from scipy.spatial import Delaunay, QhullError
 
     if unroll not in ("cylinder", "plane"):
         raise ValueError(f"unroll: expected 'cylinder' or 'plane', got {unroll!r}")

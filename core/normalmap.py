@@ -38,11 +38,13 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+import scipy.sparse as sp
+from scipy import ndimage
 
-from .geometry import closest_points, vertex_normals
-from .geometry import decimate as quadric_decimation
+from .geometry import closest_points, decimate as quadric_decimation, vertex_normals
 from .model import Rig
 from .segment import welded_graph
+from .solvers.local import blend_weights
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,7 +159,6 @@ def bake_matrix(raster: UVRaster, faces: np.ndarray, n_vertices: int):
     Build once per rig and raster when many fields are baked (one row per covered texel,
     three barycentric entries).
     """
-    import scipy.sparse as sp
 
     faces = np.asarray(faces, dtype=np.int64)
     cov = raster.covered
@@ -348,7 +349,6 @@ class Bake:
 def bake_rig(rig: Rig, resolution: int = 256) -> Bake:
     """:func:`shape_normal_maps` of ``rig`` at ``resolution`` texels per UV unit, packed (see
     :class:`Bake`). Raises ValueError for a rig without UVs."""
-    from scipy import ndimage
 
     if rig.uvs is None:
         raise ValueError(f"rig {rig.name!r} has no UVs; normal maps need texture coordinates")
@@ -394,7 +394,6 @@ def frame_blend_weights(weights, frame: int, shape_names, region_weights=None, m
     w = np.nan_to_num(W[f])
     if region_weights is None or masks is None:
         return w[None], False, "global weights"
-    from .solvers.local import blend_weights
 
     masks = np.asarray(masks, dtype=np.float64)
     names = list(shape_names)

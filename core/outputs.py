@@ -25,7 +25,14 @@ from typing import Optional
 
 import numpy as np
 
+from .controls.keys import reduce_keys
+from .gaps import fill_gaps
+from .io.curves_csv import write_curves_csv, write_keys_csv
+from .io.gltf import write_rig
+from .io.livelink import arkit_curves, write_livelink
 from .progress import ProgressFn
+from .solvers.local import region_curves
+from .stages.methods import METHODS
 
 #: the stages a marker method's outputs read
 MARKER_STAGES = ("load", "frames", "stabilize", "calibrate", "solve", "synthesize", "evaluate")
@@ -88,7 +95,6 @@ def write_outputs(pipe, out=None, weights_csv=None, csv_precision=6, progress: O
         ``livelink_csv`` with dense transfer; and whatever the pipeline raises for bad inputs
         (ValueError / FileNotFoundError naming the file).
     """
-    from .stages.methods import METHODS
 
     if METHODS[pipe.solve.method].dense:
         if livelink_csv:
@@ -107,14 +113,12 @@ def write_animation(path, rig, weights, times, fps: float) -> None:
 
         write_usd(path, rig, weights=weights, times=times, fps=fps)
     else:
-        from .io.gltf import write_rig
 
         write_rig(path, rig, weights=weights, times=times)
 
 
 def _write_livelink(path, rig, weights, times, fps: float) -> str:
     """The target's ARKit-named shapes as a Live Link Face CSV; returns the ``wrote`` line."""
-    from .io.livelink import arkit_curves, write_livelink
 
     perf, missing = arkit_curves(weights, rig.names, fps, times=times, name=rig.name)
     write_livelink(path, perf, timecode_rate=60 if fps <= 60 else 120)
@@ -124,7 +128,6 @@ def _write_livelink(path, rig, weights, times, fps: float) -> str:
 
 def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv=None, keys=None,
                    keys_tolerance=0.005) -> ShotOutputs:
-    from .io.curves_csv import write_curves_csv
 
     t0 = time.perf_counter()
     res = pipe.results(list(MARKER_STAGES), progress=progress)
@@ -137,7 +140,6 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
     written, paths = [], []
     reduced = None
     if keys:
-        from .controls.keys import reduce_keys
 
         reduced = reduce_keys(W, st.fps, keys_tolerance, {"linear": "LINEAR", "cubic": "CUBICSPLINE"}[keys],
                               names=rig.names)
@@ -145,7 +147,6 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
                        f"every frame within {keys_tolerance:g} of the dense curves")
     if out:
         if reduced is not None and str(out).lower().endswith((".glb", ".gltf")):
-            from .io.gltf import write_rig
 
             F, t_keys, V, A, Bt = reduced.grid()
             write_rig(out, rig, weights=V, times=t_keys, interpolation=reduced.interpolation,
@@ -162,7 +163,6 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
         written.append(f"wrote {weights_csv}")
         paths.append(Path(weights_csv))
         if reduced is not None:
-            from .io.curves_csv import write_keys_csv
 
             kpath = Path(weights_csv).with_name(Path(weights_csv).stem + "_keys.csv")
             write_keys_csv(kpath, reduced, rig.names)
@@ -170,8 +170,6 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
             paths.append(kpath)
         U = res["solve"]["info"].get("region_weights")
         if U is not None:  # Liu 2011 §6.4: the regional curves an animator edits
-            from .gaps import fill_gaps
-            from .solvers.local import region_curves
 
             # U holds the shapes the solver used (--target-shapes, minus shapes no marker sees)
             curves = region_curves(fill_gaps(U, valid), res["calibrate"]["rig"].names)
@@ -198,7 +196,6 @@ def _write_markers(pipe, out, weights_csv, csv_precision, progress, livelink_csv
 
 def _write_transfer(pipe, out, weights_csv, csv_precision, progress) -> ShotOutputs:
     """``--method transfer``: dense transfer (Xu 2014) to a rig of new morph targets."""
-    from .io.curves_csv import write_curves_csv
 
     t0 = time.perf_counter()
     # target_face in the same run: a second run would reset pipe.timings to its own stages

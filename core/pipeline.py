@@ -23,6 +23,7 @@ stacks kept here. Nothing here imports panel.
 
 from __future__ import annotations
 
+import argparse
 import copy
 import difflib
 import functools
@@ -597,8 +598,6 @@ def cli_flags(pipeline_or_cls=None):
 
 def add_cli_arguments(parser, skip=()) -> None:
     """Add one argparse option per setting (types, choices, defaults and help from param)."""
-    import argparse
-
     for flag, pname, p, stage in cli_flags():
         if pname in skip:
             continue

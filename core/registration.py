@@ -31,10 +31,15 @@ from pathlib import Path
 from typing import Mapping, Optional, Sequence, Union
 
 import numpy as np
+import trimesh
 
-from .geometry import (closest_points, decimate, face_vertices, largest_component, nonrigid_icp, nricp_steps, procrustes,
-                       weld_vertices)
+from .geometry import (
+    closest_points, decimate, face_vertices, largest_component, nonrigid_icp, nricp_steps, procrustes, weld_vertices)
+from .io.layout import layouts_dir, read_layout, write_layout
+from .io.rigs import load_rig, load_rig as read_rig
+from .io.sequence import read_mesh_sequence, topology_rig
 from .model import MarkerLayout, Rig
+from .progress import report as say
 
 #: registration schedule (ws stiffness, wl landmark weight, wn normal weight, max iterations):
 #: the shared stiff-to-supple schedule with fewer iterations and a stiffer last step, tuned on
@@ -141,7 +146,6 @@ def transfer_layout(
         The layout does not fit ``source_rig`` (index out of range), landmark names unknown or
         fewer than 3, a landmark vertex out of range.
     """
-    import trimesh
 
     t_start = time.perf_counter()
     layout.check(source_rig)
@@ -329,8 +333,6 @@ def _layout_target(path: Path):
     """The rig a layout is made for: a rig file/folder, or a mesh sequence's own topology (a folder
     of per-frame meshes, a USD mesh with time-sampled points), so ``--source-layout`` can be made
     for a dense sequence source."""
-    from .io.rigs import load_rig
-    from .io.sequence import read_mesh_sequence, topology_rig
 
     is_seq = path.is_dir() and not (path / "neutral.obj").exists()
     if not is_seq and path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):
@@ -360,9 +362,6 @@ def place_markers(rig: Rig, from_layout=None, source_rig: Optional[Rig] = None, 
     report : dict — ``seconds``, ``residual_mm`` (median, p90, max), ``snap_mm`` {name: mm},
         ``off_face`` [names], ``off_surface`` [names], ``message`` (plain words for the page)
     """
-    from .io.layout import layouts_dir, read_layout
-    from .io.rigs import load_rig as read_rig
-    from .progress import report as say
 
     if from_layout is None:
         from_layout = layouts_dir() / "ict_facekit.json"
@@ -407,8 +406,6 @@ def layout_command(from_path, rig_path, out_path, source_rig_path=None, steps=No
     ------
     FileNotFoundError when the source rig cannot be found (the message lists where it looked).
     """
-    from .io.layout import layouts_dir, read_layout, write_layout
-    from .io.rigs import load_rig as read_rig
 
     from_path, rig_path, out_path = Path(from_path), Path(rig_path), Path(out_path)
     src_layout = read_layout(from_path)

@@ -27,6 +27,7 @@ import base64
 import html
 import io
 import json
+import os
 import time
 from pathlib import Path
 from typing import Optional, Sequence
@@ -35,6 +36,8 @@ import numpy as np
 
 from .evaluate import ACTIVE, summarize
 from .geometry import face_vertices, flipped_faces
+from .names import NameMap
+from .pipeline import Pipeline, StageCache
 
 #: fold-overs are counted on at most this many frames (evenly spaced)
 FOLD_FRAMES = 60
@@ -50,7 +53,6 @@ def ground_truth(load: dict, frames: dict) -> Optional[dict]:
     (K_target,) bool: target shapes with a namesake channel. None unless the source is weight
     curves and at least one target shape has a namesake.
     """
-    from .names import NameMap
 
     src, rig = load["source"], load["target_rig"]
     if src.kind != "curves":
@@ -143,7 +145,6 @@ def evaluate_methods(settings: dict, methods: Sequence[str], progress=None, cach
     "settings": {...}}`` plus private per-frame arrays under ``_`` keys for the HTML (dropped
     by :func:`to_json`).
     """
-    from .pipeline import Pipeline, StageCache
 
     pipe = Pipeline(cache=cache if cache is not None else StageCache(), **settings)
     base = pipe.results(["load", "frames"])
@@ -265,7 +266,6 @@ def _renders(report: dict, n: int = 2) -> list:
     if not report["ground_truth"]:
         return []
     try:
-        import os
 
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
         import pyvista as pv

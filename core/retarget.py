@@ -18,6 +18,7 @@ from typing import Optional
 import numpy as np
 
 from .calibrate import calibrate_deltas
+from .geometry import marker_triangulation
 from .model import MarkerLayout, Performance, Rig
 from .names import NameMap
 from .stabilize import stabilize
@@ -198,7 +199,6 @@ def marker_rig(positions) -> tuple:
     whatever frame the capture has), rim slivers peeled. The rig has one zero shape so viewers
     that play a weight track can show it; the markers themselves move via ``marker_track``.
     """
-    from .geometry import marker_triangulation
 
     P = np.asarray(positions, dtype=np.float64)
     mean = np.nanmean(P, axis=0)

@@ -6,6 +6,7 @@ Xu 2014 (:mod:`.dense`), a mesh-sequence source's own face (:mod:`.sequence`) an
 and what a page shows of a retargeting result (:mod:`.snapshot`).
 """
 
+# isort: skip_file  (the order is the registration order: stages and methods are listed in it)
 from .methods import METHODS, Method, method_of, solve_method  # noqa: F401
 from . import retarget  # noqa: F401  (registers)
 from . import dense  # noqa: F401

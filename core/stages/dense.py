@@ -22,13 +22,22 @@ from __future__ import annotations
 import numpy as np
 import param
 
+from ..model import Rig
 from ..progress import report
 from ..stage import Stage, register
+from ..transfer import (
+    TransferSettings, assemble_result, decompose_sequence, register_target, select_sequence_bases, transfer_bases,
+    transfer_details, weld_source)
+from ..transfer.carry import carry_back
+from ..transfer.correspond import face_crop
+from ..transfer.detail_edit import DetailEditor, apply_detail_edits
+from ..transfer.details import detail_morph_targets
+from ..transfer.edit import apply_transfer_edits
+from ..transfer.performance import default_feature_lines, dense_sequence, shared_landmarks
 from .sequence import source_face
 
 
 def _settings(**fields):
-    from ..transfer import TransferSettings
 
     return TransferSettings(**fields)
 
@@ -48,7 +57,6 @@ class DenseSource(Stage):
         "the retargeting range (a transfer of 2,000 ICT frames takes minutes)"))
 
     def run(self, inputs, s, progress=None):
-        from ..transfer.performance import dense_sequence
 
         src = inputs["take"]["source"]
         fr = inputs["frames"]
@@ -72,7 +80,6 @@ class Weld(Stage):
     deps = ("source_face", "sequence_face")
 
     def run(self, inputs, s, progress=None):
-        from ..transfer import weld_source
 
         rig, _ = source_face(inputs)
         if rig is None:
@@ -95,8 +102,6 @@ class Register(Stage):
     transfer_icp = param.Boolean(label='Fit the surface (non-rigid ICP)', default=True, doc="Non-rigid ICP after the landmark similarity (off: similarity + closest points only)")
 
     def run(self, inputs, s, progress=None):
-        from ..transfer import register_target
-        from ..transfer.performance import shared_landmarks
 
         tf = inputs["target_face"]
         (_, layout), target = source_face(inputs), tf["target_rig"]
@@ -120,7 +125,6 @@ class Decompose(Stage):
     transfer_iterations = param.Integer(label='Smoothing of the large scale (Taubin iterations)', default=40, bounds=(0, 500), doc="Taubin smoothing iterations of the decomposition (about 40 in the paper)")
 
     def run(self, inputs, s, progress=None):
-        from ..transfer import decompose_sequence
 
         report(progress, 0.1, "decomposition (smoothing + Laplacian coating)")
         return {"decomposition": decompose_sequence(inputs["weld"]["welded"], inputs["dense_source"]["sequence"],
@@ -137,7 +141,6 @@ class Bases(Stage):
     transfer_max_bases = param.Integer(label='At most this many bases', default=30, bounds=(1, 200), doc="At most this many bases")
 
     def run(self, inputs, s, progress=None):
-        from ..transfer import select_sequence_bases
 
         sel, src_bases = select_sequence_bases(inputs["decompose"]["decomposition"],
                                                _settings(eps=s.transfer_eps, max_bases=s.transfer_max_bases))
@@ -157,8 +160,6 @@ class Deform(Stage):
         return ("transfer_alpha", "transfer_feature_lines") if cfg.deform.transfer_feature_lines else ("transfer_feature_lines",)
 
     def run(self, inputs, s, progress=None):
-        from ..transfer import transfer_bases
-        from ..transfer.performance import default_feature_lines
 
         rig, layout = source_face(inputs)
         lines = default_feature_lines(rig, layout) if s.transfer_feature_lines else None
@@ -179,7 +180,6 @@ class Details(Stage):
         "GLB), 'none' the large-scale bases only"))
 
     def run(self, inputs, s, progress=None):
-        from ..transfer import transfer_details
 
         if s.transfer_details == "none":
             return {"details": None}
@@ -196,7 +196,6 @@ class Transfer(Stage):
     deps = ("weld", "register", "decompose", "bases", "deform", "details", "dense_source")
 
     def run(self, inputs, s, progress=None):
-        from ..transfer import assemble_result
 
         b = inputs["bases"]
         result = assemble_result(inputs["weld"]["welded"], inputs["register"]["target_welded"], inputs["decompose"]["decomposition"],
@@ -216,7 +215,6 @@ class TransferEdit(Stage):
         "distance}], window: [a, b] or null, lam_b, lam_w, lam_e}"))
 
     def run(self, inputs, s, progress=None):
-        from ..transfer.edit import apply_transfer_edits
 
         r = inputs["transfer"]["result"]
         if not s.transfer_edits:
@@ -238,7 +236,6 @@ class DetailEdit(Stage):
             if s.detail_edits:
                 raise ValueError("detail edits need a transfer with fine-scale details (transfer_details = morphs)")
             return {"details": r.details, "reports": []}
-        from ..transfer.detail_edit import DetailEditor, apply_detail_edits
 
         te = inputs["transfer_edit"]
         editor = DetailEditor.from_result(r, deltas=te["deltas"], weights=te["weights"])
@@ -256,7 +253,6 @@ class DetailMorphs(Stage):
         "Largest allowed error of the detail morph targets, relative to the largest detail"))
 
     def run(self, inputs, s, progress=None):
-        from ..transfer.details import detail_morph_targets
 
         details = inputs["detail_edit"]["details"]
         if details is None:
@@ -279,8 +275,6 @@ class DenseOutput(Stage):
         "back through the registration, neutral outside the face), source = the source topology fitted to the target"))
 
     def run(self, inputs, s, progress=None):
-        from ..model import Rig
-        from ..transfer.carry import carry_back
 
         r = inputs["transfer"]["result"]
         te, dm = inputs["transfer_edit"], inputs["detail_morphs"]
@@ -298,7 +292,6 @@ class DenseOutput(Stage):
             rig = Rig(target.neutral, target.faces, deltas, names, target.uvs, "m", name)
         else:
             report(progress, 0.1, "carrying the transfer back to the target's own mesh")
-            from ..transfer.correspond import face_crop
 
             reg, w = r.registration, r.welded
             # the face skin the motion is carried from: the registration's crop, or the face crop

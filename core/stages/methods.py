@@ -22,7 +22,13 @@ from typing import Callable
 import numpy as np
 
 from ..gaps import fill_gaps
+from ..model import flatten
 from ..names import NameMap, recognise
+from ..prior import prior_quadratic
+from ..solvers import baselines
+from ..solvers.geometric import GeometricSolver
+from ..solvers.local import blend_weights, local_precompute, local_spacetime, reconstruct_markers, smooth_weights
+from ..solvers.spacetime import SpacetimeSolver
 
 #: method name -> Method, in registration order
 METHODS: dict = {}
@@ -188,7 +194,6 @@ def _auto(inputs, s):
 @solve_method("lsq", params=("ridge",), honours=("filter",), label='lsq — unregularised diagnostic (weights can explode)')
 def _lsq(inputs, s):
     """Per-frame least squares, unbounded (a diagnostic: no regulariser keeps it in range)."""
-    from ..solvers import baselines
 
     B, S, valid = _weighted(inputs)
     return {"weights": baselines.no_const(B, S, valid), "edit": edit_options(s, alpha=0.01)}
@@ -198,7 +203,6 @@ def _lsq(inputs, s):
               label='bounded — per frame, within lowest…highest')
 def _bounded(inputs, s):
     """Per-frame least squares with ``lower <= w <= upper`` (batched exact active set)."""
-    from ..solvers import baselines
 
     B, S, valid = _weighted(inputs)
     return {"weights": baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge, quadratic=s.quadratic, zero=s.zero),
@@ -208,7 +212,6 @@ def _bounded(inputs, s):
 @solve_method("range_pf", params=("ridge",), honours=("active", "symmetry", "cancel", "filter"), label='range_pf — per frame, −0.5…1.5 (Seol §7)')
 def _range_pf(inputs, s):
     """Seol 2012 §7 Range PF: per frame, -0.5 <= w <= 1.5."""
-    from ..solvers import baselines
 
     B, S, valid = _weighted(inputs)
     return {"weights": baselines.range_pf(B, S, valid=valid, ridge=s.ridge, quadratic=s.quadratic, zero=s.zero),
@@ -217,9 +220,6 @@ def _range_pf(inputs, s):
 
 def _prior_pf_frames(inputs, s, frames):
     """Prior PF (the weighted data term, the unweighted markers' prior) on a few frames."""
-    from ..model import flatten
-    from ..prior import prior_quadratic
-    from ..solvers import baselines
 
     B, S, valid = _weighted(inputs)
     prior = _prior(inputs)
@@ -245,8 +245,6 @@ def _spacetime(inputs, s):
     """Seol 2012 movement matching + PCA prior (+ Sobolev), the whole take at once; by default
     within ``lower <= w <= upper`` (exact bounded solve), optionally with L1 sparsity and a pull
     towards the namesake source curves (``name_weight``)."""
-    from ..solvers import baselines
-    from ..solvers.spacetime import SpacetimeSolver
 
     B, S, valid = _markers(inputs)
     mw = _marker_weights(inputs)
@@ -276,7 +274,6 @@ def _spacetime(inputs, s):
               honours=("bounds", "active", "symmetry", "cancel"), label='local — face regions (Liu 2011)')
 def _local(inputs, s):
     """Liu 2011: per-region constrained QP (eq. 2), blended by the region masks (eq. 3)."""
-    from ..solvers.local import blend_weights, local_precompute, local_spacetime, reconstruct_markers, smooth_weights
 
     B, S, valid = _markers(inputs)
     st = inputs["calibrate"]["source"]
@@ -306,10 +303,6 @@ def _local(inputs, s):
 def _geometric(inputs, s):
     """Ribera 2017: cotangent-Laplacian (or PCA / L2) prior + L1 sparsity, within ``lower <= w <= upper``
     (exact batched box QP; ``GeometricSolver(lower=None, upper=None)`` is the paper's unbounded IRLS)."""
-    from ..model import flatten
-    from ..solvers import baselines
-    from ..solvers.geometric import GeometricSolver
-    from ..prior import prior_quadratic
 
     B, S, valid = _weighted(inputs)
     kw = {"rig": inputs["shapes"]["rig"]} if s.geometric_prior == "geometric" else {}

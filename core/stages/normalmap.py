@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import param
 
+from ..normalmap import bake_rig, decimate, mask_texels
 from ..stage import Stage, register
 from .methods import method_of
 
@@ -24,7 +25,6 @@ class NormalMapBake(Stage):
     normalmap_resolution = param.Selector(default=256, objects=[256, 512], doc="Texels per UV unit of the baked and blended maps")
 
     def run(self, inputs, s, progress=None):
-        from ..normalmap import bake_rig
 
         return {"bake": bake_rig(inputs["target_face"]["target_rig"], s.normalmap_resolution)}
 
@@ -38,7 +38,6 @@ class NormalMapDecimate(Stage):
     normalmap_reduction = param.Number(default=0.9, bounds=(0.05, 0.99), doc="Fraction of the triangles the decimation removes")
 
     def run(self, inputs, s, progress=None):
-        from ..normalmap import decimate
 
         return {"rig": decimate(inputs["target_face"]["target_rig"], s.normalmap_reduction)[0]}
 
@@ -53,7 +52,6 @@ class NormalMapMasks(Stage):
         return "segment" in method_of(cfg).needs
 
     def run(self, inputs, s, progress=None):
-        from ..normalmap import mask_texels
 
         return {"masks": mask_texels(inputs["normalmap_bake"]["bake"], inputs["target_face"]["target_rig"].faces,
                                      inputs["segment"]["masks"])}

@@ -21,14 +21,25 @@ from dataclasses import replace
 import numpy as np
 import param
 
+from ..controls import cancel_pairs, default_table, filter_weights, merge_table, resolve
+from ..controls.mirror import mirror_performance
+from ..correspondence import MAX_POINTS, capture_correspondence, rig_correspondence
+from ..evaluate import evaluate
 from ..gaps import fill_gaps
-from ..names import bundled_vocabulary_files, load_vocabularies
-from ..shot import file_hash
+from ..io.layout import default_layout_path
+from ..io.performance import read_performance
+from ..io.rigs import load_rig, read_layout_for
+from ..names import ARKIT_NAMES, NameMap, bundled_vocabulary_files, canonical, load_vocabularies
+from ..personalize import personalize
+from ..prior import PCAPrior
 from ..progress import report
 from ..retarget import common_markers, source_marker_names, source_markers, target_markers
+from ..segment import marker_weights, segment
+from ..shot import file_hash
+from ..solvers.local import masks_at
+from ..solvers.spacetime import PoseEdit, SpacetimeSolver
 from ..stage import Stage, register
-from ..controls import cancel_pairs, default_table, filter_weights, merge_table, resolve
-from .methods import METHODS, method_of
+from .methods import METHODS, method_of, named_target
 
 #: a shape whose largest marker displacement is below this fraction of the largest shape's
 #: is invisible to the markers
@@ -53,14 +64,12 @@ class Take(Stage):
         "Swap the take's left and right (curve names, marker names and positions; core.controls.mirror_performance)"))
 
     def run(self, inputs, s, progress=None):
-        from ..io.performance import read_performance
 
         if not s.source:
             raise ValueError("no source performance chosen (--source)")
         report(progress, 0.1, "reading source")
         perf = read_performance(s.source, kind=s.source_kind, fps=s.source_fps or None)
         if s.mirror_source:
-            from ..controls.mirror import mirror_performance
 
             perf = mirror_performance(perf)
         return {"source": perf}
@@ -69,7 +78,6 @@ class Take(Stage):
 def _with_default_layout(paths: dict, rig: str, layout: str) -> dict:
     """``paths`` with the rig's default layout (its sidecar, else the bundled one) filled in
     when no layout is chosen: the file read is an input like any other (editing it re-keys)."""
-    from ..io.layout import default_layout_path
 
     if paths[rig] and not paths[layout]:
         default = default_layout_path(paths[rig])
@@ -91,8 +99,6 @@ class SourceFace(Stage):
         return _with_default_layout(super().file_paths(cfg), "source_rig", "source_layout")
 
     def run(self, inputs, s, progress=None):
-        from ..io.rigs import load_rig, read_layout_for
-        from ..names import NameMap
 
         report(progress, 0.2, "reading the source rig")
         rig = load_rig(s.source_rig) if s.source_rig else None
@@ -115,7 +121,6 @@ class TargetFace(Stage):
         return _with_default_layout(super().file_paths(cfg), "target_rig", "target_layout")
 
     def run(self, inputs, s, progress=None):
-        from ..io.rigs import load_rig, read_layout_for
 
         if not s.target_rig:
             raise ValueError("no target rig chosen (--target-rig)")
@@ -189,7 +194,6 @@ class DenseCorrespondence(Stage):
         return correspondence(cfg) == "dense" and bool(cfg.source_face.source_rig)
 
     def run(self, inputs, s, progress=None):
-        from ..correspondence import MAX_POINTS, rig_correspondence
 
         sf, tf, reg = inputs["source_face"], inputs["target_face"], inputs["register"]
         report(progress, 0.5, "dense correspondence: face points onto the target")
@@ -231,7 +235,6 @@ class Correspond(Stage):
             return out
         if ld["source"].kind != "markers":
             raise ValueError("dense correspondence needs the source rig the curves drive (--source-rig) or a marker capture")
-        from ..correspondence import capture_correspondence
 
         report(progress, 0.3, "densifying the capture's markers (RBF of the layout)")
         perf, tgt = capture_correspondence(ld["source"], ld["target_rig"], ld["target_layout"], s.dense_points)
@@ -259,7 +262,6 @@ class Frames(Stage):
 def solver_shapes(rig, spec: str) -> list:
     """Indices of the target shapes the solvers may use: ``""`` all; ``"arkit"`` the shapes
     with a canonical ARKit name (all shapes when the rig has none); else comma-separated names."""
-    from ..names import ARKIT_NAMES, canonical
 
     spec = (spec or "").strip()
     if not spec:
@@ -401,13 +403,11 @@ class Personalize(Stage):
         cal = inputs["calibrate"]
         if not s.personalize:
             return {"deltas": cal["deltas"], "personalized": False}
-        from ..personalize import personalize
 
         st = inputs["stabilize"]
         src = cal["source"]
         rom_deltas, rom_valid = src.deltas, src.valid
         if s.rom:
-            from ..io.performance import read_performance
 
             ld, cor = inputs["load"], inputs["correspond"]
             if cor["kind"] == "dense" and cor["source_layout"] is None:
@@ -441,8 +441,6 @@ class Segment(Stage):
         return "segment" in method_of(cfg).needs
 
     def run(self, inputs, s, progress=None):
-        from ..segment import marker_weights, segment
-        from ..solvers.local import masks_at
 
         rig, layout = inputs["shapes"]["rig"], inputs["shapes"]["layout"]
         seg = segment(rig, n_regions=s.regions, min_size=max(1, int(round(s.min_region_size * rig.n_vertices))),
@@ -467,7 +465,6 @@ class Prior(Stage):
         return "prior" in method_of(cfg).needs
 
     def run(self, inputs, s, progress=None):
-        from ..prior import PCAPrior
 
         deltas = inputs["personalize"]["deltas"]
         subset = None
@@ -597,8 +594,6 @@ class Edit(Stage):
         W = inputs["solve"]["weights"]
         if not s.edits:
             return {"weights": W, "edits": []}
-        from ..solvers.spacetime import PoseEdit
-        from ..solvers.spacetime import SpacetimeSolver
 
         st = inputs["calibrate"]["source"]  # the motion the solve fitted
         edits = []
@@ -612,7 +607,6 @@ class Edit(Stage):
         prior = inputs["prior"]["prior"] if inputs.get("prior") else None
         named = None
         if opt["name_weight"] > 0:
-            from .methods import named_target
 
             named = named_target(inputs)
         solver = SpacetimeSolver(inputs["personalize"]["deltas"], st.deltas, alpha=opt["alpha"], beta=opt["beta"], prior=prior,
@@ -669,7 +663,6 @@ class Evaluate(Stage):
         return not method_of(cfg).dense
 
     def run(self, inputs, s, progress=None):
-        from ..evaluate import evaluate
 
         st = inputs["calibrate"]["source"]  # the motion the solve fitted
         predicted = inputs["solve"]["info"].get("predicted") if not inputs["edit"]["edits"] else None

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import warnings
 
+from ..io.layout import LayoutRigMismatch, read_layout
+from ..io.sequence import topology_rig
 from ..progress import report
 from ..stage import Stage, register
 
@@ -33,8 +35,6 @@ class SequenceFace(Stage):
         src = inputs["take"]["source"]
         if src.kind != "meshes":
             return {"source_rig": None, "source_layout": None}
-        from ..io.layout import LayoutRigMismatch, read_layout
-        from ..io.sequence import topology_rig
 
         report(progress, 0.5, "mesh-sequence topology")
         rig = topology_rig(src)

@@ -14,23 +14,28 @@ Editing (eq. 12-15 and 17-21) lives in :mod:`.edit`.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Optional, Sequence, Union
+from typing import Optional
 
 import numpy as np
 
-from ..progress import ProgressFn, report
-
 from ..geometry import weld_vertices
+from ..model import Rig
+from ..progress import ProgressFn, report
 from ._mesh import bbox_size, check_faces, check_positions
 from .bases import BasisSelection, gram_from_factored, nnls_gram, select_bases
 from .correspond import Registration, landmarks_from_shapes, register
-from .decompose import (FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence,
-                        laplacian_coating, laplacian_operator, taubin_smooth)
+from .decompose import (
+    FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence, laplacian_coating, laplacian_operator,
+    taubin_smooth)
 from .deformation import DeformationTransfer, deformation_gradients, deformation_transfer, line_gradients
 from .details import DetailTransfer
+from .edit import TransferEditor
 from .features import feature_lines_near, hole_loops, line_edges, loops_near, marker_loop, seam_loops
+from .settings import TransferSettings
+from .welded import WeldedSource, weld_source
 
 __all__ = [
     "TransferSettings", "TransferResult", "transfer_sequence", "naive_transfer",
@@ -42,71 +47,6 @@ __all__ = [
     "DetailTransfer", "register", "Registration", "landmarks_from_shapes",
     "line_edges", "hole_loops", "seam_loops", "loops_near", "marker_loop", "feature_lines_near",
 ]
-
-
-@dataclass(frozen=True)
-class TransferSettings:
-    """Settings of :func:`transfer_sequence` (defaults follow the paper where it gives a value).
-
-    Attributes
-    ----------
-    iterations : Taubin iterations ("about 40", §3)
-    lam, mu : Taubin λ, μ
-    laplacian : "uniform" | "cotangent", the operator L of eq. 1-2
-    eps : relative residual energy that ends basis selection (eq. 7's ε)
-    max_bases, min_bases : bounds on K (deltas, not counting the neutral b_1 = S̄_0)
-    candidates : frames tried per greedy step (the worst-fitted ones)
-    alpha : feature-line weight of eq. 9 (100 in the paper)
-    feature_lines : list of vertex-id chains on the source (closed loops), or None
-    details : transfer fine-scale details (§5.1); False gives the large-scale result only
-    detail_gain : scale of the transferred coating; None = size(target) / size(source)
-    rotate_reference_details : the rotation-covariant detail variant (see :mod:`.details`)
-    detail_screening : screened-Poisson weight of the detail reconstruction (0 = eq. 5 as is;
-        see :class:`.decompose.PoissonReconstructor`)
-    rank_rtol : relative RMS tolerance of the sequence factorisation
-    chunk : frames per block in the detail stage
-    landmarks : (source vertex ids (M,), target points (M, 3)) for a target with its own topology
-    icp_steps, max_distance, icp : registration settings (see :func:`.correspond.register`);
-        ``icp=False`` stops at the landmark similarity + closest-point resampling
-    crop : which source vertices the registration fits to the target (:func:`.correspond.register`):
-        "auto" (default: the face crop when the target lacks the rest of the source head, as the
-        Jeeliz animals do; the whole head for a human target), "face", "none", or a (V,) bool
-        mask / vertex ids of ``source_ref``
-    """
-
-    iterations: int = 40
-    lam: float = 0.5
-    mu: float = -0.53
-    laplacian: str = "uniform"
-    eps: float = 1e-3
-    max_bases: int = 30
-    min_bases: int = 0
-    candidates: int = 8
-    alpha: float = 100.0
-    feature_lines: Optional[Sequence] = None
-    details: bool = True
-    detail_gain: Optional[float] = None
-    rotate_reference_details: bool = False
-    detail_screening: float = 0.01
-    rank_rtol: float = 1e-6
-    chunk: int = 32
-    landmarks: Optional[tuple] = None
-    icp_steps: Optional[list] = None
-    max_distance: Optional[float] = None
-    icp: bool = True
-    crop: Union[str, None, np.ndarray, Sequence[int]] = "auto"
-
-    def __post_init__(self):
-        if self.laplacian not in ("uniform", "cotangent"):
-            raise ValueError(f"laplacian: expected 'uniform' or 'cotangent', got {self.laplacian!r}")
-        for name in ("iterations", "max_bases", "min_bases", "candidates", "chunk"):
-            v = getattr(self, name)
-            if int(v) != v or v < (1 if name in ("candidates", "chunk") else 0):
-                raise ValueError(f"{name}: expected a non-negative integer, got {v!r}")
-        if self.eps < 0 or self.alpha < 0 or self.rank_rtol <= 0:
-            raise ValueError(f"eps >= 0, alpha >= 0, rank_rtol > 0 expected; got {self.eps}, {self.alpha}, {self.rank_rtol}")
-        if isinstance(self.crop, str) and self.crop not in ("auto", "face", "none"):
-            raise ValueError(f"crop: expected 'auto', 'face', 'none', a bool mask or vertex ids; got {self.crop!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,7 +111,6 @@ class TransferResult:
 
     def to_rig(self, name: str = "transfer", prefix: str = "xu_basis_"):
         """A :class:`core.model.Rig` (neutral + K deltas); details are not part of a rig."""
-        from ..model import Rig
 
         names = [f"{prefix}{k:02d}_f{int(f)}" for k, f in enumerate(self.frames)]
         return Rig(self.neutral, self.faces, self.deltas, names, None, "m", name)
@@ -180,46 +119,11 @@ class TransferResult:
         """A :class:`~core.transfer.edit.TransferEditor` for large-scale edits (eq. 12-15) of this
         result: the factorised eq. 9 system it was solved with (rebuilt from ``source_rig`` and
         ``settings`` for a result that does not carry it)."""
-        from .edit import TransferEditor
 
         return TransferEditor(self, source_rig, settings)
 
 
 # -- the steps of transfer_sequence (each a pure function; the pipeline caches each one) ----------
-@dataclass(frozen=True, eq=False)
-class WeldedSource:
-    """The source reference welded at UV-seam duplicates: Laplacians and gradients must see one
-    connected surface. ``index`` (V,) maps every source vertex to its welded vertex, ``rep``
-    (V_w,) each welded vertex to one source vertex; ``faces`` (F, 3) are the welded triangles."""
-
-    neutral: np.ndarray
-    source_faces: np.ndarray
-    index: np.ndarray
-    rep: np.ndarray
-    faces: np.ndarray
-
-    @property
-    def n(self) -> int:
-        return len(self.rep)
-
-    @property
-    def welded_neutral(self) -> np.ndarray:
-        """(V_w, 3) the source reference's welded positions."""
-        return self.neutral[self.rep]
-
-    def unweld(self, a: np.ndarray) -> np.ndarray:
-        """Welded (..., V_w, 3) -> source vertex order (..., V, 3)."""
-        return np.ascontiguousarray(a[..., self.index, :])
-
-
-def weld_source(source_ref, source_faces) -> WeldedSource:
-    """Check and weld the source reference (see :class:`WeldedSource`)."""
-    S0 = check_positions(source_ref, "source_ref")
-    Fs = check_faces(source_faces, len(S0), "source_faces")
-    wi, rep, Fw = weld_vertices(S0, Fs)
-    return WeldedSource(S0, Fs, wi, rep, Fw)
-
-
 def register_target(src: WeldedSource, target_ref, target_faces, settings: TransferSettings,
                     progress: Optional[ProgressFn] = None) -> tuple:
     """§3 preprocessing: the target reference in the welded source topology, ``(T_w0 (V_w, 3),
@@ -386,7 +290,6 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     ValueError
         Bad shapes, non-finite input, a target of another topology without landmarks.
     """
-    import dataclasses
 
     settings = settings or TransferSettings()
     if overrides:

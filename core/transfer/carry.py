@@ -36,6 +36,7 @@ from typing import Optional
 import numpy as np
 import scipy.sparse as sp
 
+from ..geometry import ClosestPoints, vertex_adjacency, vertex_normals
 from ._mesh import bbox_size, check_faces, check_positions
 
 __all__ = ["CarryBack", "carry_back", "INNER", "OUTER", "RINGS"]
@@ -106,7 +107,6 @@ def carry_back(fitted, faces, target_positions, trusted: Optional[np.ndarray] = 
     ValueError
         Bad shapes, ``trusted`` not (V,) bool, ``inner``/``outer`` out of order.
     """
-    from ..geometry import ClosestPoints, vertex_adjacency, vertex_normals
 
     S = check_positions(fitted, "fitted")
     F = check_faces(faces, len(S), "faces")

@@ -35,8 +35,14 @@ from dataclasses import dataclass, field
 from typing import Optional, Sequence, Union
 
 import numpy as np
+import trimesh
+from scipy.interpolate import RBFInterpolator
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import ConvexHull, QhullError
 
-from ..geometry import ClosestPoints, flipped_faces, largest_component, nonrigid_icp, nricp_steps, procrustes
+from ..geometry import (
+    ClosestPoints, flipped_faces, harmonic_extension, largest_component, nonrigid_icp, nricp_steps, procrustes,
+    vertex_adjacency, vertex_normals)
 from ..progress import report as report_progress
 from ._mesh import bbox_size, check_faces, check_positions
 
@@ -95,11 +101,7 @@ def face_crop(positions, faces, landmarks, margin: float = 0.06, depth: float = 
         Fewer than 4 landmarks, ids out of range, negative margin/depth, landmarks that
         all lie on a line.
     """
-    from scipy.interpolate import RBFInterpolator
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import ConvexHull, QhullError
 
-    from ..geometry import vertex_adjacency, vertex_normals
 
     S = check_positions(positions, "positions")
     F = check_faces(faces, len(S))
@@ -129,7 +131,6 @@ def face_crop(positions, faces, landmarks, margin: float = 0.06, depth: float = 
     outside = np.max(uv @ eq[:, :2].T + eq[:, 2], axis=1)
     keep = (outside <= margin * D) & (shell - h <= depth * D)
     if covered and keep.any():
-        import trimesh
 
         cand = np.flatnonzero(keep)
         mesh = trimesh.Trimesh(S, F, process=False)
@@ -179,7 +180,6 @@ def _extend(values, mask, faces, n: int) -> np.ndarray:
     neighbours). By the maximum principle every component stays within the range of the given
     values, so the extension never overshoots (a biharmonic one, C¹ at the rim, extrapolated the
     face's shrinking into a long thin neck and flipped 5x more triangles on ICT -> tiger)."""
-    from ..geometry import harmonic_extension
 
     return harmonic_extension(values, mask, faces, n)
 

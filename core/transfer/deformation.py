@@ -32,8 +32,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..geometry import gradient, vertex_components
-from ..geometry import cross, face_cross
+from ..geometry import cross, face_cross, gradient, uniform_laplacian, vertex_components
 from ._mesh import PinnedSolver, bbox_size, check_faces, check_positions
 
 __all__ = ["triangle_frames", "deformation_gradients", "line_gradients", "DeformationTransfer", "deformation_transfer"]
@@ -173,7 +172,6 @@ class DeformationTransfer:
                                 (np.r_[np.arange(len(E)), np.arange(len(E))], np.r_[E[:, 0], E[:, 1]])), shape=(len(E), V))
             self.Bw = (Bm.T @ sp.diags(self.wl)).tocsr()  # B^T diag(w), (V, E)
             A = (A + self.Bw @ Bm).tocsr()
-        from ..geometry import uniform_laplacian
 
         Lu = uniform_laplacian(faces, V)
         self.reg = float(regularization) * A.diagonal().sum() / max(Lu.diagonal().sum(), 1e-300)

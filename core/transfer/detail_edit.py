@@ -31,17 +31,22 @@ edit of the coating maps back to the displacements exactly: ``ΔD_t = A^{-1} Δ�
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
 
 from ..geometry import uniform_laplacian, vertex_adjacency, vertex_normals, weld_vertices
-from .decompose import PoissonReconstructor
+from ..io.gltf import read_rig
+from .decompose import PoissonReconstructor, taubin_smooth
+from .settings import TransferSettings
 
 __all__ = ["region_near_curve", "region_near_points", "detail_window", "scale_details", "propagate_details",
            "KeyEdit", "DetailEditResult", "DetailEditor"]
@@ -281,7 +286,6 @@ def _arc_length(points: np.ndarray) -> np.ndarray:
 
 def region_near_points(positions, vertices, radius: float) -> np.ndarray:
     """Vertices within ``radius`` of any of the picked ``vertices`` (a paint brush, §5.2)."""
-    from scipy.spatial import cKDTree
 
     p = np.asarray(positions, dtype=np.float64)
     ids = np.asarray(vertices, dtype=np.int64).ravel()
@@ -337,7 +341,6 @@ class DetailEditor:
         """An editor of a :class:`~core.transfer.TransferResult` (with its ``settings``, default
         :class:`~core.transfer.TransferSettings`); ``deltas``/``weights``/``details`` override the
         result's (e.g. after large-scale or earlier detail edits)."""
-        from . import TransferSettings
 
         s = settings or TransferSettings()
         det = result.details if details is None else details
@@ -349,7 +352,6 @@ class DetailEditor:
     def rebase(self, details=None, deltas=None, weights=None) -> "DetailEditor":
         """The same editor (factorisation shared, nothing recomputed) on other details and/or
         another large-scale state — after an edit of either."""
-        import copy
 
         new = copy.copy(self)
         if details is not None:
@@ -472,7 +474,6 @@ class DetailEditor:
         """Surface vertices within ``h`` of the moved points ``Y`` (facing like ``nY``) and the
         nearest moved point of each: ``(dst (m,), j (m,), rot)`` with ``rot(vectors (m, 3))``
         the rotation by ``R`` and then onto each destination's normal."""
-        from scipy.spatial import cKDTree
 
         hits = cKDTree(X).query_ball_point(Y, r=h)
         cand = np.unique(np.concatenate([np.asarray(t, dtype=np.int64) for t in hits]))
@@ -588,7 +589,6 @@ class DetailEditor:
         if len(C) < 2 or Q.ndim != 2 or Q.shape[1] != 3 or len(Q) < 2:
             raise ValueError(f"reshape: need a curve of >= 2 vertices and a target of >= 2 points, got {len(C)} "
                              f"and {Q.shape}")
-        from scipy.spatial import cKDTree
 
         X = self.surface(f)
         P = self.select_curve(C, radius, f)
@@ -815,10 +815,7 @@ def _reference_propagation(edit, faces, n_vertices, region, window, key_frame, l
 def benchmark(n_frames: int = 1300):
     """Print the ``xu_detail_edit_1300f`` BENCH line: a key-frame detail edit propagated and
     reconstructed over ``n_frames`` frames of the 14K-vertex ICT head (see benchmarks/)."""
-    from pathlib import Path
 
-    from ..io.gltf import read_rig
-    from .decompose import taubin_smooth
 
     root = Path(__file__).resolve().parents[2]
     ict = read_rig(root / "data" / "rigs" / "ict_facekit.glb")

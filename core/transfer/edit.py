@@ -26,13 +26,23 @@ Fine-scale editing (§5.2, eq. 17-21) is :mod:`.detail_edit`.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.optimize import lsq_linear
 
+from ..geometry import weld_vertices
+from ..io.gltf import read_rig
+from .decompose import TaubinFilter, taubin_smooth
 from .deformation import DeformationTransfer
+from .detail_edit import _reference_propagation, propagate_details
+from .features import line_edges
+from .settings import TransferSettings
+from .welded import weld_source
 
 __all__ = ["PointConstraint", "DistanceConstraint", "LargeScaleEditor", "TransferEditor", "apply_transfer_edits", "benchmark"]
 
@@ -303,9 +313,6 @@ class TransferEditor:
     """
 
     def __init__(self, result, source_rig=None, settings=None):
-        from . import TransferSettings, weld_source
-        from .decompose import TaubinFilter
-        from .features import line_edges
 
         self.result = result
         V = len(result.neutral)
@@ -446,13 +453,7 @@ def _nnls_sparse(Q: sp.csc_matrix, q: np.ndarray, x0: np.ndarray, max_iter: int 
 
 def benchmark(n_frames: int = 1300):
     """Print the ``xu_edit_large_1300f`` / ``xu_edit_fine_1300f`` BENCH lines (see benchmarks/)."""
-    import time
 
-    from ..io.gltf import read_rig
-    from ..geometry import weld_vertices
-    from .detail_edit import _reference_propagation, propagate_details
-    from .decompose import taubin_smooth
-    from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
     ict = read_rig(root / "data" / "rigs" / "ict_facekit.glb")
@@ -478,7 +479,6 @@ def benchmark(n_frames: int = 1300):
     ours = time.perf_counter() - c0
     # reference: the weights step as one dense-free general bounded LS (scipy lsq_linear) on the
     # same objective, bases fixed (the edit's dominant cost), on the whole 1,300-frame window
-    from scipy.optimize import lsq_linear
 
     c0 = time.perf_counter()
     rows = ed._rows(cons)

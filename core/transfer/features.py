@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from ..geometry import boundary_loops, edges as mesh_edges
+from ..geometry import boundary_loops, edges as mesh_edges, weld_vertices
 
 __all__ = ["line_edges", "hole_loops", "seam_loops", "loops_near", "marker_loop", "feature_lines_near"]
 
@@ -143,7 +143,6 @@ def feature_lines_near(positions, faces, points, radius: float) -> list:
     list of (m,) int arrays of *input* vertex ids (one representative per welded vertex), the
     form ``TransferSettings.feature_lines`` takes.
     """
-    from ..geometry import weld_vertices
 
     p = np.asarray(positions, dtype=np.float64)
     wi, rep, wf = weld_vertices(p, faces)

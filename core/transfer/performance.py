@@ -11,15 +11,18 @@ from typing import Optional
 
 import numpy as np
 
+from ..gaps import fill_gaps
 from ..model import MarkerLayout, Performance, Rig
 from ..progress import ProgressFn, report
+from ..retarget import drive_rig
+from . import TransferSettings, transfer_sequence
+from .features import feature_lines_near
 
 
 def dense_sequence(source: Performance, rig: Optional[Rig], name_map=None) -> tuple:
     """``(meshes (T, V, 3), valid (T,))``: a mesh sequence as is (on ``rig``'s topology when a rig
     is given, else its own), or weight curves driving ``rig``. Frames without data (tracking loss) are gaps, filled by :func:`core.gaps.fill_gaps`
     (interpolated, held at the ends — never a neutral face) and flagged in ``valid``."""
-    from ..gaps import fill_gaps
 
     if source.kind == "meshes":
         if rig is not None and source.data.shape[1] != rig.n_vertices:
@@ -30,7 +33,6 @@ def dense_sequence(source: Performance, rig: Optional[Rig], name_map=None) -> tu
     if source.kind == "curves":
         if rig is None:
             raise ValueError(f"transfer: weight curves {source.name!r} need the rig they drive (--source-rig)")
-        from ..retarget import drive_rig
 
         W, _ = drive_rig(source, rig, name_map)
         valid = np.isfinite(W).all(1)
@@ -79,7 +81,6 @@ def default_feature_lines(rig: Rig, layout: Optional[MarkerLayout], radius: Opti
     UV-seam rims passing within ``radius`` (default 5 % of the layout's marker spread: 12 mm on
     ICT) of the layout's eye and mouth markers. None when the layout has none of those
     markers or no rim passes near them (eq. 9 then has no line term)."""
-    from .features import feature_lines_near
 
     if layout is None:
         return None
@@ -106,7 +107,6 @@ def transfer_performance(source: Performance, source_rig: Rig, source_layout: Ma
     the source to its face for a target without the rest of the head (``crop="auto"``,
     e.g. ICT -> the Jeeliz tiger), ``crop="face"`` / ``"none"`` force either way.
     """
-    from . import TransferSettings, transfer_sequence
 
     report(progress, 0.02, "dense source")
     seq = dense_source(source, source_rig, name_map)
