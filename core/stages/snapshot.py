@@ -18,7 +18,8 @@ from ..stage import Stage, register
 from .methods import method_of
 
 #: the retargeting stages a snapshot shows
-SHOWN = ("load", "frames", "stabilize", "calibrate", "personalize", "segment", "solve", "edit", "synthesize", "evaluate")
+SHOWN = ("load", "correspond", "shapes", "frames", "stabilize", "calibrate", "personalize", "segment", "solve", "edit",
+         "synthesize", "evaluate")
 
 
 @register("snapshot")
@@ -40,8 +41,10 @@ class Snapshot(Stage):
             "target_names": list(ld["target_rig"].names), "source_rig": ld["source_rig"],
             "source_weights": st.source_weights, "source_markers": st.positions,
             "target_markers": syn["target_markers"], "marker_names": list(st.names),
-            "target_layout": ld["target_layout"].select(tm.names),
-            "source_layout": ld["source_layout"].select(tm.names) if ld["source_layout"] else None,
+            # the points the faces are compared at: the markers, or dense correspondence's face points
+            "target_layout": inputs["shapes"]["layout"].select(tm.names),
+            "source_layout": (inputs["correspond"]["source_layout"].select(tm.names)
+                              if inputs["correspond"]["source_layout"] else None),
             "evaluate": inputs["evaluate"], "segment": inputs["segment"], "method": solve["method"],
             "personalize": inputs["personalize"], "calibrated_deltas": tm.calibrated, "raw_deltas": tm.deltas,
             "solver_names": list(inputs["calibrate"]["rig"].names),
