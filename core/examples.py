@@ -26,9 +26,10 @@ residuals at the posed frames.
   it leaves at the posed frames (so each pose is reproduced exactly), clipped into the bounds.
 
 Design (c), the learned estimate as a pull target of the bounded spacetime solve
-(``name_target`` / ``name_weight`` of :class:`core.solvers.spacetime.SpacetimeSolver`), was
-measured too (scripts/example_poses_eval.py); see docs/evaluation.md for why it is not the
-default.
+(``name_target`` / ``name_weight`` of :class:`core.solvers.spacetime.SpacetimeSolver`, so the
+result stays a solve of the markers), was measured too (scripts/example_poses_eval.py): the
+markers pull the result back towards the geometric solution the poses correct, and it lost to
+every clipped design at 4 poses and more (docs/evaluation.md §Example poses).
 
 Weights are unit-free (0 = neutral, 1 = the full shape), so ``ridge`` is in squared weights and
 needs no scaling by the rig's size. Features are displacements from the neutral expression
@@ -65,7 +66,8 @@ def _features(features) -> np.ndarray:
     if F.ndim == 3:  # (T, M, 3) marker displacements
         F = F.reshape(len(F), -1)
     if F.ndim != 2:
-        raise ValueError(f"features: expected (T, F) expression features or (T, M, 3) marker displacements, got shape {F.shape}")
+        raise ValueError("features: expected (T, F) expression features or (T, M, 3) marker displacements, "
+                         f"got shape {F.shape}")
     return F
 
 
