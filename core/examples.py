@@ -28,8 +28,8 @@ residuals at the posed frames.
 Design (c), the learned estimate as a pull target of the bounded spacetime solve
 (``name_target`` / ``name_weight`` of :class:`core.solvers.spacetime.SpacetimeSolver`, so the
 result stays a solve of the markers), was measured too (scripts/example_poses_eval.py): the
-markers pull the result back towards the geometric solution the poses correct, and it lost to
-every clipped design at 4 poses and more (docs/evaluation.md §Example poses).
+markers hold the result back towards the geometric solution the poses correct, and it never beat
+the estimate it is pulled towards (docs/evaluation.md §Example poses).
 
 Weights are unit-free (0 = neutral, 1 = the full shape), so ``ridge`` is in squared weights and
 needs no scaling by the rig's size. Features are displacements from the neutral expression

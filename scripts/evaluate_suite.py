@@ -122,7 +122,7 @@ def write_markdown(results, out, last_frame):
     text = "\n".join(lines) + "\n"
     old = Path(out).read_text() if Path(out).exists() else ""
     if EXAMPLE_POSES in old:  # the section scripts/example_poses_eval.py writes stays
-        text += "\n" + old[old.index(EXAMPLE_POSES):]
+        text += old[old.index(EXAMPLE_POSES):]
     Path(out).write_text(text)
 
 
