@@ -49,6 +49,8 @@ import difflib
 from typing import Mapping, Sequence
 
 import numpy as np
+from scipy.interpolate import RBFInterpolator
+from scipy.spatial.distance import pdist
 
 from .gaps import fill_gaps
 from .geometry import farthest_points
@@ -188,19 +190,18 @@ def linear_correction(X, poses: Mapping, ridge: float = RIDGE) -> np.ndarray:
 
 def _rbf(F: np.ndarray, frames: np.ndarray, R: np.ndarray, width=None) -> np.ndarray:
     """``Φ(F, F_p) (Φ(F_p, F_p) + εI)⁻¹ R``, Gaussian ``Φ`` of width ``width`` (default: the
-    median distance between the posed frames' features)."""
+    median distance between the posed frames' features, 1 for a single pose), by
+    :class:`scipy.interpolate.RBFInterpolator` (kernel ``exp(-(e r)²)`` with ``e = 1 / (√2 width)``,
+    no polynomial, smoothing ε)."""
     Fp = F[frames]
-    d2 = ((Fp[:, None] - Fp[None]) ** 2).sum(-1)
     if width is None:
-        off = np.sqrt(d2[~np.eye(len(frames), dtype=bool)])
-        off = off[off > 0]
-        width = float(np.median(off)) if off.size else 1.0
-    c = np.linalg.solve(np.exp(-d2 / (2 * width ** 2)) + RBF_EPS * np.eye(len(frames)), R)
-    out = np.empty((len(F), R.shape[1]))
-    for a in range(0, len(F), 1024):  # (chunk, n, F) differences at a time
-        b = min(a + 1024, len(F))
-        out[a:b] = np.exp(-((F[a:b, None] - Fp[None]) ** 2).sum(-1) / (2 * width ** 2)) @ c
-    return out
+        d = pdist(Fp)
+        d = d[d > 0]
+        width = float(np.median(d)) if d.size else 1.0
+    if not width > 0:
+        raise ValueError(f"width: expected > 0 (feature units), got {width}")
+    rbf = RBFInterpolator(Fp, R, kernel="gaussian", epsilon=1.0 / (np.sqrt(2.0) * width), degree=-1, smoothing=RBF_EPS)
+    return rbf(F)
 
 
 def _filled(features, T: int) -> np.ndarray:

@@ -63,6 +63,13 @@ def test_suggest_poses_distinct_with_data_far_apart():
     assert pair.min() > max(rand)
 
 
+def test_marker_displacements_are_features():
+    D = RNG.normal(size=(90, 12, 3))  # (T, M, 3) marker displacements
+    assert suggest_poses(D, 5).tolist() == suggest_poses(D.reshape(90, -1), 5).tolist()
+    with pytest.raises(ValueError, match="features"):
+        suggest_poses(np.zeros(10), 2)
+
+
 def test_suggest_poses_extends_a_posed_set_and_stops_at_distinct_frames():
     F = RNG.normal(size=(120, 3))
     first = suggest_poses(F, 6)
@@ -86,6 +93,20 @@ def test_linear_correction_is_the_ridge_solution():
     # reference: min ||X_p Δ - R||² + lam ||Δ||², stacked as one least-squares system
     delta = lstsq(np.vstack([Xp, np.sqrt(lam) * np.eye(K)]), np.vstack([R, np.zeros((K, K))]))[0]
     np.testing.assert_allclose(linear_correction(X, poses, ridge=lam), X + X @ delta, atol=1e-10)
+
+
+def test_single_pose_rbf_by_hand():
+    """One pose: the correction is the residual times exp(-|f - f_p|² / 2 width²) / (1 + ε)."""
+    from core.examples import RBF_EPS
+
+    X, Fe, truth, _ = _case()
+    f, width = 17, 0.7
+    r = truth[f] - X[f]
+    phi = np.exp(-((Fe - Fe[f]) ** 2).sum(1) / (2 * width ** 2)) / (1 + RBF_EPS)
+    W = pose_space_correction(X, Fe, {f: truth[f]}, width=width)
+    np.testing.assert_allclose(W, X + phi[:, None] * r[None], atol=1e-12)
+    np.testing.assert_allclose(pose_space_correction(X, Fe, {f: truth[f]}), X + np.exp(-((Fe - Fe[f]) ** 2).sum(1) / 2)[:, None]
+                               / (1 + RBF_EPS) * r[None], atol=1e-12)  # a single pose: width 1
 
 
 def test_no_pose_returns_the_geometric_solution():
