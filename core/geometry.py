@@ -765,28 +765,31 @@ def boundary_loops(F):
     return loops
 
 
-def farthest_points(points, n: int, start: int = 0) -> np.ndarray:
+def farthest_points(points, n: int, start=0) -> np.ndarray:
     """Indices of ``n`` well-spread points by greedy farthest-point sampling from ``start``.
 
     Each next point maximises its distance to the points chosen so far (Gonzalez 1985, a
-    2-approximation of the k-centre problem). Used to place virtual markers on a mesh.
+    2-approximation of the k-centre problem). Used to place virtual markers on a mesh and to
+    suggest the frames to pose (:func:`core.examples.suggest_poses`, points in expression space).
 
     Parameters
     ----------
-    points : (N, 3) float
-    n : int, 1 <= n <= N
-    start : index of the first point
+    points : (N, D) float
+    n : int, 1 <= n <= N — how many indices in all, ``start`` included
+    start : index of the first point, or a sequence of indices already chosen (returned first)
 
     Returns
     -------
     (n,) int
     """
     P = np.asarray(points, dtype=np.float64)
-    if not 1 <= n <= len(P):
-        raise ValueError(f"farthest_points: n must lie in [1, {len(P)}], got {n}")
-    chosen = [int(start)]
-    d = np.linalg.norm(P - P[chosen[0]], axis=1)
-    for _ in range(n - 1):
+    chosen = [int(i) for i in np.atleast_1d(start)]
+    if not max(1, len(chosen)) <= n <= len(P):
+        raise ValueError(f"farthest_points: n must lie in [{max(1, len(chosen))}, {len(P)}], got {n}")
+    d = np.full(len(P), np.inf)
+    for c in chosen:
+        d = np.minimum(d, np.linalg.norm(P - P[c], axis=1))
+    for _ in range(n - len(chosen)):
         i = int(np.argmax(d))
         chosen.append(i)
         d = np.minimum(d, np.linalg.norm(P - P[i], axis=1))

@@ -94,6 +94,10 @@ def main(argv=None) -> int:
     return 0
 
 
+#: where scripts/example_poses_eval.py's section starts (kept when the suite rewrites the file)
+EXAMPLE_POSES = "<!-- example poses: scripts/example_poses_eval.py -->"
+
+
 def write_markdown(results, out, last_frame):
     lines = ["# Evaluation suite", "",
              f"`python scripts/evaluate_suite.py` (frames: {'all' if last_frame < 0 else f'0–{last_frame}'}); "
@@ -115,7 +119,11 @@ def write_markdown(results, out, last_frame):
             cells = " | ".join("—" if r.get(k) is None else fmt.format(r[k]) for k, _, fmt in SHOWN)
             lines.append(f"| {m} | {cells} |")
         lines.append("")
-    Path(out).write_text("\n".join(lines) + "\n")
+    text = "\n".join(lines) + "\n"
+    old = Path(out).read_text() if Path(out).exists() else ""
+    if EXAMPLE_POSES in old:  # the section scripts/example_poses_eval.py writes stays
+        text += old[old.index(EXAMPLE_POSES):]
+    Path(out).write_text(text)
 
 
 if __name__ == "__main__":

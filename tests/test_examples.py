@@ -1,0 +1,223 @@
+"""Example poses (core/examples.py): suggested frames, the learned correspondence.
+
+The closed-form ridge correction is checked against SciPy's least squares on the stacked
+system; the real case is the S07 take onto Rocketbox with every shape renamed (names hidden),
+posed at the suggested frames with the true weights."""
+
+import dataclasses
+import json
+import warnings
+
+import numpy as np
+import pytest
+from scipy.linalg import lstsq
+
+from core.examples import (learn_from_poses, linear_correction, pose_space_correction, poses_from_items,
+                           suggest_poses)
+from core.geometry import farthest_points
+from datapaths import LAYOUTS, PERFORMANCES, RIGS
+
+RNG = np.random.default_rng(29)
+
+
+def _case(T=200, K=7, F=5, n=6):
+    """A solution X of features Fe, and the truth: another shape combination for the same
+    expressions (X M) plus a nonlinearity, in [0, 1]; poses at the suggested frames."""
+    Fe = RNG.uniform(0, 1, (T, F))
+    X = Fe @ RNG.uniform(0, 1.0 / F, (F, K))
+    M = np.eye(K) + RNG.normal(0, 0.3, (K, K))
+    truth = np.clip(X @ M + 0.1 * np.sin(3 * Fe[:, :1]), 0, 1)
+    frames = suggest_poses(Fe, n)
+    return X, Fe, truth, {int(f): truth[f] for f in frames}
+
+
+# -- suggest_poses --------------------------------------------------------------------------
+
+def test_farthest_points_start_set_continues_the_single_start_order():
+    P = RNG.normal(size=(80, 4))
+    full = farthest_points(P, 10, start=3)
+    again = farthest_points(P, 10, start=full[:4])
+    assert again.tolist() == full.tolist()
+    with pytest.raises(ValueError, match="n must lie"):
+        farthest_points(P, 2, start=full[:4])
+
+
+def test_suggest_poses_distinct_with_data_far_apart():
+    F = RNG.normal(size=(300, 6))
+    F[[5, 17, 40]] = np.nan  # frames without data
+    F[17, :] = 100.0  # would be the most expressive, but one feature is missing
+    F[17, 0] = np.nan
+    frames = suggest_poses(F, 8)
+    assert len(frames) == 8 and len(set(frames.tolist())) == 8
+    assert np.isfinite(F[frames]).all()
+    good = np.isfinite(F).all(1)
+    assert frames[0] == np.flatnonzero(good)[np.argmax(np.linalg.norm(F[good], axis=1))]
+    # far apart: the chosen frames are at least as far from each other as the last one was
+    # from the others (the covering radius of the first 7), and farther than random picks
+    G = F[frames]
+    pair = np.linalg.norm(G[:, None] - G[None], axis=2)[np.triu_indices(8, 1)]
+    cover = np.linalg.norm(F[good][:, None] - F[frames[:-1]][None], axis=2).min(1).max()
+    assert pair.min() >= cover - 1e-12
+    rand = [np.linalg.norm(F[r][:, None] - F[r][None], axis=2)[np.triu_indices(8, 1)].min()
+            for r in (RNG.choice(np.flatnonzero(good), 8, replace=False) for _ in range(20))]
+    assert pair.min() > max(rand)
+
+
+def test_marker_displacements_are_features():
+    D = RNG.normal(size=(90, 12, 3))  # (T, M, 3) marker displacements
+    assert suggest_poses(D, 5).tolist() == suggest_poses(D.reshape(90, -1), 5).tolist()
+    with pytest.raises(ValueError, match="features"):
+        suggest_poses(np.zeros(10), 2)
+
+
+def test_suggest_poses_extends_a_posed_set_and_stops_at_distinct_frames():
+    F = RNG.normal(size=(120, 3))
+    first = suggest_poses(F, 6)
+    assert suggest_poses(F, 3, exclude=first[:3]).tolist() == first[3:].tolist()
+    few = np.repeat(RNG.normal(size=(3, 2)), 10, axis=0)  # three distinct expressions, ten frames each
+    got = suggest_poses(few, 8)
+    assert len(set(map(tuple, few[got]))) == len(got) == 3
+    assert suggest_poses(F, 0).tolist() == []
+    with pytest.raises(ValueError, match="exclude"):
+        suggest_poses(F, 2, exclude=[500])
+
+
+# -- the learning --------------------------------------------------------------------------
+
+def test_linear_correction_is_the_ridge_solution():
+    X, _, truth, poses = _case()
+    lam = 0.05
+    frames = sorted(poses)
+    Xp, R = X[frames], truth[frames] - X[frames]
+    K = X.shape[1]
+    # reference: min ||X_p Δ - R||² + lam ||Δ||², stacked as one least-squares system
+    delta = lstsq(np.vstack([Xp, np.sqrt(lam) * np.eye(K)]), np.vstack([R, np.zeros((K, K))]))[0]
+    np.testing.assert_allclose(linear_correction(X, poses, ridge=lam), X + X @ delta, atol=1e-10)
+
+
+def test_single_pose_rbf_by_hand():
+    """One pose: the correction is the residual times exp(-|f - f_p|² / 2 width²) / (1 + ε)."""
+    from core.examples import RBF_EPS
+
+    X, Fe, truth, _ = _case()
+    f, width = 17, 0.7
+    r = truth[f] - X[f]
+    phi = np.exp(-((Fe - Fe[f]) ** 2).sum(1) / (2 * width ** 2)) / (1 + RBF_EPS)
+    W = pose_space_correction(X, Fe, {f: truth[f]}, width=width)
+    np.testing.assert_allclose(W, X + phi[:, None] * r[None], atol=1e-12)
+    np.testing.assert_allclose(pose_space_correction(X, Fe, {f: truth[f]}), X + np.exp(-((Fe - Fe[f]) ** 2).sum(1) / 2)[:, None]
+                               / (1 + RBF_EPS) * r[None], atol=1e-12)  # a single pose: width 1
+
+
+def test_no_pose_returns_the_geometric_solution():
+    X, Fe, _, _ = _case()
+    X = X.copy()
+    X[3, 2] = 1.2  # even outside the bounds: nothing is learned, nothing is changed
+    for design in ("linear", "rbf", "linear+rbf"):
+        W = learn_from_poses(X, Fe, {}, design=design)
+        assert np.array_equal(W, X) and W is not X
+
+
+@pytest.mark.parametrize("design", ["rbf", "linear+rbf"])
+def test_poses_are_reproduced_at_their_frames_within_bounds(design):
+    X, Fe, truth, poses = _case()
+    W = learn_from_poses(X, Fe, poses, design=design)
+    for f, p in poses.items():
+        np.testing.assert_allclose(W[f], p, atol=1e-6)
+    assert W.min() >= 0.0 and W.max() <= 1.0
+
+
+def test_poses_help_on_held_out_frames():
+    X, Fe, truth, poses = _case(n=10)
+    held = np.setdiff1d(np.arange(len(X)), list(poses))
+    before = np.abs(X[held] - truth[held]).mean()
+    for design in ("linear", "rbf", "linear+rbf"):
+        after = np.abs(learn_from_poses(X, Fe, poses, design=design)[held] - truth[held]).mean()
+        assert after < 0.8 * before, design
+
+
+def test_bad_poses_are_named():
+    X, Fe, _, poses = _case()
+    with pytest.raises(ValueError, match="shape"):
+        learn_from_poses(X, Fe, {0: np.zeros(3)})
+    with pytest.raises(ValueError, match="frames must be in"):
+        linear_correction(X, {len(X): X[0]})
+    F = Fe.copy()
+    f = next(iter(poses))
+    F[f] = np.nan
+    with pytest.raises(ValueError, match="no source data"):
+        pose_space_correction(X, F, poses)
+    with pytest.raises(ValueError, match="design"):
+        learn_from_poses(X, Fe, poses, design="psd")
+
+
+def test_poses_from_items():
+    names = ["shape_000", "shape_001", "shape_002"]
+    got = poses_from_items([{"frame": 4, "weights": {"shape_001": 0.5}}], names, 10)
+    assert list(got) == [4] and got[4].tolist() == [0.0, 0.5, 0.0]
+    with pytest.raises(ValueError, match="did you mean"):
+        poses_from_items([{"frame": 4, "weights": {"shape_01": 0.5}}], names, 10)
+    with pytest.raises(ValueError, match="not a frame"):
+        poses_from_items([{"frame": 10, "weights": {}}], names, 10)
+    with pytest.raises(ValueError, match="twice"):
+        poses_from_items([{"frame": 1, "weights": {}}, {"frame": 1, "weights": {}}], names, 10)
+
+
+# -- the real case: S07 onto Rocketbox, names hidden -----------------------------------------
+
+@pytest.fixture(scope="module")
+def hidden_rocketbox(tmp_path_factory):
+    """A copy of the Rocketbox GLB with every shape renamed ``shape_NNN`` (same order), written by
+    the project's GLB writer, with its layout copied as the sidecar ``<rig>.layout.json``."""
+    from core.io.gltf import read_rig, write_rig
+
+    rig = read_rig(RIGS / "rocketbox_female_adult_02.glb")
+    out = tmp_path_factory.mktemp("hidden") / "rocketbox_hidden.glb"
+    write_rig(out, dataclasses.replace(rig, names=tuple(f"shape_{i:03d}" for i in range(rig.n_shapes))))
+    layout = json.loads((LAYOUTS / "rocketbox_female_adult_02.json").read_text())
+    layout["rig"] = out.name
+    out.with_name(out.stem + ".layout.json").write_text(json.dumps(layout))
+    return out
+
+
+def test_hidden_rig_keeps_the_shapes(hidden_rocketbox, rocketbox):
+    from core.io.gltf import read_rig
+
+    rig = read_rig(hidden_rocketbox)
+    assert rig.names[0] == "shape_000" and not set(rig.names) & set(rocketbox.names)
+    np.testing.assert_array_equal(rig.deltas, rocketbox.deltas)
+
+
+def test_s07_hidden_names_eight_poses(hidden_rocketbox):
+    """The bounded solve of 300 frames by markers; eight true poses at the suggested frames bring
+    the held-out frames' face error well below the solve's."""
+    from core.pipeline import Pipeline, StageCache
+    from core.report import _vertex_errors, face_vertices, ground_truth
+
+    files = dict(source=str(PERFORMANCES / "livelinkface_take_s07.csv"), source_rig=str(RIGS / "ict_facekit.glb"),
+                 last_frame=299)
+    cache = StageCache()
+    ref = Pipeline(cache=cache, target_rig=str(RIGS / "rocketbox_female_adult_02.glb"), **files)
+    base = ref.results(["load", "frames"])
+    rig = base["load"]["target_rig"]
+    Wt = ground_truth(base["load"], base["frames"])["weights"]
+    part = base["load"]["source"].frames(base["frames"]["first"], base["frames"]["stop"])
+    features = np.where(part.valid, part.data, np.nan)
+    pipe = Pipeline(cache=cache, target_rig=str(hidden_rocketbox), method="bounded", **files)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        X = np.asarray(pipe.results(["synthesize"])["synthesize"]["weights"])
+    frames = suggest_poses(features, 8)
+    W = learn_from_poses(X, features, {int(f): Wt[f] for f in frames})
+    face = face_vertices(rig)
+    held = np.isfinite(Wt).all(1)
+    held[frames] = False
+
+    def err(A, mask):
+        return float(np.nanmean(_vertex_errors(rig, A, Wt, face, mask)[0]))
+
+    assert W.min() >= 0 and W.max() <= 1
+    at = np.zeros(len(W), bool)
+    at[frames] = True
+    assert err(W, at) < 1e-4  # the poses themselves (mm)
+    assert err(W, held) < 0.7 * err(X, held)
