@@ -91,7 +91,19 @@ SEARCH = [
     ("spacetime dense+rom β=10 α=0.1", dict(DR, method="spacetime", beta=10.0, alpha=0.1), ""),
     ("spacetime dense+rom β=100", dict(DR, method="spacetime", beta=100.0), ""),
     ("spacetime dense+rom β=10 l1=1e-3", dict(DR, method="spacetime", beta=10.0, l1=1e-3), ""),
-]
+    ("bounded rom ridge 3e-3", dict(method="bounded", motion_scale="rom", ridge=3e-3), ""),
+    ("bounded rom ridge 3e-2", dict(method="bounded", motion_scale="rom", ridge=3e-2), ""),
+    ("bounded rom ridge 1e-1", dict(method="bounded", motion_scale="rom", ridge=1e-1), ""),
+    ("local rom", dict(method="local", motion_scale="rom"), ""),
+    ("spacetime rom β=10", dict(method="spacetime", motion_scale="rom", beta=10.0), ""),
+    ("spacetime rom β=10 ridge 1e-2", dict(method="spacetime", motion_scale="rom", beta=10.0, ridge=1e-2), ""),
+    ("spacetime rom β=10 ridge 1e-2 α=0", dict(method="spacetime", motion_scale="rom", beta=10.0, ridge=1e-2, alpha=0.0), ""),
+    ("bounded dense+rom 3000 ridge 1e-2", dict(DR, method="bounded", dense_points=3000, ridge=1e-2), ""),
+    ("bounded rom ridge 1e-2 no calibrate", dict(method="bounded", motion_scale="rom", ridge=1e-2, calibrate=False), ""),
+    ("bounded rom ridge 1e-2 rbf 0.01", dict(method="bounded", motion_scale="rom", ridge=1e-2, rbf_smoothing=0.01), ""),
+    ("bounded rom ridge 1e-2 rbf 0.1", dict(method="bounded", motion_scale="rom", ridge=1e-2, rbf_smoothing=0.1), ""),
+] + [(f"spacetime rom β=10 ridge 1e-2 name_weight={nw}", dict(method="spacetime", motion_scale="rom", beta=10.0, ridge=1e-2,
+                                                              name_weight=nw), "AB") for nw in (0.003, 0.01, 0.03, 10.0, 100.0)]
 
 COLUMNS = ("mean_mm", "p95_mm", "curve_rmse", "weight_min", "weight_max", "active_per_frame", "seconds")
 
