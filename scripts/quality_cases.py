@@ -102,6 +102,11 @@ SEARCH = [
     ("bounded rom ridge 1e-2 no calibrate", dict(method="bounded", motion_scale="rom", ridge=1e-2, calibrate=False), ""),
     ("bounded rom ridge 1e-2 rbf 0.01", dict(method="bounded", motion_scale="rom", ridge=1e-2, rbf_smoothing=0.01), ""),
     ("bounded rom ridge 1e-2 rbf 0.1", dict(method="bounded", motion_scale="rom", ridge=1e-2, rbf_smoothing=0.1), ""),
+    ("bounded rom ridge 1e-2 gaussian σ=2", dict(method="bounded", motion_scale="rom", ridge=1e-2, weights_filter="gaussian",
+                                                 sigma=2.0), ""),
+    ("bounded rom ridge 1e-2 symmetry 0.1", dict(method="bounded", motion_scale="rom", ridge=1e-2, symmetry_weight=0.1), ""),
+    ("spacetime rom β=1 ridge 1e-2", dict(method="spacetime", motion_scale="rom", beta=1.0, ridge=1e-2), ""),
+    ("spacetime rom β=10 ridge 3e-2", dict(method="spacetime", motion_scale="rom", beta=10.0, ridge=3e-2), ""),
 ] + [(f"spacetime rom β=10 ridge 1e-2 name_weight={nw}", dict(method="spacetime", motion_scale="rom", beta=10.0, ridge=1e-2,
                                                               name_weight=nw), "AB") for nw in (0.003, 0.01, 0.03, 10.0, 100.0)]
 
