@@ -1,0 +1,243 @@
+"""The three quality cases of issue 29 ("the best result by default"), and a search over settings.
+
+The S07 Live Link take driving the ICT rig (``source_rig``), retargeted to the Rocketbox head over
+the whole take, scored by :mod:`core.report` (:func:`~core.report.ground_truth`,
+:func:`~core.report.method_metrics`) against the Rocketbox head driven by the take's curves through
+their ARKit names:
+
+* **A** the target's ARKit shapes (``target_shapes="arkit"``): names shared with the source;
+* **B** only its non-ARKit shapes (``SR_*``, ``AU_*``, ``AA_VI_*``, ``HB_*``): names reach them only
+  through the vocabularies (docs/names.md);
+* **C** every shape, renamed ``shape_NNN`` (no name is shared): a renamed copy of the GLB is
+  written to a temporary folder with the Rocketbox layout as its sidecar, and scored against the
+  truth of the original names (same shape order).
+
+::
+
+    python scripts/quality_cases.py [--cases ABC] [--set method=spacetime --set name_weight=0.1 ...]
+    python scripts/quality_cases.py --search [--json out.json]    # the configurations of SEARCH
+    python scripts/quality_cases.py --detail ...                  # where the error is
+
+One line per case and configuration: mean and p95 face-vertex error (mm), curve RMSE against the
+namesakes, the weight range, shapes above 0.05 per frame and the seconds of the run (stages shared
+with an earlier configuration are cached: the dense registration is paid once per rig pair and
+process, by the first configuration that needs it). ``--detail`` adds the shapes carrying the most
+error (RMS weight difference against the truth times the shape's mean face-vertex motion), the
+error of the upper and lower face, and the worst frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from core.io.gltf import write_rig  # noqa: E402
+from core.io.rigs import load_rig  # noqa: E402
+from core.names import ARKIT_NAMES, canonical  # noqa: E402
+from core.pipeline import Pipeline, StageCache  # noqa: E402
+from core.report import face_vertices, ground_truth, method_metrics  # noqa: E402
+
+TAKE = ROOT / "data/performances/livelinkface_take_s07.csv"
+SOURCE_RIG = ROOT / "data/rigs/ict_facekit.glb"
+TARGET_RIG = ROOT / "data/rigs/rocketbox_female_adult_02.glb"
+TARGET_LAYOUT = ROOT / "data/layouts/rocketbox_female_adult_02.json"
+#: the vocabularies' prefixes of Rocketbox's non-ARKit shapes (case B)
+NON_ARKIT = ("SR_", "AU_", "AA_VI_", "HB_")
+
+D = dict(correspondence="dense")
+DR = dict(correspondence="dense", motion_scale="rom")
+#: (label, settings, cases) searched by --search; cases "" = all three. Name settings only where a
+#: name can be shared (A, B); in C they would change nothing.
+SEARCH = [
+    ("spacetime (default)", dict(method="spacetime"), ""),
+    ("bounded", dict(method="bounded"), ""),
+    ("local", dict(method="local"), ""),
+    ("spacetime rom", dict(method="spacetime", motion_scale="rom"), ""),
+    ("bounded rom", dict(method="bounded", motion_scale="rom"), ""),
+    ("bounded dense+rom", dict(DR, method="bounded"), ""),
+    ("bounded dense", dict(D, method="bounded"), ""),
+    ("spacetime dense+rom β=10", dict(DR, method="spacetime", beta=10.0), ""),
+    ("spacetime dense+rom β=1", dict(DR, method="spacetime", beta=1.0), ""),
+    ("local dense+rom", dict(DR, method="local"), ""),
+    ("bounded dense+rom 3000", dict(DR, method="bounded", dense_points=3000), ""),
+    ("bounded dense+rom 10000", dict(DR, method="bounded", dense_points=10000), ""),
+    ("bounded dense+rom ridge 1e-4", dict(DR, method="bounded", ridge=1e-4), ""),
+    ("bounded dense+rom ridge 1e-2", dict(DR, method="bounded", ridge=1e-2), ""),
+    ("spacetime dense+rom 3000 β=10", dict(DR, method="spacetime", beta=10.0, dense_points=3000), ""),
+    ("spacetime dense+rom β=10 α=0.001", dict(DR, method="spacetime", beta=10.0, alpha=0.001), ""),
+    ("spacetime dense+rom β=10 l1=1e-4", dict(DR, method="spacetime", beta=10.0, l1=1e-4), ""),
+] + [(f"spacetime name_weight={nw}", dict(method="spacetime", name_weight=nw), "AB") for nw in (0.01, 0.1, 1.0, 10.0)] + [
+    (f"spacetime dense+rom β=10 name_weight={nw}", dict(DR, method="spacetime", beta=10.0, name_weight=nw), "AB")
+    for nw in (0.01, 0.1, 1.0, 10.0)] + [
+    (f"spacetime dense name_weight={nw}", dict(D, method="spacetime", name_weight=nw), "AB") for nw in (0.01, 0.1, 1.0)] + [
+    ("bounded dense+rom ridge 3e-2", dict(DR, method="bounded", ridge=3e-2), ""),
+    ("bounded dense+rom ridge 1e-1", dict(DR, method="bounded", ridge=1e-1), ""),
+    ("bounded dense+rom symmetry 0.1", dict(DR, method="bounded", symmetry_weight=0.1), ""),
+    ("bounded dense+rom personalize", dict(DR, method="bounded", personalize=True), ""),
+    ("bounded rom ridge 1e-2", dict(method="bounded", motion_scale="rom", ridge=1e-2), ""),
+    ("spacetime dense+rom β=10 α=0.1", dict(DR, method="spacetime", beta=10.0, alpha=0.1), ""),
+    ("spacetime dense+rom β=100", dict(DR, method="spacetime", beta=100.0), ""),
+    ("spacetime dense+rom β=10 l1=1e-3", dict(DR, method="spacetime", beta=10.0, l1=1e-3), ""),
+    ("bounded rom ridge 3e-3", dict(method="bounded", motion_scale="rom", ridge=3e-3), ""),
+    ("bounded rom ridge 3e-2", dict(method="bounded", motion_scale="rom", ridge=3e-2), ""),
+    ("bounded rom ridge 1e-1", dict(method="bounded", motion_scale="rom", ridge=1e-1), ""),
+    ("local rom", dict(method="local", motion_scale="rom"), ""),
+    ("spacetime rom β=10", dict(method="spacetime", motion_scale="rom", beta=10.0), ""),
+    ("spacetime rom β=10 ridge 1e-2", dict(method="spacetime", motion_scale="rom", beta=10.0, ridge=1e-2), ""),
+    ("spacetime rom β=10 ridge 1e-2 α=0", dict(method="spacetime", motion_scale="rom", beta=10.0, ridge=1e-2, alpha=0.0), ""),
+    ("bounded dense+rom 3000 ridge 1e-2", dict(DR, method="bounded", dense_points=3000, ridge=1e-2), ""),
+    ("bounded rom ridge 1e-2 no calibrate", dict(method="bounded", motion_scale="rom", ridge=1e-2, calibrate=False), ""),
+    ("bounded rom ridge 1e-2 rbf 0.01", dict(method="bounded", motion_scale="rom", ridge=1e-2, rbf_smoothing=0.01), ""),
+    ("bounded rom ridge 1e-2 rbf 0.1", dict(method="bounded", motion_scale="rom", ridge=1e-2, rbf_smoothing=0.1), ""),
+    ("bounded rom ridge 1e-2 gaussian σ=2", dict(method="bounded", motion_scale="rom", ridge=1e-2, weights_filter="gaussian",
+                                                 sigma=2.0), ""),
+    ("bounded rom ridge 1e-2 symmetry 0.1", dict(method="bounded", motion_scale="rom", ridge=1e-2, symmetry_weight=0.1), ""),
+    ("spacetime rom β=1 ridge 1e-2", dict(method="spacetime", motion_scale="rom", beta=1.0, ridge=1e-2), ""),
+    ("spacetime rom β=10 ridge 3e-2", dict(method="spacetime", motion_scale="rom", beta=10.0, ridge=3e-2), ""),
+] + [(f"spacetime rom β=10 ridge 1e-2 name_weight={nw}", dict(method="spacetime", motion_scale="rom", beta=10.0, ridge=1e-2,
+                                                              name_weight=nw), "AB") for nw in (0.003, 0.01, 0.03, 10.0, 100.0)]
+
+COLUMNS = ("mean_mm", "p95_mm", "curve_rmse", "weight_min", "weight_max", "active_per_frame", "seconds")
+
+
+def hidden_rig(folder: Path) -> Path:
+    """The Rocketbox GLB with every shape renamed ``shape_NNN`` (same order), its layout as the
+    sidecar ``<rig>.layout.json``; raises if the copy does not hold the original's arrays."""
+    rig = load_rig(TARGET_RIG)
+    hidden = replace(rig, names=tuple(f"shape_{i:03d}" for i in range(rig.n_shapes)), name="rocketbox_hidden")
+    path = write_rig(folder / "rocketbox_hidden.glb", hidden, normals=False)
+    shutil.copy(TARGET_LAYOUT, folder / "rocketbox_hidden.layout.json")
+    back = load_rig(path)
+    if not (np.array_equal(back.deltas, rig.deltas) and np.array_equal(back.neutral, rig.neutral)
+            and np.array_equal(back.faces, rig.faces)):
+        raise RuntimeError(f"{path}: the renamed copy does not hold the original rig's arrays")
+    return path
+
+
+def build_cases(cases: str, folder: Path, frames: int = 0, cache: StageCache | None = None) -> dict:
+    """``{case: {"cache", "settings", "truth", "face", "rig"}}``: the case's pipeline settings, one
+    shared cache; the truth, face vertices and rig are always the original rig's."""
+    cache = cache if cache is not None else StageCache(512)
+    files = dict(source=str(TAKE), source_rig=str(SOURCE_RIG), last_frame=(frames - 1) if frames else -1)
+    ref = Pipeline(cache=cache, **files, target_rig=str(TARGET_RIG))
+    base = ref.results(["load", "frames"])
+    truth, rig = ground_truth(base["load"], base["frames"]), base["load"]["target_rig"]
+    face = face_vertices(rig)
+    non_arkit = [n for n in rig.names if n.startswith(NON_ARKIT) and canonical(n) not in ARKIT_NAMES]
+    specs = {"A": dict(target_rig=str(TARGET_RIG), target_shapes="arkit"),
+             "B": dict(target_rig=str(TARGET_RIG), target_shapes=",".join(non_arkit))}
+    if "C" in cases:
+        specs["C"] = dict(target_rig=str(hidden_rig(folder)), target_shapes="")
+    return {c: {"cache": cache, "settings": dict(files, **specs[c]), "truth": truth, "face": face, "rig": rig}
+            for c in cases}
+
+
+def run(case: dict, settings: dict) -> dict:
+    """:func:`core.report.method_metrics` of ``settings`` on a case: a fresh pipeline (every other
+    setting its default) on the case's shared cache."""
+    pipe = Pipeline(cache=case["cache"], **{**case["settings"], **settings})
+    t = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = method_metrics(pipe, case["truth"], case["face"])
+    r["seconds"] = time.perf_counter() - t
+    return r
+
+
+def detail(case: dict, r: dict, n: int = 6) -> list:
+    """Lines saying where the error is: the shapes whose weight error moves the face most, the
+    upper and lower face, the worst frames."""
+    rig, face, Wt, W = case["rig"], case["face"], case["truth"]["weights"], r["_weights"]
+    ok = np.isfinite(Wt).all(1) & np.isfinite(W).all(1)
+    dW = W[ok] - Wt[ok]
+    move = np.linalg.norm(rig.deltas[:, face], axis=2).mean(1) * 1e3  # (K,) mm per unit weight
+    contrib = np.sqrt((dW ** 2).mean(0)) * move
+    top = np.argsort(-contrib)[:n]
+    lines = ["  shapes (RMS Δw × mean motion mm): " + ", ".join(f"{rig.names[k]} {contrib[k]:.3f}" for k in top)]
+    y = rig.neutral[face, 1]
+    upper = y > np.median(y)
+    E = np.zeros(len(face))
+    idx = np.flatnonzero(ok)[::4]
+    for a in range(0, len(idx), 128):
+        f = idx[a:a + 128]
+        E += np.linalg.norm(np.einsum("tk,kvc->tvc", W[f] - Wt[f], rig.deltas[:, face]), axis=2).sum(0)
+    E = E / len(idx) * 1e3
+    per = np.nan_to_num(r["_per_frame_mm"], nan=-1)
+    worst = np.argsort(-per)[:5]
+    lines.append(f"  upper face {E[upper].mean():.3f} mm, lower face {E[~upper].mean():.3f} mm; worst frames "
+                 + ", ".join(f"{f}: {per[f]:.2f}" for f in worst))
+    return lines
+
+
+def line(case: str, label: str, r: dict) -> str:
+    cr = r["curve_rmse"] if r["curve_rmse"] is not None else float("nan")
+    return (f"{case} {label:42s} mean_mm={r['mean_mm']:.3f} p95_mm={r['p95_mm']:.3f} curve_rmse={cr:.3f} "
+            f"w=[{r['weight_min']:.3f}, {r['weight_max']:.3f}] active={r['active_per_frame']:.1f} "
+            f"seconds={r['seconds']:.1f}")
+
+
+def parse_value(v: str):
+    for cast in (int, float):
+        try:
+            return cast(v)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(v.lower(), v)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", default="ABC", help="which cases (letters), default ABC")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a pipeline setting (repeat)")
+    ap.add_argument("--search", action="store_true", help="run the configurations of SEARCH instead of --set")
+    ap.add_argument("--only", default="", help="with --search: only labels matching this regular expression")
+    ap.add_argument("--frames", type=int, default=0, help="first N frames only (0: the whole take)")
+    ap.add_argument("--detail", action="store_true", help="also say which shapes, regions and frames carry the error")
+    ap.add_argument("--json", help="write every result (metrics and per-shape curve RMSE) to this file")
+    args = ap.parse_args(argv)
+    cases = "".join(c for c in args.cases.upper() if c in "ABC")
+    if args.search:
+        configs = [(lbl, cfg, cs or "ABC") for lbl, cfg, cs in SEARCH if re.search(args.only, lbl)]
+    else:
+        cfg = dict(kv.split("=", 1) for kv in args.set)
+        cfg = {k: parse_value(v) for k, v in cfg.items()}
+        configs = [(" ".join(f"{k}={v}" for k, v in cfg.items()) or "defaults", cfg, "ABC")]
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        built = build_cases(cases, Path(tmp), args.frames)
+        for label, cfg, cs in configs:
+            for c in cases:
+                if c not in cs:
+                    continue
+                try:
+                    r = run(built[c], cfg)
+                except Exception as e:  # noqa: BLE001 - one configuration failing is a line, not the end
+                    print(f"{c} {label:42s} error {type(e).__name__}: {e}", flush=True)
+                    out.append({"case": c, "label": label, "settings": cfg, "error": f"{type(e).__name__}: {e}"})
+                    continue
+                print(line(c, label, r), flush=True)
+                if args.detail:
+                    print("\n".join(detail(built[c], r)), flush=True)
+                out.append({"case": c, "label": label, "settings": cfg,
+                            **{k: v for k, v in r.items() if not k.startswith("_") and k != "curve_rmse_per_shape"},
+                            "curve_rmse_per_shape": r.get("curve_rmse_per_shape")})
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1, allow_nan=True) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
