@@ -41,7 +41,8 @@ from core.examples import learn_from_poses, suggest_poses  # noqa: E402
 from core.io.gltf import read_rig, write_rig  # noqa: E402
 from core.names import ARKIT_NAMES, canonical  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
-from core.report import _vertex_errors, face_vertices, ground_truth  # noqa: E402
+from core.geometry import face_vertices  # noqa: E402
+from core.report import _vertex_errors, ground_truth  # noqa: E402
 from core.solvers.spacetime import SpacetimeSolver  # noqa: E402
 
 SOURCE = ROOT / "data/performances/livelinkface_take_s07.csv"
@@ -125,7 +126,7 @@ def main(argv=None) -> int:
     base = ref.results(["load", "frames"])
     rig = base["load"]["target_rig"]
     truth = ground_truth(base["load"], base["frames"])
-    Wt, face = truth["weights"], face_vertices(rig)
+    Wt, face = truth["weights"], np.flatnonzero(face_vertices(rig.deltas))
     src, fr = base["load"]["source"], base["frames"]
     part = src.frames(fr["first"], fr["stop"])
     features = np.where(part.valid, part.data, np.nan)  # the curves: displacement from the neutral

@@ -48,7 +48,8 @@ from core.io.gltf import write_rig  # noqa: E402
 from core.io.rigs import load_rig  # noqa: E402
 from core.names import ARKIT_NAMES, canonical  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
-from core.report import face_vertices, ground_truth, method_metrics  # noqa: E402
+from core.geometry import face_vertices  # noqa: E402
+from core.report import ground_truth, method_metrics  # noqa: E402
 
 TAKE = ROOT / "data/performances/livelinkface_take_s07.csv"
 SOURCE_RIG = ROOT / "data/rigs/ict_facekit.glb"
@@ -135,7 +136,7 @@ def build_cases(cases: str, folder: Path, frames: int = 0, cache: StageCache | N
     ref = Pipeline(cache=cache, **files, target_rig=str(TARGET_RIG))
     base = ref.results(["load", "frames"])
     truth, rig = ground_truth(base["load"], base["frames"]), base["load"]["target_rig"]
-    face = face_vertices(rig)
+    face = np.flatnonzero(face_vertices(rig.deltas))
     non_arkit = [n for n in rig.names if n.startswith(NON_ARKIT) and canonical(n) not in ARKIT_NAMES]
     specs = {"A": dict(target_rig=str(TARGET_RIG), target_shapes="arkit"),
              "B": dict(target_rig=str(TARGET_RIG), target_shapes=",".join(non_arkit))}

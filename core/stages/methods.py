@@ -23,6 +23,7 @@ import numpy as np
 
 from ..gaps import fill_gaps
 from ..model import flatten
+from ..examples import learn_from_poses, poses_from_items
 from ..names import NameMap, recognise
 from ..prior import prior_quadratic
 from ..solvers import baselines
@@ -63,7 +64,7 @@ class Method:
     label: str = ""
     honours: frozenset = frozenset()
     #: the method chooses its own configuration from the pair and the take (``auto``): the stages
-    #: before the solve compare the faces densely where they can (:func:`.retarget.correspondence`)
+    #: before the solve derive their settings for it (``Stage.derived``: the range-of-motion match)
     chooses: bool = False
 
 
@@ -151,43 +152,100 @@ def _weighted(inputs):
     return B * r[None], S * r[None], valid
 
 
-#: what ``auto`` runs, by what the pair shares (measured on the sample: docs/evaluation.md,
-#: scripts/quality_cases.py): the whole take at once within the bounds, pulled towards each
-#: shape's estimate from its name where the target's shapes mean something to the take
-AUTO_NAMED = {"alpha": 0.01, "name_weight": 0.1}
-AUTO_UNNAMED = {"alpha": 0.01, "name_weight": 0.0}
-#: names are trusted when at least this fraction of the solver's shapes has an estimate
+#: what ``auto`` runs (measured on the sample, S07 -> Rocketbox: scripts/quality_cases.py,
+#: docs/evaluation.md). Both on the markers with the actor's range of motion matched to the
+#: character's (``motion_scale = rom``, derived by the calibrate stage), a ridge of 1e-2:
+#: * the target has the take's own ARKit names: the whole take at once (bounded spacetime, Sobolev
+#:   beta 10) pulled towards each shape's namesake curve — 0.02-0.1 mm where the per-frame solve
+#:   gives 0.4-0.6, in seconds (dense correspondence: the same error after a registration);
+#: * otherwise the per-frame bounded solve (0.53 mm on the renamed rig; a pull through the
+#:   vocabularies' approximate combinations did not beat geometry alone: 0.556 at best).
+AUTO_RIDGE = 1e-2
+AUTO_NAMED = {"alpha": 0.01, "beta": 10.0, "boundary": "perframe", "spacetime_bounds": True, "l1": 0.0,
+              "name_weight": 30.0, "ridge": AUTO_RIDGE}
+AUTO_UNNAMED = {"ridge": AUTO_RIDGE}
+#: names are trusted when at least this fraction of the solver's shapes has a namesake channel
 AUTO_MIN_NAMED = 0.3
 
 
-def auto_choice(inputs) -> tuple:
-    """``(settings, sentence)``: what ``auto`` runs on these inputs and why, in one sentence."""
+def _exact_names(inputs) -> np.ndarray:
+    """(K_solver,) bool: the solver shapes with a namesake channel in the take (the same canonical
+    ARKit name, not a vocabulary's approximate combination)."""
+    named = named_target({**inputs, "vocabulary": {"vocabularies": ()}}, exclusive=True)
+    if named is None:
+        return np.zeros(inputs["shapes"]["rig"].n_shapes, bool)
+    return np.isfinite(named).all(0)
+
+
+def auto_choice(inputs, zero=None) -> tuple:
+    """``(method function, settings, sentence)``: what ``auto`` runs on these inputs and why.
+    ``zero``: the shapes the controls hold at zero already ((K,) bool or None)."""
     src, rig = inputs["load"]["source"], inputs["shapes"]["rig"]
-    named = named_target(inputs) if src.kind == "curves" else None
-    n = 0 if named is None else int(np.isfinite(named).all(0).sum())
-    w = inputs["shapes"].get("weights")
-    where = f"dense correspondence ({len(w)} face points)" if w is not None else f"the {len(inputs['shapes']['names'])} markers"
+    named = _exact_names(inputs) if src.kind == "curves" else np.zeros(rig.n_shapes, bool)
+    n = int(named.sum())
+    where = (f"dense correspondence ({len(inputs['shapes']['weights'])} face points)"
+             if inputs["shapes"].get("weights") is not None else f"the {len(inputs['shapes']['names'])} markers")
     if n >= max(1, AUTO_MIN_NAMED * rig.n_shapes):
-        vocab = recognise(rig.names, inputs["vocabulary"]["vocabularies"]).vocabularies
-        return AUTO_NAMED, (f"auto: the whole take at once on {where}, each shape pulled towards its name's reading of "
-                            f"the take's curves — {n} of the {rig.n_shapes} target shapes mean something to them "
-                            f"({', '.join(vocab[:3]) or 'their names'})")
+        # the rig's other shapes (another vocabulary's smile, a viseme) would add the same
+        # expressions a second time: the namesakes carry the take
+        held = ~named if zero is None else (~named | np.asarray(zero, bool))
+        rest = f"; its {int((~named).sum())} other shapes stay at zero" if (~named).any() else ""
+        return _spacetime, {**AUTO_NAMED, "zero": held if held.any() else zero}, (
+            f"auto: the whole take at once on {where}, the actor's range of motion matched to the character's, "
+            f"each shape pulled towards its namesake curve — {n} of the {rig.n_shapes} target shapes have the "
+            f"take's own ARKit names{rest}")
+    recognised = recognise(rig.names, inputs["vocabulary"]["vocabularies"])
     why = ("the take is markers, not named curves" if src.kind != "curves" else
+           f"the target's shapes are not the take's ARKit names ({', '.join(recognised.vocabularies[:3])}: "
+           "the vocabularies' combinations are approximate)" if recognised.recognised else
            "the target's shapes share no names with the take's curves")
-    return AUTO_UNNAMED, f"auto: the whole take at once within the bounds on {where}, by geometry alone — {why}"
+    return _bounded, AUTO_UNNAMED, (f"auto: frame by frame within the bounds on {where}, the actor's range of "
+                                    f"motion matched to the character's, by geometry alone — {why}")
 
 
-@solve_method("auto", params=("ridge",), needs=("prior",), honours=("bounds", "active", "symmetry", "cancel"),
-              chooses=True, label="auto — the best this pair and take allow (says what it chose)")
+def pose_features(inputs) -> np.ndarray:
+    """(T, F) the source's expression per frame, what example poses are learned over: the take's
+    weight curves, or its marker displacements (captures, mesh sequences)."""
+    st = inputs["stabilize"]["source"]
+    if st.source_weights is not None:
+        return np.asarray(st.source_weights, dtype=np.float64)
+    return np.asarray(st.deltas, dtype=np.float64).reshape(len(st.deltas), -1)
+
+
+def example_poses(inputs, items) -> dict:
+    """``{solve frame: (K_solver,) weights}`` of the example poses ``items`` (take frames, target
+    shape names; shapes the solver does not use are left out, poses outside the frame range skipped)."""
+    rig, full = inputs["shapes"]["rig"], inputs["load"]["target_rig"]
+    fr = inputs["frames"]
+    poses = poses_from_items(items, full.names, fr["n_frames"])
+    keep = [list(full.names).index(n) for n in rig.names]
+    outside = sorted(f for f in poses if not fr["first"] <= f < fr["stop"])
+    if outside:
+        warnings.warn(f"example poses at frames {outside[:6]} are outside the frame range "
+                      f"{fr['first']}..{fr['stop'] - 1}: not used")
+    return {f - fr["first"]: w[keep] for f, w in poses.items() if fr["first"] <= f < fr["stop"]}
+
+
+@solve_method("auto", params=("example_poses",), needs=("prior",),
+              honours=("bounds", "active", "symmetry", "cancel", "filter"), chooses=True,
+              label="auto — the best this pair and take allow (says what it chose)")
 def _auto(inputs, s):
-    """The default: looks at the pair and the take and runs what serves best — the whole take at
-    once (bounded spacetime) on dense correspondence, with the name prior where the target's
-    shapes share a vocabulary with the take's curves — and says what it chose and why
-    (``info["auto"]``)."""
-    chosen, sentence = auto_choice(inputs)
-    out = _spacetime(inputs, s.with_values(beta=0.0, boundary="perframe", spacetime_bounds=True, l1=0.0, **chosen))
+    """The default: looks at the pair and the take and runs what serves best (:func:`auto_choice`),
+    then learns from the example poses, if any, a correspondence for the whole take
+    (:func:`core.examples.learn_from_poses`: a linear map of the solution plus a pose-space RBF of
+    what it leaves, regularised towards the solution where no pose speaks). Says what it chose
+    and why (``info["auto"]``)."""
+    run, chosen, sentence = auto_choice(inputs, s.zero)
+    out = run(inputs, s.with_values(**chosen))
+    poses = example_poses(inputs, s.example_poses) if s.example_poses else {}
+    if poses:
+        out["weights"] = learn_from_poses(np.asarray(out["weights"]), pose_features(inputs), poses,
+                                          lower=s.lower, upper=s.upper)
+        sentence += f"; then learned from {len(poses)} example pose{'s' if len(poses) > 1 else ''}"
+    out.setdefault("info", {})
     out["info"]["auto"] = sentence
-    out["info"]["chosen"] = dict(chosen)
+    out["info"]["chosen"] = {"method": run.__name__.lstrip("_"), **{k: v for k, v in chosen.items() if k != "zero"},
+                             "example_poses": len(poses)}
     return out
 
 

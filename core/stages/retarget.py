@@ -171,14 +171,6 @@ class Load(Stage):
         return out
 
 
-def correspondence(cfg) -> str:
-    """What the faces are compared at in this configuration: the ``correspondence`` setting, or
-    for a method that chooses (``auto``) dense points wherever there is a source rig to carry."""
-    if method_of(cfg).chooses:
-        return "dense" if cfg.source_face.source_rig else "markers"
-    return cfg.correspond.correspondence
-
-
 @register("dense_correspondence")
 class DenseCorrespondence(Stage):
     """The source rig's face points in farthest-point order (up to 20,000), each carried onto the
@@ -191,7 +183,7 @@ class DenseCorrespondence(Stage):
     persist = True
 
     def active(self, cfg):
-        return correspondence(cfg) == "dense" and bool(cfg.source_face.source_rig)
+        return cfg.correspond.correspondence == "dense" and bool(cfg.source_face.source_rig)
 
     def run(self, inputs, s, progress=None):
 
@@ -216,10 +208,7 @@ class Correspond(Stage):
     dense_points = param.Integer(label='Face points (dense)', default=1000, bounds=(10, 20000), doc="Number of face points of dense correspondence")
 
     def relevant(self, cfg):
-        return ("correspondence", "dense_points") if correspondence(cfg) == "dense" else ("correspondence",)
-
-    def derived(self, cfg):
-        return {"correspondence": correspondence(cfg)}
+        return ("correspondence", "dense_points") if cfg.correspond.correspondence == "dense" else ("correspondence",)
 
     def run(self, inputs, s, progress=None):
         ld = inputs["load"]
@@ -354,6 +343,10 @@ class Calibrate(Stage):
     def relevant(self, cfg):
         c = cfg.calibrate
         return ("calibrate", "motion_scale") + (("rbf_smoothing",) if c.calibrate else ())
+
+    def derived(self, cfg):
+        # a method that chooses its configuration (auto) matches the actor's range of motion
+        return {"motion_scale": "rom"} if method_of(cfg).chooses else {}
 
     def run(self, inputs, s, progress=None):
         sh, st = inputs["shapes"], inputs["stabilize"]
@@ -529,6 +522,9 @@ class Solve(Stage):
                                      doc="One Euro filter's minimum cutoff frequency (Casiez et al. 2012)")
     filter_beta = param.Number(default=0.0, bounds=(0, None), softbounds=(0, 1), label="One Euro: follow fast motion (β)",
                                doc="One Euro filter's speed coefficient: higher = less lag on fast motion")
+    example_poses = param.List(default=[], item_type=dict, doc=(
+        "Example poses (auto): [{frame, weights: {target shape: w}}]: the target posed by an animator at a few take "
+        "frames; auto learns from them a correspondence for the whole take (core.examples)"))
     name_weight = param.Number(label='Follow the same-named source curves (names)', default=0.0, bounds=(0, None), softbounds=(0, 1e-2), doc=(
         "Pull of each target shape towards its namesake source curve (same canonical ARKit name), relative to "
         "sigma_max(B)^2; 0 = off. Only where the source is weight curves sharing names with the target"))
