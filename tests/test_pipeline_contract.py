@@ -137,6 +137,7 @@ def _full_key(pipe: Pipeline, name: str, cfg, memo: dict) -> str:
             memo[name] = content_key(name, "inactive")
         else:
             values = {k: v for k, v in vars(getattr(cfg, name)).items() if k not in st.files}
+            values.update(st.derived(cfg))  # what the configuration decides for it (motion_scale under auto)
             values.update({f: file_key(path) for f, path in st.file_paths(cfg).items()})
             memo[name] = content_key(name, values, [_full_key(pipe, d, cfg, memo) for d in st.deps])
     return memo[name]
@@ -230,6 +231,7 @@ def _hashed(pipe: Pipeline, name: str, cfg) -> dict:
     is the same input as no path)."""
     st = pipe.stages[name]
     values = {k: getattr(getattr(cfg, name), k) for k in _declared(st, cfg)}
+    values.update({k: v for k, v in st.derived(cfg).items() if k in values})
     values.update({f: file_key(p) for f, p in st.file_paths(cfg).items() if f in values})
     return values
 
