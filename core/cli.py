@@ -15,6 +15,7 @@ settings objects, the same ones that generate the dashboard's widgets.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import runpy
 import signal
@@ -33,7 +34,8 @@ from .pipeline import Pipeline, StageCache, add_cli_arguments
 from .progress import StderrBar
 from .registration import layout_command
 from .report import evaluate_methods, ranking, write_html, write_json
-from .stages.methods import METHODS as REGISTRY
+from .examples import suggest_poses
+from .stages.methods import METHODS as REGISTRY, pose_features
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,7 +49,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 _CACHE = None
 #: CLI options that are not pipeline settings
 OUTPUT_OPTIONS = ("func", "out", "weights_csv", "livelink_csv", "quiet", "command", "shot", "save_shot", "csv_precision",
-                  "controls_file", "keys", "keys_tolerance")
+                  "controls_file", "keys", "keys_tolerance", "example_poses_file", "n")
 
 
 def _cache():
@@ -58,13 +60,48 @@ def _cache():
     return _CACHE
 
 
+def read_example_poses(path) -> list:
+    """The example poses of ``--example-poses FILE.json``: ``[{"frame": F, "weights": {shape: w}}, ...]``
+    (frames of the take, target shape names; checked against the rig when the solve reads them)."""
+    path = Path(path)
+    try:
+        items = json.loads(path.read_text(encoding="utf-8-sig"))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: no such example-poses file") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not an example-poses file (JSON expected: {e})") from None
+    if isinstance(items, dict) and isinstance(items.get("example_poses"), list):
+        items = items["example_poses"]  # what `suggest-poses --out` writes
+    if not isinstance(items, list) or not all(isinstance(i, dict) and "frame" in i and isinstance(i.get("weights"), dict)
+                                              for i in items):
+        raise ValueError(f"{path}: expected a list of {{\"frame\": F, \"weights\": {{\"<target shape>\": w, ...}}}}")
+    return items
+
+
 def _settings(args) -> dict:
-    """The pipeline settings of a command's flags; ``--controls FILE`` reads the per-shape table."""
+    """The pipeline settings of a command's flags; ``--controls FILE`` reads the per-shape table,
+    ``--example-poses FILE`` the example poses."""
     settings = {k: v for k, v in vars(args).items() if k not in OUTPUT_OPTIONS}
     if getattr(args, "controls_file", None):
-
         settings["controls"] = read_table(args.controls_file)
+    if getattr(args, "example_poses_file", None):
+        settings["example_poses"] = read_example_poses(args.example_poses_file)
     return settings
+
+
+def _suggest_poses(args) -> int:
+    """The frames to pose: far apart in expression (core.examples.suggest_poses)."""
+    pipe = _pipeline(args)
+    res = pipe.results(["load", "frames", "stabilize", "synthesize"])
+    first, rig, W = res["frames"]["first"], res["load"]["target_rig"], res["synthesize"]["weights"]
+    frames = suggest_poses(pose_features(res), args.n)
+    items = [{"frame": int(first + f), "weights": {n: round(float(W[f, k]), 4) for k, n in enumerate(rig.names)
+                                                   if W[f, k] > 0.01}} for f in frames]
+    print(f"pose these {len(items)} frames (far apart in expression): " + ", ".join(str(i["frame"]) for i in items))
+    if args.out:
+        Path(args.out).write_text(json.dumps(items, indent=1) + "\n")
+        print(f"wrote {args.out}: the current result at each frame, to correct and pass back with --example-poses")
+    return 0
 
 
 def _pipeline(args):
@@ -277,12 +314,25 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--controls", dest="controls_file", help="per-shape controls table JSON (bounds, gain, offset, active, "
                                                              "symmetry and cancel pairs; see docs/controls.md)")
+    r.add_argument("--example-poses", dest="example_poses_file", metavar="FILE.json",
+                   help='example poses for auto: [{"frame": F, "weights": {"<target shape>": w, ...}}, ...]; auto learns '
+                        "from them a correspondence for the whole take (face-retarget suggest-poses proposes the frames)")
     r.add_argument("--keys", choices=["linear", "cubic"], default=None,
                    help="keyframe reduction: the GLB keeps the fewest keys (linear or cubic Hermite) that stay within "
                         "--keys-tolerance of every frame, and <csv>_keys.csv lists each curve's keys (default: every frame)")
     r.add_argument("--keys-tolerance", type=float, default=0.005, help="largest weight difference of the reduced curves "
                                                                         "(default: 0.005)")
     r.set_defaults(func=_retarget)
+
+    sp = sub.add_parser("suggest-poses", help="the frames to pose for auto's example poses: far apart in expression",
+                        description="Propose the take frames to pose the target at (farthest apart in expression, the "
+                                    "most expressive first) and, with --out, write the current result at them as an "
+                                    "example-poses file to correct and pass back with `retarget --example-poses`.")
+    add_cli_arguments(sp)
+    sp.add_argument("-n", type=int, default=8, help="how many frames (default: 8)")
+    sp.add_argument("--shot", help="a shot whose files and settings to use (the flags given override it)")
+    sp.add_argument("--out", help="write the poses of the current result at those frames (JSON for --example-poses)")
+    sp.set_defaults(func=_suggest_poses)
 
     ev = sub.add_parser("evaluate", help="score methods on a source + rigs: JSON and a self-contained HTML report")
     add_cli_arguments(ev)

@@ -8,6 +8,8 @@ import dataclasses
 import json
 import warnings
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.linalg import lstsq
@@ -222,3 +224,33 @@ def test_s07_hidden_names_eight_poses(hidden_rocketbox):
     at[frames] = True
     assert err(W, at) < 1e-4  # the poses themselves (mm)
     assert err(W, held) < 0.7 * err(X, held)
+
+
+def test_cli_suggests_poses_and_auto_learns_from_them(tmp_path, capsys):
+    """`suggest-poses --out` writes the result at far-apart frames; `retarget --example-poses` with
+    one of them changed plays that pose at its frame, and says it learned from the poses."""
+    import json
+
+    from core.cli import main
+
+    take, rigs = Path(__file__).parents[1] / "data" / "performances", Path(__file__).parents[1] / "data" / "rigs"
+    common = ["--source", str(take / "livelinkface_take_s07.csv"), "--source-rig", str(rigs / "ict_facekit.glb"),
+              "--target-rig", str(rigs / "rocketbox_female_adult_02.glb"), "--target-shapes", "arkit", "--last-frame", "299"]
+    poses = tmp_path / "poses.json"
+    assert main(["suggest-poses", *common, "-n", "4", "--out", str(poses)]) == 0
+    items = json.loads(poses.read_text())
+    frames = [i["frame"] for i in items]
+    assert len(set(frames)) == 4 and all(0 <= f <= 299 for f in frames)
+    items[0]["weights"] = {"AK_25_JawOpen": 0.9, "AK_44_MouthSmileLeft": 0.7}
+    poses.write_text(json.dumps(items))
+    csv = tmp_path / "w.csv"
+    assert main(["retarget", *common, "--example-poses", str(poses), "--weights-csv", str(csv), "--quiet"]) == 0
+    assert "learned from 4 example poses" in capsys.readouterr().out
+    header = csv.read_text().splitlines()[0].split(",")
+    row = np.loadtxt(csv, delimiter=",", skiprows=1)[frames[0]]
+    jaw, smile, blink = (header.index(n) for n in ("AK_25_JawOpen", "AK_44_MouthSmileLeft", "AK_09_EyeBlinkLeft"))
+    np.testing.assert_allclose([row[jaw], row[smile], row[blink]], [0.9, 0.7, 0.0], atol=1e-4)
+    poses.write_text('[{"frame": 3}]')
+    capsys.readouterr()
+    assert main(["retarget", *common, "--example-poses", str(poses), "--quiet"]) != 0
+    assert "poses.json: expected a list of" in capsys.readouterr().err
