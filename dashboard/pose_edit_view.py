@@ -2,6 +2,10 @@
 propagate over a window by movement matching (Seol et al. 2012 §6), with the list of edits
 (remove one, or add its mirror image) and undo/redo.
 
+*Use as example pose* adds the result at this frame (with the slider's weight) to the shot's
+example poses, which ``auto`` learns a correspondence for the whole take from; *Suggest frames to
+pose* proposes frames far apart in expression.
+
 The edits are the pipeline's (``pipe.add_edit("spacetime", ...)``, ``pipe.undo``,
 ``pipe.redo_edit``; the mirrored edit is :func:`core.controls.mirror_edit`'s); the card only
 collects the next edit and lists them. It talks to the page through its ``host``
@@ -35,11 +39,23 @@ class PoseEditView(pn.viewable.Viewer):
         self.w_undo.on_click(lambda e: self.undo())
         self.w_redo.on_click(lambda e: self.redo())
         self.w_list = pn.Column(sizing_mode="stretch_width")
+        # example poses: the whole result at this frame, with the slider's weight, as a pose auto learns from
+        self.w_pose = pn.widgets.Button(name="Use as example pose", button_type="default",
+                                        description="auto learns from the poses you set which target shapes each of the "
+                                                    "actor's expressions maps to, for the whole take")
+        self.w_pose.on_click(lambda e: self.use_as_pose())
+        self.w_suggest = pn.widgets.Button(name="Suggest frames to pose", button_type="light",
+                                           description="frames far apart in expression, not posed yet")
+        self.w_suggest.on_click(lambda e: self.suggest())
+        self.w_clear = pn.widgets.Button(name="Clear poses", button_type="light", width=100)
+        self.w_clear.on_click(lambda e: self.clear_poses())
+        self.w_poses = pn.pane.Markdown("", css_classes=["fr-muted"], margin=(2, 5))
         self.card = pn.Card(
             pn.pane.Markdown("Set a weight at the current frame; the change propagates over the window by movement "
                              "matching (Seol 2012 §6).", css_classes=["fr-muted"]),
             self.w_shape, self.w_value, self.w_window,
             pn.Row(self.w_add, self.w_undo, self.w_redo), self.w_list,
+            pn.Row(self.w_pose, self.w_suggest), pn.Row(self.w_poses, self.w_clear),
             title="Edit (spacetime propagation, any method)", collapsed=False, sizing_mode="stretch_width")
 
     def __panel__(self):
@@ -81,6 +97,42 @@ class PoseEditView(pn.viewable.Viewer):
         self.pipe.add_edit("spacetime", edit)
         self.host.refresh()
 
+    def use_as_pose(self) -> None:
+        """The result at the current frame, with the chosen shape at the slider's weight, becomes an
+        example pose (frames of the take, like the CSV's ``frame`` column); auto learns from them."""
+        snap = self.s.snapshot
+        if not snap:
+            return
+        f, names = self.host.frame, snap["target_names"]
+        w = np.nan_to_num(np.asarray(snap["weights"][f], dtype=float))
+        if self.w_shape.value in names:
+            w[names.index(self.w_shape.value)] = float(self.w_value.value)
+        frame = int(f + snap["first_frame"])
+        pose = {"frame": frame, "weights": {n: round(float(v), 4) for n, v in zip(names, w) if abs(v) > 1e-3}}
+        self.pipe.configure(example_poses=[p for p in self.pipe.solve.example_poses if p["frame"] != frame] + [pose])
+        if self.pipe.solve.method != "auto":
+            self.host.notify("info", "example poses are learned by the auto method: choose it under Solver to use them")
+        self.host.refresh()
+
+    def suggest(self) -> None:
+        """Say which frames to pose next (far apart in expression) and show the first of them."""
+        try:
+            frames = self.s.suggest_poses(8)
+        except Exception as e:  # noqa: BLE001 - shown on the page
+            self.host.notify("error", self.s.readable(e))
+            return
+        if not frames:
+            self.host.notify("info", "every frame with data is posed already")
+            return
+        snap = self.s.snapshot
+        self.host.notify("info", "frames to pose, far apart in expression: " + ", ".join(map(str, frames)))
+        if snap:
+            self.host.playback.w_frame.value = int(frames[0] - snap["first_frame"])
+
+    def clear_poses(self) -> None:
+        self.pipe.configure(example_poses=[])
+        self.host.refresh()
+
     def remove(self, i: int) -> None:
         self.pipe.remove_edit("spacetime", i)
         self.host.refresh()
@@ -102,7 +154,13 @@ class PoseEditView(pn.viewable.Viewer):
     _drawn = None  # the edits listed
 
     def draw(self) -> None:
-        """The list of edits and the undo/redo buttons' state."""
+        """The list of edits and the undo/redo buttons' state, and the example poses."""
+        poses = sorted(p["frame"] for p in self.pipe.solve.example_poses)
+        text = (f"Example poses at frames {', '.join(map(str, poses))}" if poses else
+                "No example poses: pose the target at a few frames and *Use as example pose*")
+        if self.w_poses.object != text:
+            self.w_poses.object = text
+        self.w_clear.visible = bool(poses)
         self.w_undo.disabled = not self.pipe.edit.edits
         self.w_redo.disabled = not self.pipe.redo["spacetime"]
         key = repr(self.pipe.edit.edits)

@@ -23,7 +23,9 @@ from pathlib import Path
 import numpy as np
 import param
 
+from core.examples import suggest_poses
 from core.pipeline import Pipeline, StageCache
+from core.stages.methods import pose_features
 from core.shot import EDITORS, Shot
 
 log = logging.getLogger("face_retarget.dashboard")
@@ -397,6 +399,13 @@ class Session(param.Parameterized):
         res = self.pipeline.results(DENSE_STAGES, progress=progress)
         res["timings"] = dict(self.pipeline.timings)
         return res
+
+    def suggest_poses(self, n: int = 8) -> list:
+        """Take frames to pose next: far apart in expression, not posed yet (core.examples)."""
+        res = self.pipeline.results(["frames", "stabilize"])
+        first, stop = res["frames"]["first"], res["frames"]["stop"]
+        posed = [p["frame"] - first for p in self.pipeline.solve.example_poses if first <= p["frame"] < stop]
+        return [int(first + f) for f in suggest_poses(pose_features(res), n, exclude=posed)]
 
     def readable(self, e: Exception) -> str:
         """An exception as a message for the page: uploads by their own name, no server paths, no

@@ -116,3 +116,26 @@ def test_a_settings_card_makes_its_widgets_when_opened_with_the_current_values()
     assert w["rbf_smoothing"].value == 0.01
     card.collapsed, card.collapsed = True, False  # made once
     assert len([p for st, p in app.sidebar.setting_panes if st.stage_name == "calibrate"]) == 1
+
+
+def test_use_as_example_pose_is_in_the_shot_and_auto_learns_from_it(app):
+    """The Edit card's *Use as example pose*: the result at this frame with the slider's weight
+    becomes a pose of the shot (a take frame), auto plays it there and says so; *Suggest frames
+    to pose* shows a frame not posed yet; *Clear poses* empties them."""
+    pipe, snap = app.pipe, app.s.snapshot
+    assert pipe.solve.method == "auto" and "auto:" in snap["solve_info"]["auto"]
+    app.playback.w_frame.value = 420
+    app.edits.w_shape.value = "AK_25_JawOpen"
+    app.edits.w_value.value = 0.8
+    app.edits.use_as_pose()
+    frame = 420 + app.s.snapshot["first_frame"]
+    assert [p["frame"] for p in pipe.solve.example_poses] == [frame]
+    assert app.s.shot().settings["solve"]["example_poses"] == pipe.solve.example_poses
+    snap = app.s.snapshot
+    jaw = snap["target_names"].index("AK_25_JawOpen")
+    assert abs(snap["weights"][420, jaw] - 0.8) < 1e-3 and "learned from 1 example pose" in snap["solve_info"]["auto"]
+    assert "Example poses at frames" in app.edits.w_poses.object
+    app.edits.suggest()
+    assert app.playback.w_frame.value != 420
+    app.edits.clear_poses()
+    assert pipe.solve.example_poses == [] and "learned" not in app.s.snapshot["solve_info"]["auto"]
