@@ -49,7 +49,10 @@ from core.io.rigs import load_rig  # noqa: E402
 from core.names import ARKIT_NAMES, canonical  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
 from core.geometry import face_vertices  # noqa: E402
+from core.examples import suggest_poses  # noqa: E402
 from core.report import ground_truth, method_metrics  # noqa: E402
+from core.stages.methods import pose_features  # noqa: E402
+from scipy.optimize import lsq_linear  # noqa: E402
 
 TAKE = ROOT / "data/performances/livelinkface_take_s07.csv"
 SOURCE_RIG = ROOT / "data/rigs/ict_facekit.glb"
@@ -140,10 +143,38 @@ def build_cases(cases: str, folder: Path, frames: int = 0, cache: StageCache | N
     non_arkit = [n for n in rig.names if n.startswith(NON_ARKIT) and canonical(n) not in ARKIT_NAMES]
     specs = {"A": dict(target_rig=str(TARGET_RIG), target_shapes="arkit"),
              "B": dict(target_rig=str(TARGET_RIG), target_shapes=",".join(non_arkit))}
-    if "C" in cases:
-        specs["C"] = dict(target_rig=str(hidden_rig(folder)), target_shapes="")
+    if "C" in cases or "D" in cases:
+        hidden = hidden_rig(folder)
+        specs["C"] = dict(target_rig=str(hidden), target_shapes="")
+        specs["D"] = dict(target_rig=str(hidden), target_shapes=",".join(
+            f"shape_{i:03d}" for i, n in enumerate(rig.names) if n in set(non_arkit)))
     return {c: {"cache": cache, "settings": dict(files, **specs[c]), "truth": truth, "face": face, "rig": rig}
             for c in cases}
+
+
+def true_poses(case: dict, n: int) -> list:
+    """``n`` example poses as an animator would set them, at the frames ``suggest_poses`` proposes:
+    the ground-truth weights (all shapes), or for a subset of shapes (case D) their bounded [0, 1]
+    least-squares fit of the true face at that frame; named as the case's (hidden) rig names them."""
+    if not n:
+        return []
+    pipe = Pipeline(cache=case["cache"], **case["settings"])
+    res = pipe.results(["frames", "stabilize", "shapes"])
+    frames = suggest_poses(pose_features(res), n)
+    rig, Wt, first = case["rig"], case["truth"]["weights"], res["frames"]["first"]
+    shapes = list(res["shapes"]["shape_index"])
+    D = rig.deltas[:, case["face"]].reshape(rig.n_shapes, -1)
+    names = [f"shape_{i:03d}" for i in range(rig.n_shapes)]
+    items = []
+    for f in frames:
+        truth = np.nan_to_num(Wt[f])
+        if len(shapes) == rig.n_shapes:
+            w = {names[k]: float(truth[k]) for k in range(rig.n_shapes) if truth[k] > 1e-4}
+        else:
+            x = lsq_linear(D[shapes].T, truth @ D, bounds=(0.0, 1.0)).x
+            w = {names[k]: float(v) for k, v in zip(shapes, x) if v > 1e-4}
+        items.append({"frame": int(first + f), "weights": w})
+    return items
 
 
 def run(case: dict, settings: dict) -> dict:
@@ -208,7 +239,11 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=0, help="first N frames only (0: the whole take)")
     ap.add_argument("--detail", action="store_true", help="also say which shapes, regions and frames carry the error")
     ap.add_argument("--json", help="write every result (metrics and per-shape curve RMSE) to this file")
+    ap.add_argument("--poses", default="", help="cases C and D (names hidden; D: only the non-ARKit shapes) with this "
+                                                "many true example poses at the suggested frames, e.g. 0,2,4,8,16")
     args = ap.parse_args(argv)
+    if args.poses:
+        return poses_table([int(n) for n in args.poses.split(",")], args.frames)
     cases = "".join(c for c in args.cases.upper() if c in "ABC")
     if args.search:
         configs = [(lbl, cfg, cs or "ABC") for lbl, cfg, cs in SEARCH if re.search(args.only, lbl)]
@@ -237,6 +272,20 @@ def main(argv=None) -> int:
                             "curve_rmse_per_shape": r.get("curve_rmse_per_shape")})
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1, allow_nan=True) + "\n")
+    return 0
+
+
+def poses_table(counts: list, frames: int = 0) -> int:
+    """The default (auto) with 0, 2, 4 ... true example poses on the hidden-name cases."""
+    print("| case | " + " | ".join(f"{n} poses" for n in counts) + " |\n|---|" + "---|" * len(counts))
+    with tempfile.TemporaryDirectory() as tmp:
+        built = build_cases("CD", Path(tmp), frames)
+        for c, label in (("C", "names hidden, all shapes"), ("D", "names hidden, non-ARKit shapes")):
+            row = []
+            for n in counts:
+                r = run(built[c], {"example_poses": true_poses(built[c], n)})
+                row.append(f"{r['mean_mm']:.3f} mm (w {r['weight_min']:.2f}…{r['weight_max']:.2f})")
+            print(f"| {label} | " + " | ".join(row) + " |", flush=True)
     return 0
 
 
