@@ -788,17 +788,7 @@ class Store:
     def apply(self, shot_id: str, change: dict, base_version: int, author: str) -> Applied:
         """Apply one change made against version ``base_version``, committed before returning.
 
-        Change kinds::
-
-            {"kind": "settings", "values": {stage: {setting: value}}}   # or {setting: value}
-            {"kind": "files", "values": {role: content hash or None}}    # hashes from put_file
-            {"kind": "edit", "editor": "spacetime"|"transfer"|"detail", "op": "add", "edit": {...}}
-            {"kind": "edit", "editor": ..., "op": "undo" | "redo"}
-            {"kind": "edit", "editor": ..., "op": "remove", "index": i}
-            {"kind": "frame", "frame": f}
-            {"kind": "note", "op": "add", "frame": f, "text": "...", "frame_end": g or None}
-            {"kind": "note", "op": "resolve" | "reopen", "note_id": "n3"}
-            {"kind": "note", "op": "edit", "note_id": "n3", "text"?, "frame"?, "frame_end"?}
+        Change kinds: :mod:`core.changes` (files by the hashes :meth:`put_file` returns).
 
         A stale ``base_version`` is rebased where the change commutes with every change since,
         else refused (the module docstring lists which). Returns :class:`Applied`.
