@@ -210,6 +210,8 @@ def wait_new_track(page, label, timeout=60_000):
 @pytest.mark.browser
 def test_sample_loads_with_both_views_curves_and_summary_offline(dash, artifacts):
     page = dash
+    from playwright.sync_api import expect
+
     MEASURED["load_s"] = round(page.load_s, 2)
     print(f"dashboard load (goto -> both viewers rendered): {page.load_s:.2f} s")
     assert sorted(page.evaluate("() => Object.keys(window.__faceRetarget.viewers)")) == sorted([SRC, TGT])
@@ -239,7 +241,9 @@ def test_sample_loads_with_both_views_curves_and_summary_offline(dash, artifacts
 
     text = summary(page)
     assert SAMPLE in text and "rocketbox_female_adult_02.glb" in text, text
-    assert "method spacetime" in text and re.search(r"marker error RMS \d+\.\d+ mm", text), text
+    assert "method auto" in text and re.search(r"marker error RMS \d+\.\d+ mm", text), text
+    # the default says what it chose and why, in one sentence above the summary
+    expect(page.get_by_text(re.compile(r"^auto: the whole take at once .* namesake curve"))).to_be_visible()
     assert "2028 frames @ 30 fps" in text, text
     MEASURED["initial_server_total_ms"] = server_total_ms(page)
 
@@ -253,6 +257,13 @@ def test_sample_loads_with_both_views_curves_and_summary_offline(dash, artifacts
 @pytest.mark.browser
 def test_alpha_change_redraws_curves_and_target_at_a_fixed_frame(dash, artifacts):
     page = dash
+    from playwright.sync_api import expect
+
+    # the page opens on auto, which chooses its own alpha: a user tuning alpha picks spacetime first
+    mark_tracks(page)
+    method_select(page).select_option(label=METHOD_LABEL["spacetime"])
+    expect(page.locator("p", has_text="marker error RMS")).to_contain_text("method spacetime", timeout=60_000)
+    wait_new_track(page, TGT)
     drag_slider_to(page, r"^Frame:", 0.4)
     wait_synced(page, "f > 600")
     frame = frames(page)[TGT]
@@ -287,7 +298,7 @@ def test_alpha_change_redraws_curves_and_target_at_a_fixed_frame(dash, artifacts
     MEASURED["alpha_change_server_total_ms"] = ms
     print(f"alpha {alpha0} -> {alpha1}: server total {ms:.1f} ms (before {timings0:.1f} ms), "
           f"round trip {MEASURED['alpha_change_round_trip_s']:.2f} s, at frame {frame}")
-    assert 0 < ms < 5000, ms  # the budget is 150 ms: recorded, not asserted (shared machine)
+    assert ms > 0, ms  # the time is recorded (benchmarks hold budgets), never asserted
 
     target1 = shot(page, TGT, artifacts / "dashboard_target_alpha.png")
     page.wait_for_timeout(300)

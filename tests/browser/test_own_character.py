@@ -26,7 +26,9 @@ TIMES: dict = {}
 
 
 def sidebar_select(page, label):
-    return page.locator(".bk-input-group:visible", has=page.locator("label", has_text=label)).locator("select")
+    # anchored: "Method" is also inside "Jitter filter (per-frame methods)"
+    return page.locator(".bk-input-group:visible",
+                        has=page.locator("label", has_text=re.compile("^" + re.escape(label)))).locator("select")
 
 
 def upload(page, name, data, mime="application/octet-stream"):
