@@ -129,7 +129,7 @@ class BatchView(pn.viewable.Viewer):
             self._later(lambda: self._on_done(results, None))
         except Exception as e:  # shown in the tab; the trace goes to the log
             log.warning("batch failed", exc_info=True)
-            self._later(lambda: self._on_done([], e))
+            self._later(lambda err=e: self._on_done([], err))  # bound now: Python unbinds `e` after the block
 
     def _later(self, fn) -> None:
         doc = self._doc
