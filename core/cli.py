@@ -334,7 +334,17 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", help="write the poses of the current result at those frames (JSON for --example-poses)")
     sp.set_defaults(func=_suggest_poses)
 
-    ev = sub.add_parser("evaluate", help="score methods on a source + rigs: JSON and a self-contained HTML report")
+    ev = sub.add_parser(
+        "evaluate", help="score methods on a source + rigs: JSON and a self-contained HTML report",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Run several methods on one take and rig pair and score each as an animator would look: marker "
+                    "error, velocity error (mm per frame), weight range, shapes used per frame and, where the target "
+                    "shares the take's ARKit names, the vertex error and each curve's distance to its namesake "
+                    "(the target driven by the take's own curves is the truth). Prints a table; --json and --html "
+                    "write it (the HTML with plots and renders inline).",
+        epilog=("example:\n  face-retarget evaluate --source data/performances/livelinkface_take_s07.csv "
+                "--source-rig data/rigs/ict_facekit.glb \\\n      --target-rig data/rigs/rocketbox_female_adult_02.glb "
+                "--target-shapes arkit --methods auto,bounded,spacetime --html report.html"))
     add_cli_arguments(ev)
     ev.add_argument("--methods", help="comma-separated methods (default: every solve method)")
     ev.add_argument("--shot", help="a shot whose files and settings to evaluate (the flags given override it)")

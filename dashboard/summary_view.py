@@ -9,11 +9,20 @@ from __future__ import annotations
 
 import html
 import io
+import re
+from pathlib import Path
 from typing import Callable
 
 import panel as pn
 
 from dashboard import widgets
+
+
+def download_stem(source, target_rig, method: str) -> str:
+    """``<take>_on_<rig>_<method>``: the name a result's files download under (file stems, safe
+    characters only)."""
+    parts = [Path(str(source or "take")).stem, "on", Path(str(target_rig or "rig")).stem, method]
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", "_".join(parts)).strip("_")
 
 
 class SummaryView(pn.viewable.Viewer):
@@ -43,7 +52,13 @@ class SummaryView(pn.viewable.Viewer):
             return None
 
     def draw(self, snap: dict) -> None:
-        """The summary of the snapshot ``snap`` (of the session's current files)."""
+        """The summary of the snapshot ``snap`` (of the session's current files), and the
+        downloads named after them (``<take>_on_<rig>_<method>.glb``: ten downloads are not ten
+        ``result.glb``)."""
+        stem = download_stem(self.s.source, self.s.target_rig, snap["method"])
+        for w, ext in ((self.w_glb, "glb"), (self.w_csv, "csv")):
+            if w.filename != f"{stem}.{ext}":
+                w.filename = f"{stem}.{ext}"
         ev = snap["evaluate"]
         self.w_summary.object = (
             f"**{self.s.source}** → **{self.s.target_rig}** · {len(snap['times'])} frames @ {snap['fps']:g} fps · "

@@ -128,3 +128,12 @@ def test_names_writes_an_editable_map_and_bundled_jeeliz_map_drives_the_tiger(tm
                  "--name-map", str(RIGS.parent / "namemaps" / "arkit_to_jeeliz.json"), "--target-rig", str(RIGS / "ict_facekit.glb"),
                  "--method", "lsq", "--last-frame", "59", "--quiet"])
     assert code == 0 and "retargeted 60 frames" in capsys.readouterr().out
+
+
+def test_evaluate_help_says_what_it_does_with_an_example(capsys):
+    from core.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--help"])
+    out = capsys.readouterr().out
+    assert "score each as an animator would look" in out and "example:\n  face-retarget evaluate --source" in out

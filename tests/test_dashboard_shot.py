@@ -142,3 +142,11 @@ def test_use_as_example_pose_is_in_the_shot_and_auto_learns_from_it(app):
     assert app.playback.w_frame.value != f
     app.edits.clear_poses()
     assert pipe.solve.example_poses == [] and "learned" not in app.s.snapshot["solve_info"]["auto"]
+
+
+def test_downloads_are_named_after_the_take_the_rig_and_the_method(app):
+    """Ten downloads are not ten result.glb: the files carry the take, the rig and the method."""
+    app.refresh()
+    method = app.s.snapshot["method"]
+    stem = f"livelinkface_take_s07_on_rocketbox_female_adult_02_{method}"
+    assert app.summary.w_glb.filename == f"{stem}.glb" and app.summary.w_csv.filename == f"{stem}.csv"
