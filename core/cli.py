@@ -34,8 +34,7 @@ from .pipeline import Pipeline, StageCache, add_cli_arguments
 from .progress import StderrBar
 from .registration import layout_command
 from .report import evaluate_methods, ranking, write_html, write_json
-from .examples import suggest_poses
-from .stages.methods import METHODS as REGISTRY, pose_features
+from .stages.methods import METHODS as REGISTRY, suggested_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -94,9 +93,9 @@ def _suggest_poses(args) -> int:
     pipe = _pipeline(args)
     res = pipe.results(["load", "frames", "stabilize", "synthesize"])
     first, rig, W = res["frames"]["first"], res["load"]["target_rig"], res["synthesize"]["weights"]
-    frames = suggest_poses(pose_features(res), args.n)
-    items = [{"frame": int(first + f), "weights": {n: round(float(W[f, k]), 4) for k, n in enumerate(rig.names)
-                                                   if W[f, k] > 0.01}} for f in frames]
+    frames = suggested_frames(res, args.n, pipe.solve.example_poses)  # a shot's poses count as chosen
+    items = [{"frame": f, "weights": {n: round(float(W[f - first, k]), 4) for k, n in enumerate(rig.names)
+                                      if W[f - first, k] > 0.01}} for f in frames]
     print(f"pose these {len(items)} frames (far apart in expression): " + ", ".join(str(i["frame"]) for i in items))
     if args.out:
         Path(args.out).write_text(json.dumps(items, indent=1) + "\n")

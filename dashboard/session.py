@@ -23,9 +23,8 @@ from pathlib import Path
 import numpy as np
 import param
 
-from core.examples import suggest_poses
 from core.pipeline import Pipeline, StageCache
-from core.stages.methods import pose_features
+from core.stages.methods import suggested_frames
 from core.shot import EDITORS, Shot
 
 log = logging.getLogger("face_retarget.dashboard")
@@ -402,10 +401,7 @@ class Session(param.Parameterized):
 
     def suggest_poses(self, n: int = 8) -> list:
         """Take frames to pose next: far apart in expression, not posed yet (core.examples)."""
-        res = self.pipeline.results(["frames", "stabilize"])
-        first, stop = res["frames"]["first"], res["frames"]["stop"]
-        posed = [p["frame"] - first for p in self.pipeline.solve.example_poses if first <= p["frame"] < stop]
-        return [int(first + f) for f in suggest_poses(pose_features(res), n, exclude=posed)]
+        return suggested_frames(self.pipeline.results(["frames", "stabilize"]), n, self.pipeline.solve.example_poses)
 
     def readable(self, e: Exception) -> str:
         """An exception as a message for the page: uploads by their own name, no server paths, no

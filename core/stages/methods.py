@@ -23,7 +23,7 @@ import numpy as np
 
 from ..gaps import fill_gaps
 from ..model import flatten
-from ..examples import learn_from_poses, poses_from_items
+from ..examples import learn_from_poses, poses_from_items, suggest_poses
 from ..names import NameMap, recognise
 from ..prior import prior_quadratic
 from ..solvers import baselines
@@ -210,6 +210,14 @@ def pose_features(inputs) -> np.ndarray:
     if st.source_weights is not None:
         return np.asarray(st.source_weights, dtype=np.float64)
     return np.asarray(st.deltas, dtype=np.float64).reshape(len(st.deltas), -1)
+
+
+def suggested_frames(inputs, n: int, posed=()) -> list:
+    """Take frames to pose next (:func:`core.examples.suggest_poses` over :func:`pose_features`):
+    far apart in expression; the example poses ``posed`` already set count as chosen."""
+    first, stop = inputs["frames"]["first"], inputs["frames"]["stop"]
+    exclude = [p["frame"] - first for p in posed if first <= p["frame"] < stop]
+    return [int(first + f) for f in suggest_poses(pose_features(inputs), n, exclude=exclude)]
 
 
 def example_poses(inputs, items) -> dict:
