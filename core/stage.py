@@ -83,9 +83,6 @@ class SettingsView:
     def __setattr__(self, key, value):
         raise AttributeError("a stage's settings are read-only inside run()")
 
-    def __contains__(self, key) -> bool:
-        return key in self._values
-
     def __repr__(self):
         return f"SettingsView({self._stage!r}, {sorted(self._values)})"
 
