@@ -30,7 +30,7 @@ from core.report import evaluate_methods, ranking, to_json  # noqa: E402
 
 PERF = ROOT / "data" / "performances"
 RIGS = ROOT / "data" / "rigs"
-BASIC = ["lsq", "bounded", "range_pf", "prior_pf", "spacetime", "local", "geometric", "names"]
+BASIC = ["auto", "lsq", "bounded", "range_pf", "prior_pf", "spacetime", "local", "geometric", "names"]
 #: advanced configurations: (label, settings, methods)
 ADVANCED = [
     ("dense+rom", {"correspondence": "dense", "motion_scale": "rom", "ridge": 1e-3}, ["bounded", "local"]),
