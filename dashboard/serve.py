@@ -49,7 +49,11 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
 
         warm.configure(warm_pages, busy_idle_s=warm_wait)
     origins = [f"{address}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"] + list(allow_websocket_origin or [])
-    kwargs = dict(websocket_origin=origins, liveness=True, threaded=True,
+    # the server's loop runs here, on the main thread, until interrupted: with pn.serve(threaded=True)
+    # this function returned, the main thread ended and Python began its shutdown while the
+    # server thread went on, so every later import of concurrent.futures (Dask, in the Batch tab)
+    # failed with "can't register atexit after shutdown" and thread pools refused new work
+    kwargs = dict(websocket_origin=origins, liveness=True, threaded=False,
                   # base64 of the largest file a page may send; beyond that Tornado closes the connection
                   websocket_max_message_size=int(sessions.largest_message_file() * 1.37) + 2**20,
                   # a page whose websocket has not connected yet is kept this long: Bokeh's 15 s
@@ -65,7 +69,10 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
                       oauth_redirect_uri=oauth.get("redirect_uri"), oauth_encryption_key=oauth.get("encryption_key"),
                       cookie_secret=oauth.get("cookie_secret") or __import__("secrets").token_hex(32))
     print(f"face-retarget dashboard: http://{address}:{port}/  (Ctrl-C to stop)", flush=True)
-    assets.serve({"/": create_app}, port=port, address=address, show=show, title="face-retarget", **kwargs)
+    try:
+        assets.serve({"/": create_app}, port=port, address=address, show=show, title="face-retarget", **kwargs)
+    except KeyboardInterrupt:
+        print("stopped", flush=True)
     return 0
 
 

@@ -1,0 +1,95 @@
+"""Defects a newcomer met in the first hour (issue 33), against the real ``face-retarget serve``.
+
+One server for the module (``python -m core.cli serve`` on a free 127.0.0.1 port, its own data
+folder, killed at the end); the connection-lost check starts a server of its own, since it kills
+it. Screenshots go to tests/artifacts/defects_*.png.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from conftest import ROOT, free_port, wait_http
+from test_dashboard import VIEWERS_READY, slider, slider_value
+
+
+def start_serve(data_dir, log):
+    """``face-retarget serve`` in a new process group: (process, log handle, base URL)."""
+    port = free_port()
+    cmd = [sys.executable, "-m", "core.cli", "serve", "--address", "127.0.0.1", "--port", str(port),
+           "--data-dir", str(data_dir), "--warm-pages", "0"]
+    fh = open(log, "w")
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=fh,
+                            stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wait_http(f"http://127.0.0.1:{port}/liveness", 90, proc, log)
+    except BaseException:
+        stop_serve(proc, fh)
+        raise
+    return proc, fh, f"http://127.0.0.1:{port}"
+
+
+def stop_serve(proc, fh) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=15)
+    fh.close()
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory, artifacts):
+    """(process, base URL) of one ``face-retarget serve`` for the module."""
+    log = artifacts / "server_defects.log"
+    proc, fh, base = start_serve(tmp_path_factory.mktemp("defects-data"), log)
+    yield proc, base
+    stop_serve(proc, fh)
+
+
+@pytest.fixture(scope="module")
+def dash(served, new_page):
+    """One dashboard page of the module's server, both viewers drawn."""
+    ctx, pg = new_page()
+    pg.goto(served[1] + "/")
+    pg.wait_for_function(VIEWERS_READY, timeout=120_000)
+    yield pg
+    ctx.close()
+
+
+@pytest.mark.browser
+@pytest.mark.slow
+def test_batch_tab_runs_under_face_retarget_serve(dash, served, artifacts):
+    """Issue 33.1: under ``face-retarget serve`` the Batch tab ran into "can't register atexit
+    after shutdown" (the server's main thread had returned, Dask was imported in a thread
+    afterwards), then hung on "Starting … shots". Here it finishes and shows its rows."""
+    from playwright.sync_api import expect
+
+    page = dash
+    page.locator(".bk-tab", has_text="Batch").first.click()
+    group = page.locator(".bk-input-group:visible", has=page.locator("label", has_text="Captures"))
+    group.locator("select").select_option(label=["livelinkface_take_s07.csv"])
+    workers = page.locator(".bk-input-group:visible", has=page.locator("label", has_text="Worker processes")).locator("input")
+    workers.fill("1")
+    workers.press("Enter")
+    page.get_by_role("button", name="Run the batch").click()
+    done = page.get_by_text(re.compile(r"^(Done: |Error: )"))
+    try:
+        done.first.wait_for(timeout=300_000)
+    finally:
+        page.screenshot(path=str(artifacts / "defects_batch.png"))
+    text = done.first.inner_text()
+    assert text.startswith("Done: 1 ok"), text
+    rows = page.locator(".tabulator-row")
+    assert rows.count() == 1 and "ok" in rows.first.inner_text()
+    page.locator(".bk-tab", has_text="Retarget").first.click()
+    page.wait_for_function(VIEWERS_READY, timeout=30_000)
+    assert served[0].poll() is None, "the server died"
