@@ -269,6 +269,32 @@ def test_an_edit_stays_inside_the_methods_bounds_and_its_window():
         assert W.min() >= -1e-9 and W.max() <= 1 + 1e-9, method
 
 
+def test_a_pose_edit_propagates_over_its_window_without_popping():
+    """Issue 33 item 2, the issue's own case: jawOpen = 1 at frame 419, half-window 12, spacetime.
+    It popped (0.12 -> 1.00 -> 0.11 at 418-420, other mouth shapes dropping at 419 to cancel it).
+    Seol 2012 §6: the change propagates smoothly and the window's ends stay continuous. Every
+    curve's step from frame to frame, inside the window, at its ends and around the edit, stays
+    within the edit's change spread over the half-window (twice that at most, a tent's slope is
+    once) plus the curves' own 99.9th-percentile step; the frame's other weights keep their values."""
+    pipe = Pipeline(cache=StageCache(), method="spacetime", last_frame=599, **FILES)
+    before = pipe.results(["edit"])["edit"]["weights"].copy()
+    names = pipe.results(["shapes"])["shapes"]["rig"].names
+    jaw = names.index("AK_25_JawOpen")
+    pipe.add_edit("spacetime", {"frame": 419, "weights": {"AK_25_JawOpen": 1.0}, "window": [407, 431]})
+    after = pipe.results(["edit"])["edit"]["weights"]
+    assert after[419, jaw] == pytest.approx(1.0)
+    others = np.arange(len(names)) != jaw
+    np.testing.assert_allclose(after[419, others], before[419, others], atol=1e-9)
+    outside = np.r_[0:407, 432:600]
+    np.testing.assert_array_equal(after[outside], before[outside])
+    normal = np.percentile(np.abs(np.diff(before, axis=0)), 99.9)
+    slope = (1.0 - before[419, jaw]) / 12
+    step = np.abs(np.diff(after, axis=0)).max(axis=1)  # step[t]: frame t -> t + 1, the largest over the curves
+    assert step[405:432].max() <= 2 * slope + normal, (step[405:432].round(3), slope, normal)
+    assert step[[406, 407, 430, 431]].max() <= slope + normal, (step[[406, 407, 430, 431]], slope, normal)
+    assert step[417:421].max() <= 2 * slope + normal  # around the edit: no pop
+
+
 def test_cache_shares_work_in_flight():
     """Two pipelines asking for one key at once compute it once; when the computing thread fails,
     the waiting one computes it itself (and a later call is a hit)."""

@@ -15,6 +15,7 @@ them, so a missing optional piece fails only the method that needs it.
 
 from __future__ import annotations
 
+import difflib
 import warnings
 from dataclasses import replace
 
@@ -31,7 +32,7 @@ from ..io.performance import read_performance
 from ..io.rigs import load_rig, read_layout_for
 from ..names import ARKIT_NAMES, NameMap, bundled_vocabulary_files, canonical, load_vocabularies
 from ..personalize import personalize
-from ..prior import PCAPrior
+from ..prior import PCAPrior, prior_quadratic
 from ..progress import report
 from ..retarget import common_markers, source_marker_names, source_markers, target_markers
 from ..segment import marker_weights, segment
@@ -576,6 +577,103 @@ class Solve(Stage):
         return {"weights": W, "method": m.name, "info": info, "edit": out["edit"], "controls": ctl}
 
 
+def edited_poses(W, names, edits) -> list:
+    """The edits as whole poses: ``[(frame, (K,) pose, window or None), ...]``.
+
+    An edit sets some weights of a frame; the frame's other weights keep the values shown
+    (``W[frame]``), and several edits of one frame combine (the later wins on a shape they share).
+    The whole pose is the boundary condition of Seol et al. 2012 §6 ("the animator adjusts the
+    target blendshape weights at a selected frame"): with only the edited weight fixed, the
+    movement match is kept at that frame alone by the other shapes, which cancel the edit's
+    marker motion there (jawOpen 0.12 → 1.00 → 0.11 at frames 418–420, other mouth shapes dropping
+    at 419) instead of letting the change propagate over the window.
+
+    Parameters
+    ----------
+    W : (T, K) float, the weights the edits start from (NaN where the frame had no sample: the
+        pose keeps the NaN, the solver leaves those weights free)
+    names : K shape names of ``W``'s columns
+    edits : list of ``{"frame": int, "weights": {name: value} or (K,) values, "shapes": names or
+        None, "window": [a, b] or None}``
+
+    Raises
+    ------
+    ValueError
+        A shape name not in ``names`` (with the closest ones), a frame outside ``W``.
+    """
+    T, K = W.shape
+    poses: dict = {}
+    for i, e in enumerate(edits):
+        f = int(e["frame"])
+        if not 0 <= f < T:
+            raise ValueError(f"edits[{i}].frame: {f} is outside [0, {T})")
+        weights = e["weights"]
+        shapes = list(weights) if isinstance(weights, dict) else e.get("shapes")
+        values = np.asarray(list(weights.values()) if isinstance(weights, dict) else weights, float).ravel()
+        if shapes is None:
+            idx = np.arange(K)
+        else:
+            missing = [n for n in shapes if n not in names]
+            if missing:
+                close = difflib.get_close_matches(str(missing[0]), names, n=3)
+                raise ValueError(f"edits[{i}]: no shape {missing[0]!r}" + (f"; did you mean {close}?" if close else ""))
+            idx = np.array([names.index(n) for n in shapes], dtype=np.int64)
+        if values.shape != idx.shape:
+            raise ValueError(f"edits[{i}].weights: expected {len(idx)} values, got {values.shape}")
+        pose = poses.setdefault(f, np.array(W[f], dtype=np.float64))
+        pose[idx] = values
+    return [(int(e["frame"]), poses[int(e["frame"])], tuple(e["window"]) if e.get("window") else None) for e in edits]
+
+
+#: weight of the curves' own movement in an edit, relative to ``sigma_max(B)^2`` (see with_curve_motion)
+EDIT_CURVE_MOTION = 1.0
+
+
+def with_curve_motion(B, S, W, valid, marker_weights, weight: float):
+    """Marker data extended so that movement matching also matches the weight curves' own motion.
+
+    Appends ``ceil(K / 3)`` virtual markers whose coordinates are the weights scaled by
+    ``sqrt(weight * sigma_max(B)^2)`` and whose captured positions are the same of ``W``: the
+    velocity term of :class:`~core.solvers.spacetime.SpacetimeSolver` (Seol 2012 eq. 2) then gains
+
+        weight * sigma_max(B)^2 * sum_t ||(w_t - w_{t-1}) - (W_t - W_{t-1})||^2,
+
+    the movement matching of the curves themselves. Without it a pose edit propagates only
+    through the markers: shapes the markers see alike (two jaw-open shapes, mouth stretch) share
+    the change differently at the edited frame and next to it, so each curve pops at the edit
+    (jawOpen 0.18 → 1.00 → 0.17) while the face moves smoothly; with it the change spreads over
+    the window in the curves too (Seol §6: "smoothly propagated across neighboring frames").
+    The virtual markers have no Sobolev weight beyond the given ``marker_weights`` (1) and are
+    missing where ``W`` is NaN (frames without samples).
+
+    Parameters
+    ----------
+    B : (K, M, 3) target marker deltas; S : (T, M, 3) source deltas; W : (T, K) weights
+    valid : (T, M) bool or None; marker_weights : (M,) or None; weight : float >= 0
+
+    Returns
+    -------
+    (B', S', valid', marker_weights') with ``M + ceil(K / 3)`` markers (the inputs when ``weight`` is 0).
+    """
+    if weight <= 0:
+        return B, S, valid, marker_weights
+    K, M = B.shape[:2]
+    T = len(W)
+    n = -(-K // 3)
+    scale = np.sqrt(weight * np.linalg.norm(B.reshape(K, -1), 2) ** 2)
+    Bv = np.zeros((K, 3 * n))
+    Bv[np.arange(K), np.arange(K)] = scale
+    finite = np.isfinite(W)
+    Sv = np.zeros((T, 3 * n))
+    Sv[:, :K] = scale * np.where(finite, W, 0.0)
+    vv = np.ones((T, 3 * n), bool)
+    vv[:, :K] = finite
+    v = np.ones((T, M), bool) if valid is None else np.asarray(valid, bool)
+    mw = None if marker_weights is None else np.r_[np.asarray(marker_weights, float), np.ones(n)]
+    return (np.concatenate([B, Bv.reshape(K, n, 3)], axis=1), np.concatenate([S, Sv.reshape(T, n, 3)], axis=1),
+            np.concatenate([v, vv.reshape(T, n, 3).all(axis=2)], axis=1), mw)
+
+
 @register("edit")
 class Edit(Stage):
     """Spacetime edits (Seol 2012 §6) on top of any method's solution."""
@@ -592,24 +690,27 @@ class Edit(Stage):
             return {"weights": W, "edits": []}
 
         st = inputs["calibrate"]["source"]  # the motion the solve fitted
+        names = inputs["shapes"]["rig"].names
         edits = []
-        for e in s.edits:
-            win = e.get("window")
-            shapes = list(e["weights"]) if isinstance(e["weights"], dict) else e.get("shapes")
-            values = list(e["weights"].values()) if isinstance(e["weights"], dict) else e["weights"]
-            edits.append(PoseEdit(int(e["frame"]), np.asarray(values, float), shapes, tuple(win) if win else None))
-        sol = inputs["solve"]
-        opt = sol["edit"]
-        prior = inputs["prior"]["prior"] if inputs.get("prior") else None
-        named = None
-        if opt["name_weight"] > 0:
-
-            named = named_target(inputs)
-        solver = SpacetimeSolver(inputs["personalize"]["deltas"], st.deltas, alpha=opt["alpha"], beta=opt["beta"], prior=prior,
-                                 known={0: W[0], len(W) - 1: W[-1]}, valid=st.valid, names=inputs["shapes"]["rig"].names,
-                                 ridge=opt["ridge"], lower=opt["lower"], upper=opt["upper"], l1=opt["l1"],
-                                 marker_weights=inputs["shapes"].get("weights"), name_target=named,
-                                 name_weight=opt["name_weight"], quadratic=opt.get("quadratic"))
+        for f, pose, win in edited_poses(W, names, s.edits):
+            known = np.flatnonzero(np.isfinite(pose))  # a frame without samples (NaN) keeps those free
+            edits.append(PoseEdit(f, pose[known], known, win))
+        opt = inputs["solve"]["edit"]
+        named = named_target(inputs) if opt["name_weight"] > 0 else None
+        deltas = inputs["personalize"]["deltas"]
+        B, S, valid, mw = with_curve_motion(deltas, st.deltas, W, st.valid, inputs["shapes"].get("weights"),
+                                            EDIT_CURVE_MOTION)
+        K = W.shape[1]
+        # sigma_max^2 grows from s to (1 + EDIT_CURVE_MOTION) s: the relative settings keep their absolute size
+        rel = 1.0 / (1.0 + EDIT_CURVE_MOTION)
+        prior = prior_quadratic(inputs["prior"]["prior"] if inputs.get("prior") else None, deltas.reshape(K, -1).T, K)
+        quad = opt.get("quadratic")
+        solver = SpacetimeSolver(B, S, alpha=opt["alpha"], beta=opt["beta"], prior=prior,
+                                 known={0: W[0], len(W) - 1: W[-1]}, valid=valid, names=names,
+                                 ridge=opt["ridge"] if isinstance(opt["ridge"], str) else opt["ridge"] * rel,
+                                 lower=opt["lower"], upper=opt["upper"], l1=opt["l1"] * rel,
+                                 marker_weights=mw, name_target=named, name_weight=opt["name_weight"] * rel,
+                                 quadratic=None if quad is None else np.asarray(quad) * rel)
         return {"weights": solver.edit(W, edits=edits), "edits": list(s.edits)}
 
 
