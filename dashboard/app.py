@@ -33,6 +33,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from dashboard.batch_view import BatchView  # noqa: E402
+from dashboard.connection_view import ConnectionWatch  # noqa: E402
 from dashboard.curves_view import CurvesView  # noqa: E402
 from dashboard.marker_layout_view import MarkerLayoutView  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
@@ -239,7 +240,8 @@ class DashboardApp(pn.viewable.Viewer):
         self.tabs.append(("Batch", self._tab_boxes["batch"]))
         self._normalmap_tab = 2
         self.tabs.param.watch(self._on_tab, "active")
-        self.layout = pn.Row(sidebar, self.tabs, sizing_mode="stretch_both")
+        # ConnectionWatch: "Connection lost" over the page when its server is gone (whichever tab is open)
+        self.layout = pn.Row(sidebar, self.tabs, ConnectionWatch(), sizing_mode="stretch_both")
 
     # -- events -----------------------------------------------------------------------------
     def changed(self):

@@ -93,3 +93,36 @@ def test_batch_tab_runs_under_face_retarget_serve(dash, served, artifacts):
     page.locator(".bk-tab", has_text="Retarget").first.click()
     page.wait_for_function(VIEWERS_READY, timeout=30_000)
     assert served[0].poll() is None, "the server died"
+
+
+@pytest.mark.browser
+@pytest.mark.slow
+def test_a_page_whose_server_died_says_connection_lost_and_takes_no_edits(new_page, tmp_path, artifacts):
+    """Issue 33.4: after the server is killed, the page shows "Connection lost" over everything
+    and refuses clicks and keys (the changes would be lost); before, it said nothing."""
+    proc, fh, base = start_serve(tmp_path / "data", artifacts / "server_defects_killed.log")
+    ctx, page = new_page()
+    try:
+        page.goto(base + "/")
+        page.wait_for_function(VIEWERS_READY, timeout=120_000)
+        assert page.evaluate("() => (window.__faceRetargetConnection || {lost: false}).lost") is False
+        assert page.get_by_text("Connection lost").count() == 0
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+        banner = page.get_by_role("alert").filter(has_text="Connection lost")
+        try:
+            banner.wait_for(timeout=20_000)
+        finally:
+            page.screenshot(path=str(artifacts / "defects_connection_lost.png"))
+        # edits are refused: a click on the Frame slider's handle reaches nothing under the veil
+        handle = slider(page, r"^Frame:").locator(".noUi-handle")
+        before = slider_value(page, r"^Frame:")
+        box = handle.bounding_box()
+        page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.keyboard.press("ArrowRight")
+        page.wait_for_timeout(300)
+        assert slider_value(page, r"^Frame:") == before
+        assert page.evaluate("() => window.__faceRetargetConnection.lost") is True
+    finally:
+        ctx.close()
+        stop_serve(proc, fh)
