@@ -58,6 +58,7 @@ class PlaybackView(pn.viewable.Viewer):
         self.w_heat = pn.widgets.RadioButtonGroup(name="Target colouring", options=["plain", "error map", "regions"],
                                                   value="plain", button_type="light", width=260)
         self.w_heat.param.watch(lambda e: self.draw_heat(), "value")
+        self.w_frame.param.watch(self._frame_to_target, "value")
         self.source_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
         self.target_box = pn.Column(sizing_mode="stretch_width", min_height=VIEW_HEIGHT)
         self.region_box = pn.Column(sizing_mode="stretch_width")
@@ -88,6 +89,9 @@ class PlaybackView(pn.viewable.Viewer):
         if self.w_frame.value > T - 1:
             self.w_frame.value = 0
         fps = snap["fps"]
+        # a view made now starts at the slider's frame (the link below carries only later changes):
+        # a shot opened at frame 440 showed "Frame: 440" over views at frame 0
+        now = dict(frame=int(self.w_frame.value))
         # source: the driven source rig, or the captured markers on a triangulated marker mesh
         key = (id(snap["source_rig"]), snap["source_weights"] is None, len(snap["times"]), self.s.source)
         if key != self._viewer_keys["source"]:
@@ -95,12 +99,14 @@ class PlaybackView(pn.viewable.Viewer):
                 rig = snap["source_rig"]
                 v = MeshViewer.from_rig(rig, derived(snap, "source_track", lambda: np.nan_to_num(snap["source_weights"])),
                                         fps=fps, layout=snap["source_layout"],
-                                        label=rig.name, sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
+                                        label=rig.name, sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width",
+                                        **now)
             else:
                 mrig, track = derived(snap, "marker_rig", lambda: _frozen_rig(*marker_rig(snap["source_markers"])))
                 v = MeshViewer.from_rig(mrig, track, fps=fps,
                                         marker_track=derived(snap, "marker_track", lambda: np.nan_to_num(snap["source_markers"])),
-                                        label="captured markers", sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width")
+                                        label="captured markers", sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width",
+                                        **now)
             self._link_frame(v)
             self.source_box[:] = [v]
             self._viewer_keys["source"] = key
@@ -110,13 +116,22 @@ class PlaybackView(pn.viewable.Viewer):
             rig = snap["target_rig"]
             self.target_viewer = MeshViewer.from_rig(rig, track, fps=fps, layout=snap["target_layout"], label=rig.name,
                                                      sync_group="dash", height=VIEW_HEIGHT, sizing_mode="stretch_width",
-                                                     pick_mode="vertex" if self._picking() else "off")
+                                                     pick_mode="vertex" if self._picking() else "off", **now)
             if self._on_target_pick is not None:
                 self.target_viewer.param.watch(self._on_target_pick, "picked")
             self.target_box[:] = [self.target_viewer]
             self._viewer_keys["target"] = key
         else:
             self.target_viewer.set_track(track, fps=fps)
+
+    def _frame_to_target(self, event) -> None:
+        """A frame set from Python (a shot opened at its frame, a seek) reaches the target view
+        too: the two views share one clock in the browser, which the first view to load sets from
+        its own ``frame``; with only the source linked, a target made at frame 0 and loaded first
+        kept both at 0 under a slider at 440. While playing, the browser drives the frame."""
+        v = self.target_viewer
+        if v is not None and not self.w_play.value and v.frame != event.new:
+            v.frame = int(event.new)
 
     def _link_frame(self, viewer):
         for link in self._links:

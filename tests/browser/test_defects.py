@@ -16,7 +16,7 @@ import sys
 import pytest
 
 from conftest import ROOT, free_port, wait_http
-from test_dashboard import VIEWERS_READY, slider, slider_value
+from test_dashboard import VIEWERS_READY, frames, seek_frame, slider, slider_value
 
 
 def start_serve(data_dir, log):
@@ -93,6 +93,43 @@ def test_batch_tab_runs_under_face_retarget_serve(dash, served, artifacts):
     page.locator(".bk-tab", has_text="Retarget").first.click()
     page.wait_for_function(VIEWERS_READY, timeout=30_000)
     assert served[0].poll() is None, "the server died"
+
+
+def shown_frames(page) -> dict:
+    """What the page says the frame is: the slider, each viewer's frame and each view's label."""
+    text = page.evaluate("""() => { const out = []; const walk = (root) => { for (const el of root.querySelectorAll('*')) {
+        if (el.shadowRoot) walk(el.shadowRoot); if (el.childElementCount === 0 && /frame \\d+ \\/ \\d+/.test(el.textContent || ''))
+        out.push(el.textContent.trim()); } }; walk(document); return out; }""")
+    return {"slider": int(slider_value(page, r"^Frame:")), "viewers": frames(page),
+            "labels": sorted({int(re.search(r"frame (\d+) /", t).group(1)) for t in text})}
+
+
+@pytest.mark.browser
+@pytest.mark.slow
+def test_a_new_shared_shot_shows_one_frame_everywhere(dash, artifacts):
+    """Issue 33.5: after creating a shot from a page at frame 440, the new page's slider said
+    "Frame: 440" while both views said "frame 0 / 2027". Slider, viewers and labels agree."""
+    page = dash
+    page.locator(".bk-tab", has_text="Retarget").first.click()
+    page.wait_for_function(VIEWERS_READY, timeout=30_000)
+    seek_frame(page, 440)
+    page.get_by_role("button", name=re.compile("New shared shot")).click()
+    page.wait_for_url(re.compile(r"\?shot="), timeout=60_000)
+    page.wait_for_load_state()
+    page.wait_for_function(VIEWERS_READY, timeout=120_000)
+    page.wait_for_timeout(1500)
+    shown = shown_frames(page)
+    page.screenshot(path=str(artifacts / "defects_new_shot_frame.png"))
+    assert shown["slider"] == 440, shown
+    assert set(shown["viewers"].values()) == {440}, shown
+    assert shown["labels"] == [440], shown
+    page.goto(page.url)  # opening the shot again: the same
+    page.wait_for_load_state()
+    page.wait_for_function(VIEWERS_READY, timeout=120_000)
+    page.wait_for_timeout(1500)
+    shown = shown_frames(page)
+    page.screenshot(path=str(artifacts / "defects_open_shot_frame.png"))
+    assert shown["slider"] == 440 and set(shown["viewers"].values()) == {440} and shown["labels"] == [440], shown
 
 
 @pytest.mark.browser
