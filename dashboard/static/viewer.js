@@ -76,6 +76,18 @@ class Clock {
     return n;
   }
   join(v) { this.members.add(v); }
+  // The shared zoom's range: no member's camera may enter its mesh's bounding sphere (the wheel
+  // took the camera inside the target, the view went empty), at most 10x away.
+  zoomRange() {
+    let lo = 0.1;
+    for (const m of this.members) lo = Math.max(lo, m.minZoom());
+    return [lo, Math.max(lo, 10)];
+  }
+  setZoom(z) {
+    const [lo, hi] = this.zoomRange();
+    this.camera.zoom = Math.min(Math.max(z, lo), hi);
+    this.cameraChanged();
+  }
   leave(v) {
     this.members.delete(v);
     if (!this.members.size) {
@@ -354,6 +366,7 @@ class Viewer {
     this.setHighlight();
     this.clock = clockFor(this.model.sync_group);
     this.clock.join(this);
+    this.clock.setZoom(this.clock.camera.zoom);  // a mesh that joins (a new take) keeps every camera outside its mesh
     if (this.clock.members.size === 1) {
       this.clock.fps = this.model.fps;
       this.clock.loop = this.model.loop;
@@ -384,7 +397,13 @@ class Viewer {
     this.overlay.style.cssText =
       "position:absolute;left:8px;top:6px;font:12px sans-serif;color:#ddd;pointer-events:none;" +
       "text-shadow:0 0 3px #000;";
-    this.root.append(this.canvas, this.overlay);
+    this.hint = document.createElement("div");
+    this.hint.className = "face-retarget-hint";
+    this.hint.textContent = "drag: turn · wheel: zoom · double-click resets the view";
+    this.hint.style.cssText =
+      "position:absolute;right:8px;bottom:6px;font:11px sans-serif;color:#bbb;pointer-events:none;" +
+      "text-shadow:0 0 3px #000;";
+    this.root.append(this.canvas, this.overlay, this.hint);
     this.el.replaceChildren(this.root);
     this.renderer = new THREE.WebGLRenderer({ canvas: this.canvas, antialias: false, alpha: false,
                                               powerPreference: "high-performance" });
@@ -1130,7 +1149,16 @@ class Viewer {
     this.base = { center: c, dist, height: s.y };
     this.camera.near = dist / 100;
     this.camera.far = dist * 10;
-    this.updateCamera();
+    if (this.clock && this.clock.members.has(this)) this.clock.setZoom(this.clock.camera.zoom);  // the range is this mesh's too
+    else this.updateCamera();
+  }
+
+  // The smallest shared zoom that keeps this camera outside the mesh's bounding sphere (plus the
+  // near plane): the camera sits at base.dist * zoom from the box centre.
+  minZoom() {
+    if (!this.base || !this.bbox) return 0;
+    const r = this.bbox.getBoundingSphere(new this.THREE.Sphere()).radius;
+    return (1.02 * r + this.camera.near) / this.base.dist;
   }
 
   updateCamera() {
@@ -1215,8 +1243,7 @@ class Viewer {
     const onWheel = (e) => {
       e.preventDefault();
       const cam = this.clock.camera;
-      cam.zoom = Math.min(Math.max(cam.zoom * Math.exp(e.deltaY * 0.001), 0.1), 10);
-      this.clock.cameraChanged();
+      this.clock.setZoom(cam.zoom * Math.exp(e.deltaY * 0.001));
     };
     const onDbl = () => {
       Object.assign(this.clock.camera, { azimuth: 0, elevation: 0, zoom: 1, panX: 0, panY: 0 });

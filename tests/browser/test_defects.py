@@ -13,10 +13,11 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from conftest import ROOT, free_port, wait_http
-from test_dashboard import VIEWERS_READY, frames, seek_frame, slider, slider_value
+from test_dashboard import SRC, TGT, VIEWERS_READY, canvas, foreground, frames, seek_frame, shot, slider, slider_value
 
 
 def start_serve(data_dir, log):
@@ -93,6 +94,38 @@ def test_batch_tab_runs_under_face_retarget_serve(dash, served, artifacts):
     page.locator(".bk-tab", has_text="Retarget").first.click()
     page.wait_for_function(VIEWERS_READY, timeout=30_000)
     assert served[0].poll() is None, "the server died"
+
+
+@pytest.mark.browser
+@pytest.mark.slow
+def test_wheel_zoom_stops_outside_the_meshes_and_the_view_says_how_to_reset(dash, artifacts):
+    """Issue 33.3: the wheel moved the shared camera into the target mesh and the view went
+    empty. Zoomed in as far as the wheel goes, both views still show their face (most of the
+    canvas is mesh, not background), and each view says "double-click resets the view"."""
+    page = dash
+    page.locator(".bk-tab", has_text="Retarget").first.click()
+    page.wait_for_function(VIEWERS_READY, timeout=30_000)
+    box = canvas(page, TGT).bounding_box()
+    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    for _ in range(40):  # 40 x 500 wheel units: exp(-20) of the distance without the clamp
+        page.mouse.wheel(0, -500)
+    page.wait_for_timeout(800)
+    page.screenshot(path=str(artifacts / "defects_zoomed_in.png"))
+    from core.io.gltf import read_rig
+    from datapaths import RIGS
+
+    for label in (SRC, TGT):
+        neutral = read_rig(RIGS / f"{label}.glb").neutral
+        lo, hi = neutral.min(axis=0), neutral.max(axis=0)
+        centre, radius = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2  # three.js's Box3 bounding sphere
+        cam = np.array(page.evaluate(f"() => window.__faceRetarget.viewers[{label!r}].camera().position"))
+        d = float(np.linalg.norm(cam - centre))
+        assert d >= radius, f"{label}: the camera is {d:.3f} m from the mesh's centre, inside its {radius:.3f} m sphere"
+        covered = float(foreground(shot(page, label)).mean())
+        assert covered > 0.3, f"{label}: {covered:.2f} of the view shows the mesh after zooming in"
+    assert page.get_by_text("double-click resets the view").count() == 2
+    canvas(page, TGT).dblclick()
+    page.wait_for_timeout(500)
 
 
 def shown_frames(page) -> dict:
