@@ -376,7 +376,7 @@ class Session(param.Parameterized):
                     self.package = self.pipeline.run("snapshot", progress=self._progress)
                 timings = {k: v * 1e3 for k, v in self.pipeline.timings.items()}
                 self.snapshot = dict(self.package)
-                self.snapshot["warnings"] = list(dict.fromkeys(str(w.message) for w in caught))
+                self.snapshot["warnings"] = list(dict.fromkeys(self.without_paths(str(w.message)) for w in caught))
                 self.snapshot["timings"] = timings
                 self.snapshot["server_ms"] = (time.perf_counter() - t0) * 1e3
                 self.status = self._status_line()
@@ -414,15 +414,20 @@ class Session(param.Parameterized):
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         if not isinstance(e, (ValueError, KeyError, FileNotFoundError)):
             msg = f"{type(e).__name__}: {msg}"
-        if self._upload_dir is not None:
-            msg = msg.replace(str(self._upload_dir) + "/", "")
-        msg = msg.replace(str(DATA) + "/", "")
+        msg = self.without_paths(msg)
         # what the command line would say with a flag, the page says with its own controls
         for flag, words in (("(--source-rig)", "(choose the rig the curves drive under Source rig)"),
                             ("--source-rig", "the Source rig list"), ("--target-rig", "the Target rig list"),
                             ("(--source)", "(choose a take under Source performance)")):
             msg = msg.replace(flag, words)
         return msg
+
+    def without_paths(self, msg: str) -> str:
+        """``msg`` with this page's upload folder and the sample data folder taken off the file
+        paths it names: the files by the names the user knows."""
+        if self._upload_dir is not None:
+            msg = msg.replace(str(self._upload_dir) + "/", "")
+        return msg.replace(str(DATA) + "/", "")
 
     _t0 = 0.0
 

@@ -109,3 +109,15 @@ def test_upload_folders_of_dead_servers_are_swept(tmp_path):
         (d / "take.csv").write_text("x")
     assert sweep_orphan_uploads(tmp_path) == 1
     assert not dead.exists() and mine.exists() and other.exists()
+
+
+def test_a_data_note_of_an_uploaded_take_names_the_file_not_the_server_path(session):
+    """Issue 33.6: the note under the summary (a take's data-quality warning) showed the server's
+    temporary path of the upload; it names the file as uploaded."""
+    lines = (PERFORMANCES / "livelinkface_take_s07.csv").read_bytes().splitlines(keepends=True)
+    lines[5], lines[6] = lines[6], lines[5]  # the timecode goes backwards once
+    session.add_upload("jumpy.csv", b"".join(lines))
+    assert session.recompute(), session.error
+    notes = session.snapshot["warnings"]
+    assert any(n.startswith("jumpy.csv: column Timecode goes backwards") for n in notes), notes
+    assert not any(str(session.upload_dir) in n for n in notes), notes
