@@ -43,10 +43,15 @@ def _fig(title, y_label, height=260, x_range=None):
     return f
 
 
-def curve_columns(weights) -> np.ndarray:
+def curve_columns(weights, valid=None) -> np.ndarray:
     """(T, K) weights as the curve plot draws them: (K, T) float rows, NaN (tracking loss) kept
-    as gaps, ±inf made finite."""
-    return np.ascontiguousarray(np.nan_to_num(np.asarray(weights, dtype=float).T, nan=np.nan))
+    as gaps, ±inf made finite. ``valid`` (T,) bool: frames without data (False) become NaN too,
+    so a curve breaks there instead of running straight across the filled-in gap (which looked
+    like a face at rest)."""
+    cols = np.nan_to_num(np.asarray(weights, dtype=float).T, nan=np.nan)
+    if valid is not None:
+        cols[:, ~np.asarray(valid, bool)] = np.nan
+    return np.ascontiguousarray(cols)
 
 
 class CurvePlot:

@@ -48,7 +48,7 @@ class CurvesView(pn.viewable.Viewer):
         snap = self.s.snapshot
         if snap:
             self.curves.update(snap["times"], snap["weights"], snap["target_names"], list(self.w_shapes.value),
-                               columns=derived(snap, "curve_columns", lambda: curve_columns(snap["weights"])))
+                               columns=derived(snap, "curve_columns", lambda: curve_columns(snap["weights"], snap.get("valid"))))
             self.curves.set_time(self._time_of(self._frame()))
 
     def set_time(self, time_s: float) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 import panel as pn
 
 from core.evaluate import marker_error_field
+from core.gaps import gap_ranges
 from core.retarget import marker_rig
 from dashboard.session import derived
 from dashboard.viewer import MeshViewer, error_colors
@@ -91,7 +92,9 @@ class PlaybackView(pn.viewable.Viewer):
         fps = snap["fps"]
         # a view made now starts at the slider's frame (the link below carries only later changes):
         # a shot opened at frame 440 showed "Frame: 440" over views at frame 0
-        now = dict(frame=int(self.w_frame.value))
+        # frames without data (tracking loss) are marked in the views' labels
+        gaps = [list(g) for g in gap_ranges(snap["valid"])] if snap.get("valid") is not None else []
+        now = dict(frame=int(self.w_frame.value), gaps=gaps)
         # source: the driven source rig, or the captured markers on a triangulated marker mesh
         key = (id(snap["source_rig"]), snap["source_weights"] is None, len(snap["times"]), self.s.source)
         if key != self._viewer_keys["source"]:
@@ -123,6 +126,9 @@ class PlaybackView(pn.viewable.Viewer):
             self._viewer_keys["target"] = key
         else:
             self.target_viewer.set_track(track, fps=fps)
+        for v in (self.source_viewer, self.target_viewer):
+            if v is not None and v.gaps != gaps:
+                v.gaps = gaps
 
     def _frame_to_target(self, event) -> None:
         """A frame set from Python (a shot opened at its frame, a seek) reaches the target view

@@ -151,6 +151,8 @@ class MeshViewer(pn.custom.JSComponent):
                         "(dashboard.payloads), fetched by the browser; empty when the track travels in `track`.")
     weights = param.List(default=[], doc="K floats shown instead of the track while non-empty.")
     frame = param.Integer(default=0, bounds=(0, None), doc="Frame of the track shown.")
+    gaps = param.List(default=[], doc="[first, last] frame ranges without captured data (tracking loss): the "
+                                      "view's label says so at those frames (their weights are filled in).")
     playing = param.Boolean(default=False, doc="Play the track in the browser.")
     fps = param.Number(default=30.0, bounds=(0, None), inclusive_bounds=(False, True), doc="Playback rate.")
     loop = param.Boolean(default=True, doc="Wrap around at the end instead of stopping.")

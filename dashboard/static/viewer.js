@@ -1050,9 +1050,17 @@ class Viewer {
     const T = this.nFrames;
     this.overlay.textContent = `${this.model.label || ""}  frame ${frame} / ${T - 1}` +
       (this.override ? "  (probe)" : (this.model.weights && this.model.weights.length ? "  (weights from Python)" : "")) +
+      (!this.override && this.isGap(frame) ? "  — no tracking data at this frame (filled in)" : "") +
       (this.stats.geometryError ? `  — the mesh could not be loaded (${this.stats.geometryError}); reload the page` : "") +
       (this.stats.trackError ? `  — the weight track could not be loaded (${this.stats.trackError}); reload the page` : "");
-    this.overlay.style.color = this.stats.geometryError || this.stats.trackError ? "#ff8a80" : "#ddd";
+    this.overlay.style.color = this.stats.geometryError || this.stats.trackError ? "#ff8a80"
+      : (!this.override && this.isGap(frame) ? "#ffd54f" : "#ddd");
+  }
+
+  // Whether `frame` lies in one of the model's gaps ([first, last] frame ranges without data).
+  isGap(frame) {
+    for (const g of this.model.gaps || []) if (frame >= g[0] && frame <= g[1]) return true;
+    return false;
   }
 
   // position = neutral + sum_k w_k delta_k, normal = n0 + sum_k w_k dn_k over non-zero w_k;
@@ -1282,6 +1290,7 @@ class Viewer {
     m.on(["colors", "mesh_color"], () => { this.setColors(); this.requestRender(); });
     m.on("background_color", () => { this.scene.background.set(m.background_color); this.requestRender(); });
     m.on(["margin_factor", "frame_bounds"], () => this.fitCamera());
+    m.on(["gaps"], () => { if (this.clock) this.showFrame(this.clock.frame, false); });
     m.on(["highlight", "highlight_radius"], () => { this.setHighlight(); this.requestRender(); });
     m.on("highlight_color", () => {
       this.highlightMaterial.color.set(m.highlight_color); this.dragMaterial.color.set(m.highlight_color); this.requestRender();
