@@ -34,8 +34,10 @@ def _page_safe(method):
 
 
 def _fig(title, y_label, height=260, x_range=None):
+    # the wheel scrolls the page, not the plot (scrolling past the curves zoomed them): the wheel
+    # zoom is in the toolbar, off until chosen
     kw = dict(height=height, sizing_mode="stretch_width", title=title, tools="xpan,xwheel_zoom,box_zoom,reset,tap",
-              active_scroll="xwheel_zoom", x_axis_label="time (s)", y_axis_label=y_label, toolbar_location="above")
+              active_scroll=None, x_axis_label="time (s)", y_axis_label=y_label, toolbar_location="above")
     if x_range is not None:
         kw["x_range"] = x_range
     f = figure(**kw)

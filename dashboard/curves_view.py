@@ -49,7 +49,9 @@ class CurvesView(pn.viewable.Viewer):
         if snap:
             self.curves.update(snap["times"], snap["weights"], snap["target_names"], list(self.w_shapes.value),
                                columns=derived(snap, "curve_columns", lambda: curve_columns(snap["weights"], snap.get("valid"))))
-            self.curves.set_time(self._time_of(self._frame()))
+            # both cursors at this snapshot's time of the frame (the error plot's kept the
+            # previous take's frame rate after a switch)
+            self.set_time(self._time_of(self._frame()))
 
     def set_time(self, time_s: float) -> None:
         """Move both plots' cursor to ``time_s``."""

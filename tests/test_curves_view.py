@@ -44,3 +44,26 @@ def test_frames_without_data_are_marked_in_the_views(tmp_path):
     assert app.playback.target_viewer.gaps == [[100, 109]]
     ys = app.curves.curves.source.data["ys"]
     assert all(np.isnan(y[100:110]).all() and np.isfinite(y[90:100]).all() for y in ys)
+
+
+def test_both_cursors_follow_a_take_switch_and_the_wheel_does_not_zoom_the_plots():
+    """Issue 33.7: after a take switch the error plot's cursor stayed at the previous take's
+    time of the frame (its frame rate); and scrolling over the curve plot zoomed it."""
+    from types import SimpleNamespace
+
+    from dashboard.curves_view import CurvesView
+
+    def snap(T, fps):
+        return {"times": np.arange(T) / fps, "weights": np.zeros((T, 1)), "valid": np.ones(T, bool),
+                "target_names": ["a"], "derived": {},
+                "evaluate": {"marker_error_mm": np.zeros(T), "velocity_error_mm_per_frame": np.zeros(T)}}
+
+    session = SimpleNamespace(snapshot=snap(100, 30.0))
+    view = CurvesView(session, on_seek=lambda s: None, time_of=lambda f: session.snapshot["times"][f], frame=lambda: 60)
+    view.draw(session.snapshot)
+    assert view.curves.cursor.location == view.diag.cursor.location == 2.0
+    session.snapshot = snap(100, 60.0)  # the other take, at 60 fps
+    view.draw(session.snapshot)
+    assert view.curves.cursor.location == view.diag.cursor.location == 1.0
+    for fig in (view.curves.fig, view.diag.fig):
+        assert fig.toolbar.active_scroll is None
