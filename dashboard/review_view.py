@@ -8,6 +8,7 @@ hold; :class:`NameBox` keeps the reviewer's name in the browser (asked once, ``l
 from __future__ import annotations
 
 import html
+import time
 from collections import Counter
 from typing import Callable, Optional
 
@@ -252,6 +253,23 @@ class ReviewPanel:
             self.hub.param.unwatch(w)
 
 
+def when_text(t, now: Optional[float] = None) -> str:
+    """A store time (seconds since the epoch) as people read it, in the server's local time:
+    "today 14:03", "yesterday 09:12", or "3 Dec 2026 14:03" (the recent shots showed the raw
+    number). "" for a missing time."""
+    if t is None or t == "":
+        return ""
+    lt = time.localtime(float(t))
+    today = time.localtime(time.time() if now is None else now)
+    clock = time.strftime("%H:%M", lt)
+    days = (time.mktime(today[:3] + (12, 0, 0, 0, 0, -1)) - time.mktime(lt[:3] + (12, 0, 0, 0, 0, -1))) / 86400
+    if round(days) == 0:
+        return f"today {clock}"
+    if round(days) == 1:
+        return f"yesterday {clock}"
+    return f"{lt.tm_mday} {time.strftime('%b %Y', lt)} {clock}"
+
+
 def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
     """The widgets that start a shared shot (from ``make_shot()``), import a review .zip, or open a
     recent shot: a new shot's page is opened in this tab."""
@@ -294,8 +312,8 @@ def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
     for r in server.store.recent(recent_n):
         sid = r["id"] if isinstance(r, dict) else r[0]
         t = (r.get("title") if isinstance(r, dict) else "") or sid
-        when = r.get("updated", "") if isinstance(r, dict) else ""
-        rows.append(f"- [{html.escape(str(t))}](?shot={quote(sid)}) <span class='fr-muted'>{html.escape(str(when))}</span>")
+        when = when_text(r.get("updated")) if isinstance(r, dict) else ""
+        rows.append(f"- [{html.escape(str(t))}](?shot={quote(sid)}) <span class='fr-muted'>{html.escape(when)}</span>")
     recent = pn.pane.Markdown("**Recent shots**\n\n" + ("\n".join(rows) if rows else "*none yet*"), sizing_mode="stretch_width")
     return [w_title, w_new, pn.pane.Markdown("…or open a review someone sent you (the .zip of *Download the review*):",
                                              css_classes=["fr-muted"]), import_box, status, recent]

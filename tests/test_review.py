@@ -154,3 +154,28 @@ def test_the_participants_line_counts_pages_that_share_a_name():
     assert people_text(["someone", "someone", "ana"], "ana") == "Here now: ana, someone ×2 · presenting: **ana**"
     assert people_text([]) == "Here now: just you"
     assert people_text(["<b>x</b>"]) == "Here now: &lt;b&gt;x&lt;/b&gt;"
+
+
+def test_recent_shots_say_when_in_words():
+    """Issue 33 item 8: the recent shots showed the store's raw timestamp (1796...)."""
+    import time
+
+    from dashboard.review_view import when_text
+
+    now = time.mktime((2026, 12, 4, 15, 0, 0, 0, 0, -1))
+    assert when_text(time.mktime((2026, 12, 4, 14, 3, 0, 0, 0, -1)), now) == "today 14:03"
+    assert when_text(time.mktime((2026, 12, 3, 9, 12, 0, 0, 0, -1)), now) == "yesterday 09:12"
+    assert when_text(time.mktime((2026, 11, 28, 8, 5, 0, 0, 0, -1)), now) == "28 Nov 2026 08:05"
+    assert when_text(None) == ""
+
+
+def test_the_recent_shots_list_shows_the_time_in_words():
+    import time
+    from types import SimpleNamespace
+
+    from dashboard.review_view import _start
+
+    t = time.time()
+    server = SimpleNamespace(store=SimpleNamespace(recent=lambda n: [{"id": "abc", "title": "take one", "updated": t}]))
+    recent = _start(server, make_shot=lambda: None, label="New")[-1].object
+    assert f"today {time.strftime('%H:%M', time.localtime(t))}" in recent and str(t) not in recent, recent
