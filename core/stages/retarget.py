@@ -691,27 +691,36 @@ class Edit(Stage):
 
         st = inputs["calibrate"]["source"]  # the motion the solve fitted
         names = inputs["shapes"]["rig"].names
+        poses = edited_poses(W, names, s.edits)
+        # the frames re-solved: the windows' span (their ends keep W, so the terms outside do not
+        # count, SpacetimeSolver.edit), the whole take when an edit has none
+        lo, hi = ((min(w[0] for _, _, w in poses), max(w[1] for _, _, w in poses))
+                  if all(w is not None for _, _, w in poses) else (0, len(W) - 1))
         edits = []
-        for f, pose, win in edited_poses(W, names, s.edits):
+        for f, pose, win in poses:
             known = np.flatnonzero(np.isfinite(pose))  # a frame without samples (NaN) keeps those free
-            edits.append(PoseEdit(f, pose[known], known, win))
+            edits.append(PoseEdit(f - lo, pose[known], known, None if win is None else (win[0] - lo, win[1] - lo)))
+        span = slice(lo, hi + 1)
+        Ws = W[span]
         opt = inputs["solve"]["edit"]
-        named = named_target(inputs) if opt["name_weight"] > 0 else None
+        named = named_target(inputs)[span] if opt["name_weight"] > 0 else None
         deltas = inputs["personalize"]["deltas"]
-        B, S, valid, mw = with_curve_motion(deltas, st.deltas, W, st.valid, inputs["shapes"].get("weights"),
-                                            EDIT_CURVE_MOTION)
+        B, S, valid, mw = with_curve_motion(deltas, st.deltas[span], Ws, None if st.valid is None else st.valid[span],
+                                            inputs["shapes"].get("weights"), EDIT_CURVE_MOTION)
         K = W.shape[1]
         # sigma_max^2 grows from s to (1 + EDIT_CURVE_MOTION) s: the relative settings keep their absolute size
         rel = 1.0 / (1.0 + EDIT_CURVE_MOTION)
         prior = prior_quadratic(inputs["prior"]["prior"] if inputs.get("prior") else None, deltas.reshape(K, -1).T, K)
         quad = opt.get("quadratic")
         solver = SpacetimeSolver(B, S, alpha=opt["alpha"], beta=opt["beta"], prior=prior,
-                                 known={0: W[0], len(W) - 1: W[-1]}, valid=valid, names=names,
+                                 known={0: Ws[0], len(Ws) - 1: Ws[-1]}, valid=valid, names=names,
                                  ridge=opt["ridge"] if isinstance(opt["ridge"], str) else opt["ridge"] * rel,
                                  lower=opt["lower"], upper=opt["upper"], l1=opt["l1"] * rel,
                                  marker_weights=mw, name_target=named, name_weight=opt["name_weight"] * rel,
                                  quadratic=None if quad is None else np.asarray(quad) * rel)
-        return {"weights": solver.edit(W, edits=edits), "edits": list(s.edits)}
+        out = W.copy()
+        out[span] = solver.edit(Ws, edits=edits)
+        return {"weights": out, "edits": list(s.edits)}
 
 
 @register("synthesize")
