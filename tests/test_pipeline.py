@@ -328,3 +328,13 @@ def test_cache_shares_work_in_flight():
     assert cache.compute("j", lambda: 7) == (False, 7)  # waited for the failure, then computed
     t.join()
     assert cache.compute("j", lambda: 8) == (True, 7)
+
+
+def test_lowest_and_highest_weight_share_one_scale():
+    """Issue 33.7: the Lowest/Highest weight sliders ran over -1..0 and 1..2, so the lowest (0)
+    sat at its right end and the highest (1) at its left: they looked swapped. One scale now,
+    on which the lowest's default is left of the highest's."""
+    p = Pipeline().solve.param
+    assert p.lower.softbounds == p.upper.softbounds
+    lo, hi = p.lower.softbounds
+    assert lo < p.lower.default < p.upper.default < hi

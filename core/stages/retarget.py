@@ -482,8 +482,10 @@ class Solve(Stage):
         "auto: what serves this pair and take best, said in one sentence (the default); lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
         "range_pf/prior_pf: Seol 2012 §7 baselines; spacetime: Seol 2012 movement matching; local: Liu 2011 "
         "regions; geometric: Ribera 2017 prior + L1; transfer: Xu 2014 dense transfer (a new rig)"))
-    lower = param.Number(label='Lowest weight', default=0.0, softbounds=(-1, 0), doc="Lower weight bound (bounded, geometric, spacetime, local box; per shape in the controls)")
-    upper = param.Number(label='Highest weight', default=1.0, softbounds=(1, 2), doc="Upper weight bound (bounded, geometric, spacetime, local box; per shape in the controls)")
+    # one scale for both (-1..2): with -1..0 and 1..2 the lowest sat at its slider's right end and the
+    # highest at its left, and they looked swapped
+    lower = param.Number(label='Lowest weight', default=0.0, softbounds=(-1, 2), doc="Lower weight bound (bounded, geometric, spacetime, local box; per shape in the controls)")
+    upper = param.Number(label='Highest weight', default=1.0, softbounds=(-1, 2), doc="Upper weight bound (bounded, geometric, spacetime, local box; per shape in the controls)")
     alpha = param.Number(label="Stay near the rig's own expressions (Seol α)", default=0.01, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="PCA prior weight alpha (Seol 2012 eq. 4)")
     beta = param.Number(label='Hold positions, not only motion (Seol β)', default=0.0, bounds=(0, None), softbounds=(0, 1), step=0.001, doc="Sobolev position weight beta (Seol 2012 §7.1)")
     boundary = param.Selector(label='First and last frame (Seol boundary)', default="perframe", objects=["perframe", "neutral", "none"], doc=(
