@@ -35,6 +35,19 @@ def _frozen_rig(rig, track):
     return rig, track
 
 
+def error_legend(field) -> str:
+    """The error map's legend (HTML): :func:`dashboard.viewer.error_colors`' scale from 0 to the
+    largest value of ``field`` (V,) in millimetres (each marker's RMS error over the take), and blue for vertices without data."""
+    finite = np.isfinite(field)
+    top = float(np.max(field[finite])) if finite.any() else 0.0
+    return ("<div style='display:flex;align-items:center;gap:8px;font-size:12px'>"
+            "<span>marker error on the target (RMS over the take, blended between markers):</span><span>0 mm</span>"
+            "<span style='display:inline-block;width:160px;height:10px;background:linear-gradient(to right, "
+            "rgb(217,209,204), rgb(255,153,26), rgb(217,13,13))'></span>"
+            f"<span>{top:.1f} mm</span><span style='display:inline-block;width:10px;height:10px;"
+            "background:rgb(51,89,230);margin-left:10px'></span><span>no marker nearby</span></div>")
+
+
 class PlaybackView(pn.viewable.Viewer):
     """The source and target views, the frame slider, play and the target's colouring.
 
@@ -67,8 +80,10 @@ class PlaybackView(pn.viewable.Viewer):
         heads = pn.pane.HTML("<div style='display:flex;font-weight:bold;margin:0 10px'><span style='flex:1'>Source</span>"
                              "<span style='flex:1'>Target</span></div>",
                              sizing_mode="stretch_width", margin=(5, 0, 0, 0))
+        # the error map's scale: what the colours mean, in millimetres (shown with the map only)
+        self.w_legend = pn.pane.HTML("", visible=False, sizing_mode="stretch_width", margin=(0, 10))
         self.rows = [heads, pn.Row(self.source_box, self.target_box, sizing_mode="stretch_width"),
-                     pn.Row(self.w_play, self.w_frame, self.w_heat, sizing_mode="stretch_width")]
+                     pn.Row(self.w_play, self.w_frame, self.w_heat, sizing_mode="stretch_width"), self.w_legend]
 
     def __panel__(self):
         return pn.Column(*self.rows, sizing_mode="stretch_width")
@@ -152,9 +167,11 @@ class PlaybackView(pn.viewable.Viewer):
         if not snap or self.target_viewer is None:
             return
         mode = self.w_heat.value
+        self.w_legend.visible = mode == "error map"
         if mode == "error map":
             field = marker_error_field(snap["target_rig"], snap["target_layout"], snap["evaluate"]["marker_error_per_marker_mm"])
             self.target_viewer.set_colors(error_colors(field))
+            self.w_legend.object = error_legend(field)
         elif mode == "regions" and snap.get("segment"):
             labels = snap["segment"]["labels"]
             self.target_viewer.set_colors(REGION_COLORS[labels % len(REGION_COLORS)])

@@ -67,3 +67,23 @@ def test_both_cursors_follow_a_take_switch_and_the_wheel_does_not_zoom_the_plots
     assert view.curves.cursor.location == view.diag.cursor.location == 1.0
     for fig in (view.curves.fig, view.diag.fig):
         assert fig.toolbar.active_scroll is None
+
+
+def test_the_error_map_has_a_legend_in_millimetres():
+    """Issue 33 item 8: the error map coloured the target with no legend and no units; with the
+    map on, a legend says what the colours mean, from 0 mm to the largest error in mm."""
+    from core.evaluate import marker_error_field
+    from core.pipeline import StageCache
+    from dashboard.app import DashboardApp
+    from dashboard.session import Session
+
+    app = DashboardApp(Session(cache=StageCache()))
+    pb = app.playback
+    assert not pb.w_legend.visible
+    pb.w_heat.value = "error map"
+    snap = app.s.snapshot
+    top = np.nanmax(marker_error_field(snap["target_rig"], snap["target_layout"],
+                                       snap["evaluate"]["marker_error_per_marker_mm"]))
+    assert pb.w_legend.visible and "0 mm" in pb.w_legend.object and f"{top:.1f} mm" in pb.w_legend.object
+    pb.w_heat.value = "plain"
+    assert not pb.w_legend.visible
