@@ -109,3 +109,25 @@ def test_upload_folders_of_dead_servers_are_swept(tmp_path):
         (d / "take.csv").write_text("x")
     assert sweep_orphan_uploads(tmp_path) == 1
     assert not dead.exists() and mine.exists() and other.exists()
+
+
+def test_an_uploaded_rig_is_offered_as_the_target_or_the_source_rig():
+    """Issue 32 item 2: the note of an uploaded rig carries *Use as target* / *Use as source rig*;
+    the button selects it, and the offer goes with the next note."""
+    from dashboard.app import DashboardApp
+    from dashboard.session import Session
+
+    app = DashboardApp(Session(cache=StageCache()))
+    app.s.auto_update = False  # what is chosen is the point here, not the result
+    app.sidebar.w_upload.param.update(filename="tiger copy.glb", value=(RIGS / "jeeliz_tiger.glb").read_bytes())
+    assert "tiger copy.glb" in app.w_alert.object and "rig lists" in app.w_alert.object and app.w_offer.visible
+    assert app.s.target_rig != "⤒ tiger copy.glb"
+    app.w_use_source_rig.clicks += 1
+    assert app.s.source_rig == "⤒ tiger copy.glb" and not app.w_offer.visible
+    app.sidebar.w_upload.param.update(filename="tiger again.glb", value=(RIGS / "jeeliz_tiger.glb").read_bytes())
+    assert app.w_offer.visible
+    app.w_use_target.clicks += 1
+    assert app.s.target_rig == "⤒ tiger again.glb" and app.s.source_rig == "⤒ tiger copy.glb"
+    # a take is the source at once, and offers nothing
+    app.sidebar.w_upload.param.update(filename="take.csv", value=(PERFORMANCES / "livelinkface_rom.csv").read_bytes())
+    assert app.s.source == "⤒ take.csv" and not app.w_offer.visible
