@@ -236,7 +236,8 @@ class DashboardApp(pn.viewable.Viewer):
             self.w_alert, self.w_offer,
             *self.playback.rows,
             *self.summary.rows,
-            pn.Row(self.curves.layout, pn.Column(self.edits.card, self.playback.region_box, width=330),
+            pn.Row(self.curves.layout, pn.Column(self.edits.card, self.playback.region_box, width=330,
+                                                 css_classes=["fr-edit-column"]),
                    sizing_mode="stretch_width"),
             self.shape_controls.card,
             sizing_mode="stretch_width",
@@ -250,6 +251,12 @@ class DashboardApp(pn.viewable.Viewer):
         self.tabs.append(("Batch", self._tab_boxes["batch"]))
         self._normalmap_tab = 2
         self.tabs.param.watch(self._on_tab, "active")
+        # the handles the layout test measures the page by (tests/browser/test_first_page.py)
+        sidebar.css_classes = [*sidebar.css_classes, "fr-sidebar"]
+        self.curves.layout.css_classes = [*self.curves.layout.css_classes, "fr-curves"]
+        self.summary.w_summary.css_classes = [*self.summary.w_summary.css_classes, "fr-summary"]
+        self.edits.card.css_classes = [*self.edits.card.css_classes, "fr-edit"]
+        self.shape_controls.card.css_classes = [*self.shape_controls.card.css_classes, "fr-shapes"]
         self.layout = pn.Row(sidebar, self.tabs, sizing_mode="stretch_both")
 
     # -- events -----------------------------------------------------------------------------
