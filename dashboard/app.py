@@ -46,6 +46,7 @@ from dashboard.review import Mirror, on_page  # noqa: E402
 from dashboard.review_view import ReviewPanel  # noqa: E402
 from dashboard import review as shared  # noqa: E402 (the review server: shared.SERVER)
 from dashboard import session as sessions  # noqa: E402
+from dashboard import warm  # noqa: E402
 from dashboard.session import Session  # noqa: E402
 from dashboard.shape_controls_view import ShapeControlsView  # noqa: E402
 from dashboard.summary_view import SummaryView  # noqa: E402
@@ -231,7 +232,11 @@ class DashboardApp(pn.viewable.Viewer):
     def _build_layout(self):
         sidebar = self.sidebar.layout
         if self.review is not None:
-            self.sidebar.review_slot[:] = [self.review.card]
+            # a page opened at ?shot= is the shot's: its review card (people, notes) heads the
+            # sidebar. (Below the settings, a page built ahead (dashboard.warm) kept a second,
+            # never rendered view of the Method select, which threw in the browser when the shot
+            # re-sent the method: tests/browser/test_review_browser.py's warm-page test.)
+            sidebar.insert(1, self.review.card)
         main = pn.Column(
             self.w_alert, self.w_offer,
             *self.playback.rows,
@@ -333,8 +338,17 @@ class DashboardApp(pn.viewable.Viewer):
         self.sidebar.review_slot[:] = [self.review.card]
         if pn.state.location is not None:
             pn.state.location.search = f"?shot={quote(sid)}"
+        self._keep_warm(sid, hub)
         self._drawn = None
         self.refresh()
+
+    def _keep_warm(self, sid: str, hub) -> None:
+        """Pages of the new shot are built ahead (:mod:`dashboard.warm`), as for a page opened at
+        ``?shot=<id>``: the people the link is sent to open it at once. On the document's event
+        loop (this runs in a click's callback, maybe on a worker thread)."""
+        doc, pool = pn.state.curdoc, warm.POOL
+        if pool is not None and doc is not None and getattr(doc, "session_context", None) is not None:
+            doc.add_next_tick_callback(lambda: pool.want_made_here(sid, hub))
 
     def open_review_archive(self, name: str, data: bytes) -> None:
         """A review someone sent (the .zip of *Download the review*): imported into this server's
@@ -431,8 +445,6 @@ def create_app():
         hub = review.SERVER.hub(sid)
     except (UnknownShot, ValueError):
         return pn.pane.Markdown(f"## No shot {html.escape(sid)!s}\n\n[Start or open a shot](?)", margin=30)
-    from dashboard import warm
-
     session = Session()
     session.open_shot(hub.shot, name=sid, locate=review.SERVER.store.locate)
     user = getattr(pn.state, "user", None) or ""
