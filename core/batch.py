@@ -72,6 +72,7 @@ from .io.sequence import FRAME_SUFFIXES
 from .outputs import write_outputs
 from .pipeline import Pipeline, StageCache, file_key
 from .progress import ProgressFn
+from .report import readable
 from .shot import FileRef, Shot
 
 #: version of the output folder layout (``manifest.json``'s ``format``)
@@ -606,7 +607,7 @@ def _fmt(v) -> str:
     if v is None:
         return ""
     if isinstance(v, float):
-        return f"{v:.4g}"
+        return readable(v, digits=4)  # never 1.235e+04 in a page for people
     return str(v)
 
 

@@ -46,6 +46,27 @@ SUMMARY_KEYS = ("frames", "frames_without_data", "marker_mean_mm", "marker_p95_m
                 "jitter", "weight_min", "weight_max", "active_per_frame")
 
 
+def readable(x, digits: int = 3, max_decimals: int = 6) -> str:
+    """``x`` rounded for people: ``digits`` significant digits in plain decimal notation, never
+    scientific (``4220``, ``0.0981``, ``0.000012``); at most ``max_decimals`` decimals (smaller
+    magnitudes show as ``0``); ``""`` for None, ``"nan"``/``"inf"`` as Python spells them.
+
+    Whole numbers keep every digit (``12345.6`` -> ``12346``): rounding 12346 to three
+    significant digits would print a number that was never measured."""
+    if x is None:
+        return ""
+    x = float(x)
+    if not np.isfinite(x):
+        return str(x)
+    if x == 0:
+        return "0"
+    decimals = int(min(max(digits - 1 - np.floor(np.log10(abs(x))), 0), max_decimals))
+    out = f"{x:.{decimals}f}"
+    if decimals and abs(float(out)) >= 10 ** (digits - decimals):  # rounded up a decade: 0.099999 -> 0.100
+        out = f"{x:.{decimals - 1}f}"
+    return "0" if float(out) == 0 else out
+
+
 def ground_truth(load: dict, frames: dict) -> Optional[dict]:
     """The target driven by the source's own curves through their canonical names, or None.
 

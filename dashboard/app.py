@@ -19,11 +19,13 @@ are views of their own, made when first opened.
 from __future__ import annotations
 
 import html
+import io
 import logging
 import os
 import sys
 import uuid
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 import panel as pn
@@ -43,6 +45,9 @@ from dashboard.pose_edit_view import PoseEditView  # noqa: E402
 from dashboard.retarget_sidebar import RetargetSidebar  # noqa: E402
 from dashboard.review import Mirror, on_page  # noqa: E402
 from dashboard.review_view import ReviewPanel  # noqa: E402
+from dashboard import review as shared  # noqa: E402 (the review server: shared.SERVER)
+from dashboard import session as sessions  # noqa: E402
+from dashboard import warm  # noqa: E402
 from dashboard.session import Session  # noqa: E402
 from dashboard.shape_controls_view import ShapeControlsView  # noqa: E402
 from dashboard.summary_view import SummaryView  # noqa: E402
@@ -78,6 +83,13 @@ class DashboardApp(pn.viewable.Viewer):
         self._tab_boxes = {n: pn.Column(sizing_mode="stretch_width") for n in TAB_VIEWS}
         # errors: a banner in the page (Panel's toast area rendered without its text outside a template)
         self.w_alert = pn.pane.Alert("", alert_type="danger", visible=False, sizing_mode="stretch_width", css_classes=["fr-error"])
+        # a rig just uploaded is offered at once, in its note (see notify)
+        self._offered = None
+        self.w_use_target = pn.widgets.Button(name="Use as target", button_type="primary", width=150)
+        self.w_use_source_rig = pn.widgets.Button(name="Use as source rig", button_type="light", width=150)
+        self.w_use_target.on_click(lambda e: self.use_rig("target_rig"))
+        self.w_use_source_rig.on_click(lambda e: self.use_rig("source_rig"))
+        self.w_offer = pn.Row(self.w_use_target, self.w_use_source_rig, visible=False, margin=(0, 10, 5, 10))
         self.markers = MarkerLayoutView(self)
         self.sidebar = RetargetSidebar(self, self.markers.card)
         self.playback = PlaybackView(self.s, picking=self.markers.moving, on_target_pick=self.markers.on_target_pick)
@@ -221,12 +233,17 @@ class DashboardApp(pn.viewable.Viewer):
     def _build_layout(self):
         sidebar = self.sidebar.layout
         if self.review is not None:
+            # a page opened at ?shot= is the shot's: its review card (people, notes) heads the
+            # sidebar. (Below the settings, a page built ahead (dashboard.warm) kept a second,
+            # never rendered view of the Method select, which threw in the browser when the shot
+            # re-sent the method: tests/browser/test_review_browser.py's warm-page test.)
             sidebar.insert(1, self.review.card)
         main = pn.Column(
-            self.w_alert,
+            self.w_alert, self.w_offer,
             *self.playback.rows,
             *self.summary.rows,
-            pn.Row(self.curves.layout, pn.Column(self.edits.card, self.playback.region_box, width=330),
+            pn.Row(self.curves.layout, pn.Column(self.edits.card, self.playback.region_box, width=330,
+                                                 css_classes=["fr-edit-column"]),
                    sizing_mode="stretch_width"),
             self.shape_controls.card,
             sizing_mode="stretch_width",
@@ -241,6 +258,12 @@ class DashboardApp(pn.viewable.Viewer):
         self._normalmap_tab = 2
         self.tabs.param.watch(self._on_tab, "active")
         # ConnectionWatch: "Connection lost" over the page when its server is gone (whichever tab is open)
+        # the handles the layout test measures the page by (tests/browser/test_first_page.py)
+        sidebar.css_classes = [*sidebar.css_classes, "fr-sidebar"]
+        self.curves.layout.css_classes = [*self.curves.layout.css_classes, "fr-curves"]
+        self.summary.w_summary.css_classes = [*self.summary.w_summary.css_classes, "fr-summary"]
+        self.edits.card.css_classes = [*self.edits.card.css_classes, "fr-edit"]
+        self.shape_controls.card.css_classes = [*self.shape_controls.card.css_classes, "fr-shapes"]
         self.layout = pn.Row(sidebar, self.tabs, ConnectionWatch(), sizing_mode="stretch_both")
 
     # -- events -----------------------------------------------------------------------------
@@ -277,11 +300,78 @@ class DashboardApp(pn.viewable.Viewer):
         times = self.s.snapshot.get("times")
         return float(times[min(frame, len(times) - 1)]) if times is not None and len(times) else 0.0
 
-    def notify(self, kind: str, msg: str):
-        """Errors and notices as a banner at the top of the page (never a stack trace)."""
+    def notify(self, kind: str, msg: str, rig: str | None = None):
+        """Errors and notices as a banner at the top of the page (never a stack trace); ``rig``
+        (the list label of a rig just uploaded) adds *Use as target* / *Use as source rig* under it."""
         log.info("%s: %s", kind, msg)
         self.w_alert.param.update(object=f"**{'Error' if kind == 'error' else 'Note'}:** {html.escape(msg)}",
                                   alert_type="danger" if kind == "error" else "info", visible=True)
+        self._offered = rig
+        if self.w_offer.visible != (rig is not None):
+            self.w_offer.visible = rig is not None
+
+    def use_rig(self, role: str) -> None:
+        """The rig offered in the note becomes the target (``role="target_rig"``) or the source rig;
+        a target without a marker layout gets its markers placed automatically (the Markers card
+        shows the progress and the markers that landed badly)."""
+        label = self._offered
+        if label is None or label not in self.s.files["rigs"]:
+            return
+        self.w_offer.visible = False
+        self._offered = None
+        setattr(self.s, role, label)  # recomputes (auto-update)
+        name = label.removeprefix(sessions.UPLOAD)
+        if role == "target_rig" and self.s.needs_layout:
+            self.notify("info", f"{name} is the target: placing its markers automatically (see Markers on the target rig)")
+            self.markers.card.collapsed = False
+            self.markers.place()
+        elif not self.s.error:
+            self.notify("info", f"{name} is the {'target' if role == 'target_rig' else 'source rig'}")
+
+    # -- shared shots: this page becomes one ----------------------------------------------
+    def open_shared(self, sid: str) -> None:
+        """This page joins the shared shot ``sid`` in place (just made from it, or imported): the
+        page shows the shot, its Shared review card the people and the notes, and the address bar
+        ``?shot=<id>`` (the history API: no reload; a reload opens the same shot)."""
+        if self.mirror is not None or shared.SERVER is None:
+            return
+        hub = shared.SERVER.hub(sid)
+        self._join(hub, getattr(pn.state, "user", None) or "")
+        self.sidebar.review_slot[:] = [self.review.card]
+        if pn.state.location is not None:
+            pn.state.location.search = f"?shot={quote(sid)}"
+        self._keep_warm(sid, hub)
+        self._drawn = None
+        self.refresh()
+
+    def _keep_warm(self, sid: str, hub) -> None:
+        """Pages of the new shot are built ahead (:mod:`dashboard.warm`), as for a page opened at
+        ``?shot=<id>``: the people the link is sent to open it at once. On the document's event
+        loop (this runs in a click's callback, maybe on a worker thread)."""
+        doc, pool = pn.state.curdoc, warm.POOL
+        if pool is not None and doc is not None and getattr(doc, "session_context", None) is not None:
+            doc.add_next_tick_callback(lambda: pool.want_made_here(sid, hub))
+
+    def open_review_archive(self, name: str, data: bytes) -> None:
+        """A review someone sent (the .zip of *Download the review*): imported into this server's
+        review store and opened on this page (:meth:`open_shared`)."""
+        if shared.SERVER is None:
+            self.notify("error", f"{name} is a review (.zip): open it on a review server (face-retarget serve "
+                                 "keeps reviews unless started with --no-review)")
+            return
+        if self.mirror is not None:
+            self.notify("error", f"{name} is a review: this page shows a shared shot already; open it from a new page")
+            return
+        if not data:
+            self.notify("error", f"{name} is empty: upload the file again (the upload may have been cut off)")
+            return
+        try:
+            sid = shared.SERVER.store.import_(io.BytesIO(data), author="import")
+        except ValueError as e:  # named, plain words (core.store)
+            self.notify("error", f"{name}: {e}")
+            return
+        self.open_shared(sid)
+        self.notify("info", f"review {name} opened as a shared shot")
 
     # -- redraw -----------------------------------------------------------------------------
     def refresh(self):
@@ -349,7 +439,7 @@ def create_app():
         from dashboard.review_view import review_start
 
         app = DashboardApp()
-        app.layout[0].insert(1, review_start(review.SERVER, app.s.shot))
+        app.sidebar.review_slot[:] = [review_start(review.SERVER, app.s.shot, on_open=app.open_shared)]
         return app.layout
     from core.store import UnknownShot
 
@@ -357,8 +447,6 @@ def create_app():
         hub = review.SERVER.hub(sid)
     except (UnknownShot, ValueError):
         return pn.pane.Markdown(f"## No shot {html.escape(sid)!s}\n\n[Start or open a shot](?)", margin=30)
-    from dashboard import warm
-
     session = Session()
     session.open_shot(hub.shot, name=sid, locate=review.SERVER.store.locate)
     user = getattr(pn.state, "user", None) or ""

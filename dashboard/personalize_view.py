@@ -28,6 +28,8 @@ from bokeh.models import (BoxAnnotation, ColorBar, ColumnDataSource, CustomJSHov
 from bokeh.palettes import Viridis256
 from bokeh.plotting import figure
 
+from core.report import readable
+
 HINT = (
     "**Range-of-motion alignment is off.** Tick **personalize** in the sidebar to fit actor-specific "
     "blendshapes (Ribera et al. 2017 §4): the target's marker blendshapes, warped into the actor's proportions "
@@ -281,11 +283,11 @@ class PersonalizeView(pn.viewable.Viewer):
     def _draw_energies(self, diag):
         e = diag.energies
         rows = "".join(
-            f"<tr><td>{label}</td><td style='text-align:right'>{e['initial'][k]:.3g}</td>"
-            f"<td style='text-align:right'>{e['aligned'][k]:.3g}</td></tr>"
+            f"<tr><td>{label}</td><td style='text-align:right'>{readable(e['initial'][k] * 1e6)}</td>"
+            f"<td style='text-align:right'>{readable(e['aligned'][k] * 1e6)}</td></tr>"
             for k, label in (("match", "E_Match (eq. 10)"), ("mesh", "E_Mesh (eq. 11)"), ("ceg", "E_CEG (eq. 13)"),
                              ("total", "E_Align (eq. 4)")) if k in e.get("initial", {}) and k in e.get("aligned", {}))
-        self.energies.object = ("<table style='font-size:0.85em'><tr><th>energy (m²)</th><th>initial Δg</th>"
+        self.energies.object = ("<table style='font-size:0.85em'><tr><th>energy (mm²)</th><th>initial Δg</th>"
                                 f"<th>aligned Δp</th></tr>{rows}</table>") if rows else ""
 
     def _draw_shape(self):

@@ -32,30 +32,33 @@ class PoseEditView(pn.viewable.Viewer):
         self.w_value = pn.widgets.FloatSlider(name="Weight at this frame", start=-0.5, end=1.5, step=0.01, value=0.0, sizing_mode="stretch_width")
         self.w_shape.param.watch(lambda e: self.sync_value(), "value")
         self.w_window = pn.widgets.IntSlider(name="Propagation half-window (frames, 0: whole take)", start=0, end=120, value=12, sizing_mode="stretch_width")
-        self.w_add = pn.widgets.Button(name="Set pose at this frame", button_type="primary")
+        # the card is 330 px wide: its rows share that width (fixed widths made Redo stick out of
+        # the card and the page by 3 px at every width)
+        self.w_add = pn.widgets.Button(name="Set pose at this frame", button_type="primary", sizing_mode="stretch_width")
         self.w_add.on_click(lambda e: self.add())
-        self.w_undo = pn.widgets.Button(name="Undo", width=70)
-        self.w_redo = pn.widgets.Button(name="Redo", width=70)
+        self.w_undo = pn.widgets.Button(name="Undo", width=60)
+        self.w_redo = pn.widgets.Button(name="Redo", width=60)
         self.w_undo.on_click(lambda e: self.undo())
         self.w_redo.on_click(lambda e: self.redo())
         self.w_list = pn.Column(sizing_mode="stretch_width")
         # example poses: the whole result at this frame, with the slider's weight, as a pose auto learns from
-        self.w_pose = pn.widgets.Button(name="Use as example pose", button_type="default",
+        self.w_pose = pn.widgets.Button(name="Use as example pose", button_type="default", sizing_mode="stretch_width",
                                         description="auto learns from the poses you set which target shapes each of the "
                                                     "actor's expressions maps to, for the whole take")
         self.w_pose.on_click(lambda e: self.use_as_pose())
-        self.w_suggest = pn.widgets.Button(name="Suggest frames to pose", button_type="light",
+        self.w_suggest = pn.widgets.Button(name="Suggest frames to pose", button_type="light", sizing_mode="stretch_width",
                                            description="frames far apart in expression, not posed yet")
         self.w_suggest.on_click(lambda e: self.suggest())
         self.w_clear = pn.widgets.Button(name="Clear poses", button_type="light", width=100)
         self.w_clear.on_click(lambda e: self.clear_poses())
-        self.w_poses = pn.pane.Markdown("", css_classes=["fr-muted"], margin=(2, 5))
+        self.w_poses = pn.pane.Markdown("", css_classes=["fr-muted"], margin=(2, 5), sizing_mode="stretch_width")
         self.card = pn.Card(
             pn.pane.Markdown("Set a weight at the current frame; the change propagates over the window by movement "
                              "matching (Seol 2012 §6).", css_classes=["fr-muted"]),
             self.w_shape, self.w_value, self.w_window,
-            pn.Row(self.w_add, self.w_undo, self.w_redo), self.w_list,
-            pn.Row(self.w_pose, self.w_suggest), pn.Row(self.w_poses, self.w_clear),
+            pn.Row(self.w_add, self.w_undo, self.w_redo, sizing_mode="stretch_width"), self.w_list,
+            pn.Row(self.w_pose, self.w_suggest, sizing_mode="stretch_width"),
+            pn.Row(self.w_poses, self.w_clear, sizing_mode="stretch_width"),
             title="Edit (spacetime propagation, any method)", collapsed=False, sizing_mode="stretch_width")
 
     def __panel__(self):
@@ -175,5 +178,7 @@ class PoseEditView(pn.viewable.Viewer):
             b.on_click(lambda ev, i=i: self.remove(i))
             m = pn.widgets.Button(name="⇄", width=34, button_type="light", description="the same edit on the other side")
             m.on_click(lambda ev, i=i: self.mirror(i))
-            rows.append(pn.Row(pn.pane.Markdown(f"frame {e['frame']}: `{shape}` = {value:g} ({win})", margin=(2, 5)), m, b))
+            # the slider's step is 0.01: two decimals, never 1e-05
+            rows.append(pn.Row(pn.pane.Markdown(f"frame {e['frame']}: `{shape}` = {value:.2f} ({win})", margin=(2, 5),
+                                                sizing_mode="stretch_width"), m, b, sizing_mode="stretch_width"))
         self.w_list[:] = rows or [pn.pane.Markdown("*no edits*", css_classes=["fr-muted"])]

@@ -31,6 +31,11 @@ log = logging.getLogger("face_retarget.dashboard")
 
 SIDEBAR_WIDTH = 330
 
+#: what the one upload box takes: takes, rigs, .json (shot, marker layout, name map, controls), a review .zip
+UPLOAD_ACCEPT = ".csv,.trc,.c3d,.glb,.gltf,.usd,.usda,.usdc,.usdz,.json,.zip"
+UPLOAD_HINT = ("Drop a file anywhere on the page, or choose it here: a take (.csv/.trc/.c3d), a rig (.glb/.usd), "
+               "a .json shot, marker layout or name map, or a review (.zip)")
+
 #: the heading of the sidebar's timings, above the table draw_timings() puts under it
 TIMINGS_HEAD = ruled_heading("Timings", "(server, last change)")
 
@@ -75,7 +80,7 @@ class RetargetSidebar(pn.viewable.Viewer):
     """The sidebar of the Retarget tab (files, solver settings, status, shot download, timings).
 
     ``marker_card``: the "Markers on the target rig" card, placed under the uploads.
-    ``layout`` is the sidebar's column (the page puts the review card into it, at index 1)."""
+    ``layout`` is the sidebar's column; the page puts its Shared review card into ``review_slot``."""
 
     def __init__(self, host, marker_card, **params):
         super().__init__(**params)
@@ -86,12 +91,18 @@ class RetargetSidebar(pn.viewable.Viewer):
         self.w_source = pn.widgets.Select.from_param(s.param.source, name="Source performance", sizing_mode="stretch_width")
         self.w_source_rig = pn.widgets.Select.from_param(s.param.source_rig, name="Source rig (for weight curves)", sizing_mode="stretch_width")
         self.w_target = pn.widgets.Select.from_param(s.param.target_rig, name="Target rig", sizing_mode="stretch_width")
-        self.w_upload = pn.widgets.FileInput(accept=".csv,.trc,.c3d,.glb,.gltf,.json", multiple=False, sizing_mode="stretch_width")
+        # one upload box for every kind of file, and the whole page a drop target for it: each file
+        # goes where it belongs by its content (Session.upload), a review .zip to the review store
+        self.w_upload = pn.widgets.FileInput(accept=UPLOAD_ACCEPT, multiple=False, sizing_mode="stretch_width")
         self.w_upload.param.watch(self._on_upload, ["value", "filename"], onlychanged=False)
         # a file over the limit is refused in the browser with a message (sent whole, over twice
-        # the limit it would close the page's connection: dashboard.upload_guard)
-        self.w_upload_box = UploadGuard(self.w_upload, max_bytes=sessions.MAX_UPLOAD, sizing_mode="stretch_width",
-                                        on_refused=lambda n, b: host.notify("error", sessions.too_large(Path(n).name, b)))
+        # the limit it would close the page's connection: dashboard.upload_guard); a review holds
+        # the files it uses: as large as the websocket takes
+        self.w_upload_box = UploadGuard(self.w_upload, max_bytes=sessions.MAX_UPLOAD, page_drop=True,
+                                        max_bytes_by_suffix={".zip": sessions.largest_message_file()},
+                                        sizing_mode="stretch_width", on_refused=self._refused)
+        #: where the page puts its Shared review card (below the task, the uploads and the markers)
+        self.review_slot = pn.Column(sizing_mode="stretch_width", margin=0)
         self.settings_box = pn.Column(sizing_mode="stretch_width")
         self.w_auto = pn.widgets.Toggle.from_param(s.param.auto_update, name="Auto-update on every change", button_type="light", sizing_mode="stretch_width")
         self.w_apply = pn.widgets.Button(name="Apply", button_type="primary", sizing_mode="stretch_width")
@@ -111,17 +122,21 @@ class RetargetSidebar(pn.viewable.Viewer):
                 # before this page spends time recomputing it
                 st.param.watch(self._on_setting, st.setting_names(), precedence=1)
         self._build_settings()
+        # the task first: what to retarget onto what, and how; then the files of one's own, the
+        # markers, the shared review; the shot file and the timings last
         self.layout = pn.Column(
             pn.pane.Markdown("# face-retarget", css_classes=["fr-title"]),
             pn.pane.Markdown("Transfer a captured face performance onto another character's blendshape rig. "
                              "Pick a capture and a target, press play, tune the solver.", css_classes=["fr-muted"]),
             self.w_source, self.w_source_rig, self.w_target,
-            pn.pane.Markdown("Upload a take (.csv/.trc/.c3d), a rig (.glb/.usd), or a .json shot, marker layout or name map", css_classes=["fr-muted"], margin=(0, 10)),
-            self.w_upload_box,
-            marker_card,
             pn.pane.HTML(ruled_heading("Solver"), sizing_mode="stretch_width"),
             self.settings_box,
             self.w_auto, self.w_apply, self.w_progress, self.w_status,
+            pn.pane.HTML(ruled_heading("Your files"), sizing_mode="stretch_width"),
+            pn.pane.Markdown(UPLOAD_HINT, css_classes=["fr-muted"], margin=(0, 10)),
+            self.w_upload_box,
+            marker_card,
+            self.review_slot,
             pn.pane.Markdown("Everything this page shows (files, settings, edits) is one shot file: download it to "
                              "reproduce the result with `face-retarget retarget --shot shot.json`, upload it to come back.",
                              css_classes=["fr-muted"], margin=(0, 10)),
@@ -134,19 +149,30 @@ class RetargetSidebar(pn.viewable.Viewer):
         return self.layout
 
     # -- files ------------------------------------------------------------------------------
+    def _refused(self, name: str, size: int) -> None:
+        if Path(name).suffix.lower() == ".zip":
+            self.host.notify("error", sessions.too_large(Path(name).name, size, sessions.largest_message_file(), " for a review"))
+        else:
+            self.host.notify("error", sessions.too_large(Path(name).name, size))
+
     def _on_upload(self, *events):
         if not self.w_upload.filename:
             return
+        name = Path(str(self.w_upload.filename).replace("\\", "/")).name
+        data = self.w_upload.value or b""
+        if name.lower().endswith(".zip"):  # a review (shot, notes, history and its files): the page opens it
+            self.host.open_review_archive(name, data)
+            return
         try:
-            # an empty file arrives as no value at all: add_upload says it is empty
-            msg = self.s.add_upload(self.w_upload.filename, self.w_upload.value or b"")
+            # an empty file arrives as no value at all: Session.upload says it is empty
+            up = self.s.upload(name, data)
             if not self.s.error:  # selecting it may already have failed to load: keep that error in view
-                self.host.notify("info", msg)
+                self.host.notify("info", up.message, rig=up.label if up.kind == "rig" else None)
         except ValueError as e:
             self.host.notify("error", str(e))
         except Exception as e:  # a reader's bug must not leave the page silent: the trace goes to the log
-            log.warning("upload %s failed: %s", self.w_upload.filename, traceback.format_exc())
-            self.host.notify("error", f"{Path(str(self.w_upload.filename)).name} could not be read ({type(e).__name__}); "
+            log.warning("upload %s failed: %s", name, traceback.format_exc())
+            self.host.notify("error", f"{name} could not be read ({type(e).__name__}); "
                                       "if the file opens elsewhere, please report it")
 
     def _shot_bytes(self):

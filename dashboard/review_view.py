@@ -16,6 +16,7 @@ import panel as pn
 import param
 
 from dashboard import session as sessions
+from dashboard.lazy import lazy_card
 from dashboard.upload_guard import UploadGuard
 from dashboard.widgets import ruled_heading
 
@@ -270,9 +271,12 @@ def when_text(t, now: Optional[float] = None) -> str:
     return f"{lt.tm_mday} {time.strftime('%b %Y', lt)} {clock}"
 
 
-def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
-    """The widgets that start a shared shot (from ``make_shot()``), import a review .zip, or open a
-    recent shot: a new shot's page is opened in this tab."""
+def _start(server, make_shot: Callable, label: str, recent_n: int = 20, on_open: Optional[Callable] = None,
+           import_box: bool = True) -> list:
+    """The widgets that start a shared shot (from ``make_shot()``), import a review .zip (unless
+    ``import_box`` is False: the page's own upload box takes it), or open a recent shot. A new or
+    imported shot is ``on_open(shot_id)`` (the page joins it in place), else its page is opened in
+    this tab."""
     from urllib.parse import quote
 
     status = pn.pane.Markdown("", sizing_mode="stretch_width")
@@ -281,11 +285,22 @@ def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
 
     def go(sid: str, said: str) -> None:
         status.object = f"{said}: [open it](?shot={quote(sid)})"
-        if pn.state.location is not None:
+        if on_open is not None:
+            on_open(sid)
+        elif pn.state.location is not None:
             pn.state.location.search = f"?shot={quote(sid)}"
             pn.state.location.reload = True
 
     w_new.on_click(lambda event: go(server.create(make_shot(), title=w_title.value or "review", author=""), "Shot created"))
+    rows = []
+    for r in server.store.recent(recent_n):
+        sid = r["id"] if isinstance(r, dict) else r[0]
+        t = (r.get("title") if isinstance(r, dict) else "") or sid
+        when = when_text(r.get("updated")) if isinstance(r, dict) else ""
+        rows.append(f"- [{html.escape(str(t))}](?shot={quote(sid)}) <span class='fr-muted'>{html.escape(when)}</span>")
+    recent = pn.pane.Markdown("**Recent shots**\n\n" + ("\n".join(rows) if rows else "*none yet*"), sizing_mode="stretch_width")
+    if not import_box:
+        return [w_title, w_new, status, recent]
     w_import = pn.widgets.FileInput(accept=".zip", sizing_mode="stretch_width")
 
     def import_(*events):
@@ -308,13 +323,6 @@ def _start(server, make_shot: Callable, label: str, recent_n: int = 20) -> list:
     # a review holds the files it uses: as large as the websocket takes
     import_box = UploadGuard(w_import, max_bytes=sessions.largest_message_file(), on_refused=refused,
                              sizing_mode="stretch_width")
-    rows = []
-    for r in server.store.recent(recent_n):
-        sid = r["id"] if isinstance(r, dict) else r[0]
-        t = (r.get("title") if isinstance(r, dict) else "") or sid
-        when = when_text(r.get("updated")) if isinstance(r, dict) else ""
-        rows.append(f"- [{html.escape(str(t))}](?shot={quote(sid)}) <span class='fr-muted'>{html.escape(when)}</span>")
-    recent = pn.pane.Markdown("**Recent shots**\n\n" + ("\n".join(rows) if rows else "*none yet*"), sizing_mode="stretch_width")
     return [w_title, w_new, pn.pane.Markdown("…or open a review someone sent you (the .zip of *Download the review*):",
                                              css_classes=["fr-muted"]), import_box, status, recent]
 
@@ -328,11 +336,15 @@ def landing(server, make_shot: Callable, title: str = "face-retarget") -> pn.vie
         *_start(server, make_shot, "New shared shot (the bundled sample)"), width=520, margin=30)
 
 
-def review_start(server, make_shot: Callable) -> pn.Card:
-    """The sidebar card of a page of its own (no ``?shot=``) on a review server: share what this
-    page shows as a new shot, import a review, or open a recent one."""
-    return pn.Card(
-        pn.pane.Markdown("Share what this page shows: everyone with the link sees the same shot — settings, "
-                         "edits, the frame and notes — and it is kept on the server.", css_classes=["fr-muted"]),
-        *_start(server, make_shot, "New shared shot from this page", recent_n=8),
-        title="Shared review", collapsed=False, sizing_mode="stretch_width")
+def review_start(server, make_shot: Callable, on_open: Optional[Callable] = None) -> pn.Card:
+    """The sidebar card of a page of its own (no ``?shot=``) on a review server, collapsed until
+    used: share what this page shows as a new shot (``on_open(shot_id)``: the page joins it), or
+    open a recent one. A review .zip goes into the page's one upload box."""
+    return lazy_card(
+        build=lambda: [
+            pn.pane.Markdown("Share what this page shows: everyone with the link sees the same shot — settings, "
+                             "edits, the frame and notes — and it is kept on the server. A review someone sent "
+                             "you (.zip): drop it on the page.", css_classes=["fr-muted"]),
+            *_start(server, make_shot, "New shared shot from this page", recent_n=8, on_open=on_open,
+                    import_box=on_open is None)],
+        title="Shared review", collapsed=True, sizing_mode="stretch_width")

@@ -18,6 +18,7 @@ import threading
 import time
 import traceback
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -98,6 +99,17 @@ def _alive(pid: int) -> bool:
     return True
 
 
+@dataclass(frozen=True)
+class Upload:
+    """What an uploaded file became (:meth:`Session.upload`): its ``kind`` ("take", "rig",
+    "layout", "controls", "name_map" or "shot"), its ``label`` in the file lists (``⤒ <name>``)
+    and the ``message`` the page shows (the file named as uploaded, never a server path)."""
+
+    kind: str
+    label: str
+    message: str
+
+
 class Session(param.Parameterized):
     """Selections + pipeline + results for one browser tab."""
 
@@ -154,10 +166,14 @@ class Session(param.Parameterized):
         self.param.target_rig.objects = list(self.files["rigs"])
 
     def add_upload(self, filename: str, data: bytes) -> str:
+        """:meth:`upload`'s message (what the file became)."""
+        return self.upload(filename, data).message
+
+    def upload(self, filename: str, data: bytes) -> "Upload":
         """Store an uploaded file, check it with the program's readers (:func:`core.io.check.check_upload`)
         and put it where it belongs: a take becomes the source, a rig joins the rig lists, a marker
         layout applies to the chosen target rig, a name map to the source's channels, a shot is
-        opened. Returns what it became; raises ValueError in plain words (naming the file as it
+        opened. Returns what it became (:class:`Upload`: its kind, its list label, the message); raises ValueError in plain words (naming the file as it
         was uploaded) and keeps nothing of a bad file."""
         from core.io.check import check_upload
 
@@ -186,24 +202,24 @@ class Session(param.Parameterized):
         if kind == "rig":
             self.files["rigs"][label] = str(path)
             self._refresh_options()
-            return f"{info['summary']} — added to the rig lists"
+            return Upload("rig", label, f"{info['summary']} — added to the rig lists: use it as the target or as the source rig")
         if kind == "take":
             self.files["performances"][label] = str(path)
             self._refresh_options()
             self.source = label
-            return f"{info['summary']} — selected as the source"
+            return Upload("take", label, f"{info['summary']} — selected as the source")
         if kind == "layout":
             self.pipeline.configure(target_layout=str(path))
-            return f"{info['summary']} — the target rig's markers"
+            return Upload("layout", label, f"{info['summary']} — the target rig's markers")
         if kind == "controls":
             table = {k: v for k, v in info["controls"].items() if k not in ("format", "version")}
             self.pipeline.configure(controls=table)
-            return f"{info['summary']} — the solver's per-shape controls"
+            return Upload("controls", label, f"{info['summary']} — the solver's per-shape controls")
         if kind == "name_map":
             self.pipeline.configure(name_map=str(path))
-            return f"{info['summary']} — maps the source's channels to the source rig's shapes"
+            return Upload("name_map", label, f"{info['summary']} — maps the source's channels to the source rig's shapes")
         self.open_shot(data.decode("utf-8-sig", errors="replace"), name=name)
-        return f"shot {name} opened"
+        return Upload("shot", label, f"shot {name} opened")
 
     def _target_rig_object(self):
         from core.io.rigs import load_rig

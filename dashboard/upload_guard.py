@@ -9,6 +9,11 @@ listener on the input's shadow root, in the capture phase (before the input's ow
 stops the ``change`` event of a file over ``max_bytes``, clears the input and tells the server,
 which calls ``on_refused(filename, size)``. The server checks the size again (a page without
 this script can still send anything up to the message cap).
+
+``page_drop=True`` makes the whole page a drop target for the same input: a file dropped anywhere
+(outside another file input) is handed to the input as if chosen in it, so it goes through the
+same size check and reaches the server the same way (one upload path, one routing).
+``max_bytes_by_suffix`` gives some kinds of file another limit (e.g. ``{".zip": ...}``).
 """
 
 from __future__ import annotations
@@ -27,15 +32,23 @@ class UploadGuard(pn.custom.JSComponent):
 
     child = Child(class_=pn.widgets.FileInput, doc="The guarded file input.")
     max_bytes = param.Integer(default=0, bounds=(0, None), doc="Largest file sent (0: no limit).")
+    max_bytes_by_suffix = param.Dict(default={}, doc="Another limit for files of these suffixes ({'.zip': bytes}).")
+    page_drop = param.Boolean(default=False, doc="A file dropped anywhere on the page goes to this input.")
 
     _esm = """
 export function render({ model, el }) {
   const host = model.get_child("child")
   el.append(host)
+  const limit = (f) => {
+    const dot = f.name.lastIndexOf(".")
+    const suffix = dot >= 0 ? f.name.slice(dot).toLowerCase() : ""
+    const own = (model.max_bytes_by_suffix || {})[suffix]
+    return own !== undefined ? own : model.max_bytes
+  }
   const guard = (ev) => {
     const input = ev.target
-    if (!input || !input.files || !model.max_bytes) return
-    const big = Array.from(input.files).find((f) => f.size > model.max_bytes)
+    if (!input || !input.files) return
+    const big = Array.from(input.files).find((f) => limit(f) && f.size > limit(f))
     if (big === undefined) return
     ev.stopImmediatePropagation()  // the input's own listener never reads the file
     input.value = ""
@@ -47,6 +60,36 @@ export function render({ model, el }) {
     else if (tries++ < 100) setTimeout(attach, 50)
   }
   attach()
+  if (!model.page_drop) return
+  const input = () => host.shadowRoot && host.shadowRoot.querySelector("input[type=file]")
+  const isFileInput = (ev) => ev.composedPath().some((n) => n.tagName === "INPUT" && n.type === "file")
+  const carriesFiles = (ev) => ev.dataTransfer && Array.from(ev.dataTransfer.types || []).includes("Files")
+  const over = (ev) => {
+    if (!carriesFiles(ev) || isFileInput(ev)) return
+    ev.preventDefault()  // the page takes the drop (the browser would open the file instead)
+    ev.dataTransfer.dropEffect = "copy"
+    document.body.classList.add("fr-drop-over")
+  }
+  const leave = (ev) => { if (!ev.relatedTarget) document.body.classList.remove("fr-drop-over") }
+  const drop = (ev) => {
+    document.body.classList.remove("fr-drop-over")
+    if (!carriesFiles(ev) || isFileInput(ev)) return  // a file input takes its own drops
+    ev.preventDefault()
+    const box = input()
+    if (!box || !ev.dataTransfer.files.length) return
+    const one = new DataTransfer()  // one file a time, like the input itself
+    one.items.add(ev.dataTransfer.files[0])
+    box.files = one.files
+    box.dispatchEvent(new Event("change", { bubbles: true }))  // the guard, then the input's own listener
+  }
+  document.addEventListener("dragover", over)
+  document.addEventListener("dragleave", leave)
+  document.addEventListener("drop", drop)
+  model.on("remove", () => {
+    document.removeEventListener("dragover", over)
+    document.removeEventListener("dragleave", leave)
+    document.removeEventListener("drop", drop)
+  })
 }
 """
 

@@ -142,6 +142,18 @@ class WarmPool:
             self._people(shot_id, hub)
         self._kick(shot_id)
 
+    def route(self, app_context, application) -> None:
+        """The page route's Bokeh application context and Tornado application, as a page asked for
+        without a shot saw them: a shot made on such a page (in place) is warmed with them."""
+        if self._ctx is None:
+            self._ctx = (app_context, application)
+
+    def want_made_here(self, shot_id: str, hub) -> None:
+        """:meth:`want` for a shot a page made of itself (no ``?shot=`` request went through the
+        page handler); on the event loop. A no-op before any page was served."""
+        if self._ctx is not None:
+            self.want(*self._ctx, shot_id, hub)
+
     def _changed(self, shot_id: str) -> None:
         """The shot changed (any thread): builds wait, and its waiting pages will catch up."""
         self.touch()
@@ -406,6 +418,8 @@ def handler_class():
             pool = POOL
             shot_id = self._warm_shot()
             if not shot_id:
+                if pool is not None:  # a page that may make a shot in place (DashboardApp.open_shared)
+                    pool.route(self.application_context, self.application)
                 return await super().get_session()
             got, self._claimed = self._claimed, None
             if got is None:

@@ -74,3 +74,17 @@ def test_fold_overs_against_np_cross(scored):
     valid = np.asarray(res["synthesize"]["valid"]) & res["evaluate"]["frame_valid"]
     assert valid.sum() <= 60  # every valid frame is sampled
     assert m["fold_overs"] == reference(np.nan_to_num(Wm[valid]))
+
+
+def test_numbers_for_people_are_never_scientific():
+    """Issue 32 item 5: the numbers a page or report shows are rounded for people, in plain
+    decimals (the batch summary printed 1.235e+04 seconds and the ROM tab 1.2e-05)."""
+    from core.report import readable
+
+    cases = {4220.3: "4220", 12345.6: "12346", 0.0981234: "0.0981", 1.2e-5: "0.000012", 0.099999: "0.100",
+             -0.5: "-0.500", 3.0: "3.00", 1e-9: "0", 0.0: "0", None: "", float("nan"): "nan"}
+    for x, want in cases.items():
+        assert readable(x) == want, (x, readable(x))
+    for x in np.geomspace(1e-6, 1e7, 200):
+        out = readable(x, digits=4)
+        assert "e" not in out and abs(float(out) - x) <= max(0.0005 * x, 1e-6), (x, out)

@@ -179,3 +179,43 @@ def test_the_recent_shots_list_shows_the_time_in_words():
     server = SimpleNamespace(store=SimpleNamespace(recent=lambda n: [{"id": "abc", "title": "take one", "updated": t}]))
     recent = _start(server, make_shot=lambda: None, label="New")[-1].object
     assert f"today {time.strftime('%H:%M', time.localtime(t))}" in recent and str(t) not in recent, recent
+
+
+def test_a_page_of_its_own_becomes_the_shared_shot_in_place_and_takes_a_review_zip(server, shot_id):
+    """The sidebar's Shared review card (collapsed until used) makes a shot of what the page
+    shows and the page joins it without a reload (issue 32 item 3); a review .zip dropped into
+    the page's one upload box is imported and opened on the page (item 1)."""
+    import panel as pn
+
+    from dashboard.app import DashboardApp
+    from dashboard.lazy import fill
+    from dashboard.review_view import review_start
+    from dashboard.session import Session
+
+    app = DashboardApp(Session(cache=CACHE))
+    card = review_start(server, app.s.shot, on_open=app.open_shared)
+    app.sidebar.review_slot[:] = [card]
+    assert card.collapsed and not card.objects, "the review card is collapsed and empty until used"
+    assert not fill(card).select(pn.widgets.FileInput), "one upload box on the page: the card has none of its own"
+    app.s.pipeline.configure(last_frame=199)
+    (new,) = [b for b in card.select(pn.widgets.Button) if b.name.startswith("New shared shot")]
+    new.clicks += 1
+    assert app.mirror is not None and app.review is not None
+    sid = app.review.hub.shot_id
+    assert sid != shot_id and server.store.get(sid)[0].settings["frames"]["last_frame"] == 199
+    assert app.sidebar.review_slot.objects == [app.review.card]
+    # a change on this page now reaches the shot
+    app.s.pipeline.configure(last_frame=149)
+    assert server.hub(sid).shot.settings["frames"]["last_frame"] == 149
+
+    # a review .zip through the one upload box: imported and opened on a page of its own
+    data = page(server, shot_id, "ana").review._export_bytes().read()
+    other = DashboardApp(Session(cache=CACHE))
+    other.sidebar.w_upload.param.update(filename="review.zip", value=data)
+    assert other.mirror is not None and other.review.hub.shot_id not in (shot_id, sid)
+    assert other.s.pipeline.shot().content_hash() == server.store.get(shot_id)[0].content_hash()
+    assert "review.zip opened" in other.w_alert.object
+    # not an export: a message naming it, nothing opened
+    third = DashboardApp(Session(cache=CACHE))
+    third.sidebar.w_upload.param.update(filename="notes.zip", value=b"PK not really")
+    assert third.mirror is None and "notes.zip" in third.w_alert.object and "Error" in third.w_alert.object

@@ -121,3 +121,25 @@ def test_a_data_note_of_an_uploaded_take_names_the_file_not_the_server_path(sess
     notes = session.snapshot["warnings"]
     assert any(n.startswith("jumpy.csv: column Timecode goes backwards") for n in notes), notes
     assert not any(str(session.upload_dir) in n for n in notes), notes
+
+
+def test_an_uploaded_rig_is_offered_as_the_target_or_the_source_rig():
+    """Issue 32 item 2: the note of an uploaded rig carries *Use as target* / *Use as source rig*;
+    the button selects it, and the offer goes with the next note."""
+    from dashboard.app import DashboardApp
+    from dashboard.session import Session
+
+    app = DashboardApp(Session(cache=StageCache()))
+    app.s.auto_update = False  # what is chosen is the point here, not the result
+    app.sidebar.w_upload.param.update(filename="tiger copy.glb", value=(RIGS / "jeeliz_tiger.glb").read_bytes())
+    assert "tiger copy.glb" in app.w_alert.object and "rig lists" in app.w_alert.object and app.w_offer.visible
+    assert app.s.target_rig != "⤒ tiger copy.glb"
+    app.w_use_source_rig.clicks += 1
+    assert app.s.source_rig == "⤒ tiger copy.glb" and not app.w_offer.visible
+    app.sidebar.w_upload.param.update(filename="tiger again.glb", value=(RIGS / "jeeliz_tiger.glb").read_bytes())
+    assert app.w_offer.visible
+    app.w_use_target.clicks += 1
+    assert app.s.target_rig == "⤒ tiger again.glb" and app.s.source_rig == "⤒ tiger copy.glb"
+    # a take is the source at once, and offers nothing
+    app.sidebar.w_upload.param.update(filename="take.csv", value=(PERFORMANCES / "livelinkface_rom.csv").read_bytes())
+    assert app.s.source == "⤒ take.csv" and not app.w_offer.visible

@@ -40,6 +40,7 @@ def new_shared_shot(new_page, base):
     """A fresh page at ``base`` that turns what it shows into a shared shot: (context, page, shot id)."""
     ctx, page = new_page()
     page.goto(base + "/")
+    page.get_by_text("Shared review", exact=True).first.click()  # the card is collapsed until used
     page.get_by_role("button", name=re.compile("New shared shot")).click()
     page.wait_for_url(re.compile(r"\?shot="), timeout=30_000)
     page.wait_for_function(VIEWERS_READY, timeout=120_000)
