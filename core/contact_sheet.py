@@ -91,18 +91,21 @@ def rasterize(V, faces, size, box) -> np.ndarray:
     count = nx[keep] * ny[keep]
     t = np.repeat(keep, count)
     local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    px = lo_x[t] + local % nx[t]
-    py = lo_y[t] + local // nx[t]
-    qx, qy = px + 0.5 - cx[t], py + 0.5 - cy[t]
-    l0 = ((by[t] - cy[t]) * qx + (cx[t] - bx[t]) * qy) / d[t]
-    l1 = ((cy[t] - ay[t]) * qx + (ax[t] - cx[t]) * qy) / d[t]
+    w = nx[t]
+    px, py = lo_x[t] + local % w, lo_y[t] + local // w
+    qx, qy = px + (0.5 - cx[t]), py + (0.5 - cy[t])
+    inv = 1.0 / d[t]
+    l0 = ((by - cy)[t] * qx + (cx - bx)[t] * qy) * inv
+    l1 = ((cy - ay)[t] * qx + (ax - cx)[t] * qy) * inv
     l2 = 1.0 - l0 - l1
-    inside = (l0 >= -1e-9) & (l1 >= -1e-9) & (l2 >= -1e-9)
-    t, px, py, l0, l1, l2 = t[inside], px[inside], py[inside], l0[inside], l1[inside], l2[inside]
+    inside = np.flatnonzero((l0 >= -1e-9) & (l1 >= -1e-9) & (l2 >= -1e-9))
+    t, pid, l0, l1, l2 = t[inside], py[inside] * W + px[inside], l0[inside], l1[inside], l2[inside]
     f = faces[t]
-    z = l0 * V[f[:, 0], 2] + l1 * V[f[:, 1], 2] + l2 * V[f[:, 2], 2]
-    pid = py * W + px
-    order = np.lexsort((-z, pid))  # per pixel, the nearest first
+    Z = V[:, 2]
+    z = l0 * Z[f[:, 0]] + l1 * Z[f[:, 1]] + l2 * Z[f[:, 2]]
+    # per pixel, the nearest first: one sort of pixel id + a depth rank in [0, 1)
+    zn = (z - Z.min()) / max(float(np.ptp(Z)), 1e-300)
+    order = np.argsort(pid + 0.5 * (1.0 - zn), kind="stable")
     first = order[np.r_[True, pid[order][1:] != pid[order][:-1]]]
     f = f[first]
     img.ravel()[pid[first]] = l0[first] * shade[f[:, 0]] + l1[first] * shade[f[:, 1]] + l2[first] * shade[f[:, 2]]
