@@ -234,7 +234,7 @@ def contact_sheet(inputs, weights, worst: int, n: int = SHEET_FRAMES, error_mm=N
             what = f"target {rig.names[k]} {W[t, k]:.2f}"
         tgt = _colour(rasterize(rig.evaluate(W[t]), rig.faces, TILE, tgt_box), TARGET_RGB)
         tiles.append(np.concatenate([src, tgt], axis=1))
-        err = f" · {error_mm[t]:.1f} mm" if error_mm is not None and np.isfinite(error_mm[t]) else ""
+        err = f" · error {error_mm[t]:.1f} mm" if error_mm is not None and np.isfinite(error_mm[t]) else ""
         head = f"frame {first + t}" + (" · worst" if i == 0 else "") + err
         captions.append(f"{head}\n{what}")
     return ContactSheet(frames, [first + f for f in frames], captions, int(worst), tiles)
