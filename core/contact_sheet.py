@@ -32,11 +32,11 @@ from .retarget import marker_rig
 from .stages.methods import suggested_frames
 
 #: frames on a sheet (the worst one included)
-SHEET_FRAMES = 6
+SHEET_FRAMES = 8
 #: one face's tile, pixels (width, height)
 TILE = (180, 220)
 #: cells (a source + target pair) per row of the sheet
-COLUMNS = 3
+COLUMNS = 4
 #: pixels under a cell for its caption, and between cells
 CAPTION, GAP = 34, 8
 #: light direction (towards the light), camera space: from the upper left, in front

@@ -14,7 +14,7 @@ from PIL import Image
 
 from datapaths import PERFORMANCES, RIGS
 
-from core.contact_sheet import COLUMNS, GAP, TILE, contact_sheet, rasterize, sheet_size
+from core.contact_sheet import COLUMNS, GAP, SHEET_FRAMES, TILE, contact_sheet, rasterize, sheet_size
 from core.evaluate import worst_frame
 from core.geometry import vertex_normals
 from core.pipeline import Pipeline, StageCache
@@ -87,14 +87,20 @@ def test_the_sheet_has_the_worst_frame_and_frames_far_apart(sample):
     worst = worst_frame(ev)
     # the worst frame is the frame of the summary's "max"
     assert np.nanmax(ev["marker_distances_mm"][worst]) == pytest.approx(ev["marker_max_mm"])
-    sheet = contact_sheet(sample, sample["synthesize"]["weights"], worst, n=6, error_mm=ev["marker_error_mm"])
-    assert sheet.frames[0] == worst and len(set(sheet.frames)) == 6
+    sheet = contact_sheet(sample, sample["synthesize"]["weights"], worst, error_mm=ev["marker_error_mm"])
+    n = SHEET_FRAMES
+    assert sheet.frames[0] == worst and len(set(sheet.frames)) == n
     assert "worst" in sheet.captions[0] and all("worst" not in c for c in sheet.captions[1:])
+    # the range's smile and blink are on it (the sheet's reach at least 3/4 of the range's largest)
+    S = np.nan_to_num(sample["stabilize"]["source"].source_weights)
+    names = list(sample["load"]["source_rig"].names)
+    for shape in ("mouthSmile_L", "eyeBlink_L"):
+        k = names.index(shape)
+        assert S[sheet.frames, k].max() > 0.75 * S[:, k].max(), shape
     # far apart in expression: each pair of sheet frames differs more in the source's curves than
     # the median pair of the take's frames does
-    S = np.nan_to_num(sample["stabilize"]["source"].source_weights)
     pick = S[sheet.frames]
-    gaps = np.linalg.norm(pick[:, None] - pick[None], axis=2)[np.triu_indices(6, 1)]
+    gaps = np.linalg.norm(pick[:, None] - pick[None], axis=2)[np.triu_indices(n, 1)]
     rng = np.random.default_rng(0)
     i, j = rng.integers(0, len(S), (2, 2000))
     assert gaps.min() > np.median(np.linalg.norm(S[i] - S[j], axis=1))
@@ -172,4 +178,4 @@ def test_evaluate_html_has_the_contact_sheet(tmp_path, capsys):
     m = re.search(r"<h2>Contact sheet of bounded: [^<]*worst frame[^<]*</h2><img src=\"data:image/png;base64,([^\"]+)\"", doc)
     assert m, "no contact sheet in the report"
     img = Image.open(io.BytesIO(base64.b64decode(m.group(1))))
-    assert img.size == sheet_size(6)
+    assert img.size == sheet_size(SHEET_FRAMES)

@@ -14,6 +14,7 @@ import sys
 import pytest
 
 from conftest import ROOT, free_port, wait_http
+from core.contact_sheet import SHEET_FRAMES
 from test_dashboard import VIEWERS_READY, slider_value
 
 
@@ -57,10 +58,10 @@ def test_click_a_frame_of_the_sheet_and_the_max_link(page, server, artifacts):
     page.get_by_text("Contact sheet: the most expressive frames").first.click()
     frames = page.locator("a.fr-sheet-frame")
     frames.first.wait_for(timeout=90_000)
-    assert frames.count() == 6
+    assert frames.count() == SHEET_FRAMES
     page.wait_for_timeout(300)
     page.screenshot(path=str(artifacts / "contact_sheet_page.png"), full_page=True)
-    wanted = [int(frames.nth(i).get_attribute("data-fr-frame")) for i in range(6)]
+    wanted = [int(frames.nth(i).get_attribute("data-fr-frame")) for i in range(SHEET_FRAMES)]
     pick = next(f for f in wanted[1:] if f != start)
     frames.nth(wanted.index(pick)).locator("img").click()
     assert _wait_frame(page, pick) == pick
