@@ -32,7 +32,7 @@ from .names import NameMap, arkit_combination, load_vocabularies, rank_vocabular
 from .outputs import write_outputs
 from .pipeline import Pipeline, StageCache, add_cli_arguments
 from .progress import StderrBar
-from .registration import layout_command
+from .registration import layout_command, place_missing_layouts
 from .report import evaluate_methods, ranking, write_html, write_json
 from .stages.methods import METHODS as REGISTRY, suggested_frames
 
@@ -48,7 +48,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 _CACHE = None
 #: CLI options that are not pipeline settings
 OUTPUT_OPTIONS = ("func", "out", "weights_csv", "livelink_csv", "quiet", "command", "shot", "save_shot", "csv_precision",
-                  "controls_file", "keys", "keys_tolerance", "example_poses_file", "n")
+                  "controls_file", "keys", "keys_tolerance", "example_poses_file", "n", "no_auto_markers")
 
 
 def _cache():
@@ -103,14 +103,33 @@ def _suggest_poses(args) -> int:
     return 0
 
 
+def _auto_markers(settings: dict, args) -> dict:
+    """The layouts to add for the rigs (and a mesh-sequence source) that have none: placed
+    automatically as the page does (:func:`core.registration.place_missing_layouts`), with the
+    page's report of the markers that landed badly; ``--no-auto-markers`` refuses instead."""
+
+    quiet = getattr(args, "quiet", False)
+    updates, reports = place_missing_layouts(settings, place=not getattr(args, "no_auto_markers", False),
+                                             progress=None if quiet else StderrBar("markers"))
+    for what, path, report in reports:
+        print(f"{report['message']}\nwrote {path} (the {what.replace('_', ' ')} from now on: edit it to move a marker, "
+              f"or pass --{what.replace('_', '-')})")
+    return updates
+
+
 def _pipeline(args):
-    """The pipeline of a ``retarget`` run: the shot (``--shot``) with the flags given on top."""
+    """The pipeline of a ``retarget`` run: the shot (``--shot``) with the flags given on top; markers
+    placed on a rig that has no layout (``--no-auto-markers``: refused)."""
 
     settings = _settings(args)
     if getattr(args, "shot", None):
         pipe = Pipeline.from_shot(args.shot, cache=_cache(), **settings)
     else:
         pipe = Pipeline(cache=_cache(), **settings)
+    cfg = pipe.config()
+    updates = _auto_markers({**vars(cfg.take), **vars(cfg.source_face), **vars(cfg.target_face)}, args)
+    if updates:
+        pipe.configure(**updates)
     if getattr(args, "save_shot", None):
         pipe.shot().to_json(args.save_shot)
     return pipe
@@ -141,6 +160,7 @@ def _evaluate(args) -> int:
         settings = {**{k: v for st in base.settings.values() for k, v in st.items()},
                     **{k: base.resolve(k) for k in base.files}}
         settings.pop("method", None)
+    settings.update(_auto_markers(settings, args))
     report = evaluate_methods(settings, methods, progress=None if args.quiet else StderrBar("evaluate"), cache=_cache())
     if args.json:
         write_json(report, args.json)
@@ -293,6 +313,12 @@ def _bench(args) -> int:
     return 0
 
 
+def _auto_markers_flag(parser) -> None:
+    parser.add_argument("--no-auto-markers", action="store_true",
+                        help="refuse a rig or mesh sequence without a marker layout instead of placing the markers "
+                             "automatically (as the page does; the layout is written beside it as <name>.layout.json)")
+
+
 def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(prog="face-retarget", description="Facial performance retargeting onto blendshape rigs.")
@@ -321,6 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "--keys-tolerance of every frame, and <csv>_keys.csv lists each curve's keys (default: every frame)")
     r.add_argument("--keys-tolerance", type=float, default=0.005, help="largest weight difference of the reduced curves "
                                                                         "(default: 0.005)")
+    _auto_markers_flag(r)
     r.set_defaults(func=_retarget)
 
     sp = sub.add_parser("suggest-poses", help="the frames to pose for auto's example poses: far apart in expression",
@@ -331,6 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-n", type=int, default=8, help="how many frames (default: 8)")
     sp.add_argument("--shot", help="a shot whose files and settings to use (the flags given override it)")
     sp.add_argument("--out", help="write the poses of the current result at those frames (JSON for --example-poses)")
+    _auto_markers_flag(sp)
     sp.set_defaults(func=_suggest_poses)
 
     ev = sub.add_parser(
@@ -351,6 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--html", help="output HTML report (self-contained: plots and renders inline)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.add_argument("--controls", dest="controls_file", help="per-shape controls table JSON (see docs/controls.md)")
+    _auto_markers_flag(ev)
     ev.set_defaults(func=_evaluate)
 
     bt = sub.add_parser("batch", help="retarget many shots on Dask (a local cluster, or --scheduler)",

@@ -155,3 +155,11 @@ def summarize(ev, W, valid=None, names=None, active=None) -> dict:
     out["weight_range_per_shape"] = ({n: [float(a), float(b)] for n, a, b in zip(names, Wv.min(0), Wv.max(0))}
                                      if len(Wv) else {n: [None, None] for n in names})
     return out
+
+
+def worst_frame(ev) -> int:
+    """The frame of the largest marker error of :func:`evaluate`'s ``ev`` (the frame of its
+    ``marker_max_mm``; frames without data are never it); 0 when no frame has data."""
+    d = np.asarray(ev["marker_distances_mm"], dtype=np.float64)
+    per = np.max(np.where(np.isfinite(d), d, -np.inf), axis=1) if d.size else np.zeros(0)
+    return int(np.argmax(per)) if len(per) and np.isfinite(per).any() else 0

@@ -26,6 +26,7 @@ diagonal) so the registration weights do not depend on the rigs' units or size.
 
 from __future__ import annotations
 
+import tempfile
 import time
 from pathlib import Path
 from typing import Mapping, Optional, Sequence, Union
@@ -35,8 +36,9 @@ import trimesh
 
 from .geometry import (
     closest_points, decimate, face_vertices, largest_component, nonrigid_icp, nricp_steps, procrustes, weld_vertices)
-from .io.layout import layouts_dir, read_layout, write_layout
-from .io.rigs import load_rig, load_rig as read_rig
+from .io.layout import default_layout_path, layouts_dir, read_layout, sidecar_layout_path, write_layout
+from .io.performance import read_performance
+from .io.rigs import NoLayoutError, load_rig, load_rig as read_rig
 from .io.sequence import read_mesh_sequence, topology_rig
 from .model import MarkerLayout, Rig
 from .progress import report as say
@@ -392,6 +394,89 @@ def place_markers(rig: Rig, from_layout=None, source_rig: Optional[Rig] = None, 
     say(progress, 1.0, "markers placed")
     return out, {"seconds": info["seconds"], "residual_mm": info["residual_mm"], "snap_mm": snap,
                  "off_face": off_face, "off_surface": off_surface, "message": " ".join(parts)}
+
+
+#: frames of a mesh sequence that stand in for its shapes when markers are placed on it
+SEQUENCE_SHAPES = 64
+
+
+def sequence_rig(perf) -> Rig:
+    """A mesh sequence as a rig :func:`place_markers` can read: its own topology
+    (:func:`core.io.sequence.topology_rig`) with up to :data:`SEQUENCE_SHAPES` evenly spaced frames
+    with data as shapes, ``deltas[k] = frame_k - neutral`` (the flag "no shape moves here" then
+    means "this part of the face never moves in the take").
+
+    Raises ValueError as :func:`topology_rig` does (not a mesh sequence, no faces, no data).
+    """
+    rig = topology_rig(perf)
+    ok = np.flatnonzero(perf.valid)
+    pick = ok[np.unique(np.linspace(0, len(ok) - 1, min(SEQUENCE_SHAPES, len(ok))).round().astype(int))]
+    deltas = perf.data[pick].astype(np.float64) - rig.neutral
+    return Rig(rig.neutral, rig.faces, deltas, [f"frame_{f}" for f in pick], None, rig.units, rig.name)
+
+
+def place_missing_layouts(settings: Mapping, place: bool = True, progress=None) -> tuple:
+    """Marker layouts for the rigs of a run that have none, placed by :func:`place_markers` (what the
+    page's *Place markers automatically* does) and written beside each rig as its sidecar
+    (``<rig>.layout.json``, :func:`core.io.layout.sidecar_layout_path`: the rig finds it by default
+    next time, and a user can edit it); in the temporary folder when the rig's folder is read-only.
+
+    Looked at: the target rig (``target_rig`` without ``target_layout``, no sidecar, none bundled),
+    the source rig (likewise), and a mesh-sequence ``source`` without ``source_rig`` or
+    ``source_layout`` (its sidecar is used when it exists; else markers are placed on its own
+    topology, :func:`sequence_rig`).
+
+    Parameters
+    ----------
+    settings : mapping of pipeline settings (``source``, ``source_kind``, ``source_fps``,
+        ``source_rig``, ``source_layout``, ``target_rig``, ``target_layout``); missing keys are empty.
+    place : False to refuse instead (``--no-auto-markers``).
+
+    Returns
+    -------
+    updates : dict setting -> layout path to configure (``{"target_layout": ".../x.layout.json"}``)
+    reports : list of (what, path written, report of :func:`place_markers`)
+
+    Raises
+    ------
+    NoLayoutError when ``place`` is False and a layout is missing (the message says how to make one).
+    """
+    get = lambda k: settings.get(k) or ""  # noqa: E731
+    todo = []  # (setting, file it belongs to, loader)
+    for role in ("target", "source"):
+        rig_path = get(f"{role}_rig")
+        if rig_path and not get(f"{role}_layout") and default_layout_path(rig_path) is None:
+            todo.append((f"{role}_layout", rig_path, lambda p=rig_path: read_rig(p)))
+    updates = {}
+    src = get("source")
+    if src and not get("source_rig") and not get("source_layout"):
+        side = sidecar_layout_path(src)
+        if side.exists():
+            updates["source_layout"] = str(side)
+        else:
+            perf = read_performance(src, kind=get("source_kind") or "auto", fps=settings.get("source_fps") or None)
+            if perf.kind == "meshes":
+                todo.append(("source_layout", src, lambda perf=perf: sequence_rig(perf)))
+    if todo and not place:
+        what, path, _ = todo[0]
+        flag = "--" + what.replace("_", "-")
+        raise NoLayoutError(
+            f"no marker layout for {Path(path).name} (--no-auto-markers): pass {flag}, or make one with "
+            f"`face-retarget layout --from data/layouts/ict_facekit.json --rig {path} --out {sidecar_layout_path(path)}`", path)
+    reports = []
+    for what, path, load in todo:
+        rig = load()
+        layout, report = place_markers(rig, progress=progress)
+        out = sidecar_layout_path(path)
+        notes = "placed by face-retarget (automatic), check the flagged markers"
+        try:
+            write_layout(out, layout, Path(path).name, notes=notes)
+        except OSError:
+            out = Path(tempfile.mkdtemp(prefix="face-retarget-")) / sidecar_layout_path(path).name
+            write_layout(out, layout, Path(path).name, notes=notes)
+        updates[what] = str(out)
+        reports.append((what, out, report))
+    return updates, reports
 
 
 def layout_command(from_path, rig_path, out_path, source_rig_path=None, steps=None) -> str:

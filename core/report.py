@@ -17,8 +17,8 @@ computed once) and is scored on
 Frames without data (``synthesize["valid"]`` False) are left out of every number. The JSON
 (:func:`evaluate_methods`) has the top level ``methods: {method: {metric: value}}``; the HTML
 (:func:`write_html`) is self-contained (images inline, no CDN): the table, errors over time, the
-curves of the best two methods against the truth, and renders of the worst frames (pyvista
-off screen).
+curves of the best two methods against the truth, the best method's contact sheet
+(:mod:`core.contact_sheet`) and renders of the worst frames (pyvista off screen).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from .contact_sheet import contact_sheet
 from .evaluate import ACTIVE, summarize
 from .geometry import face_vertices, flipped_faces
 from .names import NameMap
@@ -184,7 +185,8 @@ def evaluate_methods(settings: dict, methods: Sequence[str], progress=None, cach
             out["methods"][m] = method_metrics(pipe, truth, face)
         except Exception as e:  # noqa: BLE001 - one method failing is a row of the report, not the end of it
             out["methods"][m] = {"error": f"{type(e).__name__}: {e}"}
-    st = pipe.results(["stabilize"])["stabilize"]["source"]
+    out["_inputs"] = pipe.results(["load", "frames", "stabilize"])  # what the contact sheet draws
+    st = out["_inputs"]["stabilize"]["source"]
     out["_times"] = st.times - st.times[0]
     out["face_vertices"] = int(len(face))
     if progress:
@@ -327,6 +329,24 @@ def _renders(report: dict, n: int = 2) -> list:
     return out
 
 
+def _contact_sheet(report: dict) -> list:
+    """The best method's contact sheet (:mod:`core.contact_sheet`): source | target at its worst
+    frame (by the vertex error against the truth where there is one, else the marker error) and the
+    frames farthest apart in the take's expression."""
+    order = [m for m in ranking(report) if "error" not in report["methods"][m]]
+    if not order or "_inputs" not in report:
+        return []
+    best = order[0]
+    r = report["methods"][best]
+    per = np.asarray(r["_per_frame_mm"] if report["ground_truth"] else r["_marker_per_frame_mm"], dtype=np.float64)
+    worst = int(np.argmax(np.where(np.isfinite(per), per, -np.inf)))
+    sheet = contact_sheet(report["_inputs"], r["_weights"], worst, error_mm=per)
+    what = "vertex error against the truth" if report["ground_truth"] else "marker error"
+    return [(f"Contact sheet of {best}: source | target at the worst frame by {what} (red, frame {sheet.take_frames[0]}) "
+             "and the frames farthest apart in the take's expression",
+             "data:image/png;base64," + base64.b64encode(sheet.png()).decode())]
+
+
 def write_html(report: dict, path) -> None:
     """The self-contained HTML report (see the module docstring)."""
     order = ranking(report)
@@ -339,7 +359,7 @@ def write_html(report: dict, path) -> None:
             continue
         cells = "".join(f"<td>{'—' if r.get(k) is None else fmt.format(r[k])}</td>" for k, _, fmt in METRICS)
         rows.append(f"<tr><td><b>{html.escape(m)}</b></td>{cells}</tr>")
-    imgs = _plots(report) + _renders(report)
+    imgs = _contact_sheet(report) + _plots(report) + _renders(report)
     inp = report["inputs"]
     truth = ("ground truth: the target rig driven by the source's own curves through their ARKit names"
              if report["ground_truth"] else "no ground truth (not a weight-curve source with namesake target shapes)")

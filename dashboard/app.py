@@ -11,7 +11,8 @@ status, the shot download, timings), :class:`~dashboard.marker_layout_view.Marke
 (markers on the target rig), :class:`~dashboard.playback_view.PlaybackView` (the two 3D views,
 frame slider, play, colouring), :class:`~dashboard.curves_view.CurvesView` (weight curves and
 errors), :class:`~dashboard.pose_edit_view.PoseEditView` (the Edit card),
-:class:`~dashboard.summary_view.SummaryView` (summary and downloads) and
+:class:`~dashboard.summary_view.SummaryView` (summary and downloads),
+:class:`~dashboard.contact_sheet_view.ContactSheetView` (the contact sheet; links that jump to a frame) and
 :class:`~dashboard.shape_controls_view.ShapeControlsView` (per-shape controls); the other tabs
 are views of their own, made when first opened.
 """
@@ -36,6 +37,7 @@ if str(ROOT) not in sys.path:
 
 from dashboard.batch_view import BatchView  # noqa: E402
 from dashboard.connection_view import ConnectionWatch  # noqa: E402
+from dashboard.contact_sheet_view import ContactSheetView  # noqa: E402
 from dashboard.curves_view import CurvesView  # noqa: E402
 from dashboard.marker_layout_view import MarkerLayoutView  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
@@ -97,6 +99,7 @@ class DashboardApp(pn.viewable.Viewer):
         self.curves = CurvesView(self.s, on_seek=self.seek, time_of=self.time_of, frame=lambda: self.frame)
         self.edits = PoseEditView(self)
         self.summary = SummaryView(self.s, notify=self.notify)
+        self.contact = ContactSheetView(self)
         self.shape_controls = ShapeControlsView(self.s, frame=lambda: self.frame, notify=self.notify)
         self.s.param.watch(lambda e: self.changed(), ["source", "source_rig", "target_rig"])
         if hub is not None:
@@ -242,6 +245,8 @@ class DashboardApp(pn.viewable.Viewer):
             self.w_alert, self.w_offer,
             *self.playback.rows,
             *self.summary.rows,
+            self.contact.card,
+            self.contact.links,
             pn.Row(self.curves.layout, pn.Column(self.edits.card, self.playback.region_box, width=330,
                                                  css_classes=["fr-edit-column"]),
                    sizing_mode="stretch_width"),
@@ -406,6 +411,7 @@ class DashboardApp(pn.viewable.Viewer):
         self.edits.draw()
         self.playback.draw_regions()
         self.summary.draw(snap)
+        self.contact.draw(snap)
         for name in self._tab_views:
             self._update_tab(name)
         self.edits.sync_value()  # the edit slider shows the new result's weight at this frame

@@ -61,7 +61,9 @@ def test_layout_without_default_explains_how_to_make_one(tmp_path, capsys, tiger
 
     rig = tmp_path / "new_head.glb"
     write_rig(rig, tiger)
-    assert main(["retarget", "--source", str(PERFORMANCES / "animface_markers_jaw_60hz.csv"), "--target-rig", str(rig)]) == 2
+    # without the flag the markers are placed automatically (tests/test_cli_markers.py)
+    assert main(["retarget", "--source", str(PERFORMANCES / "animface_markers_jaw_60hz.csv"), "--target-rig", str(rig),
+                 "--no-auto-markers"]) == 2
     assert "face-retarget layout" in capsys.readouterr().err
 
 
