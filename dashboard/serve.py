@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import uuid
 from typing import Optional
 
 
@@ -66,8 +67,6 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     if review and warm.POOL is not None and not os.environ.get(COLD_FIRST_PAGE):
         # the first page (/) is built ahead once the server is idle: it answers from the stage
         # cache with its document made (dashboard.warm, issue 30); the server runs on this loop
-        import uuid
-
         import panel as pn
         from tornado.ioloop import IOLoop
 
