@@ -222,6 +222,11 @@ class WarmPool:
                 if stale is not None:
                     stale.catch_up()
                 elif (pulled := self._unserialised(shot_id)) is not None:
+                    if _queued(pulled.session.document):
+                        # changes still queued for the document (a pane's update deferred to the
+                        # next tick) would drop the reply right after it is made: let them run
+                        await asyncio.sleep(0.1)
+                        continue
                     await pulled.session.with_document_locked(pulled.prepare, self._ctx[1])
                     if self._unserialised(shot_id) is None and self._stale(shot_id) is None:
                         if shot_id == SAMPLE:
@@ -286,6 +291,14 @@ class WarmPool:
         PulledDocument.install(session)
         log.debug("%s: warm page built in %.2f s", _named(shot_id), time.perf_counter() - t0)
         return session, app
+
+
+def _queued(doc) -> bool:
+    """Whether ``doc`` has next-tick callbacks waiting: Panel defers a pane's update made outside
+    the document's lock to one, and it changes the document when it runs."""
+    from bokeh.server.callbacks import NextTickCallback
+
+    return any(isinstance(cb, NextTickCallback) for cb in doc.callbacks.session_callbacks)
 
 
 #: what a page made ahead holds in place of its session token (a JWT's characters, so that it is
