@@ -32,6 +32,7 @@ Run: ``python benchmarks/bench_first_page.py``
 from __future__ import annotations
 
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
@@ -41,6 +42,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 #: fresh servers per kind (each page measured is the first of its server)
 REPEAT = 3
+
+from core.stages.methods import METHODS  # noqa: E402
 
 
 def _served_page():
@@ -60,10 +63,6 @@ def _harness():
 def _measure(browser, fp, cold: bool, change: bool = False):
     """Seconds to the first page drawn; with ``change``, also (seconds to an α change drawn,
     the server's recompute of it in seconds)."""
-    import re
-
-    from core.stages.methods import METHODS
-
     with fp.Server(cold=cold) as srv:
         ctx, page, seconds, stats = fp.open_first_page(browser, srv.base)
         try:

@@ -7,12 +7,18 @@ benchmarks/bench_first_page.py (prints the time); nothing here asserts a time.
 
 from __future__ import annotations
 
+import importlib.util
+import io
 import os
+import re
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
+from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[2]
 #: dashboard.serve.COLD_FIRST_PAGE (not imported: this module must not import panel)
@@ -63,8 +69,6 @@ class Server:
         self.log = Path(log) if log else Path(self._tmp.name) / "server.log"
 
     def __enter__(self) -> "Server":
-        import importlib.util
-
         spec = importlib.util.spec_from_file_location("browser_harness", Path(__file__).with_name("conftest.py"))
         harness = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(harness)
@@ -126,8 +130,6 @@ ALPHA_TITLE = r"^Stay near the rig's own expressions \(Seol α\):"
 
 
 def _group(page, title_re: str, label: bool = False):
-    import re
-
     inner = page.locator("label" if label else ".bk-slider-title", has_text=re.compile(title_re))
     return page.locator(".bk-input-group:visible", has=inner)
 
@@ -168,10 +170,5 @@ def change_alpha(page, key: str = "Home", timeout_s: float = 60.0) -> float:
 
 def curve_pixels(page):
     """(H, W, 3) uint8 screenshot of the weight-curve plot (the page's first Bokeh canvas)."""
-    import io
-
-    import numpy as np
-    from PIL import Image
-
     png = page.locator(".bk-Canvas").first.screenshot()
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))

@@ -6,8 +6,11 @@ asserted (benchmarks/bench_first_page.py records it against the page built when 
 
 from __future__ import annotations
 
+import io
+
 import numpy as np
 import pytest
+from PIL import Image
 
 from served_page import Server, open_first_page
 
@@ -26,9 +29,6 @@ def test_first_page_draws_both_views_from_the_page_built_ahead(browser, artifact
                 # a lit face over the background: luminance varies, and a real share of the canvas is not background
                 assert s["variance"] > 100 and 0.02 < s["foreground"] < 0.98, (label, s)
             # the same seen in a screenshot of the page (what a person sees, not only the drawing buffer)
-            from PIL import Image
-            import io
-
             for label in (SRC, TGT):
                 png = page.locator(f'canvas.face-retarget-canvas[data-label="{label}"]').screenshot(
                     path=str(artifacts / f"first_page_{label}.png"))

@@ -7,17 +7,18 @@ to the new track drawn is printed, not asserted (benchmarks/bench_first_page.py'
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
+from core.stages.methods import METHODS
 from served_page import ALPHA_TITLE, TARGET, Server, change_alpha, choose_method, curve_pixels, open_first_page
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
 def test_an_alpha_change_reaches_the_target_view_and_the_curves(browser, artifacts):
-    from core.stages.methods import METHODS
-
     with Server(log=artifacts / "server_page_change.log") as srv:
         ctx, page, _, _ = open_first_page(browser, srv.base)
         try:
@@ -27,7 +28,7 @@ def test_an_alpha_change_reaches_the_target_view_and_the_curves(browser, artifac
             curves0 = curve_pixels(page)
             seconds = change_alpha(page, "Home")  # α -> 0: the prior off
             print(f"alpha change -> new target track drawn: {seconds:.3f} s")
-            title = page.locator(".bk-slider-title", has_text=__import__("re").compile(ALPHA_TITLE)).first.inner_text()
+            title = page.locator(".bk-slider-title", has_text=re.compile(ALPHA_TITLE)).first.inner_text()
             assert float(title.split(":")[-1]) == 0.0, title
             w1 = page.evaluate("(l) => window.__faceRetarget.viewers[l].influences()", TARGET)
             assert np.abs(np.subtract(w1, w0)).max() > 0.01, "the target's weights at this frame did not change"
