@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .metrics import marker_error_mm, velocity_error, weight_range
+from .metrics import marker_and_velocity_error, weight_range
 
 #: a shape "is used" in a frame above this weight
 ACTIVE = 0.05
@@ -51,8 +51,7 @@ def evaluate(B, W, S, valid=None, step: int = 1, predicted=None, frame_valid=Non
         fv &= np.asarray(frame_valid, dtype=bool)
     mask &= fv[:, None]
     Wz = np.where(fv[:, None], W, 0.0)  # excluded frames carry no sample: their value is never read
-    me = marker_error_mm(B, Wz, S, mask, predicted)
-    ve = velocity_error(B, Wz, S, mask, predicted)
+    me, ve = marker_and_velocity_error(B, Wz, S, mask, predicted)
     wr = weight_range(W[fv]) if fv.any() else weight_range(np.zeros((1, W.shape[1])))
     jit = jitter(Wz, step)
     jit[~fv] = np.nan

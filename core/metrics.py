@@ -14,7 +14,7 @@ import numpy as np
 
 from core.solvers.inputs import as_basis, as_sequence, as_valid, zero_filled
 
-__all__ = ["velocity_error", "marker_error_mm", "weight_range", "VelocityError", "MarkerError", "WeightRange"]
+__all__ = ["velocity_error", "marker_error_mm", "marker_and_velocity_error", "weight_range", "VelocityError", "MarkerError", "WeightRange"]
 
 _MM = 1e3
 
@@ -93,7 +93,10 @@ def velocity_error(B, W, S, valid=None, predicted=None) -> VelocityError:
     -------
     VelocityError(total, per_frame (T,))
     """
-    X, valid = _residual(B, W, S, valid, predicted)
+    return _velocity_error(*_residual(B, W, S, valid, predicted))
+
+
+def _velocity_error(X, valid) -> VelocityError:
     per = np.zeros(len(X))
     if len(X) > 1:
         ve = np.repeat(valid[:-1] & valid[1:], 3, axis=1)
@@ -117,7 +120,10 @@ def marker_error_mm(B, W, S, valid=None, predicted=None) -> MarkerError:
     -------
     MarkerError(distances (T, M), per_frame (T,), per_marker (M,), rms, max)
     """
-    X, valid = _residual(B, W, S, valid, predicted)
+    return _marker_error(*_residual(B, W, S, valid, predicted))
+
+
+def _marker_error(X, valid) -> MarkerError:
     T, M = valid.shape
     d = np.linalg.norm(X.reshape(T, M, 3), axis=2) * _MM
     d = np.where(valid, d, np.nan)
@@ -129,6 +135,14 @@ def marker_error_mm(B, W, S, valid=None, predicted=None) -> MarkerError:
     rms = float(np.sqrt(d2.sum() / n)) if n else float("nan")
     mx = float(np.nanmax(d)) if n else float("nan")
     return MarkerError(d, per_frame, per_marker, rms, mx)
+
+
+def marker_and_velocity_error(B, W, S, valid=None, predicted=None) -> tuple:
+    """``(marker_error_mm(...), velocity_error(...))`` of the same arguments from one residual
+    ``B w_t - s_t`` (the same numbers; the residual of a long take with dense correspondence,
+    (T, 3M) for M = 1,000 points, is most of either's time)."""
+    X, valid = _residual(B, W, S, valid, predicted)
+    return _marker_error(X, valid), _velocity_error(X, valid)
 
 
 def weight_range(W) -> WeightRange:

@@ -442,10 +442,13 @@ def create_app():
     args = pn.state.session_args or {}
     sid = (args.get("shot") or [b""])[0].decode(errors="replace").strip()
     if not sid:  # the dashboard on the sample, a page of its own, with a card to share it as a review
+        from dashboard import warm
         from dashboard.review_view import review_start
 
         app = DashboardApp()
         app.sidebar.review_slot[:] = [review_start(review.SERVER, app.s.shot, on_open=app.open_shared)]
+        if warm.is_warming(pn.state.curdoc):  # the first page built ahead (dashboard.warm): nothing to wake
+            warm.POOL.apps[pn.state.curdoc.session_context.id] = app
         return app.layout
     from core.store import UnknownShot
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import uuid
 from typing import Optional
 
 
@@ -32,7 +33,7 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     return_large_buffers()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    from dashboard import assets, review as rv
+    from dashboard import assets, review as rv, warm
     from dashboard.app import create_app
 
     assets.three_dir()  # fail early with the `npm ci` hint when three.js is missing
@@ -45,8 +46,6 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
     if review:
         server = rv.configure(data_dir, max_upload_mb)
         print(f"review store: {server.data_dir}", flush=True)
-        from dashboard import warm
-
         warm.configure(warm_pages, busy_idle_s=warm_wait)
     origins = [f"{address}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"] + list(allow_websocket_origin or [])
     # the server's loop runs here, on the main thread, until interrupted: with pn.serve(threaded=True)
@@ -69,11 +68,24 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
                       oauth_redirect_uri=oauth.get("redirect_uri"), oauth_encryption_key=oauth.get("encryption_key"),
                       cookie_secret=oauth.get("cookie_secret") or __import__("secrets").token_hex(32))
     print(f"face-retarget dashboard: http://{address}:{port}/  (Ctrl-C to stop)", flush=True)
+    if review and warm.POOL is not None and not os.environ.get(COLD_FIRST_PAGE):
+        # the first page (/) is built ahead once the server is idle: it answers from the stage
+        # cache with its document made (dashboard.warm, issue 30); the server runs on this loop
+        import panel as pn
+        from tornado.ioloop import IOLoop
+
+        kwargs["loop"], kwargs["server_id"] = IOLoop(make_current=False), uuid.uuid4().hex
+        kwargs["loop"].add_callback(lambda sid=kwargs["server_id"]: warm.POOL.start(pn.state._servers[sid][0]))
     try:
         assets.serve({"/": create_app}, port=port, address=address, show=show, title="face-retarget", **kwargs)
     except KeyboardInterrupt:
         print("stopped", flush=True)
     return 0
+
+
+#: set (to anything) to build the first page only when asked for, as before issue 30; kept for
+#: benchmarks/bench_first_page.py's reference
+COLD_FIRST_PAGE = "FACE_RETARGET_COLD_FIRST_PAGE"
 
 
 #: seconds a page's session waits for its websocket before Bokeh discards it

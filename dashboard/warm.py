@@ -35,6 +35,13 @@ token replaces: Panel renders the page for each request, and walks every model o
 to patch stylesheet URLs first (~40 ms a page; 0.8 s for twenty pages at once, measured with
 py-spy: half of the server's work in such a burst).
 
+The dashboard's own first page (``/``, a page of its own on the sample) is kept warm the same way
+under the key :data:`SAMPLE` (the empty shot id), from the moment the server starts
+(:meth:`WarmPool.start`): an idle server answers ``/`` with a page whose results came from the
+stage cache and whose document is made, so the browser has only its own work to do (issue 30,
+"the first page"). It keeps :data:`SAMPLE_PAGES` such pages (each ~4.5 MB while it waits); they
+follow nothing (a page of its own has no shot to change), so they never go stale.
+
 Building waits until the server has been idle for :data:`IDLE_S` (no page asked for, no change
 to the shot, and the event loop answering on time), or :data:`BUSY_IDLE_S` while someone is on
 the shot: a build holds the event loop for about a second, and a change of a review should not
@@ -60,9 +67,22 @@ IDLE_S = 3.0
 BUSY_IDLE_S = 30.0
 #: the most shots that keep warm pages (the most recently opened)
 MAX_SHOTS = 8
+#: the key of the dashboard's own first page (``/`` without ``?shot=``) among the shots' pages
+SAMPLE = ""
+#: warm pages of the first page (``/``) kept ready: the page opened most, by one person at a time
+SAMPLE_PAGES = 2
+#: seconds of quiet before the first page is built again once one was handed out: its browser is
+#: still loading it (the document, the meshes, the first views), and a build holds the event loop
+#: for about a second (measured: a refill 3 s after the hand-out made the page's own load ~2 s slower)
+SAMPLE_REFILL_S = 12.0
 #: the most warm pages a shot keeps because of how many people it has had at once (above
 #: ``--warm-pages``; ~4.5 MB each while they wait)
 MAX_PEAK_PAGES = 24
+
+
+def _named(shot_id: str) -> str:
+    """A shot as the log names it: ``shot`` and its id's first characters, or ``first page``."""
+    return f"shot {shot_id[:6]}" if shot_id != SAMPLE else "first page"
 
 
 class WarmPool:
@@ -80,6 +100,7 @@ class WarmPool:
         self._order: list = []  # shot ids, most recently opened last
         self._watched: dict = {}  # shot id -> (hub, watchers) bumping the activity clock on changes
         self.peak: dict = {}  # shot id -> the most pages that have been on it at once
+        self.served: set = set()  # shot ids a page was asked for (the first page refills after SAMPLE_REFILL_S)
         self._ctx = None  # (Bokeh application context, application) of the page route, pages are built in
         self._loop = None  # the server's event loop (a shot may change on another thread)
         self.last_activity = time.monotonic()
@@ -91,6 +112,7 @@ class WarmPool:
     def claim(self, shot_id: str):
         """A ready ``(ServerSession, DashboardApp)`` of ``shot_id``, or None."""
         pages = self.ready.get(shot_id) or []
+        self.served.add(shot_id)
         while pages:
             session, app = pages.pop(0)
             if not session.destroyed:
@@ -106,6 +128,8 @@ class WarmPool:
         come back after a break or reload, finds twelve pages ready."""
         if self.size <= 0:
             return 0
+        if shot_id == SAMPLE:
+            return min(self.size, SAMPLE_PAGES)
         return max(self.size, min(self.peak.get(shot_id, 0), MAX_PEAK_PAGES))
 
     def _people(self, shot_id: str, hub) -> None:
@@ -154,6 +178,15 @@ class WarmPool:
         if self._ctx is not None:
             self.want(*self._ctx, shot_id, hub)
 
+    def start(self, server) -> None:
+        """Keep the first page (``/``, :data:`SAMPLE`) warm from the start of ``server`` (a
+        :class:`bokeh.server.server.Server` serving the dashboard at ``/``; call on its event loop).
+        The first build also fills the stage cache with the sample's results."""
+        tornado_app = server._tornado  # Bokeh's application; the handlers' self.application
+        ctx = tornado_app._applications.get("/")  # Bokeh has no public lookup of an app's context
+        if ctx is not None:
+            self.want(ctx, tornado_app, SAMPLE)
+
     def _changed(self, shot_id: str) -> None:
         """The shot changed (any thread): builds wait, and its waiting pages will catch up."""
         self.touch()
@@ -201,9 +234,17 @@ class WarmPool:
                 if stale is not None:
                     stale.catch_up()
                 elif (pulled := self._unserialised(shot_id)) is not None:
+                    if _queued(pulled.session.document):
+                        # changes still queued for the document (a pane's update deferred to the
+                        # next tick) would drop the reply right after it is made: let them run
+                        await asyncio.sleep(0.1)
+                        continue
                     await pulled.session.with_document_locked(pulled.prepare, self._ctx[1])
                     if self._unserialised(shot_id) is None and self._stale(shot_id) is None:
-                        log.info("shot %s: %d warm pages current, their documents made", shot_id[:6], self.count(shot_id))
+                        if shot_id == SAMPLE:
+                            log.info("first page: %d built ahead, ready to send", self.count(shot_id))
+                        else:
+                            log.info("shot %s: %d warm pages current, their documents made", shot_id[:6], self.count(shot_id))
                 elif self.count(shot_id) < self.target(shot_id):
                     got = await self._build(*self._ctx, shot_id)
                     if got is None:
@@ -211,7 +252,8 @@ class WarmPool:
                     self.ready.setdefault(shot_id, []).append(got)
                     n = self.count(shot_id)
                     if n == self.target(shot_id):
-                        log.info("shot %s: %d of %d warm pages ready", shot_id[:6], n, n)
+                        log.info("%s: %d of %d %s ready", _named(shot_id), n, n,
+                                 "warm pages" if shot_id != SAMPLE else "pages built ahead")
                 await asyncio.sleep(0.05)  # the other sessions' work between two steps
         finally:
             self._filling.discard(shot_id)
@@ -223,6 +265,8 @@ class WarmPool:
 
         def need() -> float:
             hub = self._watched.get(shot_id, (None,))[0]
+            if shot_id == SAMPLE and shot_id in self.served:
+                return max(self.idle_s, SAMPLE_REFILL_S)
             return self.busy_idle_s if hub is not None and hub.participants else self.idle_s
 
         while time.monotonic() - self.last_activity < need():
@@ -240,14 +284,15 @@ class WarmPool:
         sid = generate_session_id(secret_key=application.secret_key, signed=application.sign_sessions)
         token = generate_jwt_token(sid, secret_key=application.secret_key, signed=application.sign_sessions,
                                    expiration=application.session_token_expiration,
-                                   extra_payload={"headers": {}, "cookies": {}, "arguments": {"shot": [shot_id.encode()]}})
-        request = HTTPServerRequest(method="GET", uri=f"/?shot={shot_id}", headers=HTTPHeaders())
+                                   extra_payload={"headers": {}, "cookies": {},
+                                                  "arguments": {"shot": [shot_id.encode()]} if shot_id else {}})
+        request = HTTPServerRequest(method="GET", uri=f"/?shot={shot_id}" if shot_id else "/", headers=HTTPHeaders())
         self.building.add(sid)
         t0 = time.perf_counter()
         try:
             session = await app_context.create_session_if_needed(sid, request, token)
         except Exception:  # noqa: BLE001 - a page that cannot be built is built when asked for, with its error
-            log.warning("shot %s: building a warm page failed", shot_id[:6], exc_info=True)
+            log.warning("%s: building a warm page failed", _named(shot_id), exc_info=True)
             return None
         finally:
             self.building.discard(sid)
@@ -256,8 +301,16 @@ class WarmPool:
             return None
         session.block_expiration()
         PulledDocument.install(session)
-        log.debug("shot %s: warm page built in %.2f s", shot_id[:6], time.perf_counter() - t0)
+        log.debug("%s: warm page built in %.2f s", _named(shot_id), time.perf_counter() - t0)
         return session, app
+
+
+def _queued(doc) -> bool:
+    """Whether ``doc`` has next-tick callbacks waiting: Panel defers a pane's update made outside
+    the document's lock to one, and it changes the document when it runs."""
+    from bokeh.server.callbacks import NextTickCallback
+
+    return any(isinstance(cb, NextTickCallback) for cb in doc.callbacks.session_callbacks)
 
 
 #: what a page made ahead holds in place of its session token (a JWT's characters, so that it is
@@ -382,11 +435,16 @@ def handler_class():
     class WarmDocHandler(DocHandler):
         _claimed = None  # the warm page get() took for this request
 
-        def _warm_shot(self) -> str:
-            """The shot id of a request a warm page may answer, else ''."""
-            shot_id = (self.get_argument("shot", default="") or "").strip()
+        def _warm_shot(self):
+            """The shot id of a request a warm page may answer (:data:`SAMPLE` for the first
+            page, ``/`` without arguments), else None."""
             explicit = self.get_argument("bokeh-token", default=None) or self.get_argument("bokeh-session-id", default=None)
-            return shot_id if POOL is not None and not explicit else ""
+            if POOL is None or explicit:
+                return None
+            shot_id = (self.get_argument("shot", default="") or "").strip()
+            if shot_id:
+                return shot_id
+            return SAMPLE if not self.request.arguments else None
 
         @authenticated
         async def get(self, *args, **kwargs):
@@ -396,7 +454,7 @@ def handler_class():
             from panel.io.server import _set_request_route_context
 
             shot_id = self._warm_shot()
-            if shot_id:
+            if shot_id is not None:
                 POOL.touch()
                 self._claimed = POOL.claim(shot_id)
                 pulled = getattr(self._claimed[0], "_face_retarget_pull", None) if self._claimed else None
@@ -417,9 +475,9 @@ def handler_class():
         async def get_session(self):
             pool = POOL
             shot_id = self._warm_shot()
-            if not shot_id:
-                if pool is not None:  # a page that may make a shot in place (DashboardApp.open_shared)
-                    pool.route(self.application_context, self.application)
+            if not shot_id and pool is not None:  # a page that may make a shot in place (DashboardApp.open_shared)
+                pool.route(self.application_context, self.application)
+            if shot_id is None:
                 return await super().get_session()
             got, self._claimed = self._claimed, None
             if got is None:
@@ -428,8 +486,8 @@ def handler_class():
                 session = self._hand_out(*got)
             from dashboard import review
 
-            hub = review.SERVER.hubs.get(shot_id) if review.SERVER is not None else None
-            if hub is not None:  # a shot that exists: keep its pages warm
+            hub = review.SERVER.hubs.get(shot_id) if review.SERVER is not None and shot_id != SAMPLE else None
+            if hub is not None or shot_id == SAMPLE:  # a shot that exists, or the first page: keep its pages warm
                 pool.want(self.application_context, self.application, shot_id, hub)
             return session
 
@@ -467,7 +525,8 @@ def handler_class():
                 pulled.after_pull = wake
             else:
                 wake()
-            log.info("shot %s: a warm page handed out%s", app.mirror.hub.shot_id[:6] if app.mirror else "?",
+            log.info("%s: %s handed out%s", *(("shot " + app.mirror.hub.shot_id[:6], "a warm page") if app.mirror
+                                                else ("first page", "a page built ahead")),
                      " (its page and document made ahead)" if pulled is not None and pulled.ready() else "")
             return session
 

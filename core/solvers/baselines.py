@@ -123,17 +123,21 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
     else:
         P, q = np.zeros((K, K)), np.zeros(K)
     W = np.zeros((len(Sz), K))
-    smax2 = _smax2(Bm)
+    # sigma_max(B)^2 (an SVD) only scales the relative ridge and coupling: not computed without them
+    smax2 = _smax2(Bm) if ridge > 0 or quadratic is not None else 0.0
     rho = ridge * smax2
     Qs = as_coupling(quadratic, K, smax2, "prior_pf")
     zero = as_zero_mask(zero, len(Sz), K, "prior_pf")
     for pat, frames in _groups(valid):
-        rows = np.repeat(pat, 3)
-        Bv = Bm[rows]
+        if pat.all():  # every marker: no copies of the take (with 1,000 dense points, 2 x 24 MB per solve)
+            Bv, Sv = Bm, (Sz if len(frames) == len(Sz) else Sz[frames])
+        else:
+            rows = np.repeat(pat, 3)
+            Bv, Sv = Bm[rows], Sz[frames][:, rows]
         H = Bv.T @ Bv + a * P + rho * np.eye(K)
         if Qs is not None:
             H = H + Qs
-        rhs = Sz[frames][:, rows] @ Bv + a * q
+        rhs = Sv @ Bv + a * q
         if zero is None:
             W[frames] = _spd_solve(H, rhs)
             continue

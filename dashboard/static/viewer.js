@@ -233,6 +233,16 @@ function rows(a) {
   return a.shape ? a.shape[0] : 0;
 }
 
+// requestIdleCallback where the browser has it (with a deadline, so that a busy page still
+// gets there), else a timeout with a fixed budget.
+function whenIdle(fn) {
+  if (window.requestIdleCallback) return { idle: window.requestIdleCallback(fn, { timeout: 2000 }) };
+  return { timer: setTimeout(() => fn({ timeRemaining: () => 8, didTimeout: false }), 50) };
+}
+function cancelIdle(h) {
+  if (h.idle !== undefined) window.cancelIdleCallback(h.idle); else clearTimeout(h.timer);
+}
+
 // Vertices sharing a neutral position (UV seams) get one id, so normals do not crease there.
 function weldIds(pos, V) {
   const ids = new Uint32Array(V);
@@ -650,18 +660,20 @@ class Viewer {
     this.neutral = pos;
     this.normal0 = n0;
     const mp = [], mn = [];
-    this.normalDeltas = [];
-    const nk = new Float32Array(3 * V);
+    // per-shape normal deltas: all of them now for the GPU's morph targets; for the JS blend
+    // only when a shape is first blended (normalDelta), the rest while the page is idle — the
+    // first frame is drawn without waiting for every shape of a large rig (issue 30)
+    this.normalDeltas = new Array(this.K).fill(null);
+    this.nk = new Float32Array(3 * V);
+    if (this.idleNormals) { cancelIdle(this.idleNormals); this.idleNormals = null; }
+    const eager = this.K && this.blend === "gpu";
     for (let k = 0; k < this.K; k++) {
       const dk = deltas.subarray(k * 3 * V, (k + 1) * 3 * V);
-      vertexNormals(pos, dk, faces, weld, nk, acc);
-      const dn = new Float32Array(3 * V);
-      for (let i = 0; i < 3 * V; i++) dn[i] = nk[i] - n0[i];
-      this.normalDeltas.push(dn);
       mp.push(new THREE.BufferAttribute(dk, 3));
-      mn.push(new THREE.BufferAttribute(dn, 3));
+      if (eager) mn.push(new THREE.BufferAttribute(this.normalDelta(k), 3));
     }
     this.stats.normalsMs = performance.now() - t;
+    if (!eager && this.K) this.fillNormalsWhenIdle();
     // per shape, the largest |delta| per axis: bounds the morphed mesh for ray tests
     this.deltaExtent = new Float32Array(3 * this.K);
     for (let k = 0; k < this.K; k++) {
@@ -702,6 +714,38 @@ class Viewer {
     this.setTrack();
     this.setOffsets();
     this.fitCamera();
+  }
+
+  // Shape k's normal delta (vertex normals of neutral + delta_k, minus the neutral's), made
+  // on first use and kept.
+  normalDelta(k) {
+    let dn = this.normalDeltas[k];
+    if (dn) return dn;
+    const t = performance.now();
+    const V = this.V, n0 = this.normal0, nk = this.nk;
+    vertexNormals(this.neutral, this.deltas.subarray(k * 3 * V, (k + 1) * 3 * V), this.faces, this.weld, nk, this.acc);
+    dn = new Float32Array(3 * V);
+    for (let i = 0; i < 3 * V; i++) dn[i] = nk[i] - n0[i];
+    this.normalDeltas[k] = dn;
+    this.stats.normalsMs += performance.now() - t;
+    return dn;
+  }
+
+  // The normal deltas not made yet, a few shapes at a time while the page is idle (so that
+  // playback later does not pay for them frame by frame).
+  fillNormalsWhenIdle() {
+    const step = (deadline) => {
+      this.idleNormals = null;
+      if (this.disposed || !this.normalDeltas) return;
+      let k = this.normalDeltas.indexOf(null);
+      while (k >= 0 && (deadline.timeRemaining() > 2 || deadline.didTimeout)) {
+        this.normalDelta(k);
+        k = this.normalDeltas.indexOf(null, k + 1);
+        if (deadline.didTimeout) break;
+      }
+      if (k >= 0) this.idleNormals = whenIdle(step);
+    };
+    this.idleNormals = whenIdle(step);
   }
 
   // The JS blend's dynamic position/normal buffers (created once per geometry).
@@ -1088,7 +1132,7 @@ class Viewer {
       for (let k = 0; k < this.K; k++) {
         const wk = w[k];
         if (wk === 0) continue;
-        const d = D.subarray(k * n3, (k + 1) * n3), dn = this.normalDeltas[k];
+        const d = D.subarray(k * n3, (k + 1) * n3), dn = this.normalDelta(k);
         for (let i = 0; i < n3; i++) { P[i] += wk * d[i]; Nn[i] += wk * dn[i]; }
       }
     }

@@ -1,0 +1,37 @@
+"""core.metrics: the marker and velocity errors computed from one shared residual are the
+numbers of the two functions called apart (missing samples and a prediction included), and the
+velocity error matches its definition on a hand-sized case."""
+
+import numpy as np
+
+from core.metrics import marker_and_velocity_error, marker_error_mm, velocity_error
+
+
+def _case(seed=0, T=30, K=6, M=5):
+    r = np.random.default_rng(seed)
+    B, W, S = r.normal(size=(K, M, 3)), r.normal(size=(T, K)), r.normal(size=(T, M, 3))
+    S[4, 2] = np.nan
+    S[10] = np.nan
+    return B, W, S
+
+
+def test_one_residual_gives_both_errors_exactly():
+    B, W, S = _case()
+    valid = np.isfinite(S).all(-1)
+    for predicted in (None, np.einsum("tk,kmc->tmc", W, B) * 0.9):
+        me, ve = marker_and_velocity_error(B, W, S, valid, predicted)
+        for got, want in zip(me, marker_error_mm(B, W, S, valid, predicted)):
+            assert np.array_equal(got, want, equal_nan=True)
+        for got, want in zip(ve, velocity_error(B, W, S, valid, predicted)):
+            assert np.array_equal(got, want, equal_nan=True)
+
+
+def test_velocity_error_is_its_definition():
+    B, W, S = _case(1)
+    valid = np.isfinite(S).all(-1)
+    _, ve = marker_and_velocity_error(B, W, S, valid)
+    X = np.einsum("tk,kmc->tmc", W, B) - np.nan_to_num(S)
+    want = [0.0] + [sum(float(np.sum((X[t, m] - X[t - 1, m]) ** 2)) for m in range(S.shape[1])
+                        if valid[t, m] and valid[t - 1, m]) * 1e6 for t in range(1, len(S))]
+    assert np.allclose(ve.per_frame, want, rtol=1e-12, atol=0)
+    assert np.isclose(ve.total, sum(want), rtol=1e-12)
