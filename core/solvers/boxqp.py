@@ -181,7 +181,7 @@ def _finish(H, f, h, lower, upper, eps_l, pdas_steps=6):
 
 
 def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 4, refresh: int = 32,
-                       steal: int = 6, pdas=None, return_info: bool = False):
+                       steal: int = 6, pdas=None, return_info: bool = False, warm=None):
     """Solve (1) of the module docstring for every frame, warm-started along the frames.
 
     ``min_u 1/2 u^T H_{idx[t,c]} u + f[t,c]^T u``  s.t. ``0 <= u <= 1``, exactly (KKT conditions
@@ -219,6 +219,11 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
         unconstrained minimiser thrashes (none of 64 frames settled in 100 iterations), on the
         22-shape regional problems it settles most first frames in a few.
     return_info : bool
+    warm : (K,) or (C, K) float, optional
+        A point in the unit box to start frame 0 of each chain from instead of cold (the
+        previous frame's solution when frames arrive one at a time, :mod:`core.live`): it is
+        the exact optimum of ``f_0 = lambda - H u`` with ``lambda`` the sign-clamped gradient
+        (module docstring), so the homotopy to frame 0 costs 1 + its active-set changes.
 
     Returns
     -------
@@ -296,8 +301,11 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     k_look = max(0, int(lookahead))
     look = [0, 0]  # look-ahead checks, and checks whose first frame kept the set
     pdas = (8 if K <= 64 else 0) if pdas is None else int(pdas)
-    if pdas > 0:
-        _pdas_start(H, f, idx, eps_all, L, np.arange(n0), pdas, U, info, refresh)
+    cold = np.arange(n0)
+    if warm is not None:
+        cold = _warm_start(H, f, np.broadcast_to(np.asarray(warm, dtype=np.float64), (C, K)), L, n0, refresh)
+    if pdas > 0 and len(cold):
+        _pdas_start(H, f, idx, eps_all, L, cold, pdas, U, info, refresh)
     rows = np.arange(nl)
 
     while L.active.any():
@@ -377,6 +385,25 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     if squeeze:
         U = U[:, 0]
     return (U, info) if return_info else U
+
+
+def _warm_start(H, f, warm, L, n0, refresh):
+    """Start the lanes that begin at frame 0 from ``warm`` (C, K): ``u`` clipped to the box, the
+    working set where it sits on a bound, multipliers ``lambda`` = the sign-clamped gradient
+    ``H u + f`` (0 on the free set), so ``u`` is the optimum of ``f_0 = lambda - H u`` and the
+    segment runs from ``f_0`` to ``f``. Returns the lanes left to start cold."""
+    ln = np.flatnonzero(L.t[:n0] == 0)
+    u = np.clip(warm[L.c[ln]], 0.0, 1.0)
+    lo, up = u <= 0.0, u >= 1.0
+    Hu = _hmul(H, L.h[ln], u)
+    g = Hu + f[0, L.c[ln]]
+    lam = np.where(lo, np.maximum(g, 0.0), np.where(up, np.minimum(g, 0.0), 0.0))
+    L.lower[ln], L.upper[ln] = lo, up
+    L.perm[ln], L.nfree[ln] = _free_first(lo, up)
+    L.u[ln], L.g[ln] = u, lam
+    L.delta[ln] = f[0, L.c[ln]] - lam + Hu
+    L.nupd[ln] = refresh  # fresh inverses (and directions) in the first round
+    return np.setdiff1d(np.arange(n0), ln)
 
 
 def _pdas_start(H, f, idx, eps_all, L, lanes, iters, U, info, refresh):
