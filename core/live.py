@@ -169,7 +169,8 @@ class LiveRetargeter:
                                f"channel ({int(N.sum())} of {K} shapes), the others at zero")
             else:
                 self.choice = "auto, live: frame by frame within the bounds, by geometry alone"
-        self.solver_ = RangePFPrecompute(B, lo, hi, ridge=ridge, quadratic=Q if Q.any() else None, zero=zero)
+        self.ridge_, self.quadratic_ = ridge, (Q if Q.any() else None)
+        self.solver_ = RangePFPrecompute(B, lo, hi, ridge=ridge, quadratic=self.quadratic_, zero=zero)
         if self.pull_ is not None:
             self.pull_ = self.pull_[1] * (self.pull_[0] * self.solver_.smax2_)
         self.controls_ = ctl
@@ -420,13 +421,17 @@ class LiveLinkOut:
 def listen(session: LiveSession, host: str, port: int, outputs=(), stop: Optional[threading.Event] = None,
            on_frame: Optional[Callable] = None, ready: Optional[Callable] = None, timeout: float = 0.1) -> tuple:
     """Receive datagrams on ``host:port`` until ``stop`` is set; each answered frame goes to
-    every output's ``send`` and then to ``on_frame(frame, latency_s)`` (latency: arrival -> the
-    outputs sent). ``ready(host, port)`` is called once bound (port 0: the port chosen).
+    every output's ``send`` and then to ``on_frame(frame, latency_s)`` (latency: the kernel's
+    arrival time of the datagram, where the platform gives it (Linux ``SO_TIMESTAMPNS``), to
+    the outputs sent; so time spent queued behind other packets counts). ``ready(host, port)`` is called once bound (port 0: the port chosen).
 
     Returns the bound ``(host, port)``.
     """
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+    stamped = hasattr(socket, "SO_TIMESTAMPNS")
+    if stamped:  # the kernel's arrival time: the wait in the socket's queue counts in the latency
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_TIMESTAMPNS, 1)
     sock.bind((host, port))
     sock.settimeout(timeout)
     bound = sock.getsockname()[:2]
@@ -436,10 +441,14 @@ def listen(session: LiveSession, host: str, port: int, outputs=(), stop: Optiona
             ready(*bound)
         while not stop.is_set():
             try:
-                data = sock.recv(65536)
+                data, anc, _, _ = sock.recvmsg(65536, socket.CMSG_SPACE(16) if stamped else 0)
             except socket.timeout:
                 continue
             arrival = time.perf_counter()
+            for level, kind, raw in anc:
+                if level == socket.SOL_SOCKET and kind == socket.SO_TIMESTAMPNS and len(raw) >= 16:
+                    sec, ns = struct.unpack("qq", raw[:16])
+                    arrival -= max(0.0, time.time() - (sec + 1e-9 * ns))
             frame = session.receive(data, arrival)
             if frame is None:
                 continue

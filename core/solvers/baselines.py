@@ -30,7 +30,7 @@ import numpy as np
 import scipy.linalg
 
 from core.prior import alpha_for_units, prior_quadratic
-from core.solvers.boxqp import solve_box_sequence
+from core.solvers.boxqp import solve_box_frame, solve_box_sequence
 from core.solvers.inputs import as_basis, as_bounds, as_coupling, as_sequence, as_valid, as_zero_mask, zero_filled
 from core.solvers.qp import solve_qp_batch
 from core.solvers.spacetime import AUTO_RIDGE
@@ -257,6 +257,7 @@ class RangePFPrecompute:
         d = (self.hi_ - self.lo_)[self.sol_]
         Hs, self.lin_, self.base_, self.dz_ = _unit_box(H, self.sol_, self.lo_, self.held_, d, zr)
         self.H_ = Hs[None]
+        self._memo = {}  # the last working set's factor (core.solvers.boxqp.solve_box_frame)
 
     def solve(self, S, warm=None, linear=None):
         """Weights of frames ``S`` (T, M, 3) (or one frame (M, 3)), the first started from
@@ -278,7 +279,10 @@ class RangePFPrecompute:
             if linear is not None:
                 R = R + linear
             f = (self.lin_ - R[:, self.sol_]) * self.dz_
-            u = solve_box_sequence(self.H_, f, warm=warm)
+            if len(f) == 1 and warm is not None:  # a live frame: the last working set tried first
+                u = solve_box_frame(self.H_[0], f[0], warm, self._memo)[None]
+            else:
+                u = solve_box_sequence(self.H_, f, warm=warm)
             W[:, self.sol_] = np.clip(self.base_ + u * self.dz_, self.lo_[self.sol_], self.hi_[self.sol_])
             u = u[-1]
         if self.zero_ is not None:

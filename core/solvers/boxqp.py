@@ -75,10 +75,11 @@ References
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 
 from core.solvers.qp import primal_active_set, solve_eqp_batch
 
-__all__ = ["solve_box_sequence"]
+__all__ = ["solve_box_sequence", "solve_box_frame"]
 
 EPS_U = 1e-11  # primal tolerance in unit-box coordinates
 EPS_L = 1e-11  # dual tolerance relative to mean diag H + max |f|
@@ -385,6 +386,39 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     if squeeze:
         U = U[:, 0]
     return (U, info) if return_info else U
+
+
+def solve_box_frame(H, f, warm, memo: dict) -> np.ndarray:
+    """One frame of (1), ``H`` (K, K), ``f`` (K,), started from the previous frame's point
+    ``warm`` (K,): first the working set ``warm`` sits in is tried outright (the free block's
+    Cholesky factor kept in ``memo`` while the set does not change, so an unchanged set costs two
+    triangular solves), accepted only if it passes the KKT check of :func:`solve_box_sequence`;
+    otherwise the warm-started homotopy of :func:`solve_box_sequence`. Exact either way.
+
+    Returns u (K,) in [0, 1]."""
+    lower, upper = warm <= 0.0, warm >= 1.0
+    free = ~(lower | upper)
+    key = (lower.tobytes(), upper.tobytes())
+    if memo.get("key") != key:
+        F = np.flatnonzero(free)
+        memo["key"], memo["F"], memo["U"] = key, F, np.flatnonzero(upper)
+        memo["chol"] = None
+        if len(F):
+            try:
+                memo["chol"] = scipy.linalg.cho_factor(H[np.ix_(F, F)], lower=True, check_finite=False)
+            except np.linalg.LinAlgError:
+                memo["key"] = None
+    F, U = memo["F"], memo["U"]
+    if memo.get("key") == key and (memo["chol"] is not None or not len(F)):
+        u = upper.astype(np.float64)
+        if len(F):
+            rhs = -(f[F] + H[np.ix_(F, U)].sum(1)) if len(U) else -f[F]
+            u[F] = scipy.linalg.cho_solve(memo["chol"], rhs, check_finite=False)
+        g = H @ u + f
+        eps = EPS_L * (np.trace(H) / len(H) + np.abs(f).max())
+        if _kkt_ok(u, g, lower, upper, eps):
+            return np.clip(u, 0.0, 1.0)
+    return solve_box_sequence(H[None], f[None], warm=warm)[0]
 
 
 def _warm_start(H, f, warm, L, n0, refresh):
