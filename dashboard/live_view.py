@@ -4,7 +4,7 @@ the shot's take (so the offline methods can refine them afterwards).
 
 The view holds no numerics: :class:`core.live.LiveRetargeter` is built from the page's
 pipeline, :func:`core.live.listen` runs in a thread, and a periodic callback of the page pushes
-the latest frame's weights to the two viewers (``MeshViewer.set_weights``: a few hundred bytes
+the latest frame's weights to the two viewers (``MeshViewer.stream_weights``: a message of a few hundred bytes
 per update) and the counts to the status line.
 """
 
@@ -41,7 +41,7 @@ class LiveView(pn.viewable.Viewer):
         self.on_take = on_take
         self.notify = notify
         self.w_address = pn.widgets.TextInput(name="Listen on (HOST:PORT, the address to give the iPhone app)",
-                                              value="0.0.0.0:11111", width=320)
+                                              value="0.0.0.0:11111", placeholder="HOST:PORT", width=320)
         self.w_listen = pn.widgets.Toggle(name="Listen", button_type="success", width=120)
         self.w_record = pn.widgets.Toggle(name="● Record", button_type="danger", width=120, disabled=True)
         self.w_take = pn.widgets.Button(name="Use the recording as the take", width=240, disabled=True)
@@ -61,6 +61,7 @@ class LiveView(pn.viewable.Viewer):
         self._callback = None
         self._rate = (time.monotonic(), 0, 0.0)
         self.bound = None
+        self.push_ms = 0.0
 
     def update(self, snap) -> None:
         """Nothing to redraw for a new result: Listen builds the per-frame system from the pipeline."""
@@ -104,6 +105,7 @@ class LiveView(pn.viewable.Viewer):
         if pn.state.curdoc is not None and self._callback is None:
             self._callback = pn.state.add_periodic_callback(self.push, period=PUSH_MS)
         self.w_record.disabled = False
+        self._rate = (time.monotonic(), 0, 0.0)
         return self.bound
 
     def stop(self) -> None:
@@ -147,9 +149,11 @@ class LiveView(pn.viewable.Viewer):
         f = self._latest
         if f is not None and f is not self._shown and self.target_viewer is not None:
             self._shown = f
-            self.target_viewer.set_weights(f.weights)
+            t = time.perf_counter()
+            self.target_viewer.stream_weights(f.weights)
             if f.values is not None:
-                self.source_viewer.set_weights(np.clip(self.rt.source_weights(f.values), -1.0, 2.0))
+                self.source_viewer.stream_weights(np.clip(self.rt.source_weights(f.values), -1.0, 2.0))
+            self.push_ms = 1e3 * (time.perf_counter() - t)
         t0, n0, rate = self._rate
         now = time.monotonic()
         if self.session is not None and now - t0 >= 0.5:
@@ -171,6 +175,7 @@ class LiveView(pn.viewable.Viewer):
                          + (f", {s['recorded']} recorded" if s["recorded"] else ""))
         bad = sum(st["bad"].values())
         parts.append(f"bad packets: {bad}" + (f" ({', '.join(f'{k} {v}' for k, v in st['bad'].items())})" if bad else ""))
+        parts.append(f"page update {self.push_ms:.1f} ms")
         return " · ".join(parts)
 
     # -- recording --------------------------------------------------------------------------
