@@ -14,6 +14,12 @@ and target weights by the bounded per-frame solve of the ``bounded`` method (Seo
 
     w_t = argmin ||B w - s_t||^2 + rho ||w||^2 + sigma^2 w^T Q w   s.t.  lower <= w <= upper
 
+With the default method ``auto`` (which solves the whole take at once offline) the solve is the
+per-frame form of what :func:`core.stages.methods.auto_choice` picks for the pair: its ridge,
+the range-of-motion match, and, when the target has the take's ARKit names, auto's name prior
+``c sigma^2 ||w_N - G_N x||^2`` (each named shape pulled towards its namesake channel, ``c`` =
+``AUTO_NAMED["name_weight"]``) with the other shapes held at zero as auto holds them.
+
 solved exactly by :class:`core.solvers.baselines.RangePFPrecompute` (the Hessian built once,
 each frame warm-started from the previous one), then the causal One Euro filter
 (:class:`core.controls.filters.OneEuro`, Casiez et al. 2012) when the shot's ``weights_filter``
@@ -79,9 +85,10 @@ def parse_address(text: str, default_host: str = "127.0.0.1") -> tuple:
 
 
 def neutral_take(path) -> Path:
-    """Write a 64-frame (just over a second, so the reader can tell the timecode rate) neutral Live Link Face CSV at ``path``: the take a live shot without a
-    recorded take runs its stages on (with a source rig the take only sets the frame range; the
-    source's neutral is the rig's own)."""
+    """Write a neutral Live Link Face CSV at ``path`` (64 frames: just over a second, so the
+    reader can tell the timecode rate): the take a live shot without a recorded take runs its
+    stages on (with a source rig the take only sets the frame range; the source's neutral is the
+    rig's own)."""
     perf = Performance.curves(np.zeros((64, len(ARKIT_CHANNELS))), ARKIT_CHANNELS, 60.0, name="live")
     write_livelink(path, perf)
     return Path(path)
@@ -423,7 +430,8 @@ def listen(session: LiveSession, host: str, port: int, outputs=(), stop: Optiona
     """Receive datagrams on ``host:port`` until ``stop`` is set; each answered frame goes to
     every output's ``send`` and then to ``on_frame(frame, latency_s)`` (latency: the kernel's
     arrival time of the datagram, where the platform gives it (Linux ``SO_TIMESTAMPNS``), to
-    the outputs sent; so time spent queued behind other packets counts). ``ready(host, port)`` is called once bound (port 0: the port chosen).
+    the outputs sent; so time spent queued behind other packets counts). ``ready(host, port)``
+    is called once bound (port 0: the port chosen).
 
     Returns the bound ``(host, port)``.
     """
