@@ -289,3 +289,45 @@ def test_live_command_answers_a_replayed_take(tmp_path, take):
     assert "latency p50" in out and st["latency_ms"]["p95"] > 0  # measured, not asserted on (benchmarks/bench_live.py)
     rec = read_livelink(tmp_path / "rec.csv")
     assert rec.n_frames == T
+
+
+def test_live_one_euro_equals_the_offline_filter(take):
+    """With the shot's One Euro filter the live frames are the offline bounded + One Euro result
+    (causal both; the packets carry the take's frame rate)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pipe = Pipeline(source=str(TAKE), source_rig=str(RIGS / "ict_facekit.glb"),
+                        target_rig=str(RIGS / "rocketbox_female_adult_02.glb"), method="bounded", last_frame=199,
+                        weights_filter="one_euro", filter_min_cutoff=2.0, filter_beta=0.5)
+        rt = LiveRetargeter(pipe)
+        ref = pipe.results(["synthesize"])["synthesize"]["weights"]
+    X = stream_values(take)[:200]
+    rate = (int(round(take.fps)), 1)
+    sess = LiveSession(rt)
+    out = np.array([sess.receive(encode("iPhone", i, X[i], rate=rate)).weights for i in range(200)])
+    assert np.abs(out - ref).max() < 1e-4
+    unfiltered = LiveRetargeter(Pipeline(source=str(TAKE), source_rig=str(RIGS / "ict_facekit.glb"),
+                                         target_rig=str(RIGS / "rocketbox_female_adult_02.glb"), method="bounded"))
+    raw = LiveSession(unfiltered)
+    W = np.array([raw.receive(encode("iPhone", i, X[i], rate=rate)).weights for i in range(200)])
+    assert np.abs(W - out).max() > 1e-2  # the filter did something
+
+
+def test_solve_box_frame_is_exact_along_a_sequence():
+    """The one-frame solve (last working set first, else the warm homotopy) against the batched
+    sequence solver on a random sequence of box QPs whose active sets change."""
+    from core.solvers.boxqp import solve_box_frame, solve_box_sequence
+
+    rng = np.random.default_rng(3)
+    K, T = 15, 120
+    A = rng.normal(size=(K + 5, K))
+    H = A.T @ A + 0.1 * np.eye(K)
+    f = np.cumsum(rng.normal(scale=0.6, size=(T, K)), axis=0)
+    ref = solve_box_sequence(H[None], f)
+    memo, u, kept = {}, solve_box_sequence(H[None], f[:1])[0], 0
+    for t in range(1, T):
+        key = memo.get("key")
+        u = solve_box_frame(H, f[t], u, memo)
+        kept += memo.get("key") == key
+        np.testing.assert_allclose(u, ref[t], atol=1e-9)
+    assert 0 < kept < T - 1  # both paths ran: sets kept and sets changed
