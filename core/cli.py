@@ -216,8 +216,7 @@ def _live(args) -> int:
     if outputs_at[1]:
         outputs.append(LiveLinkOut(*outputs_at[1], rt.target_names))
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     timer = threading.Timer(args.duration or 0, stop.set)
     timer.daemon = True
     if args.duration:
@@ -234,8 +233,12 @@ def _live(args) -> int:
     t0 = time.monotonic()
     try:
         listen(session, host, port, outputs, stop, on_frame, ready)
+    except OSError as e:  # the port is taken, the address is not this machine's ...
+        raise ValueError(f"--listen {args.listen}: cannot listen there ({e.strerror or e})") from None
     finally:
         timer.cancel()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         for out in outputs:
             out.close()
     st = session.stats()

@@ -331,3 +331,19 @@ def test_solve_box_frame_is_exact_along_a_sequence():
         kept += memo.get("key") == key
         np.testing.assert_allclose(u, ref[t], atol=1e-9)
     assert 0 < kept < T - 1  # both paths ran: sets kept and sets changed
+
+
+def test_live_command_boundary_errors(capsys):
+    from core.cli import main
+
+    target = str(RIGS / "rocketbox_female_adult_02.glb")
+    assert main(["live", "--listen", "127.0.0.1:99999", "--target-rig", target]) == 2
+    assert "port 99999 outside 0-65535" in capsys.readouterr().err
+    assert main(["live", "--listen", "127.0.0.1:0", "--target-rig", target]) == 2
+    assert "--source-rig" in capsys.readouterr().err
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        assert main(["live", "--listen", f"127.0.0.1:{port}", "--source-rig", str(RIGS / "ict_facekit.glb"),
+                     "--target-rig", target]) == 2
+    assert "cannot listen there" in capsys.readouterr().err
