@@ -5,6 +5,7 @@
     face-retarget batch shots/ --out results/ [--template shot.json] [--workers N] [--scheduler tcp://host:8786]
     face-retarget layout --from data/layouts/ict_facekit.json --rig new.glb --out new.json
     face-retarget serve [--port N] [--address A] [--show]
+    face-retarget live --listen 0.0.0.0:11111 --shot shot.json --osc 127.0.0.1:9000 [--livelink-out HOST:PORT]
     face-retarget info FILE...
     face-retarget bench
 
@@ -20,13 +21,17 @@ import os
 import runpy
 import signal
 import sys
+import tempfile
 import threading
+import time
 import warnings
 from pathlib import Path
 
 from .batch import collect_shots, run_batch, zip_results
 from .controls.table import read_table
+from .io.livelink import write_livelink
 from .io.performance import read_performance
+from .live import LiveLinkOut, LiveRetargeter, LiveSession, OscOut, listen, neutral_take, parse_address
 from .io.rigs import load_rig
 from .names import NameMap, arkit_combination, load_vocabularies, rank_vocabularies, recognise
 from .outputs import write_outputs
@@ -48,7 +53,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 _CACHE = None
 #: CLI options that are not pipeline settings
 OUTPUT_OPTIONS = ("func", "out", "weights_csv", "livelink_csv", "quiet", "command", "shot", "save_shot", "csv_precision",
-                  "controls_file", "keys", "keys_tolerance", "example_poses_file", "n", "no_auto_markers")
+                  "controls_file", "keys", "keys_tolerance", "example_poses_file", "n", "no_auto_markers", "listen", "osc", "livelink_out",
+                  "record", "duration", "stats")
 
 
 def _cache():
@@ -211,6 +217,72 @@ def _batch(args) -> int:
     if args.zip:
         print(f"wrote {zip_results(args.out, args.zip)}")
     return 1 if counts["failed"] or counts["pending"] else 0
+
+
+def _live(args) -> int:
+    """``face-retarget live``: a Live Link Face stream retargeted as it arrives (core.live)."""
+
+    host, port = parse_address(args.listen, "0.0.0.0")
+    outputs_at = [parse_address(a) if a else None for a in (args.osc, args.livelink_out)]
+    with tempfile.TemporaryDirectory(prefix="face-retarget-live-") as tmp:
+        pipe = _pipeline(args)
+        if not pipe.take.source:  # no recorded take: the stages run on a neutral one (core.live.neutral_take)
+            pipe.configure(source=str(neutral_take(Path(tmp) / "neutral.csv")))
+        rt = LiveRetargeter(pipe)
+    session = LiveSession(rt, record=bool(args.record))
+    outputs = []
+    if outputs_at[0]:
+        outputs.append(OscOut(*outputs_at[0], rt.target_names))
+    if outputs_at[1]:
+        outputs.append(LiveLinkOut(*outputs_at[1], rt.target_names))
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    timer = threading.Timer(args.duration or 0, stop.set)
+    timer.daemon = True
+    if args.duration:
+        timer.start()
+    latencies = []
+
+    def ready(h, p):
+        print(f"listening on {h}:{p}", flush=True)
+
+    def on_frame(frame, latency):
+        if len(latencies) < 1_000_000:
+            latencies.append(latency)
+
+    t0 = time.monotonic()
+    try:
+        listen(session, host, port, outputs, stop, on_frame, ready)
+    except OSError as e:  # the port is taken, the address is not this machine's ...
+        raise ValueError(f"--listen {args.listen}: cannot listen there ({e.strerror or e})") from None
+    finally:
+        timer.cancel()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for out in outputs:
+            out.close()
+    st = session.stats()
+    lat = sorted(latencies)
+    st["latency_ms"] = ({"p50": 1e3 * lat[len(lat) // 2], "p95": 1e3 * lat[min(len(lat) - 1, int(0.95 * len(lat)))],
+                         "max": 1e3 * lat[-1]} if lat else {})
+    st["seconds"] = time.monotonic() - t0
+    answered = sum(s["answered"] for s in st["subjects"].values())
+    print(f"received {st['received']} packets, answered {answered}, bad {sum(st['bad'].values())} {st['bad']}; "
+          + "; ".join(f"{k or '(no name)'}: dropped {s['dropped']}, repeated {s['repeated']}, out of order "
+                      f"{s['out_of_order']}, tracking lost {s['tracking_lost']}" for k, s in st["subjects"].items())
+          + (f"; latency p50 {st['latency_ms']['p50']:.2f} ms, p95 {st['latency_ms']['p95']:.2f} ms" if lat else ""),
+          flush=True)
+    if args.record:
+        for k, stream in session.streams.items():
+            if stream.recorded:
+                path = Path(args.record)
+                if len(session.streams) > 1:
+                    path = path.with_name(f"{path.stem}_{k or 'subject'}{path.suffix}")
+                write_livelink(path, stream.take())
+                print(f"wrote {path}: {len(stream.recorded)} frames of {k or '(no name)'}")
+    if args.stats:
+        Path(args.stats).write_text(json.dumps(st, indent=1) + "\n")
+    return 0
 
 
 def _layout(args) -> int:
@@ -405,6 +477,25 @@ def build_parser() -> argparse.ArgumentParser:
                     help="local cluster's dashboard address (default :8787; :0 a free port)")
     bt.add_argument("--quiet", action="store_true", help="no progress bar")
     bt.set_defaults(func=_batch)
+
+    lv = sub.add_parser("live", help="retarget a Live Link Face stream as it arrives; send OSC / Live Link out",
+                        description="Receive the Live Link Face app's UDP packets and retarget every packet as it "
+                                    "arrives onto the target rig (the shot's rigs, layouts, controls; a bounded "
+                                    "per-frame solve with the One Euro filter when the shot asks for it). Prints "
+                                    "'listening on HOST:PORT' when ready; stops on Ctrl-C (or after --duration) "
+                                    "and prints the counts. See docs/live.md.")
+    add_cli_arguments(lv)
+    lv.add_argument("--listen", required=True, metavar="HOST:PORT",
+                    help="where to receive (the address to give the iPhone app, e.g. 0.0.0.0:11111)")
+    lv.add_argument("--shot", help="a shot whose rigs and settings to use (the flags given override it)")
+    lv.add_argument("--osc", metavar="HOST:PORT", help="send each frame's target weights as one OSC bundle of "
+                                                       "/avatar/parameters/<shape> floats (VRChat: 127.0.0.1:9000)")
+    lv.add_argument("--livelink-out", metavar="HOST:PORT", help="re-send the target's ARKit-named shapes as Live Link "
+                                                                "Face packets (Unreal / Blender Live Link)")
+    lv.add_argument("--record", metavar="FILE.csv", help="write what was received as a Live Link Face take at exit")
+    lv.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    lv.add_argument("--stats", metavar="FILE.json", help="write the counts and latencies at exit")
+    lv.set_defaults(func=_live)
 
     lay = sub.add_parser("layout", help="transfer a marker layout to a rig of any topology (non-rigid ICP)")
     lay.add_argument("--from", dest="from_", required=True, help="layout JSON to transfer")

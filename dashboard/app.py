@@ -39,6 +39,7 @@ from dashboard.batch_view import BatchView  # noqa: E402
 from dashboard.connection_view import ConnectionWatch  # noqa: E402
 from dashboard.contact_sheet_view import ContactSheetView  # noqa: E402
 from dashboard.curves_view import CurvesView  # noqa: E402
+from dashboard.live_view import LiveView  # noqa: E402
 from dashboard.marker_layout_view import MarkerLayoutView  # noqa: E402
 from dashboard.normalmap_view import NormalMapView  # noqa: E402
 from dashboard.personalize_view import PersonalizeView  # noqa: E402
@@ -65,7 +66,7 @@ CSS = """
 """
 
 #: the tabs after "Retarget", in order (their views are made when first opened)
-TAB_VIEWS = ("transfer", "normalmap", "personalize", "batch")
+TAB_VIEWS = ("transfer", "normalmap", "personalize", "batch", "live")
 
 
 class DashboardApp(pn.viewable.Viewer):
@@ -204,6 +205,8 @@ class DashboardApp(pn.viewable.Viewer):
                 v = NormalMapView(self.pipe, active=False, on_frame=lambda f: setattr(self.playback.w_frame, "value", f))
             elif name == "batch":
                 v = BatchView(self.s)
+            elif name == "live":
+                v = LiveView(self.pipe, on_take=self.s.add_upload, notify=self.notify)
             else:
                 v = PersonalizeView()
             self._tab_views[name] = v
@@ -232,6 +235,7 @@ class DashboardApp(pn.viewable.Viewer):
     normalmap_view = property(lambda self: self._tab_view("normalmap"), doc="The normal-map tab's view")
     personalize_view = property(lambda self: self._tab_view("personalize"), doc="The ROM-alignment tab's view")
     batch_view = property(lambda self: self._tab_view("batch"), doc="The Batch tab's view")
+    live_view = property(lambda self: self._tab_view("live"), doc="The Live tab's view")
 
     def _build_layout(self):
         sidebar = self.sidebar.layout
@@ -260,6 +264,7 @@ class DashboardApp(pn.viewable.Viewer):
         self.tabs.append(("Normal maps (Liu 2011 §5)", self._tab_boxes["normalmap"]))
         self.tabs.append(("Actor ROM alignment (Ribera 2017 §4)", self._tab_boxes["personalize"]))
         self.tabs.append(("Batch", self._tab_boxes["batch"]))
+        self.tabs.append(("Live", self._tab_boxes["live"]))
         self._normalmap_tab = 2
         self.tabs.param.watch(self._on_tab, "active")
         # ConnectionWatch: "Connection lost" over the page when its server is gone (whichever tab is open)

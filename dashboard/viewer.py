@@ -427,6 +427,13 @@ class MeshViewer(pn.custom.JSComponent):
         w = _f32(np.reshape(weights, -1), "weights", (self.n_shapes,))
         self.weights = [round(float(x), 6) for x in w]
 
+    def stream_weights(self, weights) -> None:
+        """Show ``weights`` (K,) now, sent as a message rather than a model change (no property
+        patch and no echo: the cheapest update, for a live stream at 60 Hz); the next
+        :meth:`set_weights` or track replaces them. Raises ValueError for a wrong length or NaN."""
+        w = _f32(np.reshape(weights, -1), "weights", (self.n_shapes,))
+        self._send_msg({"weights": [round(float(x), 6) for x in w]})
+
     def set_colors(self, colors) -> None:
         """Per-vertex RGB (V, 3) in [0, 1], or None for the plain material."""
         V = 0 if self.neutral is None else len(self.neutral)

@@ -55,7 +55,7 @@ from ..solvers.local import smooth_weights
 from .inputs import as_fps, as_weights
 
 __all__ = ["FILTERS", "lowpass_alpha", "lowpass_response", "one_euro_cutoff", "gaussian_response", "one_euro",
-           "filter_weights"]
+           "OneEuro", "filter_weights"]
 
 
 FILTERS = ("none", "gaussian", "one_euro")
@@ -138,20 +138,38 @@ def one_euro(W, fps, min_cutoff: float = 1.0, beta: float = 0.0, d_cutoff: float
     out = np.empty_like(W)
     if not len(W):
         return out
-    ad = lowpass_alpha(d_cutoff, f)
-    y = W[0].copy()
-    ed = np.zeros(W.shape[1])
-    out[0] = y
-    two_pi_te = 2.0 * np.pi / f
-    for n in range(1, len(W)):
-        x = W[n]
-        ed = ad * ((x - y) * f) + (1.0 - ad) * ed
-        r = two_pi_te * (min_cutoff + beta * np.abs(ed))
-        a = r / (1.0 + r)
-        y = a * x + (1.0 - a) * y
-        out[n] = y
+    state = OneEuro(f, min_cutoff, beta, d_cutoff)
+    for n in range(len(W)):
+        out[n] = state.step(W[n])
     # each output is a convex combination of inputs: within their range but for rounding
     return np.clip(out, W.min(axis=0), W.max(axis=0), out=out)
+
+
+class OneEuro:
+    """The One Euro filter's state, one sample at a time (a live stream; :func:`one_euro` runs
+    it over a whole take): ``step(x_n)`` returns ``y_n`` of :func:`one_euro`'s recursion.
+    Settings as :func:`one_euro` (checked there; here ``fps`` is trusted)."""
+
+    def __init__(self, fps: float, min_cutoff: float = 1.0, beta: float = 0.0, d_cutoff: float = 1.0):
+        self.fps, self.min_cutoff, self.beta = float(fps), min_cutoff, beta
+        self.ad = lowpass_alpha(d_cutoff, self.fps)
+        self.two_pi_te = 2.0 * np.pi / self.fps
+        self.y = None
+        self.ed = None
+
+    def step(self, x) -> np.ndarray:
+        """``y_n`` for the sample ``x_n`` (K,); the first sample passes unchanged."""
+        x = np.asarray(x, dtype=np.float64)
+        if self.y is None:
+            self.y = x.copy()
+            self.ed = np.zeros(x.shape)
+            return self.y
+        f = self.fps
+        self.ed = self.ad * ((x - self.y) * f) + (1.0 - self.ad) * self.ed
+        r = self.two_pi_te * (self.min_cutoff + self.beta * np.abs(self.ed))
+        a = r / (1.0 + r)
+        self.y = a * x + (1.0 - a) * self.y
+        return self.y
 
 
 def filter_weights(W, fps, kind: str = "one_euro", *, sigma: float = 1.0, min_cutoff: float = 1.0,

@@ -30,12 +30,12 @@ import numpy as np
 import scipy.linalg
 
 from core.prior import alpha_for_units, prior_quadratic
-from core.solvers.boxqp import solve_box_sequence
+from core.solvers.boxqp import solve_box_frame, solve_box_sequence
 from core.solvers.inputs import as_basis, as_bounds, as_coupling, as_sequence, as_valid, as_zero_mask, zero_filled
 from core.solvers.qp import solve_qp_batch
 from core.solvers.spacetime import AUTO_RIDGE
 
-__all__ = ["no_const", "range_pf", "prior_pf", "box_lsq"]
+__all__ = ["no_const", "range_pf", "RangePFPrecompute", "prior_pf", "box_lsq"]
 
 
 def _groups(valid: np.ndarray):
@@ -198,6 +198,102 @@ def _smax2(Bm) -> float:
     return float(np.linalg.norm(Bm, 2) ** 2) if Bm.size else 0.0
 
 
+def _gram(Bv, rho: float, Qs=None) -> np.ndarray:
+    """``H = B_v^T B_v + rho I (+ Q_s)`` of :func:`range_pf`; when it is singular (``B`` rank
+    deficient on these markers: the bounded fit is not unique) the spacetime solver's "auto"
+    relative ridge is added, which picks the smallest-norm-ish fit."""
+    K = Bv.shape[1]
+    H = Bv.T @ Bv + rho * np.eye(K)
+    if Qs is not None:
+        H = H + Qs
+    try:
+        np.linalg.cholesky(H)
+    except np.linalg.LinAlgError:
+        H = H + AUTO_RIDGE * max(np.linalg.eigvalsh(H)[-1], 1e-300) * np.eye(K)
+    return H
+
+
+def _unit_box(H, sol, lo, held, d, zr):
+    """The unit-box form of one Hessian of :func:`range_pf` (``w = start + D u``, the solved
+    shapes ``sol``, held ones ``zr`` decoupled at ``u = 0``): ``(D H D, (start H)[sol],
+    start[sol], diag D)``; a frame's linear term is ``((start H)[sol] - B_v^T s_t) * diag D``."""
+    dz = np.where(zr, 0.0, d)
+    Hs = H[np.ix_(sol, sol)] * dz[:, None] * dz[None, :]
+    Hs[zr, zr] = 1.0  # a held weight: u = 0 decoupled from the others
+    start = lo.copy()
+    start[sol[zr]] = held[sol[zr]]  # the value the unit box starts from (held weights sit there)
+    return Hs, (start @ H)[sol], start[sol], dz
+
+
+class RangePFPrecompute:
+    """:func:`range_pf` for frames that arrive one at a time with every marker valid: the
+    Hessian, its unit-box form and the bounds built once (:func:`_gram`, :func:`_unit_box`, the
+    same as the batch solve's), each frame then solved exactly by
+    :func:`core.solvers.boxqp.solve_box_sequence` warm-started from the previous frame's
+    solution (1 + its active-set changes homotopy segments instead of a cold start).
+
+    Parameters
+    ----------
+    B : (K, M, 3) or (3M, K) float
+    lower, upper, ridge, quadratic
+        As :func:`range_pf`.
+    zero : (K,) bool, optional
+        Weights held at ``clip(0, lower, upper)`` in every frame.
+
+    Attributes
+    ----------
+    B_ : (3M, K) float, the basis the frames are fitted with
+    smax2_ : float, ``sigma_max(B)^2`` (the scale of ``ridge`` and ``quadratic``)
+    """
+
+    def __init__(self, B, lower=-0.5, upper=1.5, ridge: float = 0.0, quadratic=None, zero=None):
+        Bm = as_basis(B)
+        K = Bm.shape[1]
+        self.B_ = Bm
+        self.lo_, self.hi_ = as_bounds(lower, upper, K, "range_pf", finite=True)
+        z = as_zero_mask(zero, 1, K, "range_pf")
+        self.zero_ = None if z is None else z[0]
+        self.held_ = np.clip(0.0, self.lo_, self.hi_)
+        smax2 = self.smax2_ = _smax2(Bm)
+        self.sol_ = np.flatnonzero(self.hi_ > self.lo_)
+        zr = np.zeros(len(self.sol_), bool) if self.zero_ is None else self.zero_[self.sol_]
+        H = _gram(Bm, ridge * smax2, as_coupling(quadratic, K, smax2, "range_pf"))
+        d = (self.hi_ - self.lo_)[self.sol_]
+        Hs, self.lin_, self.base_, self.dz_ = _unit_box(H, self.sol_, self.lo_, self.held_, d, zr)
+        self.H_ = Hs[None]
+        self._memo = {}  # the last working set's factor (core.solvers.boxqp.solve_box_frame)
+
+    def solve(self, S, warm=None, linear=None):
+        """Weights of frames ``S`` (T, M, 3) (or one frame (M, 3)), the first started from
+        ``warm`` (the unit-box point :meth:`solve` returned for the previous frame).
+
+        ``linear`` (T, K) or (K,), optional, is added to ``B^T s_t``: with a diagonal ``c I_N``
+        in ``quadratic`` it makes the pull ``c sigma_max(B)^2 ||w_N - n_t||^2`` towards targets
+        ``n_t`` (``linear = c sigma_max(B)^2 n_t`` on the pulled shapes ``N``).
+
+        Returns ``(W (T, K), u)``: the weights, and the last frame's unit-box point to pass as
+        the next call's ``warm``. Exact as :func:`range_pf` (same KKT certificate)."""
+        S = np.asarray(S, dtype=np.float64)
+        one = S.ndim == 2
+        Sm = S.reshape(1 if one else len(S), -1)
+        W = np.broadcast_to(self.held_, (len(Sm), len(self.lo_))).copy()
+        u = None
+        if len(self.sol_) and len(Sm):
+            R = Sm @ self.B_
+            if linear is not None:
+                R = R + linear
+            f = (self.lin_ - R[:, self.sol_]) * self.dz_
+            if len(f) == 1 and warm is not None:  # a live frame: the last working set tried first
+                u = solve_box_frame(self.H_[0], f[0], warm, self._memo)[None]
+            else:
+                u = solve_box_sequence(self.H_, f, warm=warm)
+            W[:, self.sol_] = np.clip(self.base_ + u * self.dz_, self.lo_[self.sol_], self.hi_[self.sol_])
+            u = u[-1]
+        if self.zero_ is not None:
+            W[:, self.zero_] = self.held_[self.zero_]
+        return W, u
+
+
 def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: float = 0.0, return_info: bool = False,
              quadratic=None, zero=None):
     """"Range PF" (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2  s.t. lower <= w <= upper``.
@@ -262,18 +358,7 @@ def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: f
         R = Sz @ Bm  # (T, K): B_v^T s_t for every frame (missing samples are zero-filled)
         Hfull = []
         for pat in pats:
-            rows = np.repeat(pat, 3)
-            Bv = Bm[rows]
-            H = Bv.T @ Bv + rho * np.eye(K)
-            if Qs is not None:
-                H = H + Qs
-            try:
-                np.linalg.cholesky(H)
-            except np.linalg.LinAlgError:
-                # rank-deficient B on these markers: the bounded fit is not unique; the same
-                # relative ridge as the spacetime solver's "auto" picks the smallest-norm-ish one
-                H = H + AUTO_RIDGE * max(np.linalg.eigvalsh(H)[-1], 1e-300) * np.eye(K)
-            Hfull.append(H)
+            Hfull.append(_gram(Bm[np.repeat(pat, 3)], rho, Qs))
         # per frame: which Hessian (mask pattern, and the pattern of held weights among `sol`)
         if zero is None:
             zpats, zinv = np.zeros((1, len(sol)), bool), np.zeros(T, np.int64)
@@ -284,15 +369,10 @@ def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: f
         cinv = np.asarray(cinv).ravel()
         Htab, lin, dtab = [], [], []
         for p, z in combo:
-            H, zr = Hfull[p], zpats[z]
-            dz = np.where(zr, 0.0, d)
-            Hs = H[np.ix_(sol, sol)] * dz[:, None] * dz[None, :]
-            Hs[zr, zr] = 1.0  # a held weight: u = 0 decoupled from the others
-            start = lo.copy()
-            start[sol[zr]] = held[sol[zr]]  # the value the unit box starts from (held weights sit there)
+            Hs, li, base, dz = _unit_box(Hfull[p], sol, lo, held, d, zpats[z])
             Htab.append(Hs)
-            lin.append((start @ H)[sol])
-            dtab.append((start[sol], dz))
+            lin.append(li)
+            dtab.append((base, dz))
         has = pats.any(1)[inv]  # frames with at least one valid marker
         fr = np.flatnonzero(has)
         if len(fr):

@@ -75,10 +75,11 @@ References
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 
 from core.solvers.qp import primal_active_set, solve_eqp_batch
 
-__all__ = ["solve_box_sequence"]
+__all__ = ["solve_box_sequence", "solve_box_frame"]
 
 EPS_U = 1e-11  # primal tolerance in unit-box coordinates
 EPS_L = 1e-11  # dual tolerance relative to mean diag H + max |f|
@@ -181,7 +182,7 @@ def _finish(H, f, h, lower, upper, eps_l, pdas_steps=6):
 
 
 def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 4, refresh: int = 32,
-                       steal: int = 6, pdas=None, return_info: bool = False):
+                       steal: int = 6, pdas=None, return_info: bool = False, warm=None):
     """Solve (1) of the module docstring for every frame, warm-started along the frames.
 
     ``min_u 1/2 u^T H_{idx[t,c]} u + f[t,c]^T u``  s.t. ``0 <= u <= 1``, exactly (KKT conditions
@@ -219,6 +220,11 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
         unconstrained minimiser thrashes (none of 64 frames settled in 100 iterations), on the
         22-shape regional problems it settles most first frames in a few.
     return_info : bool
+    warm : (K,) or (C, K) float, optional
+        A point in the unit box to start frame 0 of each chain from instead of cold (the
+        previous frame's solution when frames arrive one at a time, :mod:`core.live`): it is
+        the exact optimum of ``f_0 = lambda - H u`` with ``lambda`` the sign-clamped gradient
+        (module docstring), so the homotopy to frame 0 costs 1 + its active-set changes.
 
     Returns
     -------
@@ -296,8 +302,11 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     k_look = max(0, int(lookahead))
     look = [0, 0]  # look-ahead checks, and checks whose first frame kept the set
     pdas = (8 if K <= 64 else 0) if pdas is None else int(pdas)
-    if pdas > 0:
-        _pdas_start(H, f, idx, eps_all, L, np.arange(n0), pdas, U, info, refresh)
+    cold = np.arange(n0)
+    if warm is not None:
+        cold = _warm_start(H, f, np.broadcast_to(np.asarray(warm, dtype=np.float64), (C, K)), L, n0, refresh)
+    if pdas > 0 and len(cold):
+        _pdas_start(H, f, idx, eps_all, L, cold, pdas, U, info, refresh)
     rows = np.arange(nl)
 
     while L.active.any():
@@ -377,6 +386,58 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     if squeeze:
         U = U[:, 0]
     return (U, info) if return_info else U
+
+
+def solve_box_frame(H, f, warm, memo: dict) -> np.ndarray:
+    """One frame of (1), ``H`` (K, K), ``f`` (K,), started from the previous frame's point
+    ``warm`` (K,): first the working set ``warm`` sits in is tried outright (the free block's
+    Cholesky factor kept in ``memo`` while the set does not change, so an unchanged set costs two
+    triangular solves), accepted only if it passes the KKT check of :func:`solve_box_sequence`;
+    otherwise the warm-started homotopy of :func:`solve_box_sequence`. Exact either way.
+
+    Returns u (K,) in [0, 1]."""
+    lower, upper = warm <= 0.0, warm >= 1.0
+    free = ~(lower | upper)
+    key = (lower.tobytes(), upper.tobytes())
+    if memo.get("key") != key:
+        F = np.flatnonzero(free)
+        memo["key"], memo["F"], memo["U"] = key, F, np.flatnonzero(upper)
+        memo["chol"] = None
+        if len(F):
+            try:
+                memo["chol"] = scipy.linalg.cho_factor(H[np.ix_(F, F)], lower=True, check_finite=False)
+            except np.linalg.LinAlgError:
+                memo["key"] = None
+    F, U = memo["F"], memo["U"]
+    if memo.get("key") == key and (memo["chol"] is not None or not len(F)):
+        u = upper.astype(np.float64)
+        if len(F):
+            rhs = -(f[F] + H[np.ix_(F, U)].sum(1)) if len(U) else -f[F]
+            u[F] = scipy.linalg.cho_solve(memo["chol"], rhs, check_finite=False)
+        g = H @ u + f
+        eps = EPS_L * (np.trace(H) / len(H) + np.abs(f).max())
+        if _kkt_ok(u, g, lower, upper, eps):
+            return np.clip(u, 0.0, 1.0)
+    return solve_box_sequence(H[None], f[None], warm=warm)[0]
+
+
+def _warm_start(H, f, warm, L, n0, refresh):
+    """Start the lanes that begin at frame 0 from ``warm`` (C, K): ``u`` clipped to the box, the
+    working set where it sits on a bound, multipliers ``lambda`` = the sign-clamped gradient
+    ``H u + f`` (0 on the free set), so ``u`` is the optimum of ``f_0 = lambda - H u`` and the
+    segment runs from ``f_0`` to ``f``. Returns the lanes left to start cold."""
+    ln = np.flatnonzero(L.t[:n0] == 0)
+    u = np.clip(warm[L.c[ln]], 0.0, 1.0)
+    lo, up = u <= 0.0, u >= 1.0
+    Hu = _hmul(H, L.h[ln], u)
+    g = Hu + f[0, L.c[ln]]
+    lam = np.where(lo, np.maximum(g, 0.0), np.where(up, np.minimum(g, 0.0), 0.0))
+    L.lower[ln], L.upper[ln] = lo, up
+    L.perm[ln], L.nfree[ln] = _free_first(lo, up)
+    L.u[ln], L.g[ln] = u, lam
+    L.delta[ln] = f[0, L.c[ln]] - lam + Hu
+    L.nupd[ln] = refresh  # fresh inverses (and directions) in the first round
+    return np.setdiff1d(np.arange(n0), ln)
 
 
 def _pdas_start(H, f, idx, eps_all, L, lanes, iters, U, info, refresh):

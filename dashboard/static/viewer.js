@@ -1041,6 +1041,7 @@ class Viewer {
   weightsAt(frame) {
     const K = this.K;
     if (this.override) return this.override;
+    if (this.streamed) return this.streamed;
     const w = this.model.weights;
     if (w && w.length === K && K) return w;
     if (this.track) {
@@ -1323,7 +1324,20 @@ class Viewer {
     m.on("playing", () => { if (!this.reporting) this.clock.play(m.playing); });
     m.on("fps", () => this.clock.setFps(m.fps));
     m.on("loop", () => { this.clock.loop = m.loop; });
-    m.on("weights", () => { this.applyFrame(this.clock.frame); this.requestRender(); });
+    m.on("weights", () => { this.streamed = null; this.applyFrame(this.clock.frame); this.requestRender(); });
+    // weights streamed as messages (a live stream: MeshViewer.stream_weights), shown at once
+    m.on("msg:custom", (data) => {
+      if (!data || !data.weights || data.weights.length !== this.K) return;
+      this.streamed = Float32Array.from(data.weights);
+      this.stats.streamed = (this.stats.streamed || 0) + 1;
+      if (this.streamPending) return; // blended once per drawn frame: the latest weights win
+      this.streamPending = requestAnimationFrame(() => {
+        this.streamPending = null;
+        if (this.disposed) return;
+        this.applyFrame(this.clock.frame);
+        this.requestRender();
+      });
+    });
     m.on(["track", "track_url"], () => this.reloadTrack());
     m.on(["geometry_url", "geometry"], () => this.reloadGeometry());
     m.on(["marker_vertices", "marker_weights", "marker_track", "marker_radius"], () => {
