@@ -108,6 +108,58 @@ def code_version() -> str:
     return h.hexdigest()
 
 
+#: bytes of persisted stage results a :class:`StageCache` keeps on disk by default (2 GiB; a rig
+#: pair's registration and dense correspondence are 1-20 MB each): ``$FACE_RETARGET_CACHE_MAX_MB``
+#: or ``StageCache(disk_max_bytes=...)`` changes it
+DISK_MAX_BYTES = 2 << 30
+
+
+def default_disk_max_bytes() -> int:
+    """The default bound of the on-disk stage cache: ``$FACE_RETARGET_CACHE_MAX_MB`` megabytes,
+    else :data:`DISK_MAX_BYTES`."""
+    mb = os.environ.get("FACE_RETARGET_CACHE_MAX_MB")
+    if not mb:
+        return DISK_MAX_BYTES
+    try:
+        return max(0, int(float(mb) * (1 << 20)))
+    except ValueError:
+        raise ValueError(f"FACE_RETARGET_CACHE_MAX_MB: expected a number of megabytes, got {mb!r}") from None
+
+
+def evict_disk(folder: Path, max_bytes: int, keep=()) -> list:
+    """Delete the least recently used results (``*.pkl``, by modification time: written or
+    read back, :meth:`StageCache.compute` touches a file it reads) of ``folder`` until the rest
+    takes at most ``max_bytes``; the paths in ``keep`` stay whatever their size. Files other
+    processes delete meanwhile are skipped. Returns the deleted paths."""
+    entries = []
+    try:
+        for p in Path(folder).glob("*.pkl"):
+            try:
+                st = p.stat()
+            except OSError:  # deleted by another process meanwhile
+                continue
+            entries.append((st.st_mtime, st.st_size, p))
+    except OSError:
+        return []
+    keep = {Path(k) for k in keep}
+    total = sum(size for _, size, _ in entries)
+    gone = []
+    for _, size, p in sorted(entries, key=lambda e: (e[0], str(e[2]))):  # oldest first
+        if total <= max_bytes:
+            break
+        if p in keep:
+            continue
+        try:
+            p.unlink()
+        except FileNotFoundError:
+            pass
+        except OSError:
+            continue
+        total -= size
+        gone.append(p)
+    return gone
+
+
 def _write_atomic(path: Path, value) -> None:
     """Pickle ``value`` to ``path`` through a temporary file (a reader never sees half a file);
     a folder that cannot be written keeps nothing, it does not fail the run."""
@@ -128,7 +180,7 @@ class StageCache:
     flight: :meth:`compute` of a key another thread is computing waits for that result
     instead of computing it again (20 pages of one shot recompute a setting change once)."""
 
-    def __init__(self, max_entries: int = 96, disk=True):
+    def __init__(self, max_entries: int = 96, disk=True, disk_max_bytes: Optional[int] = None):
         self.max_entries = max_entries
         self._data: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
@@ -136,6 +188,9 @@ class StageCache:
         #: where the results of stages marked ``persist`` (a rig pair's registration) are kept across
         #: processes: a folder, True for :func:`stage_cache_dir`, None/False for nowhere
         self.disk = stage_cache_dir() if disk is True else (Path(disk) if disk else None)
+        #: after every write the folder is cut to this many bytes, least recently used first
+        #: (:func:`evict_disk`); default :func:`default_disk_max_bytes`
+        self.disk_max_bytes = default_disk_max_bytes() if disk_max_bytes is None else int(disk_max_bytes)
 
     def get(self, key):
         with self._lock:
@@ -173,6 +228,10 @@ class StageCache:
                     with open(path, "rb") as f:
                         value = pickle.load(f)
                     self.put(key, value)
+                    try:
+                        os.utime(path)  # recently used: the eviction keeps it longest
+                    except OSError:
+                        pass
                     return True, value
                 except Exception:  # a file cut short or from another numpy: computed again
                     path.unlink(missing_ok=True)
@@ -180,6 +239,7 @@ class StageCache:
             self.put(key, value)
             if path is not None:
                 _write_atomic(path, value)
+                evict_disk(self.disk, self.disk_max_bytes, keep=[path])
             return False, value
         finally:
             with self._lock:

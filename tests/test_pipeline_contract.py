@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from datapaths import LAYOUTS, PERFORMANCES, RIGS
-from core.pipeline import METHODS, Pipeline, StageCache, content_key, file_key, setting_owners
+from core.pipeline import METHODS, Pipeline, StageCache, content_key, evict_disk, file_key, setting_owners
 from core.stages.methods import METHODS as REGISTRY
 
 TAKE = str(PERFORMANCES / "livelinkface_take_s07.csv")
@@ -374,3 +374,57 @@ def test_a_persisted_stage_is_read_back_by_another_process_cache(tmp_path, monke
     third = Pipeline(cache=StageCache(disk=tmp_path), method="bounded", **BASE)
     _same(third.run("shapes"), want, "shapes recomputed")
     assert third.runs["shapes"] == 1
+
+
+def test_disk_eviction_keeps_the_most_recently_used_results(tmp_path):
+    """The folder is cut to ``max_bytes``, least recently used first (modification time), never
+    a file in ``keep`` and never anything but results (``*.pkl``)."""
+    import os
+
+    sizes = {"a": 400, "b": 300, "c": 200, "d": 100}  # a oldest ... d newest
+    for i, (name, size) in enumerate(sizes.items()):
+        p = tmp_path / f"{name}.pkl"
+        p.write_bytes(b"x" * size)
+        os.utime(p, (1000 + i, 1000 + i))
+    (tmp_path / "notes.txt").write_bytes(b"y" * 5000)
+    assert evict_disk(tmp_path, 10_000) == []  # under the bound: nothing goes
+    gone = evict_disk(tmp_path, 400, keep=[tmp_path / "b.pkl"])
+    assert sorted(p.name for p in gone) == ["a.pkl", "c.pkl"]  # b kept although old; d newest
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.pkl", "d.pkl", "notes.txt"]
+    assert evict_disk(tmp_path / "missing", 0) == []
+
+
+def test_the_disk_cache_is_bounded_and_a_read_counts_as_a_use(tmp_path, monkeypatch):
+    """StageCache cuts its folder after every write (an old result of another rig pair goes);
+    a result read back from disk is touched, so it outlives an older unused one."""
+    import os
+
+    from core.stages.retarget import Shapes
+
+    monkeypatch.setattr(Shapes, "persist", True)
+    first = Pipeline(cache=StageCache(disk=tmp_path, disk_max_bytes=1 << 30), method="bounded", **BASE)
+    want = first.run("shapes")
+    (mine,) = tmp_path.glob("shapes-*.pkl")
+    size = mine.stat().st_size
+    old = tmp_path / "dense_correspondence-0.pkl"  # another rig pair's result, larger
+    old.write_bytes(b"z" * (20 * size))
+    os.utime(old, (1000, 1000))
+    os.utime(mine, (500, 500))  # older than the other file ...
+    again = Pipeline(cache=StageCache(disk=tmp_path, disk_max_bytes=1 << 30), method="bounded", **BASE)
+    _same(again.run("shapes"), want, "shapes from disk")
+    assert again.runs["shapes"] == 0 and mine.stat().st_mtime > old.stat().st_mtime  # ... until it is read
+    # a bound below the three files (all the rig's shapes: ~3x the ARKit ones): the next write
+    # evicts the least recently used one
+    bound = 10 * size
+    small = Pipeline(cache=StageCache(disk=tmp_path, disk_max_bytes=bound), method="bounded",
+                     **{**BASE, "target_shapes": ""})
+    small.run("shapes")
+    assert small.runs["shapes"] == 1
+    left = sorted(p.name for p in tmp_path.glob("*.pkl"))
+    assert not old.exists() and len(left) == 2 and mine.name in left
+    assert sum(p.stat().st_size for p in tmp_path.glob("*.pkl")) <= bound
+    monkeypatch.setenv("FACE_RETARGET_CACHE_MAX_MB", "1.5")
+    assert StageCache().disk_max_bytes == int(1.5 * (1 << 20))
+    monkeypatch.setenv("FACE_RETARGET_CACHE_MAX_MB", "lots")
+    with pytest.raises(ValueError, match="FACE_RETARGET_CACHE_MAX_MB"):
+        StageCache()

@@ -237,6 +237,14 @@ def test_poisson_block_solve_matches_dense(screening, tiger):
     assert np.allclose(P.solve(np.asfortranarray(B[:, :5])), ours[:, :5], atol=1e-12 * np.abs(ref).max())
     with pytest.raises(ValueError, match="B"):
         P.solve(B[:-1])
+    # single precision: the screened system (well conditioned) is solved with a float32
+    # factorisation to ~1e-6 relative; the plain Poisson solve ignores the request
+    low = P.solve(B, dtype=np.float32)
+    if screening:
+        err = np.abs(low - ref).max() / np.abs(ref).max()
+        assert low.dtype == np.float32 and 1e-12 < err < 1e-5  # really float32, and close
+    else:
+        assert low.dtype == np.float64 and np.abs(low - ours).max() == 0
 
 
 def test_factor_sequence_truncates_like_the_svd():
