@@ -1,5 +1,7 @@
 """core.motion_alignment: the per-point 3x3 map of the actor's motion space onto the character's."""
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -73,3 +75,25 @@ def test_motion_scale_covariance_maps_the_source_by_the_rigs_alignment():
     assert cal["source_scale"] is None
     np.testing.assert_allclose(cal["source"].deltas, np.einsum("mij,tmj->tmi", A, st.deltas), atol=1e-15)
     assert not np.allclose(A, A[:, :1, :1] * np.eye(3))  # a direction change, not only a scale
+
+
+def test_auto_aligns_with_a_source_rig_and_scales_a_capture_without_one():
+    """auto derives motion_scale = covariance when a source rig's shapes are there to learn from, rom
+    for a capture without one (no warning: the user did not ask for covariance); the key carries it."""
+    pipe = Pipeline(cache=StageCache(), target_rig=str(RIGS / "jeeliz_tiger.glb"), last_frame=29, **CURVES)
+    assert pipe.view("calibrate").motion_scale == "covariance"
+    key = pipe.key("calibrate")
+    pipe.configure(method="bounded", motion_scale="covariance")
+    assert pipe.key("calibrate") == key  # the same computation, chosen or set
+    pipe.configure(motion_scale="rom")
+    assert pipe.key("calibrate") != key
+    capture = Pipeline(cache=StageCache(), source=str(PERFORMANCES / "animface_markers_jaw_60hz.csv"),
+                       target_rig=str(RIGS / "jeeliz_tiger.glb"), last_frame=29)
+    assert capture.view("calibrate").motion_scale == "rom"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        cal = capture.results(["calibrate"])["calibrate"]
+    np.testing.assert_allclose(cal["source_map"], cal["source_scale"][:, None, None] * np.eye(3))
+    capture.configure(method="bounded", motion_scale="covariance")
+    with pytest.warns(UserWarning, match="needs the source rig"):
+        assert capture.results(["calibrate"])["calibrate"]["source_scale"] is not None

@@ -354,7 +354,11 @@ class Calibrate(Stage):
 
     def derived(self, cfg):
         # a method that chooses its configuration (auto) matches the actor's range of motion
-        return {"motion_scale": AUTO_MOTION_SCALE} if method_of(cfg).chooses else {}
+        # (its motion space aligned, when a source rig's shapes say how the actor's points move;
+        # a capture without one: its range of motion, by scale)
+        if not method_of(cfg).chooses:
+            return {}
+        return {"motion_scale": AUTO_MOTION_SCALE if cfg.source_face.source_rig else "rom"}
 
     def run(self, inputs, s, progress=None):
         sh, st = inputs["shapes"], inputs["stabilize"]
