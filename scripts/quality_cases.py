@@ -17,6 +17,7 @@ their ARKit names:
     python scripts/quality_cases.py [--cases ABC] [--set method=spacetime --set name_weight=0.1 ...]
     python scripts/quality_cases.py --search [--json out.json]    # the configurations of SEARCH
     python scripts/quality_cases.py --detail ...                  # where the error is
+    python scripts/quality_cases.py --oracle [--cases BC]         # where the loss is: solver or motion transfer
 
 One line per case and configuration: mean and p95 face-vertex error (mm), curve RMSE against the
 namesakes, the weight range, shapes above 0.05 per frame and the seconds of the run (stages shared
@@ -24,6 +25,14 @@ with an earlier configuration are cached: the dense registration is paid once pe
 process, by the first configuration that needs it). ``--detail`` adds the shapes carrying the most
 error (RMS weight difference against the truth times the shape's mean face-vertex motion), the
 error of the upper and lower face, and the worst frames.
+
+``--oracle`` separates the solver's loss from the motion transfer's: the per-frame bounded solve
+(auto's, ridge 1e-2) fitted to the actor's motion as captured, range-of-motion scaled (``rom``) and
+aligned by 3x3 maps (``covariance``), against the same solve fitted to the *true* target marker
+motion (the truth's weights times the calibrated target shapes at the markers: what a perfect
+transfer would hand the solver), and to the actor's motion mapped by the best per-marker 3x3 map in
+hindsight (least squares onto the true marker motion): how far a per-marker linear map can go.
+Uses the truth, so it is an analysis, never a method.
 """
 
 from __future__ import annotations
@@ -50,7 +59,12 @@ from core.names import ARKIT_NAMES, canonical  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
 from core.geometry import face_vertices  # noqa: E402
 from core.examples import suggest_poses  # noqa: E402
-from core.report import ground_truth, method_metrics  # noqa: E402
+from core.motion_alignment import apply_alignment, covariance_alignment  # noqa: E402
+from core.report import _vertex_errors, ground_truth, method_metrics  # noqa: E402
+from core.retarget import target_markers  # noqa: E402
+from core.solvers.baselines import range_pf  # noqa: E402
+from core.stages.methods import AUTO_RIDGE  # noqa: E402
+from core.stages.retarget import rom_scale  # noqa: E402
 from core.stages.methods import pose_features  # noqa: E402
 from scipy.optimize import lsq_linear  # noqa: E402
 
@@ -239,12 +253,16 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=0, help="first N frames only (0: the whole take)")
     ap.add_argument("--detail", action="store_true", help="also say which shapes, regions and frames carry the error")
     ap.add_argument("--json", help="write every result (metrics and per-shape curve RMSE) to this file")
+    ap.add_argument("--oracle", action="store_true", help="the solve fitted to the true target marker motion "
+                                                            "and to the actor's motion under several maps (an analysis)")
     ap.add_argument("--poses", default="", help="cases C and D (names hidden; D: only the non-ARKit shapes) with this "
                                                 "many true example poses at the suggested frames, e.g. 0,2,4,8,16")
     args = ap.parse_args(argv)
     if args.poses:
         return poses_table([int(n) for n in args.poses.split(",")], args.frames)
     cases = "".join(c for c in args.cases.upper() if c in "ABC")
+    if args.oracle:
+        return oracle_table(cases, args.frames)
     if args.search:
         configs = [(lbl, cfg, cs or "ABC") for lbl, cfg, cs in SEARCH if re.search(args.only, lbl)]
     else:
@@ -272,6 +290,42 @@ def main(argv=None) -> int:
                             "curve_rmse_per_shape": r.get("curve_rmse_per_shape")})
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1, allow_nan=True) + "\n")
+    return 0
+
+
+def oracle_table(cases: str, frames: int = 0) -> int:
+    """Mean face-vertex error (mm) of auto's per-frame bounded solve fitted to the actor's motion
+    under each map, and to the true target marker motion (see the module docstring)."""
+    print("| case | captured | rom | covariance | best 3×3 map in hindsight | true target marker motion |\n"
+          "|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        built = build_cases(cases, Path(tmp), frames)
+        for c in cases:
+            case = built[c]
+            pipe = Pipeline(cache=case["cache"], **case["settings"], method="bounded", ridge=AUTO_RIDGE)
+            res = pipe.results(["load", "correspond", "stabilize", "calibrate"])
+            ld, cor, st, cal = res["load"], res["correspond"], res["stabilize"], res["calibrate"]
+            names, src = list(st["names"]), st["source"]
+            B, S, valid = cal["deltas"], src.deltas, src.valid
+            idx = np.asarray(pipe.results(["shapes"])["shapes"]["shape_index"])
+            Wt = case["truth"]["weights"]
+            ok = np.isfinite(Wt).all(1)
+            full = target_markers(ld["target_rig"], cor["target_layout"], names, src.neutral).calibrated
+            true = np.einsum("tk,kmc->tmc", np.nan_to_num(Wt), full)
+            Bs = cor["source_layout"].select(names).points(ld["source_rig"].deltas)
+            use = ok[:, None] & valid
+            hindsight = np.stack([np.linalg.lstsq(S[use[:, m], m], true[use[:, m], m], rcond=None)[0].T
+                                  for m in range(len(names))])
+            fits = {"captured": S, "rom": S * rom_scale(B, src, ld["source_rig"], cor["source_layout"], names)[None, :, None],
+                    "covariance": apply_alignment(covariance_alignment(Bs, B), S),
+                    "hindsight": apply_alignment(hindsight, S), "true": true}
+            row = []
+            for label, motion in fits.items():
+                W = np.zeros((len(S), case["rig"].n_shapes))
+                W[:, idx] = range_pf(B, motion, 0.0, 1.0, valid, ridge=AUTO_RIDGE)
+                mean = _vertex_errors(case["rig"], W, Wt, case["face"], ok)[0]
+                row.append(f"{np.nanmean(mean):.3f}")
+            print(f"| {c} | " + " | ".join(row) + " |", flush=True)
     return 0
 
 

@@ -63,7 +63,7 @@ STEPS = {
     "head_motion": [{"head_motion": "remove"}, {"head_motion": "keep"}, {"head_motion": "auto"}],
     "neutral_frame": [{"neutral_frame": 3}, {"neutral_frame": 0}],
     "calibrate": [{"calibrate": False}, {"rbf_smoothing": 0.05}, {"calibrate": True}, {"rbf_smoothing": 0.0}],
-    "motion_scale": [{"motion_scale": "rom"}, {"motion_scale": "none"}],
+    "motion_scale": [{"motion_scale": "rom"}, {"motion_scale": "covariance"}, {"motion_scale": "none"}],
     "personalize": [{"align_beta": 0.1}, {"personalize": True}, {"align_gamma": 0.3}, {"rom": ROM}, {"rom": ""},
                     {"personalize": False}],
     "regions": [{"regions": 6}, {"min_region_size": 0.05}, {"mask_smoothing": 3}, {"regions": 12},

@@ -153,14 +153,16 @@ def _weighted(inputs):
 
 
 #: what ``auto`` runs (measured on the sample, S07 -> Rocketbox: scripts/quality_cases.py,
-#: docs/evaluation.md). Both on the markers with the actor's range of motion matched to the
-#: character's (``motion_scale = rom``, derived by the calibrate stage), a ridge of 1e-2:
+#: docs/evaluation.md). Both on the markers with the actor's motion space aligned to the
+#: character's (``motion_scale = covariance``, a 3x3 map per marker, :mod:`core.motion_alignment`,
+#: derived by the calibrate stage: 0.53 -> 0.47 mm on the renamed rig against ``rom``'s scale), a ridge of 1e-2:
 #: * the target has the take's own ARKit names: the whole take at once (bounded spacetime, Sobolev
 #:   beta 10) pulled towards each shape's namesake curve — 0.02-0.1 mm where the per-frame solve
 #:   gives 0.4-0.6, in seconds (dense correspondence: the same error after a registration);
-#: * otherwise the per-frame bounded solve (0.53 mm on the renamed rig; a pull through the
+#: * otherwise the per-frame bounded solve (0.47 mm on the renamed rig; a pull through the
 #:   vocabularies' approximate combinations did not beat geometry alone: 0.556 at best).
 AUTO_RIDGE = 1e-2
+AUTO_MOTION_SCALE = "covariance"
 AUTO_NAMED = {"alpha": 0.01, "beta": 10.0, "boundary": "perframe", "spacetime_bounds": True, "l1": 0.0,
               "name_weight": 30.0, "ridge": AUTO_RIDGE}
 AUTO_UNNAMED = {"ridge": AUTO_RIDGE}
@@ -177,6 +179,16 @@ def _exact_names(inputs) -> np.ndarray:
     return np.isfinite(named).all(0)
 
 
+def _alignment_phrase(inputs) -> str:
+    """How the calibrate stage matched the actor's motion to the character's, in words."""
+    cal = inputs.get("calibrate") or {}
+    if cal.get("source_map") is None:
+        return "the actor's motion as captured"
+    if cal.get("source_scale") is None:
+        return "the actor's motion space aligned to the character's (a 3×3 map per point)"
+    return "the actor's range of motion matched to the character's"
+
+
 def auto_choice(inputs, zero=None) -> tuple:
     """``(method function, settings, sentence)``: what ``auto`` runs on these inputs and why.
     ``zero``: the shapes the controls hold at zero already ((K,) bool or None)."""
@@ -191,7 +203,7 @@ def auto_choice(inputs, zero=None) -> tuple:
         held = ~named if zero is None else (~named | np.asarray(zero, bool))
         rest = f"; its {int((~named).sum())} other shapes stay at zero" if (~named).any() else ""
         return _spacetime, {**AUTO_NAMED, "zero": held if held.any() else zero}, (
-            f"auto: the whole take at once on {where}, the actor's range of motion matched to the character's, "
+            f"auto: the whole take at once on {where}, {_alignment_phrase(inputs)}, "
             f"each shape pulled towards its namesake curve — {n} of the {rig.n_shapes} target shapes have the "
             f"take's own ARKit names{rest}")
     recognised = recognise(rig.names, inputs["vocabulary"]["vocabularies"])
@@ -199,8 +211,8 @@ def auto_choice(inputs, zero=None) -> tuple:
            f"the target's shapes are not the take's ARKit names ({', '.join(recognised.vocabularies[:3])}: "
            "the vocabularies' combinations are approximate)" if recognised.recognised else
            "the target's shapes share no names with the take's curves")
-    return _bounded, AUTO_UNNAMED, (f"auto: frame by frame within the bounds on {where}, the actor's range of "
-                                    f"motion matched to the character's, by geometry alone — {why}")
+    return _bounded, AUTO_UNNAMED, (f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, "
+                                    f"by geometry alone — {why}")
 
 
 def pose_features(inputs) -> np.ndarray:

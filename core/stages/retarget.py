@@ -30,6 +30,7 @@ from ..gaps import fill_gaps
 from ..io.layout import default_layout_path
 from ..io.performance import read_performance
 from ..io.rigs import load_rig, read_layout_for
+from ..motion_alignment import apply_alignment, covariance_alignment
 from ..names import ARKIT_NAMES, NameMap, bundled_vocabulary_files, canonical, load_vocabularies
 from ..personalize import personalize
 from ..prior import PCAPrior, prior_quadratic
@@ -40,7 +41,7 @@ from ..shot import file_hash
 from ..solvers.local import masks_at
 from ..solvers.spacetime import PoseEdit, SpacetimeSolver
 from ..stage import Stage, register
-from .methods import METHODS, method_of, named_target
+from .methods import AUTO_MOTION_SCALE, METHODS, method_of, named_target
 
 #: a shape whose largest marker displacement is below this fraction of the largest shape's
 #: is invisible to the markers
@@ -330,16 +331,23 @@ class Calibrate(Stage):
     solver shapes, calibrated; the source rig's shapes — or, for a capture, the 99th percentile
     of the take's own motion), clipped to [0.1, 10]. An actor whose full jaw drop moves the chin
     twice as far as the character's full jaw drop then drives the character's full jaw drop, not
-    a clipped one. The result's ``source`` is the motion the solvers fit (scaled or not).
+    a clipped one. ``motion_scale = "covariance"`` maps each point's motion by a 3×3 matrix
+    instead (:func:`core.motion_alignment.covariance_alignment`): the source rig's shapes' motion
+    at the point whitened and coloured with the target's, so an actor's chin that drops back
+    drives a character's chin that drops down; it needs the source rig's shapes at the points
+    (a capture without a source rig falls back to ``rom``, with a warning). The result's
+    ``source`` is the motion the solvers fit (mapped or not), ``source_map`` the (M, 3, 3) map
+    (None for ``none``) and ``source_scale`` the (M,) scale of ``rom`` (else None).
     """
 
     deps = ("load", "correspond", "shapes", "stabilize")
     group, title = "calibrate", "Source & calibration"
     calibrate = param.Boolean(label="Match the actor's proportions (Seol RBF)", default=True, doc="Warp the target's marker blendshapes into the actor's proportions with an RBF")
     rbf_smoothing = param.Number(label='Proportion warp smoothing', default=0.0, bounds=(0, 1), softbounds=(0, 0.1), doc="RBF ridge relative to the mean marker distance (0: exact interpolation)")
-    motion_scale = param.Selector(label="Match the actor's range of motion", default="none", objects=["none", "rom"], doc=(
+    motion_scale = param.Selector(label="Match the actor's range of motion", default="none", objects=["none", "rom", "covariance"], doc=(
         "Match the actor's range of motion to the character's, point by point (rom: an actor's full jaw drop drives "
-        "the character's full jaw drop); none = the actor's motion as captured"))
+        "the character's full jaw drop; covariance: also the direction each point moves in, a 3x3 map learned from "
+        "both rigs' shapes); none = the actor's motion as captured"))
 
     def relevant(self, cfg):
         c = cfg.calibrate
@@ -347,20 +355,33 @@ class Calibrate(Stage):
 
     def derived(self, cfg):
         # a method that chooses its configuration (auto) matches the actor's range of motion
-        return {"motion_scale": "rom"} if method_of(cfg).chooses else {}
+        # (its motion space aligned, when a source rig's shapes say how the actor's points move;
+        # a capture without one: its range of motion, by scale)
+        if not method_of(cfg).chooses:
+            return {}
+        return {"motion_scale": AUTO_MOTION_SCALE if cfg.source_face.source_rig else "rom"}
 
     def run(self, inputs, s, progress=None):
         sh, st = inputs["shapes"], inputs["stabilize"]
         src = st["source"]
         tm = target_markers(sh["rig"], sh["layout"], st["names"], src.neutral, s.calibrate,
                             s.rbf_smoothing if s.calibrate else 0.0)
-        scale = None
-        if s.motion_scale == "rom":
-            scale = rom_scale(tm.calibrated, src, inputs["load"]["source_rig"], inputs["correspond"]["source_layout"],
-                              st["names"])
+        scale = amap = None
+        source_rig, source_layout = inputs["load"]["source_rig"], inputs["correspond"]["source_layout"]
+        mode = s.motion_scale
+        if mode == "covariance" and (source_rig is None or source_layout is None):
+            warnings.warn("motion_scale = covariance needs the source rig's shapes at the points; "
+                          "this source has none: the range of motion is matched by scale (rom)")
+            mode = "rom"
+        if mode == "rom":
+            scale = rom_scale(tm.calibrated, src, source_rig, source_layout, st["names"])
+            amap = scale[:, None, None] * np.eye(3)
             src = replace(src, deltas=src.deltas * scale[None, :, None])
+        elif mode == "covariance":
+            amap = covariance_alignment(source_layout.select(list(st["names"])).points(source_rig.deltas), tm.calibrated)
+            src = replace(src, deltas=apply_alignment(amap, src.deltas))
         return {"target": tm, "deltas": tm.calibrated, "shape_index": sh["shape_index"], "rig": sh["rig"],
-                "unseen": sh["unseen"], "source": src, "source_scale": scale}
+                "unseen": sh["unseen"], "source": src, "source_scale": scale, "source_map": amap}
 
 
 def rom_scale(target_deltas, source, source_rig=None, source_layout=None, names=None) -> np.ndarray:
@@ -413,8 +434,8 @@ class Personalize(Stage):
                 raise ValueError(f"{s.rom}: the range-of-motion take lacks markers {missing}")
             idx = [rom.names.index(n) for n in st["names"]]
             rom_deltas, rom_valid = rom.deltas[:, idx], rom.valid[:, idx]
-            if cal["source_scale"] is not None:  # the ROM take in the character's range, as the take
-                rom_deltas = rom_deltas * cal["source_scale"][None, :, None]
+            if cal["source_map"] is not None:  # the ROM take in the character's motion space, as the take
+                rom_deltas = apply_alignment(cal["source_map"], rom_deltas)
         out = personalize(rom_deltas, cal["deltas"], src.neutral, names=st["names"], rig_deltas=cal["target"].deltas,
                           valid=rom_valid, beta=s.align_beta, gamma=s.align_gamma)
         return {"deltas": out.deltas, "personalized": True, "diagnostics": out}
