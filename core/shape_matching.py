@@ -24,6 +24,10 @@ spacetime solver takes (``name_target``, NaN = no namesake), each with its confi
 bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖²`` (the batched
 exact box QP of :func:`core.solvers.baselines.range_pf`), a whole-take mapping
 ``W = clip(W_source Mᵀ, lower, upper)``.
+:func:`restyled_motion` is the third, what ``auto`` uses without shared names: the source's motion
+re-sculpted in the character's style, each sure pair's source shape moved part of the way
+towards its match, ``s'_j = (1 − β) s_j + β g t_k`` — then an ordinary geometric solve fits it (the
+actor's jaw drop then asks for the character's jaw drop, not for a chin pulled back by other shapes).
 
 What was measured with them (issue 29, cases B and C): docs/evaluation.md, "Shape matching".
 
@@ -46,6 +50,8 @@ from .solvers.baselines import range_pf
 
 #: a match is sure (it pulls) when both sides' best and at least this affine (eq. 1)
 MIN_AFFINITY = 0.75
+#: how far :func:`restyled_motion` moves a sure pair's source shape towards its match (β)
+RESTYLE = 0.5
 
 
 def _deltas(x, name: str) -> np.ndarray:
@@ -184,3 +190,32 @@ def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2) -> np.n
     if s.shape[1] != t.shape[1]:
         raise ValueError(f"source and target: the same points are needed, got {s.shape[1]} and {t.shape[1]}")
     return range_pf(t, s, lower, upper, np.ones(s.shape[:2], bool), ridge=ridge).T
+
+
+def restyled_motion(match: ShapeMatch, source, target, source_weights, beta: float = RESTYLE) -> np.ndarray:
+    """(T, M, 3) what to add to the source's motion ``Σ_j w_j s_j`` to re-sculpt it in the target's
+    style: ``Σ_j w_j β (g t_k − s_j)`` over the sure pairs ``(j, k)`` (gain ``g``), so each sure
+    source shape ``s_j`` becomes ``(1 − β) s_j + β g t_k``; the other shapes keep their motion.
+
+    Parameters
+    ----------
+    match : ShapeMatch of ``source`` and ``target``.
+    source : (J, M, 3), target : (K, M, 3) as :func:`motion_affinity`.
+    source_weights : (T, J) float, the source's weight curves (NaN: no data; the frame gets NaN).
+    beta : float in [0, 1]
+
+    Raises
+    ------
+    ValueError
+        ``beta`` outside [0, 1], or curves that are not (T, J).
+    """
+    s, t = _deltas(source, "source"), _deltas(target, "target")
+    W = np.asarray(source_weights, dtype=np.float64)
+    if W.ndim != 2 or W.shape[1] != len(s):
+        raise ValueError(f"source_weights: expected (T, {len(s)}) curves over the source shapes, got shape {W.shape}")
+    if not 0.0 <= beta <= 1.0:
+        raise ValueError(f"beta: expected a fraction in [0, 1], got {beta}")
+    sure = match.sure
+    j, k, g = match.source[sure], match.target[sure], match.gain[sure]
+    change = beta * (g[:, None, None] * t[k] - s[j])  # (P, M, 3)
+    return np.einsum("tp,pmc->tmc", W[:, j], change)
