@@ -7,7 +7,9 @@ against Rocketbox driven by the take's curves through their ARKit names). Every 
 what ``auto`` sees: the 41 markers, the actor's range of motion matched to the character's
 (``motion_scale = rom``), the solver's shapes, bounds [0, 1], ridge 1e-2:
 
-* ``auto``                      today's default (per-frame bounded);
+* ``bounded (auto before)``     the per-frame bounded solve of the source's motion as it is;
+* ``auto``                      the default: the same on the motion re-sculpted in the character's style
+                                (:func:`core.shape_matching.restyled_motion`, β 0.5);
 * ``pull nw=…``                 the whole take at once (spacetime, β 10) pulled towards the sure
                                 pairs' pseudo-name curves, name weight ``nw × confidence``;
 * ``pull nw=… others 0``        the same with the unmatched shapes held at zero (as auto does with
@@ -53,7 +55,10 @@ STAGES = ["load", "frames", "correspond", "shapes", "stabilize", "calibrate", "p
 def inputs_of(pipe) -> dict:
     """What auto's solve sees, plus the source rig's shapes at the same markers in the character's
     range: ``Ds (J, M, 3)``, ``B (K, M, 3)``, ``S (T, M, 3)``, ``Ws (T, J)``, auto's weights ``W0``."""
+    res = pipe.results(STAGES[:-1])
+    t = time.perf_counter()
     res = pipe.results(STAGES)
+    seconds = time.perf_counter() - t
     names = res["stabilize"]["names"]
     rig = res["load"]["source_rig"]
     Ds = res["correspond"]["source_layout"].select(list(names)).points(rig.deltas)
@@ -61,7 +66,8 @@ def inputs_of(pipe) -> dict:
     src = res["calibrate"]["source"]
     W0 = np.asarray(res["synthesize"]["weights"])[:, res["shapes"]["shape_index"]]
     return {"Ds": Ds, "B": np.asarray(res["personalize"]["deltas"]), "S": src.deltas, "valid": src.valid,
-            "Ws": np.nan_to_num(np.asarray(src.source_weights)), "W0": W0, "idx": res["shapes"]["shape_index"],
+            "Ws": np.nan_to_num(np.asarray(src.source_weights)), "W0": W0, "auto_seconds": seconds,
+            "idx": res["shapes"]["shape_index"],
             "source_names": rig.names, "target_names": res["shapes"]["rig"].names}
 
 
@@ -69,7 +75,10 @@ def variants(x: dict):
     """Yield ``(label, weights (T, K), seconds)`` of each design on the solve's inputs ``x``."""
     Ds, B, S, valid, Ws = x["Ds"], x["B"], x["S"], x["valid"], x["Ws"]
     K = len(B)
-    yield "auto (per-frame bounded)", x["W0"], 0.0
+    t = time.perf_counter()
+    Wb = baselines.range_pf(B, S, 0.0, 1.0, valid, ridge=AUTO_RIDGE)
+    yield "bounded (auto before)", Wb, time.perf_counter() - t
+    yield "auto (restyled)", x["W0"], x["auto_seconds"]
     t = time.perf_counter()
     m = match_shapes(Ds, B)
     named, conf = pseudo_names(m, Ws, K)
@@ -88,7 +97,7 @@ def variants(x: dict):
     t_map = time.perf_counter() - t
     yield "map clip(M w)", Wm, t_map
     for a in (0.25, 0.5):
-        yield f"blend {a}", (1 - a) * x["W0"] + a * Wm, t_map
+        yield f"blend {a}", (1 - a) * Wb + a * Wm, t_map
     t = time.perf_counter()
     keep = np.zeros(K, bool)
     keep[m.target] = True
