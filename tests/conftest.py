@@ -1,5 +1,7 @@
 """Shared fixtures: the bundled real data, loaded once per test session."""
 
+import dataclasses
+import json
 import os
 from pathlib import Path
 
@@ -39,3 +41,18 @@ def rocketbox(rigs):
 @pytest.fixture(scope="session")
 def tiger(rigs):
     return rigs["jeeliz_tiger"]
+
+
+@pytest.fixture(scope="session")
+def hidden_rocketbox(tmp_path_factory):
+    """A copy of the Rocketbox GLB with every shape renamed ``shape_NNN`` (same order), written by
+    the project's GLB writer, with its layout copied as the sidecar ``<rig>.layout.json``."""
+    from core.io.gltf import read_rig, write_rig
+
+    rig = read_rig(RIGS / "rocketbox_female_adult_02.glb")
+    out = tmp_path_factory.mktemp("hidden") / "rocketbox_hidden.glb"
+    write_rig(out, dataclasses.replace(rig, names=tuple(f"shape_{i:03d}" for i in range(rig.n_shapes))))
+    layout = json.loads((LAYOUTS / "rocketbox_female_adult_02.json").read_text())
+    layout["rig"] = out.name
+    out.with_name(out.stem + ".layout.json").write_text(json.dumps(layout))
+    return out

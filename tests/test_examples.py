@@ -4,7 +4,6 @@ The closed-form ridge correction is checked against SciPy's least squares on the
 system; the real case is the S07 take onto Rocketbox with every shape renamed (names hidden),
 posed at the suggested frames with the true weights."""
 
-import dataclasses
 import json
 import warnings
 
@@ -17,7 +16,7 @@ from scipy.linalg import lstsq
 from core.examples import (learn_from_poses, linear_correction, pose_space_correction, poses_from_items,
                            suggest_poses)
 from core.geometry import farthest_points
-from datapaths import LAYOUTS, PERFORMANCES, RIGS
+from datapaths import PERFORMANCES, RIGS
 
 RNG = np.random.default_rng(29)
 
@@ -165,22 +164,7 @@ def test_poses_from_items():
         poses_from_items([{"frame": 1, "weights": {}}, {"frame": 1, "weights": {}}], names, 10)
 
 
-# -- the real case: S07 onto Rocketbox, names hidden -----------------------------------------
-
-@pytest.fixture(scope="module")
-def hidden_rocketbox(tmp_path_factory):
-    """A copy of the Rocketbox GLB with every shape renamed ``shape_NNN`` (same order), written by
-    the project's GLB writer, with its layout copied as the sidecar ``<rig>.layout.json``."""
-    from core.io.gltf import read_rig, write_rig
-
-    rig = read_rig(RIGS / "rocketbox_female_adult_02.glb")
-    out = tmp_path_factory.mktemp("hidden") / "rocketbox_hidden.glb"
-    write_rig(out, dataclasses.replace(rig, names=tuple(f"shape_{i:03d}" for i in range(rig.n_shapes))))
-    layout = json.loads((LAYOUTS / "rocketbox_female_adult_02.json").read_text())
-    layout["rig"] = out.name
-    out.with_name(out.stem + ".layout.json").write_text(json.dumps(layout))
-    return out
-
+# -- the real case: S07 onto Rocketbox, names hidden (the hidden_rocketbox fixture: conftest) ------
 
 def test_hidden_rig_keeps_the_shapes(hidden_rocketbox, rocketbox):
     from core.io.gltf import read_rig

@@ -497,7 +497,8 @@ class Solve(Stage):
     """The retargeting solver and its term weights. Each method is registered in
     :mod:`core.stages.methods` with the settings it reads and the stages it needs."""
 
-    deps = ("load", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior", "vocabulary")
+    deps = ("load", "correspond", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior",
+            "vocabulary")
     group, title = "solve", "Solver"
     method = param.Selector(label='Method', default="auto", objects={m.label: n for n, m in METHODS.items()}, doc=(
         "auto: what serves this pair and take best, said in one sentence (the default); lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "

@@ -1,0 +1,221 @@
+"""Shape-to-shape correspondence between two rigs, recovered from geometry alone.
+
+Two rigs sculpted by different artists rarely share names, but a target shape that means the same
+as a source shape moves the same part of the face by a similar amount, even where its direction
+differs (ICT's ``jawOpen`` moves the chin back as much as down, Rocketbox's almost straight down).
+Compared at the points both faces share (the markers or dense correspondence, the source's
+motion in the character's range: ``motion_scale = rom``), the *affinity* of source shape ``j``
+and target shape ``k`` is
+
+    a_jk = mix · cos(s_j, t_k) + (1 − mix) · cos(|s_j|, |t_k|)                                   (1)
+
+``s_j, t_k`` (M·3,) the shapes' displacements at the M points, ``|s_j|, |t_k|`` (M,) their
+per-point magnitudes (the *pattern*: where the shape moves and how much, blind to direction);
+``cos(x, y) = xᵀy / (‖x‖ ‖y‖)``, 0 for a shape that moves nothing. ``a_jk ∈ [−1, 1]``; the
+magnitude term is in [0, 1].
+
+:func:`match_shapes` pairs the shapes by the assignment of largest total affinity (Kuhn 1955;
+``scipy.optimize.linear_sum_assignment``), one target shape per source shape at most, and calls a
+pair *sure* when it is each side's best match (mutual) and ``a_jk >= min_affinity``. The gain
+``g = ‖s_j‖ / ‖t_k‖`` says how much of the target shape a source shape's full weight means.
+:func:`pseudo_names` turns the pairs into the per-shape "namesake" curves the name pull of the
+spacetime solver takes (``name_target``, NaN = no namesake), each with its confidence.
+:func:`shape_map` is the other design: each source shape fitted by the target's shapes within the
+bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖²`` (the batched
+exact box QP of :func:`core.solvers.baselines.range_pf`), a whole-take mapping
+``W = clip(W_source Mᵀ, lower, upper)``.
+:func:`restyled_motion` is the third, what ``auto`` uses without shared names: the source's motion
+re-sculpted in the character's style, each sure pair's source shape moved part of the way
+towards its match, ``s'_j = (1 − β) s_j + β g t_k`` — then an ordinary geometric solve fits it (the
+actor's jaw drop then asks for the character's jaw drop, not for a chin pulled back by other shapes).
+
+What was measured with them (issue 29, cases B and C): docs/evaluation.md, "Shape matching".
+
+References
+----------
+1. H. W. Kuhn, "The Hungarian method for the assignment problem", Naval Research Logistics
+   Quarterly 2, 1955.
+2. Y. Seol, J. Seo, P. H. Kim, J. P. Lewis, J. Noh, "Weighted pose space editing for facial
+   animation", The Visual Computer 28, 2012 — §7 Range PF, the per-shape fit of :func:`shape_map`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .solvers.baselines import range_pf
+
+#: a match is sure (it pulls) when both sides' best and at least this affine (eq. 1)
+MIN_AFFINITY = 0.75
+#: how far :func:`restyled_motion` moves a sure pair's source shape towards its match (β)
+RESTYLE = 0.5
+
+
+def _deltas(x, name: str) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 3 or x.shape[2] != 3:
+        raise ValueError(f"{name}: expected shape deltas (K, M, 3), got shape {x.shape}")
+    return x
+
+
+def _cosines(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(J, K) cosines of the rows of ``a`` (J, F) and ``b`` (K, F); 0 where a row is zero."""
+    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+    ua = a / np.where(na > 0, na, 1.0)[:, None]
+    ub = b / np.where(nb > 0, nb, 1.0)[:, None]
+    return ua @ ub.T
+
+
+def motion_affinity(source, target, mix: float = 0.5) -> np.ndarray:
+    """(J, K) affinity of every source shape with every target shape, eq. (1) of the module.
+
+    Parameters
+    ----------
+    source : (J, M, 3) float
+        The source shapes' displacements at the M shared points (in the character's range).
+    target : (K, M, 3) float
+        The target shapes' displacements at the same points.
+    mix : float in [0, 1]
+        Weight of the direction term; ``1 - mix`` that of the magnitude pattern.
+
+    Raises
+    ------
+    ValueError
+        Shapes that are not (K, M, 3), different M, or ``mix`` outside [0, 1].
+    """
+    s, t = _deltas(source, "source"), _deltas(target, "target")
+    if s.shape[1] != t.shape[1]:
+        raise ValueError(f"source and target: the same points are needed, got {s.shape[1]} and {t.shape[1]}")
+    if not 0.0 <= mix <= 1.0:
+        raise ValueError(f"mix: expected a weight in [0, 1], got {mix}")
+    direction = _cosines(s.reshape(len(s), -1), t.reshape(len(t), -1))
+    pattern = _cosines(np.linalg.norm(s, axis=2), np.linalg.norm(t, axis=2))
+    return mix * direction + (1.0 - mix) * pattern
+
+
+@dataclass(frozen=True)
+class ShapeMatch:
+    """Pairs of source and target shapes (:func:`match_shapes`).
+
+    Attributes
+    ----------
+    source, target : (P,) int
+        The pairs' source and target shape indices (each index at most once).
+    affinity : (P,) float
+        Their affinity, eq. (1).
+    gain : (P,) float
+        ``‖s_j‖ / ‖t_k‖``: the target weight a source weight of 1 means.
+    mutual : (P,) bool
+        The pair is each side's best match.
+    confidence : (P,) float
+        The affinity where the pair is sure (mutual and ``>= min_affinity``), else 0.
+    """
+
+    source: np.ndarray
+    target: np.ndarray
+    affinity: np.ndarray
+    gain: np.ndarray
+    mutual: np.ndarray
+    confidence: np.ndarray
+
+    @property
+    def sure(self) -> np.ndarray:
+        """(P,) bool: the pairs that pull."""
+        return self.confidence > 0
+
+
+def match_shapes(source, target, mix: float = 0.5, min_affinity: float = MIN_AFFINITY) -> ShapeMatch:
+    """The assignment of largest total affinity between source and target shapes (Kuhn 1955).
+
+    Parameters
+    ----------
+    source : (J, M, 3), target : (K, M, 3), mix : as :func:`motion_affinity`.
+    min_affinity : float
+        A mutual best pair with at least this affinity is sure (confidence = its affinity).
+
+    Returns
+    -------
+    ShapeMatch with ``min(J, K)`` pairs, ordered by source shape.
+    """
+    A = motion_affinity(source, target, mix)
+    rows, cols = linear_sum_assignment(-A)
+    s = np.linalg.norm(_deltas(source, "source").reshape(A.shape[0], -1), axis=1)
+    t = np.linalg.norm(_deltas(target, "target").reshape(A.shape[1], -1), axis=1)
+    aff = A[rows, cols]
+    mutual = (A.argmax(1)[rows] == cols) & (A.argmax(0)[cols] == rows)
+    gain = s[rows] / np.where(t[cols] > 0, t[cols], 1.0)
+    conf = np.where(mutual & (aff >= min_affinity), aff, 0.0)
+    return ShapeMatch(rows, cols, aff, gain, mutual, conf)
+
+
+def pseudo_names(match: ShapeMatch, source_weights, n_target: int, lower=0.0, upper=1.0) -> tuple:
+    """The pairs as namesake curves: ``(W_named (T, K), confidence (K,))``.
+
+    ``W_named[:, k] = clip(g · w_j, lower_k, upper_k)`` for each sure pair ``(j, k)`` (gain ``g``),
+    NaN for the other target shapes (no namesake: no pull); ``confidence[k]`` the pair's
+    confidence, 0 elsewhere — what :class:`core.solvers.spacetime.SpacetimeSolver` takes as
+    ``name_target`` and, times a weight, ``name_weight``.
+
+    Parameters
+    ----------
+    source_weights : (T, J) float
+        The source's weight curves over the source rig's shapes.
+    n_target : int
+        K, the target shapes the solver uses.
+    lower, upper : float or (K,) float
+        The target's weight bounds.
+    """
+    W = np.asarray(source_weights, dtype=np.float64)
+    if W.ndim != 2 or W.shape[1] <= (match.source.max() if len(match.source) else -1):
+        raise ValueError(f"source_weights: expected (T, J) curves over the matched source shapes, got shape {W.shape}")
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n_target,))
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (n_target,))
+    named = np.full((len(W), n_target), np.nan)
+    conf = np.zeros(n_target)
+    sure = match.sure
+    for j, k, g, c in zip(match.source[sure], match.target[sure], match.gain[sure], match.confidence[sure]):
+        named[:, k] = np.clip(g * W[:, j], lo[k], hi[k])
+        conf[k] = c
+    return named, conf
+
+
+def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2) -> np.ndarray:
+    """(K, J) each source shape fitted by the target's shapes within the bounds (module docstring):
+    ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖²``, exact
+    (:func:`core.solvers.baselines.range_pf` with the source shapes as its frames)."""
+    s, t = _deltas(source, "source"), _deltas(target, "target")
+    if s.shape[1] != t.shape[1]:
+        raise ValueError(f"source and target: the same points are needed, got {s.shape[1]} and {t.shape[1]}")
+    return range_pf(t, s, lower, upper, np.ones(s.shape[:2], bool), ridge=ridge).T
+
+
+def restyled_motion(match: ShapeMatch, source, target, source_weights, beta: float = RESTYLE) -> np.ndarray:
+    """(T, M, 3) what to add to the source's motion ``Σ_j w_j s_j`` to re-sculpt it in the target's
+    style: ``Σ_j w_j β (g t_k − s_j)`` over the sure pairs ``(j, k)`` (gain ``g``), so each sure
+    source shape ``s_j`` becomes ``(1 − β) s_j + β g t_k``; the other shapes keep their motion.
+
+    Parameters
+    ----------
+    match : ShapeMatch of ``source`` and ``target``.
+    source : (J, M, 3), target : (K, M, 3) as :func:`motion_affinity`.
+    source_weights : (T, J) float, the source's weight curves (NaN: no data; the frame gets NaN).
+    beta : float in [0, 1]
+
+    Raises
+    ------
+    ValueError
+        ``beta`` outside [0, 1], or curves that are not (T, J).
+    """
+    s, t = _deltas(source, "source"), _deltas(target, "target")
+    W = np.asarray(source_weights, dtype=np.float64)
+    if W.ndim != 2 or W.shape[1] != len(s):
+        raise ValueError(f"source_weights: expected (T, {len(s)}) curves over the source shapes, got shape {W.shape}")
+    if not 0.0 <= beta <= 1.0:
+        raise ValueError(f"beta: expected a fraction in [0, 1], got {beta}")
+    sure = match.sure
+    j, k, g = match.source[sure], match.target[sure], match.gain[sure]
+    change = beta * (g[:, None, None] * t[k] - s[j])  # (P, M, 3)
+    return np.einsum("tp,pmc->tmc", W[:, j], change)
