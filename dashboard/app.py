@@ -447,7 +447,6 @@ def create_app():
     args = pn.state.session_args or {}
     sid = (args.get("shot") or [b""])[0].decode(errors="replace").strip()
     if not sid:  # the dashboard on the sample, a page of its own, with a card to share it as a review
-        from dashboard import warm
         from dashboard.review_view import review_start
 
         app = DashboardApp()

@@ -89,7 +89,10 @@ def register_models() -> None:
             importlib.import_module(f"panel.models.{m.name}")
         except Exception:  # an optional model whose dependency is missing: no page of ours uses it
             pass
+    import dashboard.connection_view  # noqa: F401  (ConnectionWatch)
+    import dashboard.contact_sheet_view  # noqa: F401  (FrameLinks)
     import dashboard.review_view  # noqa: F401  (NameBox)
+    import dashboard.upload_guard  # noqa: F401  (UploadGuard)
     import dashboard.viewer  # noqa: F401  (MeshViewer)
 
     external = sorted({f"{c.__module__}.{c.__name__}" for c in Model.model_class_reverse_map.values()
