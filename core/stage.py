@@ -137,6 +137,11 @@ class Stage(param.Parameterized):
             raise ValueError(f"stage {self.stage_name!r} declares settings {foreign} it does not own")
         return keep
 
+    def hidden(self, cfg) -> tuple:
+        """Declared settings a person has no use for changing now (the key still hashes them):
+        e.g. the weight bounds under a method that does not solve within them. Default: none."""
+        return ()
+
     def active(self, cfg) -> bool:
         return True
 
