@@ -38,6 +38,7 @@ class LogSlider(pn.widgets.CompositeWidget):
         self._slider = pn.widgets.FloatSlider(label=self.label, start=off, end=self.log_end, step=self.log_step,
                                               value=self.position(self.value), format=fmt, sizing_mode="stretch_width")
         self._composite[:] = [self._slider]
+        self._composite.margin = 0  # the slider keeps its own margin, in line with the other settings
         self._syncing = False
         self._slider.param.watch(self._moved, "value")
         self.param.watch(self._set, "value")
