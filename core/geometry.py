@@ -56,7 +56,6 @@ References
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Optional
 
@@ -1324,9 +1323,9 @@ def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=No
     distance_threshold : float
         In units of the source's bounding-box diagonal (see above).
     progress : ``(fraction, message) -> None``, optional
-        Called after every iteration with the step, the match error (mm if the input is in
-        metres) and a time estimate: the iterations left at the mean time per iteration so
-        far (a step may end early, so it is an upper bound).
+        Called after every iteration with the fraction of the schedule's iterations done (a
+        step may end early) and the step and match error (mm if the input is in metres); the
+        time left is the caller's to say, for its whole run (:class:`core.progress.TimeLeft`).
     eps : float
         A step ends when its mean weighted match error falls by less than this (unit frame;
         trimesh's default).
@@ -1392,7 +1391,7 @@ def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=No
     tnormals = np.asarray(trimesh.Trimesh(Tn, TF, process=False).vertex_normals)  # trimesh's (angle-weighted)
     use_coarse = coarse is not None and n > 2 * coarse
     total = [sum(int(s[3]) for s in steps) + (fine_iterations if use_coarse else 0)]
-    done, t0 = [0], time.perf_counter()
+    done = [0]
 
     def report(stage):
         def f(k, it, max_iter, error):
@@ -1400,10 +1399,10 @@ def nonrigid_icp(V, F, target_V, target_F, landmarks=None, landmark_positions=No
             if progress is None:
                 return
             left = max(total[0] - done[0], 0)
-            el = time.perf_counter() - t0
+            # no time left of its own: a run that registers says one for the whole run (progress.TimeLeft)
             progress(done[0] / max(done[0] + left, 1),
                      f"non-rigid ICP{stage} step {k + 1}/{len(steps)} iteration {it}: match error "
-                     f"{error * scale * 1000:.3g} mm, at most {el / done[0] * left:.0f} s left")
+                     f"{error * scale * 1000:.3g} mm")
         return f
 
     X0 = np.tile(np.vstack([np.eye(3), np.zeros((1, 3))]), (n, 1)).reshape(n, 4, 3)

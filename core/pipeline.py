@@ -45,7 +45,7 @@ import param
 import platformdirs
 
 from . import stages as _stages  # noqa: F401  (registers every stage and method)
-from .progress import ProgressFn
+from .progress import ProgressFn, TimeLeft
 from .shot import EDITORS, EditHistory, FileRef, Shot, file_hash
 from .stage import STAGES, SettingsView, setting_owners
 from .stages.methods import METHODS as _METHODS
@@ -198,6 +198,11 @@ class StageCache:
                 self._data.move_to_end(key)
                 return True, self._data[key]
             return False, None
+
+    def has(self, key) -> bool:
+        """Whether ``key``'s result is in memory (a run will not compute it; not a use)."""
+        with self._lock:
+            return key in self._data
 
     def put(self, key, value):
         with self._lock:
@@ -571,6 +576,13 @@ class Pipeline:
             memo: dict = {}
             results: dict = {}
             self.timings = {}
+            if progress:
+                # one bar and one time left for the run: each stage to compute takes its share by
+                # its cost (a cached or inactive one none)
+                progress = TimeLeft(progress)
+                share = np.array([self.stages[n].cost if self.stages[n].active(cfg)
+                                  and not self.cache.has((n, self.key(n, memo, cfg))) else 0.0 for n in order])
+                ends = np.cumsum(share) / max(share.sum(), 1e-12)
             for i, name in enumerate(order):
                 stage = self.stages[name]
                 k = self.key(name, memo, cfg)
@@ -578,11 +590,10 @@ class Pipeline:
                     results[name], self.keys[name], self.timings[name] = None, k, 0.0
                     continue
                 def compute(name=name, stage=stage, i=i):
-                    if progress:
-                        progress(i / len(order), f"{name}…")
                     inner = None
                     if progress:
-                        lo, hi = i / len(order), (i + 1) / len(order)
+                        lo, hi = (ends[i - 1] if i else 0.0), ends[i]
+                        progress(lo, f"{name}…")
                         inner = lambda f, m, lo=lo, hi=hi: progress(lo + f * (hi - lo), f"{name}: {m}")  # noqa: E731
                     with warnings.catch_warnings(record=True) as caught:
                         warnings.simplefilter("always")

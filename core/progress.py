@@ -77,6 +77,23 @@ class StderrBar:
             _OPEN = None
 
 
+class TimeLeft:
+    """A :data:`ProgressFn` that adds one estimate of the time left for the whole run to each
+    message: ``elapsed × (1 − f) / f`` at overall fraction ``f`` (from 5 % on, before that the
+    estimate is noise). Wrap a run's callback once, at the top (:meth:`core.pipeline.Pipeline.run`):
+    a stage that estimated its own time left said how long *it* had, not the run."""
+
+    def __init__(self, progress: ProgressFn, clock: Callable[[], float] = time.perf_counter):
+        self.progress, self.clock = progress, clock
+        self._start = clock()
+
+    def __call__(self, fraction: float, message: str = "") -> None:
+        if 0.05 <= fraction < 1.0:
+            left = (self.clock() - self._start) * (1.0 - fraction) / fraction
+            message = f"{message} — about {left:.0f} s left in all"
+        self.progress(fraction, message)
+
+
 def report(progress: Optional[ProgressFn], fraction: float, message: str = "") -> None:
     """Call ``progress`` when given (stages use this so None means silent)."""
     if progress is not None:

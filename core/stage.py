@@ -104,6 +104,9 @@ class Stage(param.Parameterized):
     #: the result is worth keeping across processes (a rig pair's registration: tens of seconds,
     #: the same for every take): the pipeline's cache keeps it on disk too
     persist: ClassVar[bool] = False
+    #: its share of a run's progress (and so of the time-left estimate): roughly the seconds it
+    #: takes on the dense-transfer benchmark (docs/transfer.md), relative; 1 for a quick stage
+    cost: ClassVar[float] = 1.0
     #: dashboard card the stage's settings belong to, and its title
     group: ClassVar[str] = ""
     title: ClassVar[str] = ""
@@ -136,6 +139,11 @@ class Stage(param.Parameterized):
         if foreign:
             raise ValueError(f"stage {self.stage_name!r} declares settings {foreign} it does not own")
         return keep
+
+    def hidden(self, cfg) -> tuple:
+        """Declared settings a person has no use for changing now (the key still hashes them):
+        e.g. the weight bounds under a method that does not solve within them. Default: none."""
+        return ()
 
     def active(self, cfg) -> bool:
         return True

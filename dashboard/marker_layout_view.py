@@ -2,7 +2,8 @@
 at, for a rig without a layout of its own (a user's own character): place them automatically
 (:meth:`dashboard.session.Session.place_markers`, on a worker thread with progress), move any
 that landed badly by clicking a marker on the target view and then its new place
-(:meth:`dashboard.session.Session.move_marker`), download the layout.
+(:meth:`dashboard.session.Session.move_marker`; one move, then move mode is off again, and the
+last move can be undone), download the layout.
 
 It talks to the page through its ``host`` (:class:`dashboard.app.DashboardApp`): ``host.s``,
 ``host.refresh`` and ``host.playback`` (the target view it picks on).
@@ -34,7 +35,8 @@ class MarkerLayoutView(pn.viewable.Viewer):
         self.s = host.s
         self.report = None  # the last automatic placement's report
         self._pick = None  # the marker picked to move
-        self.w_place = self.w_move = self.w_download = self.w_progress = self.w_info = None
+        self._last_move = None  # (name, vertices, weights) the last moved marker had before
+        self.w_place = self.w_move = self.w_undo = self.w_download = self.w_progress = self.w_info = None
         self.card = lazy_card(build=self._widgets, title="Markers on the target rig", collapsed=True,
                               sizing_mode="stretch_width")
 
@@ -49,6 +51,9 @@ class MarkerLayoutView(pn.viewable.Viewer):
             self.w_move = pn.widgets.Toggle(name="Move markers: click a marker, then where it goes",
                                             button_type="light", sizing_mode="stretch_width")
             self.w_move.param.watch(lambda e: self._move_mode(), "value")
+            self.w_undo = pn.widgets.Button(name="Undo the last marker move", button_type="light", disabled=True,
+                                            sizing_mode="stretch_width")
+            self.w_undo.on_click(lambda e: self.undo_move())
             self.w_download = pn.widgets.FileDownload(callback=self._layout_bytes, filename="layout.json",
                                                       label="Download layout", button_type="light",
                                                       sizing_mode="stretch_width")
@@ -58,7 +63,7 @@ class MarkerLayoutView(pn.viewable.Viewer):
         return [pn.pane.Markdown("The 41 markers the solvers compare both faces at. A rig of your own needs them "
                                  "once: place them automatically, then move any that landed badly.",
                                  css_classes=["fr-muted"]),
-                self.w_place, self.w_progress, self.w_info, self.w_move, self.w_download]
+                self.w_place, self.w_progress, self.w_info, self.w_move, self.w_undo, self.w_download]
 
     def _place_label(self) -> str:
         return "Place markers automatically" if self.s.needs_layout else "Place the markers again (automatically)"
@@ -150,7 +155,22 @@ class MarkerLayoutView(pn.viewable.Viewer):
             return
         name, self._pick = self._pick, None
         viewer.set_highlight([])
-        self.s.move_marker(name, v)
+        was = self.s.move_marker(name, v)
+        self._last_move = (name, *was)
+        self.w_undo.disabled = False
+        self.w_move.value = False  # one move per switch: a stray click later moves nothing
         self.w_info.object = f"Marker **{html.escape(name)}** moved to vertex {v}; the result follows."
         self.host.playback.forget_target()  # the markers moved: a new target view
+        self.host.refresh()
+
+    def undo_move(self) -> None:
+        """Put the last moved marker back where it was (one step: the undo is not itself undone)."""
+        if self._last_move is None:
+            return
+        name, vertices, weights = self._last_move
+        self._last_move = None
+        self.w_undo.disabled = True
+        self.s.move_marker(name, vertices, weights)
+        self.w_info.object = f"Marker **{html.escape(name)}** is back where it was; the result follows."
+        self.host.playback.forget_target()
         self.host.refresh()

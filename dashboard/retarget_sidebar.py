@@ -48,11 +48,12 @@ SIDEBAR_CARDS = [("Solver", ("solve",), False), ("Source & calibration", ("sourc
 def visible_settings(stage, cfg) -> list:
     """The settings of ``stage`` a user can change now: the ones that matter in this
     configuration (``stage.declared``) and are not decided by it (``stage.derived``: e.g. the
-    correspondence under ``auto``), without the edit lists and tables (they have their own
-    controls) — for an inactive stage (e.g. segmentation with a global method) none."""
+    correspondence under ``auto``) nor of no use in it (``stage.hidden``: bounds a method
+    ignores), without the edit lists and tables (they have their own controls) — for an
+    inactive stage (e.g. segmentation with a global method) none."""
     if not stage.active(cfg):
         return []
-    shown = set(stage.declared(cfg)) - set(stage.derived(cfg))
+    shown = set(stage.declared(cfg)) - set(stage.derived(cfg)) - set(stage.hidden(cfg))
     return [n for n in stage.tunable_names() if n in shown]
 
 

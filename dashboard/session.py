@@ -264,8 +264,10 @@ class Session(param.Parameterized):
         self.pipeline.configure(target_layout=str(out))
         return report
 
-    def move_marker(self, name: str, vertex: int) -> None:
-        """Put marker ``name`` of the target layout on ``vertex`` and keep the layout."""
+    def move_marker(self, name: str, vertex: int, weights=(1.0, 0.0, 0.0)) -> tuple:
+        """Put marker ``name`` of the target layout on ``vertex`` (with barycentric ``weights``
+        over it and its layout row's other two vertices) and keep the layout. Returns where it was,
+        ``(vertex, weights)``: passed back here, that undoes the move."""
         import dataclasses
 
         from core.io.layout import write_layout
@@ -274,10 +276,12 @@ class Session(param.Parameterized):
         layout, rig = ld["target_layout"], ld["target_rig"]
         i = layout.names.index(name)
         V, W = layout.vertices.copy(), layout.weights.copy()
-        V[i], W[i] = int(vertex), (1.0, 0.0, 0.0)
+        was = (V[i].copy(), W[i].copy())
+        V[i], W[i] = vertex, weights
         out = self.layout_path()
         write_layout(out, dataclasses.replace(layout, vertices=V, weights=W), Path(self.files["rigs"][self.target_rig]).name)
         self.pipeline.configure(target_layout=str(out))
+        return was
 
     def layout_json(self) -> bytes:
         """The target rig's current layout as JSON (a download)."""

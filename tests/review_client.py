@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import math
 import re
 import time
 from typing import Callable, Optional
@@ -505,6 +506,8 @@ async def review_load(base: str, shot_id: str, n: int, seconds: float, seed: int
             if now >= next_setting:
                 key = "alpha" if i % 2 == 0 else "beta"
                 v = round(0.001 + 1e-5 * next(counter), 6)  # unique: whose change it was is known by value
+                if key == "alpha":  # the α slider is over log10 α (dashboard.widgets.LogSlider)
+                    v = math.log10(v)
                 sent_at[(key, v)] = (i, time.monotonic())
                 trail[i].append((round(time.monotonic(), 3), key, v, "sent"))
                 sent[i][key].append(v)

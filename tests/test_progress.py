@@ -1,10 +1,13 @@
-"""core.progress.StderrBar: the CLI's progress line and the warnings shown while it is drawn."""
+"""core.progress: the CLI's progress line (StderrBar) and the warnings shown while it is drawn; one
+time-left estimate for a whole run (TimeLeft)."""
 
 import io
 import sys
 import warnings
 
-from core.progress import StderrBar
+from core.pipeline import Pipeline, StageCache
+from core.progress import StderrBar, TimeLeft
+from dense_case import tiger_files
 
 
 def terminal(text: str) -> list:
@@ -56,3 +59,30 @@ def test_the_bar_alone_is_written_as_before():
     bar(1.0, "")
     assert buf.getvalue().startswith("\rx [##..]  50%") and buf.getvalue().endswith("\n")
     assert terminal(buf.getvalue())[-1].startswith("x [####] 100%")
+
+
+def test_time_left_is_for_the_whole_run():
+    """elapsed × (1 − f) / f, from 5 % on; the last call (done) says none."""
+    now = [0.0]
+    heard = []
+    tl = TimeLeft(lambda f, m: heard.append(m), clock=lambda: now[0])
+    tl(0.01, "register")
+    now[0] = 10.0
+    tl(0.25, "register: ICP")
+    now[0] = 40.0
+    tl(1.0, "done")
+    assert heard == ["register", "register: ICP — about 30 s left in all", "done"]
+
+
+def test_a_dense_run_says_one_time_left_for_all_its_stages(tmp_path):
+    """Issue 33 item 8: the dense transfer's time left was the registration's own (the non-rigid
+    ICP's iterations left), not the run's, and the stages after it said none."""
+    pipe = Pipeline(cache=StageCache(disk=False), method="transfer", transfer_max_bases=4, **tiger_files(tmp_path))
+    heard = []
+    pipe.results(["transfer"], progress=lambda f, m: heard.append((f, m)))
+    fr = [f for f, _ in heard]
+    assert fr == sorted(fr) and fr[-1] == 1.0
+    said = [m for f, m in heard if 0.05 <= f < 1.0]
+    stages = {m.split(":")[0].rstrip("…") for m in said}
+    assert {"decompose", "details"} <= stages, stages
+    assert all(m.count("left") == 1 and m.endswith("s left in all") for m in said), said

@@ -6,6 +6,7 @@ and its own changes reach the other pages. Localhost only, one server, bounded i
 from __future__ import annotations
 
 import asyncio
+import math
 import re
 import time
 from pathlib import Path
@@ -59,12 +60,13 @@ def test_a_warm_page_is_the_shot_as_it_is_now(tmp_path):
             assert "someone" not in people_a(), people_a()
             # a change while the warm pages wait
             alpha = a.one("Slider", title=ALPHA)
-            a.set(alpha, value=0.05, value_throttled=0.05)
+            at = math.log10(0.05)  # the α slider is over log10 α (dashboard.widgets.LogSlider)
+            a.set(alpha, value=at, value_throttled=at)
             await asyncio.sleep(1.0)
             (b,), _ = await rc.open_pages(srv.base, sid, 1)
             assert len(_said(log, "a warm page handed out")) == 1
             b_alpha = b.one("Slider", title=ALPHA)
-            assert await _until(lambda: b.value(b_alpha, "value") == 0.05), b.value(b_alpha, "value")
+            assert await _until(lambda: b.value(b_alpha, "value") == at), b.value(b_alpha, "value")
             _name(b, "bo")
             assert await _until(lambda: "ana, bo" in people_a()), people_a()
             # the handed-out page is live: its change reaches the first page
@@ -77,7 +79,7 @@ def test_a_warm_page_is_the_shot_as_it_is_now(tmp_path):
             assert await _until(lambda: len(_said(log, "their documents made")) > made, 60), log.read_text()[-2000:]
             (c,), _ = await rc.open_pages(srv.base, sid, 1)
             assert _said(log, "a warm page handed out")[-1].endswith("(its page and document made ahead)")
-            assert c.value(c.one("Slider", title=ALPHA), "value") == 0.05
+            assert c.value(c.one("Slider", title=ALPHA), "value") == at
             assert c.value(c.one("Slider", title=BETA), "value") == 0.2
             _name(c, "cy")
             assert await _until(lambda: "cy" in people_a() and "bo" in people_a()), people_a()

@@ -92,6 +92,7 @@ class Weld(Stage):
 class Register(Stage):
     """§3: the target reference in the source topology, by landmarks (the markers both layouts
     share) + non-rigid ICP + closest points. Depends on the rig pair only."""
+    cost = 6.0  # seconds for ICT → Rocketbox (14K vertices, 5–6 s, docs/transfer.md)
 
     deps = ("source_face", "target_face", "weld", "sequence_face")
     persist = True
@@ -119,6 +120,7 @@ class Register(Stage):
 @register("decompose")
 class Decompose(Stage):
     """Eq. 1-4: Taubin smoothing and Laplacian coating of the source sequence."""
+    cost = 6.7  # seconds on the 56K-vertex benchmark (decomposition_s, docs/transfer.md)
 
     deps = ("weld", "dense_source")
     group, title = "dense", "Dense transfer (Xu 2014)"
@@ -134,6 +136,7 @@ class Decompose(Stage):
 @register("bases")
 class Bases(Stage):
     """Eq. 6-7: greedy basis selection with non-negative weights."""
+    cost = 0.3  # seconds on the 56K-vertex benchmark (basis_selection_s, docs/transfer.md)
 
     deps = ("decompose",)
     group, title = "dense", "Dense transfer (Xu 2014)"
@@ -150,6 +153,7 @@ class Bases(Stage):
 @register("deform")
 class Deform(Stage):
     """Eq. 9-11: feature-preserving deformation transfer of the bases."""
+    cost = 1.6  # seconds on the 56K-vertex benchmark (transfer_s, docs/transfer.md)
 
     deps = ("weld", "decompose", "bases", "register", "source_face", "sequence_face")
     group, title = "dense", "Dense transfer (Xu 2014)"
@@ -172,6 +176,7 @@ class Deform(Stage):
 @register("details")
 class Details(Stage):
     """Eq. 16, 5: the fine-scale details of every frame, as displacements on the target."""
+    cost = 19.5  # seconds on the 56K-vertex benchmark (details_s, docs/transfer.md)
 
     deps = ("weld", "decompose", "bases", "register", "deform")
     group, title = "dense", "Dense transfer (Xu 2014)"

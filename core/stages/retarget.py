@@ -570,6 +570,11 @@ class Solve(Stage):
                                           ("sigma",) if f == "gaussian" else ())
         return tuple(dict.fromkeys(out))
 
+    def hidden(self, cfg):
+        """Lowest/highest weight under a method that does not honour bounds: they stay in the key
+        (the per-shape controls' table is made over them), but moving them changes nothing."""
+        return () if "bounds" in method_of(cfg).honours else ("lower", "upper")
+
     def active(self, cfg):
         return not method_of(cfg).dense
 

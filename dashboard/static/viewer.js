@@ -413,7 +413,18 @@ class Viewer {
     this.hint.style.cssText =
       "position:absolute;right:8px;bottom:6px;font:11px sans-serif;color:#bbb;pointer-events:none;" +
       "text-shadow:0 0 3px #000;";
-    this.root.append(this.canvas, this.overlay, this.hint);
+    // tracking loss: a banner across the view and a yellow frame around it (the label's words
+    // alone, 12 px in a corner, were missed: the filled-in frames look like a neutral face)
+    this.gapMark = document.createElement("div");
+    this.gapMark.className = "face-retarget-gap";
+    this.gapMark.style.cssText =
+      "position:absolute;inset:0;display:none;pointer-events:none;box-shadow:inset 0 0 0 4px #ffd54f;";
+    this.gapBanner = document.createElement("div");
+    this.gapBanner.style.cssText =
+      "position:absolute;left:50%;top:28px;transform:translateX(-50%);padding:4px 10px;border-radius:4px;" +
+      "background:#ffd54f;color:#222;font:bold 13px sans-serif;white-space:nowrap;";
+    this.gapMark.append(this.gapBanner);
+    this.root.append(this.canvas, this.overlay, this.hint, this.gapMark);
     this.el.replaceChildren(this.root);
     this.renderer = new THREE.WebGLRenderer({ canvas: this.canvas, antialias: false, alpha: false,
                                               powerPreference: "high-performance" });
@@ -1100,12 +1111,21 @@ class Viewer {
       (this.stats.trackError ? `  — the weight track could not be loaded (${this.stats.trackError}); reload the page` : "");
     this.overlay.style.color = this.stats.geometryError || this.stats.trackError ? "#ff8a80"
       : (!this.override && this.isGap(frame) ? "#ffd54f" : "#ddd");
+    const gap = this.override ? null : this.gapOf(frame);
+    this.gapMark.style.display = gap ? "block" : "none";
+    if (gap) this.gapBanner.textContent = gap[0] === gap[1] ? `No tracking data at frame ${gap[0]} (filled in)`
+      : `No tracking data: frames ${gap[0]}–${gap[1]} (filled in)`;
   }
 
-  // Whether `frame` lies in one of the model's gaps ([first, last] frame ranges without data).
+  // The gap ([first, last] frame range without data) `frame` lies in, or null.
+  gapOf(frame) {
+    for (const g of this.model.gaps || []) if (frame >= g[0] && frame <= g[1]) return g;
+    return null;
+  }
+
+  // Whether `frame` lies in one of the model's gaps.
   isGap(frame) {
-    for (const g of this.model.gaps || []) if (frame >= g[0] && frame <= g[1]) return true;
-    return false;
+    return this.gapOf(frame) !== null;
   }
 
   // position = neutral + sum_k w_k delta_k, normal = n0 + sum_k w_k dn_k over non-zero w_k;

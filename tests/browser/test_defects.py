@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, free_port, wait_http
-from test_dashboard import SRC, TGT, VIEWERS_READY, canvas, foreground, frames, seek_frame, shot, slider, slider_value
+from test_dashboard import SAMPLE, SRC, TGT, VIEWERS_READY, canvas, foreground, frames, seek_frame, shot, slider, slider_value
 
 
 def start_serve(data_dir, log):
@@ -198,3 +198,47 @@ def test_a_page_whose_server_died_says_connection_lost_and_takes_no_edits(new_pa
     finally:
         ctx.close()
         stop_serve(proc, fh)
+
+
+def gap_marks(page) -> list:
+    """Per viewer: the tracking-loss banner's text when it shows, else None."""
+    return page.evaluate("""() => { const out = []; const walk = (root) => { for (const el of root.querySelectorAll('*')) {
+        if (el.shadowRoot) walk(el.shadowRoot); if (el.classList && el.classList.contains('face-retarget-gap'))
+        out.push(getComputedStyle(el).display !== 'none' && el.getBoundingClientRect().width > 0 ? el.textContent : null); } };
+        walk(document); return out; }""")
+
+
+@pytest.mark.browser
+@pytest.mark.slow
+def test_tracking_loss_frames_are_marked_in_both_views(dash, artifacts):
+    """Issue 33.6: frames without tracking data (filled in) looked like neutral faces in the 3D
+    views; only 12 px words in the label's corner said so. On a take with frames 100-109 blank,
+    both views carry a banner naming the gap (and a yellow frame) there, and none outside it."""
+    from playwright.sync_api import expect
+
+    from datapaths import PERFORMANCES
+
+    page = dash
+    page.locator(".bk-tab", has_text="Retarget").first.click()
+    page.wait_for_function(VIEWERS_READY, timeout=30_000)
+    lines = (PERFORMANCES / SAMPLE).read_text().splitlines()
+    for i in range(101, 111):  # data lines 100..109 (line 0 is the header): the curves blank
+        cells = lines[i].split(",")
+        lines[i] = ",".join(cells[:2] + [""] * (len(cells) - 2))
+    page.locator("input[type=file]").set_input_files(
+        {"name": "lost_tracking.csv", "mimeType": "text/csv", "buffer": ("\n".join(lines) + "\n").encode()})
+    expect(page.locator("p", has_text="marker error RMS")).to_contain_text("lost_tracking.csv", timeout=90_000)
+    page.wait_for_function(VIEWERS_READY, timeout=90_000)
+    try:
+        seek_frame(page, 104)
+        page.wait_for_timeout(500)
+        page.screenshot(path=str(artifacts / "defects_tracking_loss.png"))
+        shown = gap_marks(page)
+        assert shown == ["No tracking data: frames 100–109 (filled in)"] * 2, shown
+        seek_frame(page, 112)
+        page.wait_for_timeout(300)
+        assert gap_marks(page) == [None, None], gap_marks(page)
+    finally:  # back to the sample for the tests after this one
+        page.locator(".bk-input-group:visible", has=page.locator("label", has_text="Source performance")).locator(
+            "select").select_option(SAMPLE)
+        expect(page.locator("p", has_text="marker error RMS")).to_contain_text(SAMPLE, timeout=90_000)
