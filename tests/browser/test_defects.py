@@ -146,6 +146,7 @@ def test_a_new_shared_shot_shows_one_frame_everywhere(dash, artifacts):
     page.locator(".bk-tab", has_text="Retarget").first.click()
     page.wait_for_function(VIEWERS_READY, timeout=30_000)
     seek_frame(page, 440)
+    page.get_by_text("Shared review", exact=True).first.click()  # the card is collapsed until used (issue 32)
     page.get_by_role("button", name=re.compile("New shared shot")).click()
     page.wait_for_url(re.compile(r"\?shot="), timeout=60_000)
     page.wait_for_load_state()
