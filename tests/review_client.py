@@ -506,12 +506,13 @@ async def review_load(base: str, shot_id: str, n: int, seconds: float, seed: int
             if now >= next_setting:
                 key = "alpha" if i % 2 == 0 else "beta"
                 v = round(0.001 + 1e-5 * next(counter), 6)  # unique: whose change it was is known by value
-                if key == "alpha":  # the α slider is over log10 α (dashboard.widgets.LogSlider)
-                    v = math.log10(v)
-                sent_at[(key, v)] = (i, time.monotonic())
+                # the α slider is over log10 α (dashboard.widgets.LogSlider): it is moved to log10 α, the
+                # setting (what the store keeps) is α, rounded by the page to three digits as v is
+                pos = math.log10(v) if key == "alpha" else v
+                sent_at[(key, pos)] = (i, time.monotonic())
                 trail[i].append((round(time.monotonic(), 3), key, v, "sent"))
                 sent[i][key].append(v)
-                p.set(m[key], value=v, value_throttled=v)
+                p.set(m[key], value=pos, value_throttled=pos)
                 next_setting = now + rng.uniform(*setting_every)
             if now >= next_note:
                 text = f"note {i}-{len(sent[i]['notes'])} from page{i}"
@@ -528,8 +529,8 @@ async def review_load(base: str, shot_id: str, n: int, seconds: float, seed: int
     quiet_from = time.monotonic()
     while time.monotonic() - last_patch[0] < 3.0 and time.monotonic() - quiet_from < 60.0:
         await asyncio.sleep(0.5)
-    final = [dict(alpha=p.value(models[p.index]["alpha"], "value"), beta=p.value(models[p.index]["beta"], "value"))
-             for p in pages]
+    final = [dict(alpha=float(f"{10 ** p.value(models[p.index]['alpha'], 'value'):.3g}"),  # the slider's log10 α
+                  beta=p.value(models[p.index]["beta"], "value")) for p in pages]
     errors = [e for p in pages for e in p.errors]
     for p in pages:
         await p.close()
