@@ -6,6 +6,8 @@
 * ``browser``: Playwright Chromium from ``/usr/bin/chromium`` with software WebGL (SwiftShader).
 * ``page`` (or ``new_page()`` for longer-lived pages): a fresh page that records every request URL (``page.requests``) and every
   websocket frame (``page.ws_frames``: dicts with ``t``, ``dir`` in/out, ``size``, ``text``).
+* ``served(log, *args)``: the real ``face-retarget serve`` in a subprocess (a context manager
+  yielding its base URL), for tests of what a user starts.
 * ``artifacts``: ``tests/artifacts/`` (gitignored) for screenshots and server logs.
 
 Install the browser with ``apt-get install -y chromium``; a missing browser is a failure
@@ -15,11 +17,13 @@ with that instruction, not a skip.
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
 import time
 import urllib.request
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -56,6 +60,30 @@ def wait_http(url: str, timeout: float, proc: subprocess.Popen | None = None, lo
             last = e
         time.sleep(0.2)
     raise TimeoutError(f"{url} did not answer within {timeout} s (last error: {last})")
+
+
+@contextmanager
+def served(log: Path, *args: str, timeout: float = 90.0):
+    """The real ``face-retarget serve <args>`` on a free loopback port, its output in ``log``:
+    yields the base URL once ``/liveness`` answers; its process group is stopped on exit
+    (SIGTERM, then SIGKILL after 30 s)."""
+    port = free_port()
+    fh = open(log, "w")
+    proc = subprocess.Popen([sys.executable, "-m", "core.cli", "serve", "--address", "127.0.0.1", "--port", str(port),
+                             *args],
+                            cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=fh, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    try:
+        wait_http(f"http://127.0.0.1:{port}/liveness", timeout, proc, log)
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(30)
+        fh.close()
 
 
 @pytest.fixture(scope="session")

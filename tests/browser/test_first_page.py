@@ -16,15 +16,11 @@ killed (its process group) at the end.
 from __future__ import annotations
 
 import base64
-import os
 import re
-import signal
-import subprocess
-import sys
 
 import pytest
 
-from conftest import ROOT, free_port, wait_http
+from conftest import ROOT, served
 from test_dashboard import VIEWERS_READY
 
 WIDTHS = (1280, 1440, 1920)
@@ -68,24 +64,8 @@ SCIENTIFIC = re.compile(r"\b\d+(\.\d+)?e[+-]?\d+\b", re.IGNORECASE)
 
 @pytest.fixture(scope="module")
 def server(artifacts, tmp_path_factory):
-    port = free_port()
-    log = artifacts / "server_first_page.log"
-    fh = open(log, "w")
-    proc = subprocess.Popen([sys.executable, "-m", "core.cli", "serve", "--address", "127.0.0.1", "--port", str(port),
-                             "--data-dir", str(tmp_path_factory.mktemp("review")), "--warm-pages", "0"],
-                            cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=fh, stderr=subprocess.STDOUT,
-                            start_new_session=True)
-    try:
-        wait_http(f"http://127.0.0.1:{port}/liveness", 90, proc, log)
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(30)
-        fh.close()
+    with served(artifacts / "server_first_page.log", "--data-dir", str(tmp_path_factory.mktemp("review")), "--warm-pages", "0") as base:
+        yield base
 
 
 def overlap(a, b) -> float:

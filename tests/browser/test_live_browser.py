@@ -9,17 +9,14 @@ from __future__ import annotations
 import json
 import os
 import re
-import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 
 import numpy as np
 import pytest
 
-from conftest import ROOT, free_port, wait_http
+from conftest import ROOT, free_port, served
 from test_dashboard import ALL_TEXT, VIEWERS_READY
 
 from core.io.livelink import read_livelink
@@ -28,20 +25,8 @@ from core.io.livelink_udp import ARKIT_CHANNELS, encode
 
 @pytest.fixture(scope="module")
 def server(artifacts):
-    port = free_port()
-    log = artifacts / "server_live.log"
-    fh = open(log, "w")
-    proc = subprocess.Popen([sys.executable, "-m", "core.cli", "serve", "--address", "127.0.0.1", "--port", str(port),
-                             "--no-review"],
-                            cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=fh, stderr=subprocess.STDOUT,
-                            start_new_session=True)
-    try:
-        wait_http(f"http://127.0.0.1:{port}/liveness", 90, proc, log)
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        proc.wait(30)
-        fh.close()
+    with served(artifacts / "server_live.log", "--no-review") as base:
+        yield base
 
 
 def take_values():

@@ -9,15 +9,11 @@ tests/artifacts/upload_too_large.png (looked at when the test was written).
 
 from __future__ import annotations
 
-import os
 import re
-import signal
-import subprocess
-import sys
 
 import pytest
 
-from conftest import ROOT, free_port, wait_http
+from conftest import served
 from test_dashboard import VIEWERS_READY
 
 LIMIT_MB = 1
@@ -25,20 +21,8 @@ LIMIT_MB = 1
 
 @pytest.fixture(scope="module")
 def server(artifacts):
-    port = free_port()
-    log = artifacts / "server_upload_limit.log"
-    fh = open(log, "w")
-    proc = subprocess.Popen([sys.executable, "-m", "core.cli", "serve", "--address", "127.0.0.1", "--port", str(port),
-                             "--no-review", "--max-upload-mb", str(LIMIT_MB)],
-                            cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=fh, stderr=subprocess.STDOUT,
-                            start_new_session=True)
-    try:
-        wait_http(f"http://127.0.0.1:{port}/liveness", 90, proc, log)
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        proc.wait(30)
-        fh.close()
+    with served(artifacts / "server_upload_limit.log", "--no-review", "--max-upload-mb", str(LIMIT_MB)) as base:
+        yield base
 
 
 @pytest.mark.browser
