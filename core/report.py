@@ -260,7 +260,7 @@ def _plots(report: dict) -> list:
     for m in order:
         ax.plot(t, report["methods"][m][key], lw=1, label=m)
     ax.set_xlabel("time (s)")
-    ax.set_ylabel("vertex error vs truth (mm)" if report["ground_truth"] else "marker error (mm)")
+    ax.set_ylabel("mean vertex error vs truth (mm)" if report["ground_truth"] else "marker error RMS (mm)")
     ax.legend(ncol=4, fontsize=8)
     imgs.append(("Error over time", _png(fig)))
     truth = report["_truth"]
@@ -331,8 +331,8 @@ def _renders(report: dict, n: int = 2) -> list:
 
 def _contact_sheet(report: dict) -> list:
     """The best method's contact sheet (:mod:`core.contact_sheet`): source | target at its worst
-    frame (by the vertex error against the truth where there is one, else the marker error) and the
-    frames farthest apart in the take's expression."""
+    frame (by the mean vertex error against the truth where there is one, else the marker error RMS,
+    as the page's), each caption saying which, and the frames farthest apart in the take's expression."""
     order = [m for m in ranking(report) if "error" not in report["methods"][m]]
     if not order or "_inputs" not in report:
         return []
@@ -340,8 +340,9 @@ def _contact_sheet(report: dict) -> list:
     r = report["methods"][best]
     per = np.asarray(r["_per_frame_mm"] if report["ground_truth"] else r["_marker_per_frame_mm"], dtype=np.float64)
     worst = int(np.argmax(np.where(np.isfinite(per), per, -np.inf)))
-    sheet = contact_sheet(report["_inputs"], r["_weights"], worst, error_mm=per)
-    what = "vertex error against the truth" if report["ground_truth"] else "marker error"
+    sheet = contact_sheet(report["_inputs"], r["_weights"], worst, error_mm=per,
+                          error_label="vertex error (mean)" if report["ground_truth"] else "marker RMS")
+    what = "mean vertex error against the truth" if report["ground_truth"] else "marker error RMS"
     return [(f"Contact sheet of {best}: source | target at the worst frame by {what} (red, frame {sheet.take_frames[0]}) "
              "and the frames farthest apart in the take's expression",
              "data:image/png;base64," + base64.b64encode(sheet.png()).decode())]
