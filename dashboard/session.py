@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import param
 
-from core.pipeline import Pipeline, StageCache
+from core.pipeline import Pipeline, StageCache, file_key
 from core.stages.methods import suggested_frames
 from core.shot import EDITORS, Shot
 
@@ -97,6 +97,14 @@ def _alive(pid: int) -> bool:
     except PermissionError:  # someone else's process
         return True
     return True
+
+
+def _content(path: str) -> str:
+    """The content hash of a file or folder (memoised by its stat), "" for none or a missing one."""
+    try:
+        return file_key(path)
+    except FileNotFoundError:
+        return ""
 
 
 @dataclass(frozen=True)
@@ -356,7 +364,8 @@ class Session(param.Parameterized):
                      source_rig="" if self.source_rig in (None, NONE) else rigs[self.source_rig],
                      target_rig=rigs.get(self.target_rig, ""))
         for role in ("source", "target"):
-            if files[f"{role}_rig"] != getattr(getattr(self.pipeline, f"{role}_face"), f"{role}_rig"):
+            new, old = files[f"{role}_rig"], getattr(getattr(self.pipeline, f"{role}_face"), f"{role}_rig")
+            if new != old and _content(new) != _content(old):  # (a shared shot's copy of a listed rig is that rig)
                 files[f"{role}_layout"] = ""
         self.pipeline.configure(**files)
 
