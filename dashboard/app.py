@@ -320,6 +320,14 @@ class DashboardApp(pn.viewable.Viewer):
         if self.w_offer.visible != (rig is not None):
             self.w_offer.visible = rig is not None
 
+    def clear_note(self) -> None:
+        """Take the note (and a rig's offer) off the page: a new upload's comes next."""
+        self._offered = None
+        if self.w_alert.visible:
+            self.w_alert.visible = False
+        if self.w_offer.visible:
+            self.w_offer.visible = False
+
     def use_rig(self, role: str) -> None:
         """The rig offered in the note becomes the target (``role="target_rig"``) or the source rig;
         either without a marker layout gets its markers placed automatically (the Markers card
