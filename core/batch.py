@@ -68,10 +68,13 @@ from pathlib import Path
 from typing import Callable, Iterable, Optional
 
 from .evaluate import summarize
+from .io.layout import sidecar_layout_path
+from .io.rigs import NoLayoutError
 from .io.sequence import FRAME_SUFFIXES
 from .outputs import write_outputs
 from .pipeline import Pipeline, StageCache, file_key
 from .progress import ProgressFn
+from .registration import place_missing_layouts
 from .report import readable
 from .shot import FileRef, Shot
 
@@ -265,6 +268,77 @@ def _as_jobs(shots) -> list:
         else:
             raise TypeError(f"run_batch: shots: expected Shot, BatchShot or a path, got {type(s).__name__}")
     return _unique(jobs)
+
+
+def place_layouts(jobs: list, place: bool = True, progress: Optional[ProgressFn] = None,
+                  log: Optional[Callable[[str], None]] = None) -> list:
+    """The jobs with a marker layout for every rig (and mesh-sequence source) that has none, as
+    ``face-retarget retarget`` does (:func:`core.registration.place_missing_layouts`: placed
+    automatically and written beside the rig as ``<rig>.layout.json``), each layout a file of the
+    shot (``target_layout`` / ``source_layout``), so its content is part of the shot's hash.
+
+    A rig's sidecar layout that exists already (placed by an earlier run, or by hand) becomes a file
+    of the shot too: a resumed batch then finds the same shot content and skips what is done, and an
+    edited sidecar re-runs its shots. Markers are placed once per rig, on this machine (the client),
+    before any shot runs.
+
+    Parameters
+    ----------
+    jobs : list of :class:`BatchShot`
+    place : False to refuse instead (``--no-auto-markers``): a shot whose rig has no layout fails
+        with the message saying how to make one, and nothing is written
+    progress : ``progress(fraction, message)`` of the placements
+    log : ``log(line)``: each placement's report (which markers need a hand) and where it went
+
+    Returns
+    -------
+    list of :class:`BatchShot` in the same order: the shot with its layouts, or (refused) a failed
+    job. A shot whose files cannot be read is returned unchanged (:func:`run_batch` reports it).
+    """
+    log = log or (lambda line: None)
+    placed: dict = {}  # (layout setting, file) -> layout written by this call (a read-only folder's goes to tmp)
+    out = []
+    for j in jobs:
+        if j.shot is None:
+            out.append(j)
+            continue
+        try:
+            paths = {role: _resolve(j, role) for role in j.shot.files}
+        except (ValueError, FileNotFoundError):
+            out.append(j)
+            continue
+        settings = {k: v for st in j.shot.settings.values() for k, v in st.items()}
+        settings.update(paths)
+        found = {}
+        for what, owner, rig in (("target_layout", paths.get("target_rig"), True),
+                                 ("source_layout", paths.get("source_rig") or paths.get("source"), bool(paths.get("source_rig")))):
+            if owner and what not in paths:
+                if (what, owner) in placed:
+                    found[what] = placed[(what, owner)]
+                elif rig and sidecar_layout_path(owner).exists():
+                    found[what] = str(sidecar_layout_path(owner))
+        settings.update(found)
+        try:
+            updates, reports = place_missing_layouts(settings, place=place, progress=progress)
+        except NoLayoutError as e:
+            out.append(BatchShot(j.name, None, j.base, j.origin, f"NoLayoutError: {e}"))
+            continue
+        except (ValueError, FileNotFoundError):  # a file it cannot read: the shot's run says so
+            out.append(j)
+            continue
+        for what, path, report in reports:
+            placed[(what, settings.get(what.replace("_layout", "_rig")) or settings.get("source"))] = str(path)
+            log(f"{j.name}: {report['message']} Wrote {path} (the {what.replace('_', ' ')} from now on: edit it to "
+                "move a marker)")
+        found.update(updates)
+        if not found:
+            out.append(j)
+            continue
+        shot = Shot.from_dict(j.shot.to_dict())
+        for role, path in found.items():
+            shot.files[role] = FileRef.of(path)
+        out.append(BatchShot(j.name, shot, j.base, j.origin, j.error))
+    return out
 
 
 # --------------------------------------------------------------------------------------
@@ -762,7 +836,7 @@ def _scatter_files(client, jobs: list, resolved: dict) -> dict:
 def run_batch(shots, out_dir, client=None, progress: Optional[ProgressFn] = None, *, workers: Optional[int] = None,
               files: str = "auto", csv_precision=6, force: bool = False, stop: Optional[threading.Event] = None,
               log: Optional[Callable[[str], None]] = None, dashboard_address: Optional[str] = ":8787",
-              worker_timeout: float = 120.0, summary: bool = True) -> list:
+              worker_timeout: float = 120.0, summary: bool = True, auto_markers: bool = True) -> list:
     """Retarget many shots on Dask and write one output folder per shot (see the module docstring).
 
     Parameters
@@ -783,6 +857,8 @@ def run_batch(shots, out_dir, client=None, progress: Optional[ProgressFn] = None
     dashboard_address : of the LocalCluster's dashboard (``":0"`` a free port, None none)
     worker_timeout : seconds to wait for a first worker on an existing cluster
     summary : write ``summary.csv`` / ``summary.html``
+    auto_markers : place markers on a rig or mesh sequence without a layout first (:func:`place_layouts`,
+        as ``face-retarget retarget`` does); False: such a shot fails saying how to make one
 
     Returns
     -------
@@ -809,6 +885,8 @@ def run_batch(shots, out_dir, client=None, progress: Optional[ProgressFn] = None
     results: dict = {}
     with _Lock(out_dir):
         _clean_leftovers(out_dir)
+        jobs = place_layouts(jobs, place=auto_markers, log=log, progress=None if progress is None else (
+            lambda f, m: progress(0.0, f"placing markers: {m}")))
         todo, resolved = [], {}
         for j in jobs:
             if j.shot is None:

@@ -203,7 +203,7 @@ def _batch(args) -> int:
     try:
         results = run_batch(jobs, args.out, client=args.scheduler, progress=bar, workers=args.workers, files=args.files,
                             csv_precision=args.csv_precision, force=args.force, log=say,
-                            dashboard_address=args.dashboard_address)
+                            dashboard_address=args.dashboard_address, auto_markers=not args.no_auto_markers)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished shots are in {args.out}; run the same command again to resume", file=sys.stderr)
         return 130
@@ -476,6 +476,7 @@ def build_parser() -> argparse.ArgumentParser:
     bt.add_argument("--dashboard-address", default=":8787",
                     help="local cluster's dashboard address (default :8787; :0 a free port)")
     bt.add_argument("--quiet", action="store_true", help="no progress bar")
+    _auto_markers_flag(bt)
     bt.set_defaults(func=_batch)
 
     lv = sub.add_parser("live", help="retarget a Live Link Face stream as it arrives; send OSC / Live Link out",

@@ -185,7 +185,8 @@ class ContactSheet:
         return buf.getvalue()
 
 
-def contact_sheet(inputs, weights, worst: int, n: int = SHEET_FRAMES, error_mm=None) -> ContactSheet:
+def contact_sheet(inputs, weights, worst: int, n: int = SHEET_FRAMES, error_mm=None,
+                  error_label: str = "marker RMS") -> ContactSheet:
     """Render the source and the target at :func:`sheet_frames`.
 
     The source is the source rig driven by the take's curves, or (a capture, a mesh sequence) its
@@ -198,6 +199,8 @@ def contact_sheet(inputs, weights, worst: int, n: int = SHEET_FRAMES, error_mm=N
     weights : (T, K) float, the result on the solve frames (NaN: no data, drawn at 0)
     worst : the solve frame where the result is worst (it is on the sheet, first)
     error_mm : (T,) float, optional — an error per frame for the captions
+    error_label : what ``error_mm`` is, in the captions ("frame 963 · worst · marker RMS 5.1 mm"):
+        the default, the RMS over the markers (:func:`core.evaluate.worst_frame`'s measure)
 
     Raises
     ------
@@ -234,7 +237,7 @@ def contact_sheet(inputs, weights, worst: int, n: int = SHEET_FRAMES, error_mm=N
             what = f"target {rig.names[k]} {W[t, k]:.2f}"
         tgt = _colour(rasterize(rig.evaluate(W[t]), rig.faces, TILE, tgt_box), TARGET_RGB)
         tiles.append(np.concatenate([src, tgt], axis=1))
-        err = f" · error {error_mm[t]:.1f} mm" if error_mm is not None and np.isfinite(error_mm[t]) else ""
+        err = f" · {error_label} {error_mm[t]:.1f} mm" if error_mm is not None and np.isfinite(error_mm[t]) else ""
         head = f"frame {first + t}" + (" · worst" if i == 0 else "") + err
         captions.append(f"{head}\n{what}")
     return ContactSheet(frames, [first + f for f in frames], captions, int(worst), tiles)

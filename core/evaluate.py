@@ -35,7 +35,9 @@ def evaluate(B, W, S, valid=None, step: int = 1, predicted=None, frame_valid=Non
     finite and it has at least one valid marker sample. Per-frame arrays are NaN there.
 
     Returns a dict: ``marker_error_mm`` (T,) RMS per frame, ``marker_error_per_marker_mm`` (M,),
-    ``marker_distances_mm`` (T, M), ``velocity_error_mm2`` (T,) (Seol 2012 eq. 2 per frame, a sum
+    ``marker_distances_mm`` (T, M), ``marker_rms_mm`` (RMS over every sample), ``marker_largest_mm``
+    (the largest single marker distance: not the per-frame RMS's maximum, :func:`summarize`'s
+    ``marker_max_mm``), ``velocity_error_mm2`` (T,) (Seol 2012 eq. 2 per frame, a sum
     of squares over the markers, mm²) and its sum ``velocity_error_total_mm2``,
     ``velocity_error_mm_per_frame`` (T,) = sqrt(``velocity_error_mm2`` / M) (an RMS per marker: mm
     per frame) and its mean over the used frames ``velocity_error_mean_mm_per_frame`` (None without any),
@@ -63,7 +65,7 @@ def evaluate(B, W, S, valid=None, step: int = 1, predicted=None, frame_valid=Non
     vrms = np.sqrt(vpf / M)
     return {
         "marker_error_mm": me.per_frame, "marker_error_per_marker_mm": me.per_marker, "marker_distances_mm": me.distances,
-        "marker_rms_mm": me.rms, "marker_max_mm": me.max,
+        "marker_rms_mm": me.rms, "marker_largest_mm": me.max,
         "velocity_error_mm2": vpf, "velocity_error_total_mm2": ve.total, "velocity_error_mm_per_frame": vrms,
         "velocity_error_mean_mm_per_frame": _stats(vrms)[0],
         "weight_min": wr.min, "weight_max": wr.max, "weight_low": wr.low, "weight_high": wr.high, "outside_01": wr.outside,
@@ -157,8 +159,9 @@ def summarize(ev, W, valid=None, names=None, active=None) -> dict:
 
 
 def worst_frame(ev) -> int:
-    """The frame of the largest marker error of :func:`evaluate`'s ``ev`` (the frame of its
-    ``marker_max_mm``; frames without data are never it); 0 when no frame has data."""
-    d = np.asarray(ev["marker_distances_mm"], dtype=np.float64)
-    per = np.max(np.where(np.isfinite(d), d, -np.inf), axis=1) if d.size else np.zeros(0)
-    return int(np.argmax(per)) if len(per) and np.isfinite(per).any() else 0
+    """The frame whose marker error RMS (``ev["marker_error_mm"]`` of :func:`evaluate`) is largest:
+    the frame of :func:`summarize`'s ``marker_max_mm``, the page's "max N mm at frame F" and the
+    contact sheet's worst frame (frames without data are never it); 0 when no frame has data."""
+    per = np.asarray(ev["marker_error_mm"], dtype=np.float64)
+    ok = np.isfinite(per)
+    return int(np.argmax(np.where(ok, per, -np.inf))) if ok.any() else 0

@@ -37,6 +37,7 @@ import numpy as np
 from .contact_sheet import contact_sheet
 from .evaluate import ACTIVE, summarize
 from .geometry import face_vertices, flipped_faces
+from .metrics import vertex_errors
 from .names import NameMap
 from .pipeline import Pipeline, StageCache
 
@@ -92,27 +93,6 @@ def ground_truth(load: dict, frames: dict) -> Optional[dict]:
     return {"weights": W, "named": named}
 
 
-def _vertex_errors(rig, W, Wt, face, valid, chunk: int = 128):
-    """Per-frame mean and all-samples p95 of the face-vertex distance (mm) between the meshes of
-    ``W`` and ``Wt``, and the per-frame vertex velocity error (mm): the mean distance between the
-    two meshes' per-frame motions."""
-    D = np.asarray(rig.deltas[:, face], dtype=np.float64).reshape(rig.n_shapes, -1)
-    T = len(W)
-    mean, vel = np.full(T, np.nan), np.full(T, np.nan)
-    samples = []
-    for a in range(0, T, chunk):
-        lo, b = max(a - 1, 0), min(a + chunk, T)  # one frame of overlap for the velocity
-        E = ((np.nan_to_num(W[lo:b]) - np.nan_to_num(Wt[lo:b])) @ D).reshape(b - lo, len(face), 3)
-        d = np.linalg.norm(E[a - lo:], axis=2) * 1e3
-        ok = valid[a:b]
-        mean[a:b] = np.where(ok, d.mean(1), np.nan)
-        samples.append(d[ok].ravel())
-        dv = np.linalg.norm(np.diff(E, axis=0), axis=2).mean(1) * 1e3
-        vel[lo + 1:b] = np.where(valid[lo + 1:b] & valid[lo:b - 1], dv, np.nan)
-    s = np.concatenate(samples) if samples else np.zeros(0)
-    return mean, (float(np.percentile(s, 95)) if s.size else float("nan")), vel
-
-
 def fold_overs(rig, W, frames_valid, n_frames: int = FOLD_FRAMES) -> float:
     """Mean count of triangles whose normal turns by more than 90° against the neutral's
     (:func:`core.geometry.flipped_faces`), on up to ``n_frames`` evenly spaced valid frames."""
@@ -144,7 +124,7 @@ def method_metrics(pipe, truth: Optional[dict] = None, face=None) -> dict:
         Wt = truth["weights"]
         tvalid = valid & np.isfinite(Wt).all(1)
         face = np.flatnonzero(face_vertices(rig.deltas)) if face is None else face
-        mean, p95, vel = _vertex_errors(rig, W, Wt, face, tvalid)
+        mean, p95, vel = vertex_errors(rig.deltas, W, Wt, face, tvalid)
         named = truth["named"]
         per_shape = np.sqrt(np.nanmean((W[tvalid][:, named] - Wt[tvalid][:, named]) ** 2, axis=0))
         out.update({
@@ -260,7 +240,7 @@ def _plots(report: dict) -> list:
     for m in order:
         ax.plot(t, report["methods"][m][key], lw=1, label=m)
     ax.set_xlabel("time (s)")
-    ax.set_ylabel("vertex error vs truth (mm)" if report["ground_truth"] else "marker error (mm)")
+    ax.set_ylabel("mean vertex error vs truth (mm)" if report["ground_truth"] else "marker error RMS (mm)")
     ax.legend(ncol=4, fontsize=8)
     imgs.append(("Error over time", _png(fig)))
     truth = report["_truth"]
@@ -331,8 +311,8 @@ def _renders(report: dict, n: int = 2) -> list:
 
 def _contact_sheet(report: dict) -> list:
     """The best method's contact sheet (:mod:`core.contact_sheet`): source | target at its worst
-    frame (by the vertex error against the truth where there is one, else the marker error) and the
-    frames farthest apart in the take's expression."""
+    frame (by the mean vertex error against the truth where there is one, else the marker error RMS,
+    as the page's), each caption saying which, and the frames farthest apart in the take's expression."""
     order = [m for m in ranking(report) if "error" not in report["methods"][m]]
     if not order or "_inputs" not in report:
         return []
@@ -340,8 +320,9 @@ def _contact_sheet(report: dict) -> list:
     r = report["methods"][best]
     per = np.asarray(r["_per_frame_mm"] if report["ground_truth"] else r["_marker_per_frame_mm"], dtype=np.float64)
     worst = int(np.argmax(np.where(np.isfinite(per), per, -np.inf)))
-    sheet = contact_sheet(report["_inputs"], r["_weights"], worst, error_mm=per)
-    what = "vertex error against the truth" if report["ground_truth"] else "marker error"
+    sheet = contact_sheet(report["_inputs"], r["_weights"], worst, error_mm=per,
+                          error_label="vertex error (mean)" if report["ground_truth"] else "marker RMS")
+    what = "mean vertex error against the truth" if report["ground_truth"] else "marker error RMS"
     return [(f"Contact sheet of {best}: source | target at the worst frame by {what} (red, frame {sheet.take_frames[0]}) "
              "and the frames farthest apart in the take's expression",
              "data:image/png;base64," + base64.b64encode(sheet.png()).decode())]

@@ -320,10 +320,18 @@ class DashboardApp(pn.viewable.Viewer):
         if self.w_offer.visible != (rig is not None):
             self.w_offer.visible = rig is not None
 
+    def clear_note(self) -> None:
+        """Take the note (and a rig's offer) off the page: a new upload's comes next."""
+        self._offered = None
+        if self.w_alert.visible:
+            self.w_alert.visible = False
+        if self.w_offer.visible:
+            self.w_offer.visible = False
+
     def use_rig(self, role: str) -> None:
         """The rig offered in the note becomes the target (``role="target_rig"``) or the source rig;
-        a target without a marker layout gets its markers placed automatically (the Markers card
-        shows the progress and the markers that landed badly)."""
+        either without a marker layout gets its markers placed automatically (the Markers card
+        shows the progress and the markers that landed badly), never the previous rig's."""
         label = self._offered
         if label is None or label not in self.s.files["rigs"]:
             return
@@ -331,12 +339,13 @@ class DashboardApp(pn.viewable.Viewer):
         self._offered = None
         setattr(self.s, role, label)  # recomputes (auto-update)
         name = label.removeprefix(sessions.UPLOAD)
-        if role == "target_rig" and self.s.needs_layout:
-            self.notify("info", f"{name} is the target: placing its markers automatically (see Markers on the target rig)")
+        which, what = ("target", "target") if role == "target_rig" else ("source", "source rig")
+        if self.s.missing_layout(which):
+            self.notify("info", f"{name} is the {what}: placing its markers automatically (see the Markers card)")
             self.markers.card.collapsed = False
-            self.markers.place()
+            self.markers.place(roles=[which])
         elif not self.s.error:
-            self.notify("info", f"{name} is the {'target' if role == 'target_rig' else 'source rig'}")
+            self.notify("info", f"{name} is the {what}")
 
     # -- shared shots: this page becomes one ----------------------------------------------
     def open_shared(self, sid: str) -> None:

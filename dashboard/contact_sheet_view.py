@@ -121,8 +121,8 @@ class ContactSheetView(pn.viewable.Viewer):
                 stem = download_stem(self.s.source, self.s.target_rig, snap["method"])
                 self.w_png.filename = f"{stem}_contact_sheet.png"
                 self.w_sheet.object = text
-                self.w_info.object = ("Click a frame to show it. The first (red) is the worst by marker error; the others "
-                                      "are far apart in the take's expression.")
+                self.w_info.object = ("Click a frame to show it. The first (red) is the worst: the largest marker error "
+                                      "RMS, the summary's max; the others are far apart in the take's expression.")
                 if self.s.snapshot is not snap:  # a newer result came while this one rendered
                     self.draw(self.s.snapshot)
 

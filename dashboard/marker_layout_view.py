@@ -1,6 +1,7 @@
 """The sidebar's "Markers on the target rig" card: the 41 markers the solvers compare both faces
 at, for a rig without a layout of its own (a user's own character): place them automatically
-(:meth:`dashboard.session.Session.place_markers`, on a worker thread with progress), move any
+(:meth:`dashboard.session.Session.place_markers`, on a worker thread with progress; on the source
+rig too when it has none), move any
 that landed badly by clicking a marker on the target view and then its new place
 (:meth:`dashboard.session.Session.move_marker`; one move, then move mode is off again, and the
 last move can be undone), download the layout.
@@ -65,13 +66,17 @@ class MarkerLayoutView(pn.viewable.Viewer):
                                  css_classes=["fr-muted"]),
                 self.w_place, self.w_progress, self.w_info, self.w_move, self.w_undo, self.w_download]
 
+    def _missing(self) -> list:
+        """The rigs ("target", "source") that have no markers yet."""
+        return [role for role in ("target", "source") if self.s.missing_layout(role)]
+
     def _place_label(self) -> str:
-        return "Place markers automatically" if self.s.needs_layout else "Place the markers again (automatically)"
+        return "Place markers automatically" if self._missing() else "Place the markers again (automatically)"
 
     def follow(self) -> None:
-        """After a recompute: the card opens when the target rig needs markers, and the place
-        button says whether they are there."""
-        self.card.collapsed = not self.s.needs_layout and self.card.collapsed
+        """After a recompute: the card opens when a rig (the target, or the source rig) needs
+        markers, and the place button says whether they are there."""
+        self.card.collapsed = not self._missing() and self.card.collapsed
         if self.w_place is not None:
             self.w_place.name = self._place_label()
 
@@ -86,10 +91,12 @@ class MarkerLayoutView(pn.viewable.Viewer):
             self.host.notify("error", self.s.readable(e))
             return None
 
-    def place(self, block: bool = False) -> None:
-        """Place the markers automatically on the chosen target rig (a worker thread unless
-        ``block``), with progress; the page recomputes with them."""
+    def place(self, block: bool = False, roles=None) -> None:
+        """Place the markers automatically (a worker thread unless ``block``), with progress, on
+        ``roles`` ("target", "source"; default: the rigs that have none, else the target again);
+        the page recomputes with them."""
         self._widgets()  # (called from code, the card may never have been opened)
+        roles = list(roles or self._missing() or ["target"])
 
         def job():
             t0 = time.perf_counter()
@@ -100,12 +107,17 @@ class MarkerLayoutView(pn.viewable.Viewer):
                 self.w_info.object = html.escape(f"{m} ({time.perf_counter() - t0:.0f} s)")
 
             try:
-                report = self.s.place_markers(progress=prog)
-                self.w_info.object = html.escape(report["message"])
+                said = []
+                for role in roles:
+                    report = self.s.place_markers(progress=prog, role=role)
+                    said.append(("" if roles == ["target"] else f"{role.capitalize()} rig: ") + report["message"])
+                self.w_info.object = html.escape(" ".join(said))
                 self.report = report
                 # the redraw touches Bokeh models (the curve plot), which only the document's own
-                # thread may change: hand it to the event loop
-                if doc is not None and not block:
+                # thread may change: hand it to the event loop (auto-update off: Apply recomputes)
+                if not self.s.auto_update:
+                    pass
+                elif doc is not None and not block:
                     doc.add_next_tick_callback(self.host.refresh)
                 else:
                     self.host.refresh()
@@ -116,6 +128,7 @@ class MarkerLayoutView(pn.viewable.Viewer):
                 self.w_progress.visible = False
 
         doc = pn.state.curdoc
+        block = block or doc is None  # outside a server (a notebook, a test): at once
         self.w_place.disabled = True
         try:
             if block:

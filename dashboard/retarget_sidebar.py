@@ -101,7 +101,7 @@ class RetargetSidebar(pn.viewable.Viewer):
         # the files it uses: as large as the websocket takes
         self.w_upload_box = UploadGuard(self.w_upload, max_bytes=sessions.MAX_UPLOAD, page_drop=True,
                                         max_bytes_by_suffix={".zip": sessions.largest_message_file()},
-                                        sizing_mode="stretch_width", on_refused=self._refused)
+                                        sizing_mode="stretch_width", on_refused=self._refused, on_start=self._starting)
         #: where the page puts its Shared review card (below the task, the uploads and the markers)
         self.review_slot = pn.Column(sizing_mode="stretch_width", margin=0)
         self.settings_box = pn.Column(sizing_mode="stretch_width")
@@ -156,7 +156,26 @@ class RetargetSidebar(pn.viewable.Viewer):
         else:
             self.host.notify("error", sessions.too_large(Path(name).name, size))
 
+    def _starting(self, name: str) -> None:
+        """The browser starts sending a file (:class:`dashboard.upload_guard.UploadGuard` says so
+        before the file's content): the previous file's note goes, and this name is awaited."""
+        self._expected = Path(str(name).replace("\\", "/")).name
+        self.host.clear_note()
+
+    _expected = None  # the name of the file the browser said it is sending, until it is read
+
     def _on_upload(self, *events):
+        """The browser sends an upload's content, then its name (then its type), as separate
+        messages, which a loaded server may read apart: content that came before its name waits for
+        it, or it would be read under the previous file's name (its note shown again). A page
+        without the guard's script (no name announced) reads whatever came."""
+        name = Path(str(self.w_upload.filename or "").replace("\\", "/")).name
+        if self._expected is not None and name != self._expected:
+            return  # the name comes next
+        self._expected = None
+        self._take_upload()
+
+    def _take_upload(self):
         if not self.w_upload.filename:
             return
         name = Path(str(self.w_upload.filename).replace("\\", "/")).name

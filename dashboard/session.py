@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import param
 
-from core.pipeline import Pipeline, StageCache
+from core.pipeline import Pipeline, StageCache, file_key
 from core.stages.methods import suggested_frames
 from core.shot import EDITORS, Shot
 
@@ -97,6 +97,14 @@ def _alive(pid: int) -> bool:
     except PermissionError:  # someone else's process
         return True
     return True
+
+
+def _content(path: str) -> str:
+    """The content hash of a file or folder (memoised by its stat), "" for none or a missing one."""
+    try:
+        return file_key(path)
+    except FileNotFoundError:
+        return ""
 
 
 @dataclass(frozen=True)
@@ -231,37 +239,44 @@ class Session(param.Parameterized):
             return None
 
     # -- markers on a rig without a layout ------------------------------------------------------
-    @property
-    def needs_layout(self) -> str:
-        """The name of the selected target rig when it has no marker layout (else "")."""
+    def missing_layout(self, role: str = "target") -> str:
+        """The file name of the selected ``role`` rig ("target" or "source") when it has no marker
+        layout (none chosen, no sidecar, none bundled), else ""."""
         from core.io.layout import default_layout_path
 
-        rig = self.files["rigs"].get(self.target_rig, "")
-        if not rig or self.pipeline.target_face.target_layout or default_layout_path(rig) is not None:
+        label = self.target_rig if role == "target" else self.source_rig
+        rig = self.files["rigs"].get(label, "") if label not in (None, NONE) else ""
+        if not rig or getattr(getattr(self.pipeline, f"{role}_face"), f"{role}_layout") or default_layout_path(rig) is not None:
             return ""
         return Path(rig).name
 
-    def layout_path(self) -> Path:
-        """Where the target rig's layout made or edited here is kept: beside an uploaded rig (its
+    @property
+    def needs_layout(self) -> str:
+        """The name of the selected target rig when it has no marker layout (else "")."""
+        return self.missing_layout("target")
+
+    def layout_path(self, role: str = "target") -> Path:
+        """Where the ``role`` rig's layout made or edited here is kept: beside an uploaded rig (its
         sidecar, so the rig finds it by default), else in the upload folder."""
         from core.io.layout import sidecar_layout_path
 
-        rig = Path(self.files["rigs"][self.target_rig])
+        rig = Path(self.files["rigs"][self.target_rig if role == "target" else self.source_rig])
         return sidecar_layout_path(rig) if self._upload_dir is not None and rig.parent == self._upload_dir else self.upload_dir / f"{rig.stem}.layout.json"
 
-    def place_markers(self, progress=None) -> dict:
-        """Place the 41 markers on the target rig automatically (:func:`core.registration.place_markers`),
-        keep them as the rig's layout; returns the report (its ``message`` says which markers need a hand)."""
+    def place_markers(self, progress=None, role: str = "target") -> dict:
+        """Place the 41 markers on the ``role`` rig ("target" or "source") automatically
+        (:func:`core.registration.place_markers`), keep them as the rig's layout; returns the report
+        (its ``message`` says which markers need a hand)."""
         from core.io.layout import write_layout
         from core.io.rigs import load_rig
         from core.registration import place_markers
 
-        path = self.files["rigs"][self.target_rig]
+        path = self.files["rigs"][self.target_rig if role == "target" else self.source_rig]
         rig = load_rig(path)
         layout, report = place_markers(rig, progress=progress)
-        out = self.layout_path()
+        out = self.layout_path(role)
         write_layout(out, layout, Path(path).name, notes="placed by face-retarget (automatic), check the flagged markers")
-        self.pipeline.configure(target_layout=str(out))
+        self.pipeline.configure(**{f"{role}_layout": str(out)})
         return report
 
     def move_marker(self, name: str, vertex: int, weights=(1.0, 0.0, 0.0)) -> tuple:
@@ -340,12 +355,19 @@ class Session(param.Parameterized):
         self.param.update(**labels)
 
     def _apply_selection(self):
+        """The selected files into the pipeline. A rig that changes takes its own layout (its
+        sidecar or bundled one; none: markers to place), never the previous rig's: that one's
+        vertex ids mean nothing on another mesh (a layout set by a shot or an upload stays while
+        its rig does)."""
         rigs = self.files["rigs"]
-        self.pipeline.configure(
-            source=self.files["performances"].get(self.source, ""),
-            source_rig="" if self.source_rig in (None, NONE) else rigs[self.source_rig],
-            target_rig=rigs.get(self.target_rig, ""),
-        )
+        files = dict(source=self.files["performances"].get(self.source, ""),
+                     source_rig="" if self.source_rig in (None, NONE) else rigs[self.source_rig],
+                     target_rig=rigs.get(self.target_rig, ""))
+        for role in ("source", "target"):
+            new, old = files[f"{role}_rig"], getattr(getattr(self.pipeline, f"{role}_face"), f"{role}_rig")
+            if new != old and _content(new) != _content(old):  # (a shared shot's copy of a listed rig is that rig)
+                files[f"{role}_layout"] = ""
+        self.pipeline.configure(**files)
 
     # -- the shot -----------------------------------------------------------------------
     def shot(self) -> Shot:

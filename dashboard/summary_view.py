@@ -64,7 +64,7 @@ class SummaryView(pn.viewable.Viewer):
         self.w_summary.object = (
             f"**{self.s.source}** → **{self.s.target_rig}** · {len(snap['times'])} frames @ {snap['fps']:g} fps · "
             f"{len(snap['marker_names'])} markers · method **{snap['method']}** · marker error RMS "
-            f"**{ev['marker_rms_mm']:.2f} mm** (max {self._worst_link(ev)}) · velocity error "
+            f"**{ev['marker_rms_mm']:.2f} mm** (per frame: max {self._worst_link(ev)}) · velocity error "
             f"{ev['velocity_error_mean_mm_per_frame'] or float('nan'):.3f} mm per frame (RMS per marker, Seol 2012 eq. 2) · weights in [{ev['weight_low']:.2f}, {ev['weight_high']:.2f}] "
             f"({100 * ev['outside_01']:.1f}% outside 0..1)")
         chose = snap["solve_info"].get("auto")
@@ -76,11 +76,12 @@ class SummaryView(pn.viewable.Viewer):
 
     @staticmethod
     def _worst_link(ev) -> str:
-        """The largest marker error as a link to its frame (``data-fr-frame``: the page's
-        :class:`dashboard.contact_sheet_view.FrameLinks` jumps there)."""
+        """The largest per-frame marker error RMS as a link to its frame (``data-fr-frame``: the
+        page's :class:`dashboard.contact_sheet_view.FrameLinks` jumps there): the number the contact
+        sheet's worst frame shows."""
         f = worst_frame(ev)
-        return (f'<a href="#" data-fr-frame="{f}" class="fr-worst-frame" title="show frame {f}, the worst">'
-                f"{ev['marker_max_mm']:.1f} mm at frame {f}</a>")
+        return (f'<a href="#" data-fr-frame="{f}" class="fr-worst-frame" title="show frame {f}, the worst (marker '
+                f'error RMS over its markers)">{ev["marker_error_mm"][f]:.1f} mm at frame {f}</a>')
 
     def show_stale(self, last: str) -> None:
         """The current selection failed: say the views show the ``last`` good result (its files)."""

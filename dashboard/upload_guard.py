@@ -13,6 +13,10 @@ this script can still send anything up to the message cap).
 ``page_drop=True`` makes the whole page a drop target for the same input: a file dropped anywhere
 (outside another file input) is handed to the input as if chosen in it, so it goes through the
 same size check and reaches the server the same way (one upload path, one routing).
+
+A file that is taken is announced first: ``on_start(filename)`` is called before its content
+arrives (the input then sends the content, the name and the type as separate messages, which a
+loaded server may read apart: the name announced tells it which file the content is).
 ``max_bytes_by_suffix`` gives some kinds of file another limit (e.g. ``{".zip": ...}``).
 """
 
@@ -49,7 +53,10 @@ export function render({ model, el }) {
     const input = ev.target
     if (!input || !input.files) return
     const big = Array.from(input.files).find((f) => limit(f) && f.size > limit(f))
-    if (big === undefined) return
+    if (big === undefined) {  // taken: the server hears its name before its content arrives
+      if (input.files.length) model.send_msg({ starting: input.files[0].name, size: input.files[0].size })
+      return
+    }
     ev.stopImmediatePropagation()  // the input's own listener never reads the file
     input.value = ""
     model.send_msg({ filename: big.name, size: big.size })
@@ -93,12 +100,20 @@ export function render({ model, el }) {
 }
 """
 
-    def __init__(self, child: pn.widgets.FileInput, on_refused: Optional[Callable[[str, int], None]] = None, **params):
+    def __init__(self, child: pn.widgets.FileInput, on_refused: Optional[Callable[[str, int], None]] = None,
+                 on_start: Optional[Callable[[str], None]] = None, **params):
         super().__init__(child=child, **params)
         self._on_refused = on_refused
+        self._on_start = on_start
 
     def _handle_msg(self, msg) -> None:
-        if self._on_refused is not None and isinstance(msg, dict):
+        if not isinstance(msg, dict):
+            return
+        if "starting" in msg:
+            if self._on_start is not None:
+                self._on_start(str(msg.get("starting", ""))[:200])
+            return
+        if self._on_refused is not None:
             name = str(msg.get("filename", ""))[:200]
             try:
                 size = int(msg.get("size", 0))

@@ -23,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from core.geometry import face_vertices  # noqa: E402
+from core.metrics import vertex_errors  # noqa: E402
 from core.names import ARKIT_NAMES, canonical  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
 from core.report import ground_truth, method_metrics  # noqa: E402
@@ -45,7 +46,6 @@ ORACLE_STEP = 4
 def oracle(rig, truth, face, shapes):
     """Mean and p95 face-vertex error (mm) of the per-frame bounded [0, 1] least-squares fit of the
     true face by ``shapes`` on every face vertex: the best any method could reach with them."""
-    from core.report import _vertex_errors
     from core.solvers.baselines import range_pf
 
     Wt = truth["weights"]
@@ -55,7 +55,7 @@ def oracle(rig, truth, face, shapes):
     Y = np.einsum("tk,kvc->tvc", Wt[frames], D)
     W = np.zeros((len(frames), rig.n_shapes))
     W[:, idx] = range_pf(D[idx], Y, 0.0, 1.0)
-    mean, p95, _ = _vertex_errors(rig, W, Wt[frames], face, np.ones(len(frames), bool))
+    mean, p95, _ = vertex_errors(rig.deltas, W, Wt[frames], face, np.ones(len(frames), bool))
     return float(np.nanmean(mean)), float(p95)
 
 

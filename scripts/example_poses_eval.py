@@ -11,7 +11,7 @@ S07 Live Link take (ICT source rig) onto Rocketbox with every target shape renam
 Poses are taken at :func:`core.examples.suggest_poses` frames (the source curves as features).
 The geometric solutions are bounded (dense+rom, ridge 1e-3) and spacetime (dense+rom, β=10);
 the designs are those of :mod:`core.examples` plus (c), the learned estimate (linear+rbf) as the
-pull target of the bounded spacetime solve. Scoring: :func:`core.report._vertex_errors` against
+pull target of the bounded spacetime solve. Scoring: :func:`core.metrics.vertex_errors` against
 :func:`core.report.ground_truth` of the original rig (same shapes, same order).
 
     python scripts/example_poses_eval.py [--frames N] [--counts 0,2,4,8,16]
@@ -23,8 +23,6 @@ docs/evaluation.md (``--out``; scripts/evaluate_suite.py keeps the section when 
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import json
 import sys
 import tempfile
 import time
@@ -38,11 +36,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from core.examples import learn_from_poses, suggest_poses  # noqa: E402
-from core.io.gltf import read_rig, write_rig  # noqa: E402
 from core.names import ARKIT_NAMES, canonical  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
 from core.geometry import face_vertices  # noqa: E402
-from core.report import _vertex_errors, ground_truth  # noqa: E402
+from core.io.rigs import write_renamed_rig  # noqa: E402
+from core.metrics import vertex_errors  # noqa: E402
+from core.report import ground_truth  # noqa: E402
 from core.solvers.spacetime import SpacetimeSolver  # noqa: E402
 
 SOURCE = ROOT / "data/performances/livelinkface_take_s07.csv"
@@ -72,17 +71,6 @@ exactly and is never worse than no poses. *rbf* alone is worse than no poses wit
 distance spreads two residuals over the take). A pull is never better than the estimate it pulls towards
 (linear+rbf on the same solution): the markers hold the result back towards the solution the poses correct.
 """
-
-
-def hidden_rig(path: Path) -> Path:
-    """Rocketbox with every shape renamed ``shape_NNN`` (same order), its layout as sidecar."""
-    rig = read_rig(TARGET_RIG)
-    out = path / "rocketbox_hidden.glb"
-    write_rig(out, dataclasses.replace(rig, names=tuple(f"shape_{i:03d}" for i in range(rig.n_shapes))))
-    layout = json.loads((ROOT / "data/layouts/rocketbox_female_adult_02.json").read_text())
-    layout["rig"] = out.name
-    out.with_name(out.stem + ".layout.json").write_text(json.dumps(layout))
-    return out
 
 
 def true_poses(Wt, D, frames, shapes):
@@ -135,10 +123,10 @@ def main(argv=None) -> int:
     nonark = np.array([i for i, n in enumerate(rig.names) if canonical(n) not in ARKIT_NAMES])
 
     def error(W, mask=ok):
-        mean, _, _ = _vertex_errors(rig, W, Wt, face, mask)
+        mean, _, _ = vertex_errors(rig.deltas, W, Wt, face, mask)
         return float(np.nanmean(mean))
 
-    pipe = Pipeline(cache=cache, target_rig=str(hidden_rig(tmp)), correspondence="dense", motion_scale="rom", **files)
+    pipe = Pipeline(cache=cache, target_rig=str(write_renamed_rig(TARGET_RIG, tmp / "rocketbox_hidden.glb")), correspondence="dense", motion_scale="rom", **files)
     hidden = pipe.results(["load"])["load"]["target_rig"].names
     order = suggest_poses(features, max(counts))
     print(f"suggested frames: {order.tolist()}", file=sys.stderr)

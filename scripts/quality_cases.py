@@ -40,12 +40,10 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import shutil
 import sys
 import tempfile
 import time
 import warnings
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -53,14 +51,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.io.gltf import write_rig  # noqa: E402
-from core.io.rigs import load_rig  # noqa: E402
+from core.io.rigs import hidden_names, write_renamed_rig  # noqa: E402
 from core.names import ARKIT_NAMES, canonical  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
 from core.geometry import face_vertices  # noqa: E402
 from core.examples import suggest_poses  # noqa: E402
 from core.motion_alignment import apply_alignment, covariance_alignment  # noqa: E402
-from core.report import _vertex_errors, ground_truth, method_metrics  # noqa: E402
+from core.metrics import vertex_errors  # noqa: E402
+from core.report import ground_truth, method_metrics  # noqa: E402
 from core.retarget import target_markers  # noqa: E402
 from core.solvers.baselines import range_pf  # noqa: E402
 from core.stages.methods import AUTO_RIDGE  # noqa: E402
@@ -71,7 +69,6 @@ from scipy.optimize import lsq_linear  # noqa: E402
 TAKE = ROOT / "data/performances/livelinkface_take_s07.csv"
 SOURCE_RIG = ROOT / "data/rigs/ict_facekit.glb"
 TARGET_RIG = ROOT / "data/rigs/rocketbox_female_adult_02.glb"
-TARGET_LAYOUT = ROOT / "data/layouts/rocketbox_female_adult_02.json"
 #: the vocabularies' prefixes of Rocketbox's non-ARKit shapes (case B)
 NON_ARKIT = ("SR_", "AU_", "AA_VI_", "HB_")
 
@@ -131,20 +128,6 @@ SEARCH = [
 COLUMNS = ("mean_mm", "p95_mm", "curve_rmse", "weight_min", "weight_max", "active_per_frame", "seconds")
 
 
-def hidden_rig(folder: Path) -> Path:
-    """The Rocketbox GLB with every shape renamed ``shape_NNN`` (same order), its layout as the
-    sidecar ``<rig>.layout.json``; raises if the copy does not hold the original's arrays."""
-    rig = load_rig(TARGET_RIG)
-    hidden = replace(rig, names=tuple(f"shape_{i:03d}" for i in range(rig.n_shapes)), name="rocketbox_hidden")
-    path = write_rig(folder / "rocketbox_hidden.glb", hidden, normals=False)
-    shutil.copy(TARGET_LAYOUT, folder / "rocketbox_hidden.layout.json")
-    back = load_rig(path)
-    if not (np.array_equal(back.deltas, rig.deltas) and np.array_equal(back.neutral, rig.neutral)
-            and np.array_equal(back.faces, rig.faces)):
-        raise RuntimeError(f"{path}: the renamed copy does not hold the original rig's arrays")
-    return path
-
-
 def build_cases(cases: str, folder: Path, frames: int = 0, cache: StageCache | None = None) -> dict:
     """``{case: {"cache", "settings", "truth", "face", "rig"}}``: the case's pipeline settings, one
     shared cache; the truth, face vertices and rig are always the original rig's."""
@@ -158,10 +141,10 @@ def build_cases(cases: str, folder: Path, frames: int = 0, cache: StageCache | N
     specs = {"A": dict(target_rig=str(TARGET_RIG), target_shapes="arkit"),
              "B": dict(target_rig=str(TARGET_RIG), target_shapes=",".join(non_arkit))}
     if "C" in cases or "D" in cases:
-        hidden = hidden_rig(folder)
+        hidden = write_renamed_rig(TARGET_RIG, folder / "rocketbox_hidden.glb")
         specs["C"] = dict(target_rig=str(hidden), target_shapes="")
         specs["D"] = dict(target_rig=str(hidden), target_shapes=",".join(
-            f"shape_{i:03d}" for i, n in enumerate(rig.names) if n in set(non_arkit)))
+            h for h, n in zip(hidden_names(rig.n_shapes), rig.names) if n in set(non_arkit)))
     return {c: {"cache": cache, "settings": dict(files, **specs[c]), "truth": truth, "face": face, "rig": rig}
             for c in cases}
 
@@ -178,7 +161,7 @@ def true_poses(case: dict, n: int) -> list:
     rig, Wt, first = case["rig"], case["truth"]["weights"], res["frames"]["first"]
     shapes = list(res["shapes"]["shape_index"])
     D = rig.deltas[:, case["face"]].reshape(rig.n_shapes, -1)
-    names = [f"shape_{i:03d}" for i in range(rig.n_shapes)]
+    names = hidden_names(rig.n_shapes)
     items = []
     for f in frames:
         truth = np.nan_to_num(Wt[f])
@@ -323,7 +306,7 @@ def oracle_table(cases: str, frames: int = 0) -> int:
             for label, motion in fits.items():
                 W = np.zeros((len(S), case["rig"].n_shapes))
                 W[:, idx] = range_pf(B, motion, 0.0, 1.0, valid, ridge=AUTO_RIDGE)
-                mean = _vertex_errors(case["rig"], W, Wt, case["face"], ok)[0]
+                mean = vertex_errors(case["rig"].deltas, W, Wt, case["face"], ok)[0]
                 row.append(f"{np.nanmean(mean):.3f}")
             print(f"| {c} | " + " | ".join(row) + " |", flush=True)
     return 0

@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 import quality_cases as qc  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
-from core.report import _vertex_errors  # noqa: E402
+from core.metrics import vertex_errors  # noqa: E402
 from core.shape_matching import match_shapes, pseudo_names, shape_map  # noqa: E402
 from core.solvers import baselines  # noqa: E402
 from core.solvers.spacetime import SpacetimeSolver  # noqa: E402
@@ -117,7 +117,7 @@ def scored(case, x, W) -> str:
     full = np.zeros((len(W), rig.n_shapes))
     full[:, x["idx"]] = W
     ok = np.isfinite(Wt).all(1)
-    mean, p95, _ = _vertex_errors(rig, full, Wt, case["face"], ok)
+    mean, p95, _ = vertex_errors(rig.deltas, full, Wt, case["face"], ok)
     named = case["truth"]["named"]
     rmse = np.sqrt(np.nanmean((full[ok][:, named] - Wt[ok][:, named]) ** 2, axis=0)).mean()
     return f"mean_mm={np.nanmean(mean):.3f} p95_mm={p95:.3f} curve_rmse={rmse:.3f}"

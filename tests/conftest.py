@@ -1,7 +1,5 @@
 """Shared fixtures: the bundled real data, loaded once per test session."""
 
-import dataclasses
-import json
 import os
 from pathlib import Path
 
@@ -46,13 +44,8 @@ def tiger(rigs):
 @pytest.fixture(scope="session")
 def hidden_rocketbox(tmp_path_factory):
     """A copy of the Rocketbox GLB with every shape renamed ``shape_NNN`` (same order), written by
-    the project's GLB writer, with its layout copied as the sidecar ``<rig>.layout.json``."""
-    from core.io.gltf import read_rig, write_rig
+    the project's GLB writer, with its layout copied as the sidecar ``<rig>.layout.json``
+    (:func:`core.io.rigs.write_renamed_rig`, as scripts/quality_cases.py makes its case C)."""
+    from core.io.rigs import write_renamed_rig
 
-    rig = read_rig(RIGS / "rocketbox_female_adult_02.glb")
-    out = tmp_path_factory.mktemp("hidden") / "rocketbox_hidden.glb"
-    write_rig(out, dataclasses.replace(rig, names=tuple(f"shape_{i:03d}" for i in range(rig.n_shapes))))
-    layout = json.loads((LAYOUTS / "rocketbox_female_adult_02.json").read_text())
-    layout["rig"] = out.name
-    out.with_name(out.stem + ".layout.json").write_text(json.dumps(layout))
-    return out
+    return write_renamed_rig(RIGS / "rocketbox_female_adult_02.glb", tmp_path_factory.mktemp("hidden") / "rocketbox_hidden.glb")

@@ -318,6 +318,13 @@ class Page:
     def click(self, button) -> None:
         self.doc.callbacks.trigger_on_change(MessageSentEvent(self.doc, "bokeh_event", ButtonClick(button)))
 
+    def send_msg(self, model, data: dict) -> None:
+        """What a custom component's script sends its server side (``model.send_msg(data)`` in its
+        ESM: a ``data_event``), e.g. dashboard.upload_guard announcing the file it lets through."""
+        from panel.models.esm import DataEvent
+
+        self.doc.callbacks.trigger_on_change(MessageSentEvent(self.doc, "bokeh_event", DataEvent(model, data=data)))
+
 
 def pctl(xs, q: float) -> float:
     xs = sorted(xs)

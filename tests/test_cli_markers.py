@@ -5,6 +5,7 @@ On the previous code each run here was refused with exit code 2."""
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,11 +13,14 @@ import pytest
 from datapaths import PERFORMANCES, RIGS
 from dense_case import tiger_weights
 
+from core.batch import collect_shots, place_layouts
 from core.cli import main
 from core.io.curves_csv import read_curves_csv
 from core.io.gltf import read_rig
 from core.io.layout import read_layout
 from core.model import Performance
+from core.pipeline import Pipeline, StageCache
+from core.shot import FileRef
 
 TAKE = ["--source", str(PERFORMANCES / "livelinkface_take_s07.csv"), "--source-rig", str(RIGS / "ict_facekit.glb"),
         "--last-frame", "29", "--method", "bounded", "--quiet"]
@@ -81,3 +85,57 @@ def test_a_mesh_sequence_without_a_layout_gets_markers_on_its_own_topology(tmp_p
     assert out.count("Placed") == 2 and f"wrote {seq / 'layout.json'}" in out
     assert read_layout(seq / "layout.json").n_markers == 41
     assert read_curves_csv(csv).data.max() > 0.3  # the take really moves the target
+
+
+# -- batch: the same placement, once per rig, before any shot runs ------------------------------
+
+def _template(tmp_path, rig) -> Path:
+    path = tmp_path / "template.json"
+    Pipeline(cache=StageCache(), source=str(PERFORMANCES / "livelinkface_take_s07.csv"),
+             source_rig=str(RIGS / "ict_facekit.glb"), target_rig=str(rig), method="bounded", last_frame=29).shot().to_json(path)
+    return path
+
+
+def test_batch_jobs_get_the_layout_placed_once_and_a_resumed_batch_the_same_shots(own_head, tmp_path):
+    """Two captures on a rig without a layout: markers are placed once (the second job finds the
+    sidecar the first one wrote) and the layout becomes a file of both shots; preparing the same jobs
+    again places nothing and gives the same shot contents (a resumed batch skips what is done);
+    refused, each job fails saying how to make a layout."""
+    captures = [str(PERFORMANCES / "livelinkface_take_s07.csv"), str(PERFORMANCES / "livelinkface_take_facial.csv")]
+    jobs = collect_shots(captures, template=_template(tmp_path, own_head))
+    refused = place_layouts(jobs, place=False)
+    assert all(j.shot is None and "no marker layout for my_head.glb" in j.error for j in refused)
+    assert not (tmp_path / "my_head.layout.json").exists()
+    lines = []
+    placed = place_layouts(jobs, log=lines.append)
+    side = tmp_path / "my_head.layout.json"
+    assert sum("Placed 41 markers on my_head" in ln for ln in lines) == 1 and side.exists()
+    for j in placed:
+        assert j.shot.files["target_layout"] == FileRef.of(side)
+    again = []
+    same = place_layouts(collect_shots(captures, template=_template(tmp_path, own_head)), log=again.append)
+    assert again == [] and [j.shot.content_hash() for j in same] == [j.shot.content_hash() for j in placed]
+
+
+@pytest.mark.slow
+def test_batch_places_markers_like_retarget(own_head, tmp_path, capsys):
+    """`face-retarget batch` on a rig without a layout: placed (the page's report on stderr),
+    the shot runs, and the next run skips it; --no-auto-markers fails the shot instead."""
+    tmpl = _template(tmp_path, own_head)
+    take = str(PERFORMANCES / "livelinkface_take_s07.csv")
+    base = ["batch", take, "--template", str(tmpl), "--workers", "1", "--dashboard-address", ":0", "--quiet"]
+    refused = tmp_path / "refused"
+    assert main([*base, "--out", str(refused), "--no-auto-markers"]) == 1
+    assert "no marker layout for my_head.glb" in capsys.readouterr().err
+    assert not (tmp_path / "my_head.layout.json").exists()
+    out = tmp_path / "out"
+    assert main([*base, "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "Placed 41 markers on my_head" in err
+    shot = json.loads((out / "livelinkface_take_s07" / "shot.json").read_text())
+    assert shot["files"]["target_layout"]["path"] == str(tmp_path / "my_head.layout.json")
+    W = read_curves_csv(out / "livelinkface_take_s07" / "livelinkface_take_s07.csv")
+    assert W.n_frames == 30 and W.data.max() > 0.05
+    assert main([*base, "--out", str(out)]) == 0
+    io = capsys.readouterr()
+    assert "1 already done" in io.out and "Placed" not in io.err

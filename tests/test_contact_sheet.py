@@ -15,7 +15,7 @@ from PIL import Image
 from datapaths import PERFORMANCES, RIGS
 
 from core.contact_sheet import COLUMNS, GAP, SHEET_FRAMES, TILE, contact_sheet, rasterize, sheet_size
-from core.evaluate import worst_frame
+from core.evaluate import summarize, worst_frame
 from core.geometry import vertex_normals
 from core.pipeline import Pipeline, StageCache
 
@@ -85,8 +85,8 @@ def sample():
 def test_the_sheet_has_the_worst_frame_and_frames_far_apart(sample):
     ev = sample["evaluate"]
     worst = worst_frame(ev)
-    # the worst frame is the frame of the summary's "max"
-    assert np.nanmax(ev["marker_distances_mm"][worst]) == pytest.approx(ev["marker_max_mm"])
+    # the worst frame is the frame of the summary's "max": the largest marker error RMS of a frame
+    assert ev["marker_error_mm"][worst] == np.nanmax(ev["marker_error_mm"])
     sheet = contact_sheet(sample, sample["synthesize"]["weights"], worst, error_mm=ev["marker_error_mm"])
     n = SHEET_FRAMES
     assert sheet.frames[0] == worst and len(set(sheet.frames)) == n
@@ -148,7 +148,8 @@ def test_page_card_renders_and_links_jump_to_frames():
     app = DashboardApp(Session(cache=StageCache()))
     app.pipe.configure(last_frame=599)
     app.refresh()
-    worst = worst_frame(app.s.snapshot["evaluate"])
+    ev = app.s.snapshot["evaluate"]
+    worst = worst_frame(ev)
     assert f'data-fr-frame="{worst}"' in app.summary.w_summary.object and "mm at frame" in app.summary.w_summary.object
     assert app.contact.sheet is None  # closed: nothing rendered
     app.contact.card.collapsed = False
@@ -156,6 +157,15 @@ def test_page_card_renders_and_links_jump_to_frames():
     assert sheet is not None and sheet.frames[0] == worst
     links = [int(f) for f in re.findall(r'data-fr-frame="(\d+)"', app.contact.w_sheet.object)]
     assert links == sheet.frames
+    # the summary's max and the worst frame's caption are the same number, said as the same kind:
+    # the marker error RMS of that frame (the batch summary's marker_max_mm)
+    summary = re.sub(r"<[^>]+>", "", app.summary.w_summary.object)
+    said = re.search(r"marker error RMS \*\*[\d.]+ mm\*\* \(per frame: max ([\d.]+) mm at frame (\d+)\)", summary)
+    assert said and int(said[2]) == worst, summary
+    caption = re.search(r"worst · marker RMS ([\d.]+) mm", sheet.captions[0])
+    assert caption and caption[1] == said[1], (sheet.captions[0], said[0])
+    best = summarize(ev, app.s.snapshot["weights"])["marker_max_mm"]
+    assert float(said[1]) == pytest.approx(best, abs=0.05)
     assert app.contact.w_png.filename.endswith("_contact_sheet.png")
     assert app.contact.w_png.callback().read() == sheet.png()
     target = sheet.frames[2]

@@ -166,12 +166,21 @@ def test_poses_from_items():
 
 # -- the real case: S07 onto Rocketbox, names hidden (the hidden_rocketbox fixture: conftest) ------
 
-def test_hidden_rig_keeps_the_shapes(hidden_rocketbox, rocketbox):
+def test_hidden_rig_keeps_the_shapes(hidden_rocketbox, rocketbox, tmp_path):
     from core.io.gltf import read_rig
+    from core.io.layout import default_layout_path, read_layout
+    from core.io.rigs import write_renamed_rig
 
     rig = read_rig(hidden_rocketbox)
     assert rig.names[0] == "shape_000" and not set(rig.names) & set(rocketbox.names)
     np.testing.assert_array_equal(rig.deltas, rocketbox.deltas)
+    np.testing.assert_array_equal(rig.neutral, rocketbox.neutral)
+    np.testing.assert_array_equal(rig.faces, rocketbox.faces)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the sidecar names the copy: no "made for another rig" warning
+        assert read_layout(default_layout_path(hidden_rocketbox), rig=rig).n_markers == 41
+    with pytest.raises(ValueError, match="expected 175 names"):
+        write_renamed_rig(RIGS / "rocketbox_female_adult_02.glb", tmp_path / "x.glb", names=["a", "b"])
 
 
 def test_s07_hidden_names_eight_poses(hidden_rocketbox):
@@ -179,7 +188,8 @@ def test_s07_hidden_names_eight_poses(hidden_rocketbox):
     the held-out frames' face error well below the solve's."""
     from core.pipeline import Pipeline, StageCache
     from core.geometry import face_vertices
-    from core.report import _vertex_errors, ground_truth
+    from core.metrics import vertex_errors
+    from core.report import ground_truth
 
     files = dict(source=str(PERFORMANCES / "livelinkface_take_s07.csv"), source_rig=str(RIGS / "ict_facekit.glb"),
                  last_frame=299)
@@ -201,7 +211,7 @@ def test_s07_hidden_names_eight_poses(hidden_rocketbox):
     held[frames] = False
 
     def err(A, mask):
-        return float(np.nanmean(_vertex_errors(rig, A, Wt, face, mask)[0]))
+        return float(np.nanmean(vertex_errors(rig.deltas, A, Wt, face, mask)[0]))
 
     assert W.min() >= 0 and W.max() <= 1
     at = np.zeros(len(W), bool)

@@ -117,19 +117,20 @@ def test_bad_files_get_messages_and_the_other_page_is_served(tmp_path):
             pages, _ = await rc.open_pages(srv.base, sid, 2, on_patch=on_patch)
             a, b = pages
             upload = a.one("FileInput")
+            guard = next(m for m in a.doc.models if getattr(m, "class_name", None) == "UploadGuard")
             b_frame = b.one("Slider", title="Frame")
             f = 0
             for name, payload, want in cases:
                 n0 = len(texts["a"])
                 t0 = time.monotonic()
+                if len(payload) <= LIMIT_MB * 2**20:  # the guard's script announces a file it lets through
+                    a.send_msg(guard, {"starting": name, "size": len(payload)})
                 a.set(upload, value=base64.b64encode(payload).decode(), filename=name, mime_type="text/csv")
                 # the other page scrubs while the server reads the file: it must be answered
                 b_waits = []
-                # this file's message: the previous file's, sent again meanwhile (the page's note re-renders), is not it
-                prev = texts["a"][n0 - 1][1] if n0 else None
 
-                def fresh():
-                    return [(t, m) for t, m in texts["a"][n0:] if m != prev]
+                def fresh():  # the first note after this upload started is this file's (test_a_new_upload_clears...)
+                    return texts["a"][n0:]
 
                 while not fresh() and time.monotonic() - t0 < 60:
                     f = (f + 7) % 290 + 1
@@ -169,3 +170,57 @@ def test_bad_files_get_messages_and_the_other_page_is_served(tmp_path):
         {k: v for k, v in old["files"].items() if k != "source"}
     assert shot.files["source"].path.endswith(TAKEN[-1]) or shot.files["source"].path == old["files"]["source"]["path"]
     assert not (tmp_path / "escape.csv").exists() and not (data.parent / "escape.csv").exists()
+
+
+@pytest.mark.slow
+def test_a_new_upload_clears_the_old_note_and_gets_its_own(tmp_path):
+    """The browser sends an upload as three messages (content, then file name, then type); a loaded
+    server may read them apart (here the name comes 0.3 s after the content). The next file's
+    content must not be read under the previous file's name (before: the previous note came back,
+    "truncated.glb: ..." about garbage.glb's bytes): the page's upload guard announces the file's
+    name as it starts, the old note goes then, and the new file's own message is the first note."""
+    rc.register_models()
+    data = tmp_path / "data"
+    sid = rc.sample_shot(data, "two uploads", last_frame=59)
+    tiger = (RIGS / "jeeliz_tiger.glb").read_bytes()
+    files = [("truncated.glb", tiger[:len(tiger) // 3]), ("garbage.glb", b"glTF" + bytes(range(256)) * 40)]
+
+    ART.mkdir(exist_ok=True)
+    with rc.Server("--data-dir", str(data), log=ART / "server_review_two_uploads.log") as srv:
+        async def run():
+            notes, shown = [], []
+
+            def on_patch(page, changes, t):
+                for mid, attr, new in changes:
+                    if attr == "text" and isinstance(new, str) and ("Error:" in new or "Note:" in new):
+                        notes.append(re.sub(r"<[^>]+>", "", html.unescape(new)))
+                    if attr == "visible" and mid == alert_id[0]:
+                        shown.append((len(notes), new))
+
+            alert_id = [None]
+            (a,), _ = await rc.open_pages(srv.base, sid, 1, on_patch=on_patch)
+            alert_id[0] = next(m.id for m in a.doc.models if "fr-error" in (getattr(m, "css_classes", None) or []))
+            upload = a.one("FileInput")
+            guard = next(m for m in a.doc.models if getattr(m, "class_name", None) == "UploadGuard")
+            seen = []
+            for name, payload in files:
+                n0 = len(notes)
+                a.send_msg(guard, {"starting": name, "size": len(payload)})  # the guard's script, as the input changes
+                a.set(upload, value=base64.b64encode(payload).decode())
+                await asyncio.sleep(0.3)  # the server reads the name a moment later
+                a.set(upload, filename=name, mime_type="model/gltf-binary")
+                t0 = time.monotonic()
+                while len(notes) == n0 and time.monotonic() - t0 < 60:
+                    await asyncio.sleep(0.05)
+                await asyncio.sleep(1.0)  # anything else the page is sent for this upload
+                seen.append((n0, list(notes[n0:])))
+            await a.close()
+            return seen, shown
+
+        (first, second), shown = rc.run(run())
+        assert srv.alive()
+    assert first[1] and first[1][0].startswith("Error:") and "truncated.glb" in first[1][0], first
+    n0, after = second
+    assert after and after[0].startswith("Error:") and "garbage.glb" in after[0], after
+    assert not [m for m in after if "truncated.glb" in m], after  # the old note never came back
+    assert (n0, False) in shown, (shown, first, second)  # hidden when the second upload started, before its note

@@ -146,7 +146,8 @@ def test_auto_without_names_restyles_and_beats_plain_geometry(hidden_rocketbox):
     from core.geometry import face_vertices
     from core.io.gltf import read_rig
     from core.pipeline import Pipeline, StageCache
-    from core.report import _vertex_errors, ground_truth
+    from core.metrics import vertex_errors
+    from core.report import ground_truth
 
     files = dict(source=str(PERFORMANCES / "livelinkface_take_s07.csv"), source_rig=str(RIGS / "ict_facekit.glb"),
                  last_frame=299)
@@ -167,6 +168,6 @@ def test_auto_without_names_restyles_and_beats_plain_geometry(hidden_rocketbox):
     assert "jaw" in true_names[info["shape_matches"]["jawOpen"]].lower()
     W, W0 = np.asarray(auto["synthesize"]["weights"]), np.asarray(plain["synthesize"]["weights"])
     assert W.min() >= 0 and W.max() <= 1
-    err = float(np.nanmean(_vertex_errors(rig, W, Wt, face, ok)[0]))
-    err0 = float(np.nanmean(_vertex_errors(rig, W0, Wt, face, ok)[0]))
+    err = float(np.nanmean(vertex_errors(rig.deltas, W, Wt, face, ok)[0]))
+    err0 = float(np.nanmean(vertex_errors(rig.deltas, W0, Wt, face, ok)[0]))
     assert err < 0.95 * err0

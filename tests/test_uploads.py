@@ -143,3 +143,35 @@ def test_an_uploaded_rig_is_offered_as_the_target_or_the_source_rig():
     # a take is the source at once, and offers nothing
     app.sidebar.w_upload.param.update(filename="take.csv", value=(PERFORMANCES / "livelinkface_rom.csv").read_bytes())
     assert app.s.source == "⤒ take.csv" and not app.w_offer.visible
+
+
+def test_an_uploaded_source_rig_gets_its_own_markers_never_the_previous_rigs():
+    """*Use as source rig* with an uploaded rig of another mesh, on a page of a shot (the shot names
+    the ICT layout by path): the rig gets markers placed on it, as *Use as target* does, and the
+    result is computed. Before, the ICT layout stayed and the page failed with "vertex 8208 out of
+    range for rig my_head"; a target switched the same way kept the previous target's layout."""
+    from core.io.layout import read_layout
+    from core.io.rigs import load_rig
+    from dashboard.app import DashboardApp
+    from dashboard.session import Session
+
+    app = DashboardApp(Session(cache=StageCache()))
+    app.s.pipeline.configure(last_frame=59)
+    app.s.open_shot(app.s.shot())  # as a page of a shot: every layout set by path
+    assert app.s.pipeline.source_face.source_layout.endswith("ict_facekit.json")
+    head = (RIGS / "rocketbox_female_adult_02.glb").read_bytes()
+    app.sidebar.w_upload.param.update(filename="my_head.glb", value=head)
+    app.w_use_source_rig.clicks += 1
+    assert app.s.source_rig == "⤒ my_head.glb"
+    assert "Placed 41 markers on my_head" in app.markers.w_info.object
+    layout = app.s.pipeline.source_face.source_layout
+    assert layout == str(app.s.upload_dir / "my_head.layout.json")
+    assert read_layout(layout, rig=load_rig(app.s.upload_dir / "my_head.glb")).n_markers == 41
+    assert not app.s.error and app.s.recompute(), app.s.error
+    assert np.nanmax(app.s.snapshot["weights"]) > 0.05
+    # the target the same way: the previous target's layout is not kept for another mesh
+    app.s.auto_update = False
+    app.sidebar.w_upload.param.update(filename="other head.glb", value=(RIGS / "jeeliz_tiger.glb").read_bytes())
+    app.s.target_rig = "⤒ other head.glb"
+    app.s.shot()  # the selection reaches the pipeline
+    assert app.s.needs_layout == "other head.glb" and app.s.pipeline.target_face.target_layout == ""

@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, free_port, wait_http
-from test_dashboard import SAMPLE, SRC, TGT, VIEWERS_READY, canvas, foreground, frames, seek_frame, shot, slider, slider_value
+from test_dashboard import (SAMPLE, SRC, TGT, VIEWERS_READY, canvas, foreground, frames, seek_frame, shot, slider,
+                            slider_value, wait_synced)
 
 
 def start_serve(data_dir, log):
@@ -243,3 +244,67 @@ def test_tracking_loss_frames_are_marked_in_both_views(dash, artifacts):
         page.locator(".bk-input-group:visible", has=page.locator("label", has_text="Source performance")).locator(
             "select").select_option(SAMPLE)
         expect(page.locator("p", has_text="marker error RMS")).to_contain_text(SAMPLE, timeout=90_000)
+
+
+#: per viewer: its camera's distance from its framing centre in units of its fit distance (the
+#: group's shared zoom, as rendered), whether it sits inside its mesh's bounding sphere, its frame
+VIEW_STATE = """() => Object.fromEntries(Object.entries(window.__faceRetarget.viewers).map(([k, v]) => {
+    const s = v.self, p = s.camera.position, sphere = s.bbox.getBoundingSphere(new s.THREE.Sphere());
+    return [k, {zoom: p.distanceTo(s.base.center) / s.base.dist, inside: p.distanceTo(sphere.center) < sphere.radius,
+                frame: v.frame}]; }))"""
+
+
+def choose_take(page, name: str, n_frames: int) -> None:
+    """Pick ``name`` in the Source performance list and wait until both views show it (their
+    labels count its ``n_frames``) and have drawn it."""
+    page.locator(".bk-input-group:visible", has=page.locator("label", has_text="Source performance")).locator(
+        "select").select_option(name)
+    page.wait_for_function(
+        "(n) => { const out = []; const walk = (root) => { for (const el of root.querySelectorAll('*')) {"
+        " if (el.shadowRoot) walk(el.shadowRoot); if (el.childElementCount === 0 && new RegExp('frame \\\\d+ / ' + n + '$')"
+        ".test((el.textContent || '').trim())) out.push(el); } }; walk(document); return out.length === 2; }",
+        arg=n_frames - 1, timeout=120_000)
+    page.wait_for_function(VIEWERS_READY, timeout=60_000)
+    wait_synced(page, "true")
+    page.wait_for_timeout(800)
+
+
+@pytest.mark.browser
+@pytest.mark.slow
+def test_a_take_switch_keeps_both_views_on_their_faces_and_one_frame(served, new_page, artifacts):
+    """Issue 33.3's other half, not driven in a browser before: after a take switch the two cameras
+    disagreed (0.985 vs 0.037 of the way to the head) and a view could go empty. Zoomed in as far as
+    the wheel goes, the take switched (S07, 2028 frames -> the facial take, 1913) and back: both
+    views show their face (most of each canvas is mesh), each camera stays outside its mesh at the
+    same shared zoom, and the slider, both viewers and both labels say one frame of the take shown."""
+    from core.io.performance import read_performance
+    from datapaths import PERFORMANCES
+
+    other = "livelinkface_take_facial.csv"
+    lengths = {n: read_performance(PERFORMANCES / n).n_frames for n in (SAMPLE, other)}
+    ctx, page = new_page()
+    try:
+        page.goto(served[1] + "/")
+        page.wait_for_function(VIEWERS_READY, timeout=120_000)
+        seek_frame(page, 700)
+        box = canvas(page, TGT).bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        for _ in range(40):
+            page.mouse.wheel(0, -500)
+        page.wait_for_timeout(800)
+        zoomed = page.evaluate(VIEW_STATE)
+        assert zoomed[SRC]["zoom"] < 0.9, zoomed  # the wheel did zoom in
+        for take in (other, SAMPLE):
+            choose_take(page, take, lengths[take])
+            page.screenshot(path=str(artifacts / f"defects_take_switch_{take.removesuffix('.csv')}.png"))
+            state = page.evaluate(VIEW_STATE)
+            for label in (SRC, TGT):
+                covered = float(foreground(shot(page, label)).mean())
+                assert covered > 0.3, f"{take}: {label} shows its mesh on {covered:.2f} of the view"
+                assert not state[label]["inside"], (take, label, state)
+            assert state[SRC]["zoom"] == pytest.approx(state[TGT]["zoom"], rel=1e-6), (take, state)  # in step
+            shown = shown_frames(page)
+            f = shown["slider"]
+            assert 0 <= f < lengths[take] and set(shown["viewers"].values()) == {f} and shown["labels"] == [f], (take, shown)
+    finally:
+        ctx.close()

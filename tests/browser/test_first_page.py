@@ -200,7 +200,7 @@ def test_the_whole_path_drop_a_rig_use_it_share_the_address(browser, server, art
         theirs = summary_text(second)
         second.get_by_text(re.compile(rf"Share this page: \?shot={re.escape(sid)}")).first.wait_for(timeout=30_000)
         second.screenshot(path=str(artifacts / "first_path_5_second_browser.png"))
-        numbers = re.compile(r"marker error RMS [\d.]+ mm \(max [\d.]+ mm at frame \d+\)")
+        numbers = re.compile(r"marker error RMS [\d.]+ mm \(per frame: max [\d.]+ mm at frame \d+\)")
         assert numbers.search(mine) and numbers.search(theirs).group(0) == numbers.search(mine).group(0), (mine, theirs)
         assert RIG_NAME in theirs, theirs
         # a reload of the first page stays on the shot
