@@ -91,6 +91,7 @@ from typing import Callable, NamedTuple, Optional, Sequence
 
 import numpy as np
 import scipy.linalg
+from scipy.linalg.blas import dgemm
 from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs, dtrtrs
 
 from core.prior import PCAPrior, alpha_for_units, prior_quadratic
@@ -416,9 +417,10 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         k = np.arange(bs - (P - p), bs)
         Cd[-1, k, k] = 1.0
     a = Psi * Phi
-    Wa = a[:, :, None] * a[:, None, :]  # transitions of the accumulated W
-    Wf = Phi[:, :, None] * Phi[:, None, :]
-    Wv = np.zeros((K, K + 1))  # [W | v]: the recursion's state, propagated in one product
+    # [W | v]: the recursion's state, propagated in one product; Fortran order, so that BLAS adds
+    # each block's N N^T to it in place
+    Wv = np.zeros((K, K + 1), order="F")
+    Np = np.empty((bs, K + 1), order="F")
     Ls, Ns = [], []
     rhs_i = np.empty((bs, K + 1), order="F")
     for i in range(nb):
@@ -435,11 +437,12 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         Ls.append(Lii)
         Ns.append(sol)
         if i < nb - 1:
-            G = sol[:, :K].T @ sol  # [N N^T | N y]
-            Wv[:, :K] *= Wa[i]
-            Wv[:, :K] += G[:, :K] * Wf[i]
-            Wv[:, K] *= a[i]
-            Wv[:, K] += G[:, K] * Phi[i]
+            # W <- Phi (Psi W Psi + N N^T) Phi = a W a + (N Phi)(N Phi)^T, v <- a v + Phi N y
+            Wv *= a[i][:, None]
+            Wv[:, :K] *= a[i]
+            np.multiply(sol[:, :K], Phi[i], out=Np[:, :K])
+            Np[:, K] = sol[:, K]
+            Wv = dgemm(1.0, Np[:, :K], Np, beta=1.0, c=Wv, trans_a=1, overwrite_c=1)
     lam = np.empty((nb, bs))
     z = np.zeros(K)
     for i in range(nb - 1, -1, -1):
