@@ -338,3 +338,17 @@ def test_lowest_and_highest_weight_share_one_scale():
     assert p.lower.softbounds == p.upper.softbounds
     lo, hi = p.lower.softbounds
     assert lo < p.lower.default < p.upper.default < hi
+
+
+def test_alpha_change_reuses_the_data_gram_and_gives_a_fresh_pipelines_result(pipe):
+    """prior_pf's products with the whole take (the ``gram`` stage) depend on the take and the rig,
+    not on alpha: a change of alpha re-solves without them, to the numbers a fresh pipeline gives."""
+    pipe.configure(method="prior_pf", ridge=1e-3)
+    pipe.run()
+    before = dict(pipe.runs)
+    pipe.configure(alpha=0.2)
+    W = pipe.results(["solve"])["solve"]["weights"]
+    assert "gram" not in _ran(pipe, before) and "solve" in _ran(pipe, before)
+    fresh = Pipeline(cache=StageCache(disk=False), first_frame=0, last_frame=119, method="prior_pf", ridge=1e-3,
+                     alpha=0.2, **FILES)
+    assert np.array_equal(W, fresh.results(["solve"])["solve"]["weights"])

@@ -143,7 +143,7 @@ def _marker_weights(inputs):
     return inputs["shapes"].get("weights")
 
 
-def _weighted(inputs):
+def weighted_markers(inputs):
     """``_markers`` with each point's rows scaled by the square root of its weight: the weighted
     least-squares data term ``Σ_m w_m ||B_m x - s_m||²`` for the solvers that take plain rows."""
     B, S, valid = _markers(inputs)
@@ -314,7 +314,7 @@ def _auto(inputs, s):
 def _lsq(inputs, s):
     """Per-frame least squares, unbounded (a diagnostic: no regulariser keeps it in range)."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
     return {"weights": baselines.no_const(B, S, valid), "edit": edit_options(s, alpha=0.01)}
 
 
@@ -323,7 +323,7 @@ def _lsq(inputs, s):
 def _bounded(inputs, s):
     """Per-frame least squares with ``lower <= w <= upper`` (batched exact active set)."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
     return {"weights": baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge, quadratic=s.quadratic, zero=s.zero),
             "edit": edit_options(s, alpha=0.01, lower=s.lower, upper=s.upper)}
 
@@ -332,25 +332,28 @@ def _bounded(inputs, s):
 def _range_pf(inputs, s):
     """Seol 2012 §7 Range PF: per frame, -0.5 <= w <= 1.5."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
     return {"weights": baselines.range_pf(B, S, valid=valid, ridge=s.ridge, quadratic=s.quadratic, zero=s.zero),
             "edit": edit_options(s, alpha=0.01, lower=-0.5, upper=1.5)}
 
 
 def _prior_pf_frames(inputs, s, frames):
-    """Prior PF (the weighted data term, the unweighted markers' prior) on a few frames."""
+    """Prior PF (the weighted data term, the unweighted markers' prior) on a few frames (all of
+    them: with the ``gram`` stage's products of the data term, when it ran)."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
+    gram = inputs.get("gram") if isinstance(frames, slice) and frames == slice(None) else None
     prior = _prior(inputs)
     if _marker_weights(inputs) is not None and prior is not None:
         B0 = _markers(inputs)[0]
         P, q, _ = prior_quadratic(prior, flatten(B0).T, len(B0))
         prior = (P, q)
     zero = s.zero if s.zero is None or np.ndim(s.zero) == 1 else np.asarray(s.zero)[frames]
-    return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge, quadratic=s.quadratic, zero=zero)
+    return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge, quadratic=s.quadratic, zero=zero,
+                              gram=gram)
 
 
-@solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",), honours=("active", "symmetry", "cancel", "filter"),
+@solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior", "gram"), honours=("active", "symmetry", "cancel", "filter"),
               label="prior_pf — per frame with the rig's prior (Seol §7)")
 def _prior_pf(inputs, s):
     """Seol 2012 §7 Prior PF: per frame with the PCA prior."""
@@ -423,7 +426,7 @@ def _geometric(inputs, s):
     """Ribera 2017: cotangent-Laplacian (or PCA / L2) prior + L1 sparsity, within ``lower <= w <= upper``
     (exact batched box QP; ``GeometricSolver(lower=None, upper=None)`` is the paper's unbounded IRLS)."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
     kw = {"rig": inputs["shapes"]["rig"]} if s.geometric_prior == "geometric" else {}
     if s.geometric_prior == "pca":
         B0 = _markers(inputs)[0]  # the prior is the unweighted markers'

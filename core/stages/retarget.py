@@ -38,10 +38,11 @@ from ..progress import report
 from ..retarget import common_markers, source_marker_names, source_markers, target_markers
 from ..segment import marker_weights, segment
 from ..shot import file_hash
+from ..solvers.baselines import data_gram
 from ..solvers.local import masks_at
 from ..solvers.spacetime import PoseEdit, SpacetimeSolver
 from ..stage import Stage, register
-from .methods import AUTO_MOTION_SCALE, METHODS, method_of, named_target
+from .methods import AUTO_MOTION_SCALE, METHODS, method_of, named_target, weighted_markers
 
 #: a shape whose largest marker displacement is below this fraction of the largest shape's
 #: is invisible to the markers
@@ -492,13 +493,29 @@ class Prior(Stage):
         return {"prior": PCAPrior().fit(deltas, subset=subset), "subset": subset}
 
 
+@register("gram")
+class Gram(Stage):
+    """The per-frame data term in weight space (:func:`core.solvers.baselines.data_gram` of the
+    weighted markers): it depends on the take and the rig, not on the solve's settings, so a
+    setting change re-solves without the products with the whole take (1,000 frames x 1,000
+    dense points: most of a prior_pf solve). For the methods that declare it (``needs``)."""
+
+    deps = ("calibrate", "personalize", "shapes")
+
+    def active(self, cfg):
+        return "gram" in method_of(cfg).needs
+
+    def run(self, inputs, s, progress=None):
+        return data_gram(*weighted_markers(inputs))
+
+
 @register("solve")
 class Solve(Stage):
     """The retargeting solver and its term weights. Each method is registered in
     :mod:`core.stages.methods` with the settings it reads and the stages it needs."""
 
     deps = ("load", "correspond", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior",
-            "vocabulary")
+            "vocabulary", "gram")
     group, title = "solve", "Solver"
     method = param.Selector(label='Method', default="auto", objects={m.label: n for n, m in METHODS.items()}, doc=(
         "auto: what serves this pair and take best, said in one sentence (the default); lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
