@@ -180,6 +180,10 @@ def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
 def _prox_state(y, c, lo, hi, lam):
     """Next state from the proximal point ``p = clip(soft(y, lam / c), lo, hi)``:
     (fixed (n, K) bool, values (n, K), sign (n, K) of the free entries)."""
+    if not lam.any():  # no L1: soft(y, 0) = y (+ 0.0 turns -0.0 into 0.0, as sign(y) |y| does)
+        p = np.clip(y + 0.0, lo, hi)
+        fixed = (p == lo) | (p == hi)
+        return fixed, np.where(fixed, p, 0.0), np.where(fixed, 0.0, np.sign(p))
     t = lam / c
     p = np.clip(np.sign(y) * np.maximum(np.abs(y) - t, 0.0), lo, hi)
     fixed = (p == lo) | (p == hi) | ((lam > 0) & (p == 0))
@@ -233,6 +237,14 @@ def _blas_controller():
     return ThreadpoolController()
 
 
+def _state_key(fixed, values, sign) -> int:
+    """A hash of an active-set state that is equal exactly when the states are: the fixed mask
+    packed to bits, the values on it (``values`` is 0 elsewhere), the signs as small integers
+    (NaN apart) -- a tenth of the bytes of the three (n, K) arrays."""
+    s8 = np.where(np.isnan(sign), 2, sign).astype(np.int8)
+    return hash((np.packbits(fixed).tobytes(), values[fixed].tobytes(), s8.tobytes()))
+
+
 def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
     n, K = system.n, system.K
     lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n, K))
@@ -265,7 +277,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
         seen, fewest, stall = set(), np.inf, 0
         X = g = None
         for _ in range(max_iter):
-            key = hash((fixed.tobytes(), values.tobytes(), sign.tobytes()))
+            key = _state_key(fixed, values, sign)
             if key in seen or info["iterations"] >= max_solves:
                 break  # a cycle: PDAS is not monotone
             seen.add(key)
