@@ -911,7 +911,7 @@ class SpacetimeSolver:
             Kn[t] = w
         return Kn
 
-    def solve(self, method: Optional[str] = None, zero=None) -> np.ndarray:
+    def solve(self, method: Optional[str] = None, zero=None, warm=None) -> np.ndarray:
         """Weights (T, K) minimising the energy subject to ``known_``.
 
         Parameters
@@ -923,6 +923,11 @@ class SpacetimeSolver:
             poses, so the fast path's capacitance system takes them exactly); the solver's own
             known weights win where both set an entry. E.g. the weaker shape of each cancel pair
             (:func:`core.controls.cancel_pairs`) or the off shapes of an active set.
+        warm : (T, K) float, optional
+            With bounds or L1: a previous solution of a similar problem (e.g. before a setting
+            change), where the bounded solver's active-set run starts. The result does not
+            depend on it (the minimiser is unique; see
+            :func:`~core.solvers.bounded_spacetime.solve_bounded`), only the time.
         """
         rows = dict(self._known)
         if zero is not None:
@@ -939,7 +944,7 @@ class SpacetimeSolver:
                 row.setflags(write=False)
                 rows[int(t)] = row
             rows = {t: rows[t] for t in sorted(rows)}
-        return self._solve_range(0, self.T - 1, rows, method or self.method)
+        return self._solve_range(0, self.T - 1, rows, method or self.method, warm)
 
     def edit(self, W, frame=None, weights=None, window=None, shapes=None, edits=None,
              method: Optional[str] = None) -> np.ndarray:
@@ -1184,7 +1189,7 @@ class SpacetimeSolver:
             raise ValueError(f"{what}: repeated shapes")
         return np.asarray(idx, dtype=np.int64)
 
-    def _solve_range(self, lo: int, hi: int, rows: dict, method: str) -> np.ndarray:
+    def _solve_range(self, lo: int, hi: int, rows: dict, method: str, warm=None) -> np.ndarray:
         """Solve frames lo..hi (inclusive); ``rows`` = {frame - lo: (K,) known row, NaN free}.
 
         Only the energy terms inside the range are used, which is exact when frames ``lo``
@@ -1202,7 +1207,7 @@ class SpacetimeSolver:
             return np.array([rows[t] for t in range(n)])
         system = self.range_system(lo, hi, rows, method)
         if self.bounded_:
-            X, self.info_ = solve_bounded(system, self.lower_, self.upper_, self.l1_, tol=self.tol)
+            X, self.info_ = solve_bounded(system, self.lower_, self.upper_, self.l1_, tol=self.tol, warm=warm)
             self.method_ = system.path + "+bounded"
             return X
         return system.solve(_consume=True)[0]
