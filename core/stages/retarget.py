@@ -573,6 +573,9 @@ class Solve(Stage):
 
     #: the settings each capability of a method (:data:`~.methods.CAPABILITIES`) adds to what it reads
     BY_CAPABILITY = {"symmetry": ("symmetry_weight",), "cancel": ("cancel_threshold",)}
+    #: the last result's weights start a method that takes them (``Method.warm``: the bounded
+    #: spacetime solve; the minimiser is unique, so only the time changes)
+    warm_start = True
 
     def relevant(self, cfg):
         """The method's own settings, the per-shape controls over lowest…highest (every method's
@@ -595,7 +598,7 @@ class Solve(Stage):
     def active(self, cfg):
         return not method_of(cfg).dense
 
-    def run(self, inputs, s, progress=None):
+    def run(self, inputs, s, progress=None, warm=None):
         m = METHODS[s.method]
         names = list(inputs["shapes"]["rig"].names)
         ctl = resolve(merge_table(s.controls or {}, default_table(names, s.lower, s.upper)), names)
@@ -605,7 +608,8 @@ class Solve(Stage):
             sym = ctl.symmetry_matrix(s.symmetry_weight)
         zero = ctl.zero() if "active" in m.honours and (~ctl.active).any() else None
         aug = s.with_values(lower=lo, upper=hi, quadratic=sym, zero=zero)
-        out = m.run(inputs, aug)
+        hint = warm["weights"] if m.warm and warm is not None and warm.get("method") == m.name else None
+        out = m.run(inputs, aug, warm=hint) if hint is not None else m.run(inputs, aug)
         W = np.asarray(out["weights"], dtype=np.float64)
         info = dict(out.get("info", {}))
         if "cancel" in m.honours and len(ctl.cancel):
