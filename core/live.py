@@ -144,7 +144,7 @@ class LiveRetargeter:
             D = D * cal["source_scale"][None, :, None]
         B = np.asarray(res["personalize"]["deltas"], dtype=np.float64)
         w = sh.get("weights")
-        if w is not None:  # dense correspondence: each point's rows weighted (as methods._weighted)
+        if w is not None:  # dense correspondence: each point's rows weighted (as methods.weighted_markers)
             r = np.sqrt(w)[:, None]
             B, D = B * r[None], D * r[None]
         self.A_ = D.reshape(C, -1)

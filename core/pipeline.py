@@ -343,6 +343,7 @@ class Pipeline:
         self._lock = threading.RLock()
         self._told: Optional[list] = None  # edit operations heard when the open transaction completes
         self._warned: dict = {}  # the warnings registry of the stages' warnings given again
+        self._last: dict = {}  # stage -> the last result returned: the warm start of a ``warm_start`` stage
         self._owners = {p: st for st in self.stages.values() for p in st.setting_names()}
         self.configure(**settings)
 
@@ -595,9 +596,11 @@ class Pipeline:
                         lo, hi = (ends[i - 1] if i else 0.0), ends[i]
                         progress(lo, f"{name}…")
                         inner = lambda f, m, lo=lo, hi=hi: progress(lo + f * (hi - lo), f"{name}: {m}")  # noqa: E731
+                    # a warm start is a hint (where an iterative solve begins), not an input: it is in no key
+                    hint = {"warm": self._last.get(name)} if stage.warm_start else {}
                     with warnings.catch_warnings(record=True) as caught:
                         warnings.simplefilter("always")
-                        value = stage.run({d: results[d] for d in stage.deps}, self.view(name, cfg), inner)
+                        value = stage.run({d: results[d] for d in stage.deps}, self.view(name, cfg), inner, **hint)
                     _freeze(value)
                     return value, tuple((w.message, w.category, w.filename, w.lineno) for w in caught)
 
@@ -614,6 +617,7 @@ class Pipeline:
                     self.runs[name] += 1
                 results[name] = value
                 self.keys[name] = k
+                self._last[name] = value
             if progress:
                 progress(1.0, "done")
             return results

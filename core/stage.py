@@ -17,7 +17,10 @@ dashboard widgets, CLI flags and the shot's ``settings[stage]``), and the class 
   falls back to when no layout is chosen): the key hashes these, and the shot records them;
 * ``run(inputs, s, progress)`` — the pure function: ``inputs[dep]`` are the upstream results,
   ``s`` a :class:`SettingsView` of exactly the settings the key hashes (``relevant(cfg)``, file
-  settings as the paths ``file_paths`` reads), taken when the key was computed.
+  settings as the paths ``file_paths`` reads), taken when the key was computed;
+* ``warm_start`` — ``run`` also takes ``warm``, the pipeline's last result of the stage (None at
+  first): a hint where an iterative solve starts, never part of the key, so the result must not
+  depend on it (e.g. the solve of a unique minimiser, :class:`core.stages.retarget.Solve`).
 
 **The contract.** What a stage's result depends on is declared once, and the declaration is both
 the cache key and the only door into the settings: reading a setting ``relevant`` did not name
@@ -104,6 +107,9 @@ class Stage(param.Parameterized):
     #: the result is worth keeping across processes (a rig pair's registration: tens of seconds,
     #: the same for every take): the pipeline's cache keeps it on disk too
     persist: ClassVar[bool] = False
+    #: ``run`` takes ``warm=`` (see the module docstring): the last result of this stage the
+    #: pipeline returned, a starting point that must not change the result
+    warm_start: ClassVar[bool] = False
     #: its share of a run's progress (and so of the time-left estimate): roughly the seconds it
     #: takes on the dense-transfer benchmark (docs/transfer.md), relative; 1 for a quick stage
     cost: ClassVar[float] = 1.0

@@ -478,3 +478,55 @@ def test_bounded_solve_runs_with_one_blas_thread(monkeypatch):
         after = blas_threads()
     assert outside == after == [2] and seen == [[1]]
     assert W.min() >= 0.0 and W.max() <= 1.0
+
+
+# -- warm start: one result however it is reached -------------------------------------------
+def _warm_vs_cold(B, S, kw, kw_before, **extra):
+    """Cold solve of ``kw`` and one warm-started from the solution of ``kw_before``."""
+    prev = SpacetimeSolver(B, S, **kw_before, **extra).solve()
+    cold_s = SpacetimeSolver(B, S, **kw, **extra)
+    cold = cold_s.solve()
+    warm_s = SpacetimeSolver(B, S, **kw, **extra)
+    warm = warm_s.solve(warm=prev)
+    check_solution(warm_s, warm)
+    return cold, warm, cold_s.info_, warm_s.info_
+
+
+@pytest.mark.parametrize("name", ["box", "box_l1", "l1_across_zero", "box_known", "box_mask"])
+def test_warm_start_gives_the_cold_result(name):
+    B, S, kw = _setup(name)
+    before = dict(kw, alpha=kw.get("alpha", 0.01) * 1.5)
+    cold, warm, ic, iw = _warm_vs_cold(B, S, kw, before)
+    assert "warm" in iw and "warm" not in ic
+    assert np.abs(warm - cold).max() <= 1e-9
+
+
+def test_warm_start_on_the_sample_is_the_cold_result_in_fewer_steps(rocketbox_problem):
+    B, S, valid, names = rocketbox_problem
+    S = S[:1000]
+    kw = dict(ridge=1e-3, lower=0.0, upper=1.0)
+    cold, warm, ic, iw = _warm_vs_cold(B, S, dict(kw, alpha=0.0105), dict(kw, alpha=0.01))
+    assert iw["warm"] and np.abs(warm - cold).max() <= 1e-9
+    assert iw["pdas"] < ic["pdas"]  # the neighbouring setting's state is nearly the answer's
+
+
+def test_a_bad_or_foreign_hint_changes_nothing():
+    B, S, kw = _setup("box")
+    s = SpacetimeSolver(B, S, **kw)
+    cold = s.solve()
+    # a hint of another shape is ignored; one far from the answer either settles on the same
+    # minimiser or is dropped for the cold start
+    for hint in (np.zeros((3, 3)), np.full(cold.shape, np.nan), np.ones_like(cold), -cold):
+        W = SpacetimeSolver(B, S, **kw).solve(warm=hint)
+        assert np.abs(W - cold).max() <= 1e-9
+
+
+def test_a_hint_that_does_not_settle_leaves_the_cold_run_as_it_was():
+    B, S, kw = _setup("box_l1")
+    s = SpacetimeSolver(B, S, **kw)
+    system = s.range_system()
+    args = (system, s.lower_, s.upper_, s.l1_)
+    cold, ic = solve_bounded(*args, max_iter=1)  # one active-set step: the run goes on with ADMM
+    W, iw = solve_bounded(*args, max_iter=1, warm=np.ones((s.T, s.K)))
+    assert iw.pop("warm") is False
+    assert np.array_equal(W, cold) and iw == ic

@@ -219,10 +219,10 @@ def test_a_run_reads_one_snapshot_of_the_settings(pipe):
     solve = pipe.stages["solve"]
     original = type(solve).run
 
-    def spy(self, inputs, s, progress=None):
+    def spy(self, inputs, s, progress=None, **hint):
         pipe.configure(upper=0.5)  # a widget moved during the solve
         seen["upper"] = s.upper
-        return original(self, inputs, s, progress)
+        return original(self, inputs, s, progress, **hint)
 
     pipe.configure(method="bounded", upper=0.9)
     type(solve).run = spy
@@ -338,3 +338,46 @@ def test_lowest_and_highest_weight_share_one_scale():
     assert p.lower.softbounds == p.upper.softbounds
     lo, hi = p.lower.softbounds
     assert lo < p.lower.default < p.upper.default < hi
+
+
+def test_alpha_change_reuses_the_data_gram_and_gives_a_fresh_pipelines_result(pipe):
+    """prior_pf's products with the whole take (the ``gram`` stage) depend on the take and the rig,
+    not on alpha: a change of alpha re-solves without them, to the numbers a fresh pipeline gives."""
+    pipe.configure(method="prior_pf", ridge=1e-3)
+    pipe.run()
+    before = dict(pipe.runs)
+    pipe.configure(alpha=0.2)
+    W = pipe.results(["solve"])["solve"]["weights"]
+    assert "gram" not in _ran(pipe, before) and "solve" in _ran(pipe, before)
+    fresh = Pipeline(cache=StageCache(disk=False), first_frame=0, last_frame=119, method="prior_pf", ridge=1e-3,
+                     alpha=0.2, **FILES)
+    assert np.array_equal(W, fresh.results(["solve"])["solve"]["weights"])
+
+
+def test_a_spacetime_change_starts_from_the_last_result_and_gives_a_fresh_pipelines_numbers(monkeypatch):
+    """The solve stage's warm start (its last result) is a hint: in no key, and the result is the
+    one a fresh pipeline computes cold (issue 30 item 3)."""
+    import core.solvers.spacetime as st
+
+    runs = []
+
+    def spy(*args, **kw):
+        W, info = solve_bounded(*args, **kw)
+        runs.append(info)
+        return W, info
+
+    solve_bounded = st.solve_bounded
+    monkeypatch.setattr(st, "solve_bounded", spy)
+    kw = dict(first_frame=0, last_frame=119, method="spacetime", **FILES)
+    pipe = Pipeline(cache=StageCache(disk=False), **kw)
+    pipe.results(["solve"])
+    pipe.configure(alpha=0.0105)
+    got = pipe.results(["solve"])["solve"]
+    assert runs[-1]["warm"] is True
+    fresh = Pipeline(cache=StageCache(disk=False), alpha=0.0105, **kw)
+    assert fresh.key("solve") == pipe.key("solve")
+    want = fresh.results(["solve"])["solve"]
+    assert "warm" not in runs[-1]
+    assert np.abs(got["weights"] - want["weights"]).max() <= 1e-9
+    g, w = got["info"]["bounded"], want["info"]["bounded"]
+    assert (g["active"], g["converged"]) == (w["active"], w["converged"]) and abs(g["kkt"] - w["kkt"]) <= 1e-12

@@ -86,8 +86,34 @@ def no_const(B, S, valid=None, rcond: float = 1e-7) -> np.ndarray:
     return W
 
 
+def data_gram(B, S, valid=None) -> dict:
+    """The per-frame data term ``||B w_t - s_t||^2`` in weight space on the frames with every marker:
+    ``B^T B`` (K, K) and ``s_t^T B`` of those frames, with ``sigma_max(B)^2``.
+
+    These are what :func:`prior_pf` spends most of its time on for a long take at many points
+    (1,000 frames x 1,000 dense points: two products with the (T, 3M) take and an SVD of B), and
+    they do not depend on alpha, the ridge or the bounds: the pipeline computes them once per take
+    and rig (the ``gram`` stage) and :func:`prior_pf` takes them as ``gram`` (the same products, so
+    the same numbers).
+
+    Parameters
+    ----------
+    B, S, valid
+        As :func:`no_const`.
+
+    Returns
+    -------
+    dict: ``frames`` (F,) int, the frames with every marker; ``H`` (K, K) ``B^T B``; ``rhs`` (F, K)
+    ``S[frames] B``; ``smax2`` float ``sigma_max(B)^2``.
+    """
+    Bm, Sz, valid = _setup(B, S, valid)
+    full = np.flatnonzero(valid.all(1))
+    Sv = Sz if len(full) == len(Sz) else Sz[full]
+    return {"frames": full, "H": Bm.T @ Bm, "rhs": Sv @ Bm, "smax2": _smax2(Bm)}
+
+
 def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str = "cm", ridge: float = 0.0,
-             quadratic=None, zero=None) -> np.ndarray:
+             quadratic=None, zero=None, gram=None) -> np.ndarray:
     """"Prior PF" (Seol et al. 2012, §7): ``min_w ||B w_t - s_t||^2 + alpha E_prior(w_t)`` per frame.
 
     Normal equations ``(B_v^T B_v + alpha P) w_t = B_v^T s_t + alpha q`` (``B_v``: valid rows),
@@ -110,6 +136,9 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
     zero : (K,) or (T, K) bool, optional
         Weights held at 0: their rows and columns leave the frame's normal equations (one
         factorisation per mask pattern and zero pattern).
+    gram : dict, optional
+        :func:`data_gram` of the same ``B``, ``S`` and ``valid``: its products are used for the
+        frames with every marker instead of being computed again.
 
     Returns
     -------
@@ -124,20 +153,24 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
         P, q = np.zeros((K, K)), np.zeros(K)
     W = np.zeros((len(Sz), K))
     # sigma_max(B)^2 (an SVD) only scales the relative ridge and coupling: not computed without them
-    smax2 = _smax2(Bm) if ridge > 0 or quadratic is not None else 0.0
+    smax2 = (gram["smax2"] if gram is not None else _smax2(Bm)) if ridge > 0 or quadratic is not None else 0.0
     rho = ridge * smax2
     Qs = as_coupling(quadratic, K, smax2, "prior_pf")
     zero = as_zero_mask(zero, len(Sz), K, "prior_pf")
     for pat, frames in _groups(valid):
-        if pat.all():  # every marker: no copies of the take (with 1,000 dense points, 2 x 24 MB per solve)
-            Bv, Sv = Bm, (Sz if len(frames) == len(Sz) else Sz[frames])
+        if pat.all() and gram is not None and np.array_equal(gram["frames"], frames):
+            H0, S0 = gram["H"], gram["rhs"]
         else:
-            rows = np.repeat(pat, 3)
-            Bv, Sv = Bm[rows], Sz[frames][:, rows]
-        H = Bv.T @ Bv + a * P + rho * np.eye(K)
+            if pat.all():  # every marker: no copies of the take (with 1,000 dense points, 2 x 24 MB per solve)
+                Bv, Sv = Bm, (Sz if len(frames) == len(Sz) else Sz[frames])
+            else:
+                rows = np.repeat(pat, 3)
+                Bv, Sv = Bm[rows], Sz[frames][:, rows]
+            H0, S0 = Bv.T @ Bv, Sv @ Bv
+        H = H0 + a * P + rho * np.eye(K)
         if Qs is not None:
             H = H + Qs
-        rhs = Sv @ Bv + a * q
+        rhs = S0 + a * q
         if zero is None:
             W[frames] = _spd_solve(H, rhs)
             continue

@@ -180,6 +180,10 @@ def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
 def _prox_state(y, c, lo, hi, lam):
     """Next state from the proximal point ``p = clip(soft(y, lam / c), lo, hi)``:
     (fixed (n, K) bool, values (n, K), sign (n, K) of the free entries)."""
+    if not lam.any():  # no L1: soft(y, 0) = y (+ 0.0 turns -0.0 into 0.0, as sign(y) |y| does)
+        p = np.clip(y + 0.0, lo, hi)
+        fixed = (p == lo) | (p == hi)
+        return fixed, np.where(fixed, p, 0.0), np.where(fixed, 0.0, np.sign(p))
     t = lam / c
     p = np.clip(np.sign(y) * np.maximum(np.abs(y) - t, 0.0), lo, hi)
     fixed = (p == lo) | (p == hi) | ((lam > 0) & (p == 0))
@@ -188,7 +192,7 @@ def _prox_state(y, c, lo, hi, lam):
 
 
 def solve_bounded(system, lower, upper, l1, tol: float = KKT_RTOL, max_iter: int = 30,
-                  max_solves: int = 2000):
+                  max_solves: int = 2000, warm=None):
     """Minimise a range's spacetime energy + ``l1 ||W||_1`` with ``lower <= W <= upper``.
 
     Primal-dual active set with :meth:`RangeSystem.solve` as the exact inner solve, restarted
@@ -209,11 +213,20 @@ def solve_bounded(system, lower, upper, l1, tol: float = KKT_RTOL, max_iter: int
         row do not halve its fewest state changes. 0: ADMM and no active-set step.
     max_solves : int
         Inner solves (active-set and ADMM together) before giving up with a warning.
+    warm : (n, K) float, optional
+        A previous solution of a similar problem (the same range after a setting change): the
+        first active-set run starts from its state instead of the unbounded minimiser's. Only
+        the start changes: the problem is strictly convex, so its minimiser is unique and an
+        active-set run that settles ends on it, to rounding (the same final state gives the same
+        numbers); a run that does not settle is dropped and the cold start follows. A hint of
+        another shape, or with NaN, is ignored. On the sample (1,000 frames, 165 shapes) a step
+        of alpha by 5 % takes 4 steps instead of 9; a jump by 2x or more gains little.
 
     Returns
     -------
     W : (n, K) float, inside the bounds, known entries exact
-    info : dict with ``iterations`` (inner solves), ``pdas`` (active-set steps), ``admm``
+    info : dict with ``warm`` (with a hint: whether its run settled), ``iterations`` (inner
+        solves), ``pdas`` (active-set steps), ``admm``
         (ADMM iterations), ``rho_changes``, ``work_pdas``/``work_admm`` (rough flops spent in each),
         ``active`` (entries on a bound or at an L1 zero, known ones excluded), ``kkt`` (final relative KKT residual, literal gradient), ``converged``
     """
@@ -221,8 +234,12 @@ def solve_bounded(system, lower, upper, l1, tol: float = KKT_RTOL, max_iter: int
     # which OpenBLAS's threads slow down about tenfold (the capacitance solve of 1,000 frames x 165
     # shapes: 2.1 s per step with the default threads on 2 cores, 0.2 s with one); the CLI and
     # the server set OPENBLAS_NUM_THREADS=1 themselves, a script or notebook need not
+    if warm is not None:
+        warm = np.asarray(warm, dtype=np.float64)
+        if warm.shape != (system.n, system.K) or not np.isfinite(warm).all():
+            warm = None  # a hint of another shape (another range, other shapes): not used
     with _blas_controller().limit(limits=1, user_api="blas"):
-        return _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves)
+        return _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm)
 
 
 @functools.lru_cache(maxsize=1)
@@ -233,7 +250,15 @@ def _blas_controller():
     return ThreadpoolController()
 
 
-def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
+def _state_key(fixed, values, sign) -> int:
+    """A hash of an active-set state that is equal exactly when the states are: the fixed mask
+    packed to bits, the values on it (``values`` is 0 elsewhere), the signs as small integers
+    (NaN apart) -- a tenth of the bytes of the three (n, K) arrays."""
+    s8 = np.where(np.isnan(sign), 2, sign).astype(np.int8)
+    return hash((np.packbits(fixed).tobytes(), values[fixed].tobytes(), s8.tobytes()))
+
+
+def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=None):
     n, K = system.n, system.K
     lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n, K))
     hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (n, K))
@@ -265,7 +290,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
         seen, fewest, stall = set(), np.inf, 0
         X = g = None
         for _ in range(max_iter):
-            key = hash((fixed.tobytes(), values.tobytes(), sign.tobytes()))
+            key = _state_key(fixed, values, sign)
             if key in seen or info["iterations"] >= max_solves:
                 break  # a cycle: PDAS is not monotone
             seen.add(key)
@@ -291,6 +316,16 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
             fixed, values, sign = nf, nv, ns
         return False, X, g
 
+    if warm is not None and max_iter > 0:
+        # an active-set run from the state of a previous solution (a neighbouring setting): the
+        # minimiser is unique, so where this run ends (on an exact KKT point) the cold start ends too
+        cold = dict(info)
+        done, X1, g1 = pdas(state_of(warm))
+        if done:
+            info["warm"] = True
+            return _finish(system, X1, lo, hi, lam, known, info, tol, True)
+        info = cold  # not settled: the cold start below, as if no hint had come
+        info["warm"] = False
     # start: the unbounded minimiser (no L1), soft-thresholded and clipped
     X, g = system.solve()
     info["iterations"] += 1
@@ -304,6 +339,13 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
     if not done:
         done, X, g = _admm_restarts(system, X, g, lo, hi, lam, c, known, info, max_solves, pdas, state_of,
                                     residual, small)
+    return _finish(system, X, lo, hi, lam, known, info, tol, done)
+
+
+def _finish(system, X, lo, hi, lam, known, info, tol, done):
+    """The answer of a run that ended on ``X``: clipped, known entries exact, its KKT residual
+    measured with the literal gradient; warns when it did not converge."""
+    n, K = system.n, system.K
     X = np.clip(X, lo, hi)
     X[known] = system.values[known]
     gl = system.gradient(X)
@@ -318,7 +360,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves):
             f"> tol {tol:.0e} after {info['iterations']} inner solves ({K} shapes: shapes the markers cannot tell "
             "apart make the active-set method cycle; solving on fewer shapes, e.g. the ARKit ones, converges in "
             "a few steps)",
-            RuntimeWarning, stacklevel=3,
+            RuntimeWarning, stacklevel=4,
         )
     return X, info
 

@@ -91,6 +91,7 @@ from typing import Callable, NamedTuple, Optional, Sequence
 
 import numpy as np
 import scipy.linalg
+from scipy.linalg.blas import dgemm
 from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs, dtrtrs
 
 from core.prior import PCAPrior, alpha_for_units, prior_quadratic
@@ -416,9 +417,10 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         k = np.arange(bs - (P - p), bs)
         Cd[-1, k, k] = 1.0
     a = Psi * Phi
-    Wa = a[:, :, None] * a[:, None, :]  # transitions of the accumulated W
-    Wf = Phi[:, :, None] * Phi[:, None, :]
-    Wv = np.zeros((K, K + 1))  # [W | v]: the recursion's state, propagated in one product
+    # [W | v]: the recursion's state, propagated in one product; Fortran order, so that BLAS adds
+    # each block's N N^T to it in place
+    Wv = np.zeros((K, K + 1), order="F")
+    Np = np.empty((bs, K + 1), order="F")
     Ls, Ns = [], []
     rhs_i = np.empty((bs, K + 1), order="F")
     for i in range(nb):
@@ -435,11 +437,12 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         Ls.append(Lii)
         Ns.append(sol)
         if i < nb - 1:
-            G = sol[:, :K].T @ sol  # [N N^T | N y]
-            Wv[:, :K] *= Wa[i]
-            Wv[:, :K] += G[:, :K] * Wf[i]
-            Wv[:, K] *= a[i]
-            Wv[:, K] += G[:, K] * Phi[i]
+            # W <- Phi (Psi W Psi + N N^T) Phi = a W a + (N Phi)(N Phi)^T, v <- a v + Phi N y
+            Wv *= a[i][:, None]
+            Wv[:, :K] *= a[i]
+            np.multiply(sol[:, :K], Phi[i], out=Np[:, :K])
+            Np[:, K] = sol[:, K]
+            Wv = dgemm(1.0, Np[:, :K], Np, beta=1.0, c=Wv, trans_a=1, overwrite_c=1)
     lam = np.empty((nb, bs))
     z = np.zeros(K)
     for i in range(nb - 1, -1, -1):
@@ -908,7 +911,7 @@ class SpacetimeSolver:
             Kn[t] = w
         return Kn
 
-    def solve(self, method: Optional[str] = None, zero=None) -> np.ndarray:
+    def solve(self, method: Optional[str] = None, zero=None, warm=None) -> np.ndarray:
         """Weights (T, K) minimising the energy subject to ``known_``.
 
         Parameters
@@ -920,6 +923,11 @@ class SpacetimeSolver:
             poses, so the fast path's capacitance system takes them exactly); the solver's own
             known weights win where both set an entry. E.g. the weaker shape of each cancel pair
             (:func:`core.controls.cancel_pairs`) or the off shapes of an active set.
+        warm : (T, K) float, optional
+            With bounds or L1: a previous solution of a similar problem (e.g. before a setting
+            change), where the bounded solver's active-set run starts. The result does not
+            depend on it (the minimiser is unique; see
+            :func:`~core.solvers.bounded_spacetime.solve_bounded`), only the time.
         """
         rows = dict(self._known)
         if zero is not None:
@@ -936,7 +944,7 @@ class SpacetimeSolver:
                 row.setflags(write=False)
                 rows[int(t)] = row
             rows = {t: rows[t] for t in sorted(rows)}
-        return self._solve_range(0, self.T - 1, rows, method or self.method)
+        return self._solve_range(0, self.T - 1, rows, method or self.method, warm)
 
     def edit(self, W, frame=None, weights=None, window=None, shapes=None, edits=None,
              method: Optional[str] = None) -> np.ndarray:
@@ -1181,7 +1189,7 @@ class SpacetimeSolver:
             raise ValueError(f"{what}: repeated shapes")
         return np.asarray(idx, dtype=np.int64)
 
-    def _solve_range(self, lo: int, hi: int, rows: dict, method: str) -> np.ndarray:
+    def _solve_range(self, lo: int, hi: int, rows: dict, method: str, warm=None) -> np.ndarray:
         """Solve frames lo..hi (inclusive); ``rows`` = {frame - lo: (K,) known row, NaN free}.
 
         Only the energy terms inside the range are used, which is exact when frames ``lo``
@@ -1199,7 +1207,7 @@ class SpacetimeSolver:
             return np.array([rows[t] for t in range(n)])
         system = self.range_system(lo, hi, rows, method)
         if self.bounded_:
-            X, self.info_ = solve_bounded(system, self.lower_, self.upper_, self.l1_, tol=self.tol)
+            X, self.info_ = solve_bounded(system, self.lower_, self.upper_, self.l1_, tol=self.tol, warm=warm)
             self.method_ = system.path + "+bounded"
             return X
         return system.solve(_consume=True)[0]

@@ -68,12 +68,17 @@ class Method:
     #: the method chooses its own configuration from the pair and the take (``auto``): the stages
     #: before the solve derive their settings for it (``Stage.derived``: the range-of-motion match)
     chooses: bool = False
+    #: ``run`` takes ``warm=``: the (T, K) weights of the solve stage's last result, where an
+    #: iterative solve may start (the result must not depend on it)
+    warm: bool = False
 
 
-def solve_method(name: str, params=(), needs=(), dense: bool = False, label: str = "", honours=(), chooses: bool = False):
+def solve_method(name: str, params=(), needs=(), dense: bool = False, label: str = "", honours=(), chooses: bool = False,
+                 warm: bool = False):
     """Decorator: register ``fn(inputs, s) -> {"weights", "info", "edit"}`` as method ``name``;
     ``label`` is what a person reads in the method list (plain words first, the paper after);
-    ``honours`` names the :data:`CAPABILITIES` it implements."""
+    ``honours`` names the :data:`CAPABILITIES` it implements; ``warm``: ``fn`` also takes ``warm=``
+    (see :attr:`Method.warm`)."""
 
     def deco(fn):
         if name in METHODS:
@@ -82,7 +87,7 @@ def solve_method(name: str, params=(), needs=(), dense: bool = False, label: str
         if unknown:
             raise ValueError(f"solve method {name!r}: unknown capabilities {sorted(unknown)}; known: {sorted(CAPABILITIES)}")
         METHODS[name] = Method(name, fn, tuple(params), tuple(needs), dense, (fn.__doc__ or "").strip(), label or name,
-                               frozenset(honours), chooses)
+                               frozenset(honours), chooses, warm)
         return fn
 
     return deco
@@ -143,7 +148,7 @@ def _marker_weights(inputs):
     return inputs["shapes"].get("weights")
 
 
-def _weighted(inputs):
+def weighted_markers(inputs):
     """``_markers`` with each point's rows scaled by the square root of its weight: the weighted
     least-squares data term ``Σ_m w_m ||B_m x - s_m||²`` for the solvers that take plain rows."""
     B, S, valid = _markers(inputs)
@@ -288,9 +293,9 @@ def example_poses(inputs, items) -> dict:
 
 
 @solve_method("auto", params=("example_poses",), needs=("prior",),
-              honours=("bounds", "active", "symmetry", "cancel", "filter"), chooses=True,
+              honours=("bounds", "active", "symmetry", "cancel", "filter"), chooses=True, warm=True,
               label="auto — the best this pair and take allow (says what it chose)")
-def _auto(inputs, s):
+def _auto(inputs, s, warm=None):
     """The default: looks at the pair and the take and runs what serves best (:func:`auto_choice`),
     then learns from the example poses, if any, a correspondence for the whole take
     (:func:`core.examples.learn_from_poses`: a linear map of the solution plus a pose-space RBF of
@@ -298,7 +303,7 @@ def _auto(inputs, s):
     and why (``info["auto"]``)."""
     poses = example_poses(inputs, s.example_poses) if s.example_poses else {}
     run, chosen, sentence = auto_choice(inputs, s.zero, posed=bool(poses))
-    out = run(inputs, s.with_values(**chosen))
+    out = run(inputs, s.with_values(**chosen), **({"warm": warm} if run is _spacetime else {}))
     if poses:
         out["weights"] = learn_from_poses(np.asarray(out["weights"]), pose_features(inputs), poses,
                                           lower=s.lower, upper=s.upper)
@@ -314,7 +319,7 @@ def _auto(inputs, s):
 def _lsq(inputs, s):
     """Per-frame least squares, unbounded (a diagnostic: no regulariser keeps it in range)."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
     return {"weights": baselines.no_const(B, S, valid), "edit": edit_options(s, alpha=0.01)}
 
 
@@ -323,7 +328,7 @@ def _lsq(inputs, s):
 def _bounded(inputs, s):
     """Per-frame least squares with ``lower <= w <= upper`` (batched exact active set)."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
     return {"weights": baselines.range_pf(B, S, s.lower, s.upper, valid, ridge=s.ridge, quadratic=s.quadratic, zero=s.zero),
             "edit": edit_options(s, alpha=0.01, lower=s.lower, upper=s.upper)}
 
@@ -332,25 +337,28 @@ def _bounded(inputs, s):
 def _range_pf(inputs, s):
     """Seol 2012 §7 Range PF: per frame, -0.5 <= w <= 1.5."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
     return {"weights": baselines.range_pf(B, S, valid=valid, ridge=s.ridge, quadratic=s.quadratic, zero=s.zero),
             "edit": edit_options(s, alpha=0.01, lower=-0.5, upper=1.5)}
 
 
 def _prior_pf_frames(inputs, s, frames):
-    """Prior PF (the weighted data term, the unweighted markers' prior) on a few frames."""
+    """Prior PF (the weighted data term, the unweighted markers' prior) on a few frames (all of
+    them: with the ``gram`` stage's products of the data term, when it ran)."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
+    gram = inputs.get("gram") if isinstance(frames, slice) and frames == slice(None) else None
     prior = _prior(inputs)
     if _marker_weights(inputs) is not None and prior is not None:
         B0 = _markers(inputs)[0]
         P, q, _ = prior_quadratic(prior, flatten(B0).T, len(B0))
         prior = (P, q)
     zero = s.zero if s.zero is None or np.ndim(s.zero) == 1 else np.asarray(s.zero)[frames]
-    return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge, quadratic=s.quadratic, zero=zero)
+    return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge, quadratic=s.quadratic, zero=zero,
+                              gram=gram)
 
 
-@solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior",), honours=("active", "symmetry", "cancel", "filter"),
+@solve_method("prior_pf", params=("alpha", "ridge"), needs=("prior", "gram"), honours=("active", "symmetry", "cancel", "filter"),
               label="prior_pf — per frame with the rig's prior (Seol §7)")
 def _prior_pf(inputs, s):
     """Seol 2012 §7 Prior PF: per frame with the PCA prior."""
@@ -359,8 +367,8 @@ def _prior_pf(inputs, s):
 
 @solve_method("spacetime", params=("alpha", "beta", "boundary", "ridge", "spacetime_bounds", "lower", "upper", "l1",
                                    "name_weight"), needs=("prior",), honours=("bounds", "active", "symmetry", "cancel"),
-              label='spacetime — the whole take at once (Seol 2012)')
-def _spacetime(inputs, s):
+              warm=True, label='spacetime — the whole take at once (Seol 2012)')
+def _spacetime(inputs, s, warm=None):
     """Seol 2012 movement matching + PCA prior (+ Sobolev), the whole take at once; by default
     within ``lower <= w <= upper`` (exact bounded solve), optionally with L1 sparsity and a pull
     towards the namesake source curves (``name_weight``)."""
@@ -380,10 +388,12 @@ def _spacetime(inputs, s):
                              ridge=s.ridge if s.ridge > 0 else "auto", lower=lo, upper=hi, l1=s.l1, marker_weights=mw,
                              name_target=named, name_weight=s.name_weight if named is not None else 0.0,
                              quadratic=s.quadratic)
-    W = solver.solve(zero=s.zero)
+    W = solver.solve(zero=s.zero, warm=warm)  # the bounded solve starts there (same result)
     info = {"path": solver.method_}
     if getattr(solver, "info_", None):
-        info["bounded"] = dict(solver.info_)
+        # the answer's certificate; how it was reached (active-set steps, iterations, the warm
+        # start) depends on the stage's last result and stays with the solver (its info_)
+        info["bounded"] = {k: solver.info_[k] for k in ("kkt", "active", "converged")}
     return {"weights": W, "info": info,
             "edit": edit_options(s, lower=lo, upper=hi, l1=s.l1, name_weight=s.name_weight if named is not None else 0.0,
                                  beta=s.beta)}
@@ -423,7 +433,7 @@ def _geometric(inputs, s):
     """Ribera 2017: cotangent-Laplacian (or PCA / L2) prior + L1 sparsity, within ``lower <= w <= upper``
     (exact batched box QP; ``GeometricSolver(lower=None, upper=None)`` is the paper's unbounded IRLS)."""
 
-    B, S, valid = _weighted(inputs)
+    B, S, valid = weighted_markers(inputs)
     kw = {"rig": inputs["shapes"]["rig"]} if s.geometric_prior == "geometric" else {}
     if s.geometric_prior == "pca":
         B0 = _markers(inputs)[0]  # the prior is the unweighted markers'

@@ -38,10 +38,11 @@ from ..progress import report
 from ..retarget import common_markers, source_marker_names, source_markers, target_markers
 from ..segment import marker_weights, segment
 from ..shot import file_hash
+from ..solvers.baselines import data_gram
 from ..solvers.local import masks_at
 from ..solvers.spacetime import PoseEdit, SpacetimeSolver
 from ..stage import Stage, register
-from .methods import AUTO_MOTION_SCALE, METHODS, method_of, named_target
+from .methods import AUTO_MOTION_SCALE, METHODS, method_of, named_target, weighted_markers
 
 #: a shape whose largest marker displacement is below this fraction of the largest shape's
 #: is invisible to the markers
@@ -492,13 +493,29 @@ class Prior(Stage):
         return {"prior": PCAPrior().fit(deltas, subset=subset), "subset": subset}
 
 
+@register("gram")
+class Gram(Stage):
+    """The per-frame data term in weight space (:func:`core.solvers.baselines.data_gram` of the
+    weighted markers): it depends on the take and the rig, not on the solve's settings, so a
+    setting change re-solves without the products with the whole take (1,000 frames x 1,000
+    dense points: most of a prior_pf solve). For the methods that declare it (``needs``)."""
+
+    deps = ("calibrate", "personalize", "shapes")
+
+    def active(self, cfg):
+        return "gram" in method_of(cfg).needs
+
+    def run(self, inputs, s, progress=None):
+        return data_gram(*weighted_markers(inputs))
+
+
 @register("solve")
 class Solve(Stage):
     """The retargeting solver and its term weights. Each method is registered in
     :mod:`core.stages.methods` with the settings it reads and the stages it needs."""
 
     deps = ("load", "correspond", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior",
-            "vocabulary")
+            "vocabulary", "gram")
     group, title = "solve", "Solver"
     method = param.Selector(label='Method', default="auto", objects={m.label: n for n, m in METHODS.items()}, doc=(
         "auto: what serves this pair and take best, said in one sentence (the default); lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
@@ -556,6 +573,9 @@ class Solve(Stage):
 
     #: the settings each capability of a method (:data:`~.methods.CAPABILITIES`) adds to what it reads
     BY_CAPABILITY = {"symmetry": ("symmetry_weight",), "cancel": ("cancel_threshold",)}
+    #: the last result's weights start a method that takes them (``Method.warm``: the bounded
+    #: spacetime solve; the minimiser is unique, so only the time changes)
+    warm_start = True
 
     def relevant(self, cfg):
         """The method's own settings, the per-shape controls over lowest…highest (every method's
@@ -578,7 +598,7 @@ class Solve(Stage):
     def active(self, cfg):
         return not method_of(cfg).dense
 
-    def run(self, inputs, s, progress=None):
+    def run(self, inputs, s, progress=None, warm=None):
         m = METHODS[s.method]
         names = list(inputs["shapes"]["rig"].names)
         ctl = resolve(merge_table(s.controls or {}, default_table(names, s.lower, s.upper)), names)
@@ -588,7 +608,8 @@ class Solve(Stage):
             sym = ctl.symmetry_matrix(s.symmetry_weight)
         zero = ctl.zero() if "active" in m.honours and (~ctl.active).any() else None
         aug = s.with_values(lower=lo, upper=hi, quadratic=sym, zero=zero)
-        out = m.run(inputs, aug)
+        hint = warm["weights"] if m.warm and warm is not None and warm.get("method") == m.name else None
+        out = m.run(inputs, aug, warm=hint) if hint is not None else m.run(inputs, aug)
         W = np.asarray(out["weights"], dtype=np.float64)
         info = dict(out.get("info", {}))
         if "cancel" in m.honours and len(ctl.cancel):
