@@ -81,7 +81,7 @@ __all__ = ["solve_box_sequence", "solve_box_frame"]
 EPS_U = 1e-11  # primal tolerance in unit-box coordinates
 EPS_L = 1e-11  # dual tolerance relative to mean diag H + max |f|
 _FREE, _LOWER, _UPPER = 0, 1, 2  # working-set codes of the compiled kernel
-_SEGMENTS, _FACTORISATIONS, _REPAIRS, _FALLBACK = range(4)  # counters of the compiled kernel
+_SEGMENTS, _FACTORISATIONS, _REPAIRS, _FALLBACK, _KEPT = range(5)  # counters of the compiled kernel
 
 
 def _hmul(H, h, X):
@@ -186,23 +186,22 @@ def solve_box_sequence(H, f, idx=None, refresh: int = 64, return_info: bool = Fa
     idx = np.asarray(idx, dtype=np.int64).reshape(T, -1) if np.ndim(idx) else np.full((T, C), int(idx))
     if idx.shape != (T, C) or (idx.size and (idx.min() < 0 or idx.max() >= len(H))):
         raise ValueError(f"idx: expected ({T}, {C}) ints in [0, {len(H)}), got shape {np.shape(idx)}")
-    stats = np.zeros(4, np.int64)
+    stats = np.zeros(5, np.int64)
     U = np.zeros((T, C, K))
     if T and C and K:
-        eps_all = EPS_L * (np.einsum("pii->p", H)[idx] / K + np.abs(f).max(2))  # (T, C)
+        scale = np.einsum("pii->p", H) / K
         start = np.zeros((C, K)) if warm is None else np.broadcast_to(np.asarray(warm, dtype=np.float64), (C, K))
         flag = np.zeros((T, C), np.bool_)
-        _solve_chains(np.ascontiguousarray(H), np.ascontiguousarray(f), np.ascontiguousarray(idx), eps_all,
+        _solve_chains(np.ascontiguousarray(H), np.ascontiguousarray(f), np.ascontiguousarray(idx), scale,
                       np.ascontiguousarray(start), warm is not None, max(1, int(refresh)), U, flag, stats)
         if flag.any():  # the exact fallback, from the working set the kernel ended with
             tt, cc = np.nonzero(flag)
-            ub = U[tt, cc]
-            U[tt, cc] = _finish(H, f[tt, cc], idx[tt, cc], ub <= 0.0, ub >= 1.0, eps_all[tt, cc])
-    U = np.clip(U, 0.0, 1.0)
+            ub, ff = U[tt, cc], f[tt, cc]
+            U[tt, cc] = _finish(H, ff, idx[tt, cc], ub <= 0.0, ub >= 1.0, EPS_L * (scale[idx[tt, cc]] + np.abs(ff).max(1)))
     if squeeze:
         U = U[:, 0]
     info = dict(segments=int(stats[_SEGMENTS]), factorisations=int(stats[_FACTORISATIONS]),
-                repairs=int(stats[_REPAIRS]), fallback=int(stats[_FALLBACK]))
+                repairs=int(stats[_REPAIRS]), fallback=int(stats[_FALLBACK]), kept=int(stats[_KEPT]))
     return (U, info) if return_info else U
 
 
@@ -383,16 +382,17 @@ def _certify(Hh, ft, el, st, F, n, R, u, g, x, fresh):
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve_chains(H, f, idx, eps, warm, use_warm, refresh, U, flag, stats):
+def _solve_chains(H, f, idx, scale, warm, use_warm, refresh, U, flag, stats):
     """Every chain c, frame by frame: the homotopy from the previous frame's optimum (module
-    docstring), certification and repair at tau = 1. Writes ``U`` (T, C, K), ``flag`` (T, C)
-    (frames left to the exact fallback) and the counters ``stats``."""
+    docstring), certification and repair at tau = 1. ``scale`` (P,): mean diag of each Hessian
+    (``eps_l = EPS_L (scale + max |f|)``). Writes ``U`` (T, C, K) clipped to [0, 1], ``flag``
+    (T, C) (frames left to the exact fallback) and the counters ``stats``."""
     T, C, K = f.shape
     R = np.zeros((K, K))
     F = np.zeros(K, np.int64)
     st = np.zeros(K, np.int8)
     u, g, d, gam, delta = np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K)
-    x, w, hu = np.zeros(K), np.zeros(K), np.zeros(K)
+    x, w, hu, us, gs = np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K)
     max_seg = 4 * K + 20
     max_rep = 2 * K + 10
     for c in range(C):
@@ -401,19 +401,20 @@ def _solve_chains(H, f, idx, eps, warm, use_warm, refresh, U, flag, stats):
             ht = idx[t, c]
             Hh = H[ht]
             ft = f[t, c]
-            el = eps[t, c]
+            fmax = 0.0
+            for j in range(K):
+                fmax = max(fmax, abs(ft[j]))
+            el = EPS_L * (scale[ht] + fmax)
             # ---- the start: u optimal for f_0 = lam - H u (lam: sign-clamped gradient, now in g)
             if cold:  # u = 0 is the exact optimum of f_0 = max(f, 0) + margin
-                fmax = 0.0
-                for j in range(K):
-                    fmax = max(fmax, abs(ft[j]))
                 for j in range(K):
                     u[j] = 0.0
                     st[j] = _LOWER
                     g[j] = max(ft[j], 0.0) + 1e-3 * fmax + 1e-300
                     delta[j] = ft[j] - g[j]
-                n, h, nupd, cold = 0, ht, 0, False
+                n, h, nupd, cold, warm_start = 0, ht, 0, False, False
             else:
+                warm_start = True
                 if t == 0:  # the caller's point: its working set and gradient
                     for j in range(K):
                         u[j] = min(max(warm[c, j], 0.0), 1.0)
@@ -438,101 +439,129 @@ def _solve_chains(H, f, idx, eps, warm, use_warm, refresh, U, flag, stats):
                     n = _factor(R, Hh, st, F, w)
                     stats[_FACTORISATIONS] += 1
                     nupd = 0
-            # ---- the homotopy, tau from 0 to 1
-            tau, seg, last, broken = 0.0, 0, -1, n < 0
-            while not broken:
-                stats[_SEGMENTS] += 1
+            # ---- the previous working set first: u + d, the first segment taken to tau = 1, is
+            #      accepted outright when it passes the certificate (most frames keep their set)
+            done = False
+            if warm_start and n >= 0:
+                for j in range(K):
+                    us[j] = u[j]
+                    gs[j] = g[j]
                 for a in range(n):
                     x[a] = -delta[F[a]]
                 _chol_solve(R, n, x)
-                for j in range(K):
-                    d[j] = 0.0
-                    gam[j] = delta[j]
+                inbox = True
                 for a in range(n):
-                    col, xa = F[a], x[a]
-                    d[col] = xa
+                    v = u[F[a]] + x[a]
+                    u[F[a]] = v
+                    if v < -EPS_U or v > 1.0 + EPS_U:
+                        inbox = False
+                if inbox:
+                    fresh = False
+                    done = _certify(Hh, ft, el, st, F, n, R, u, g, x, fresh) == -1
+                if done:
+                    stats[_KEPT] += 1
+                else:
                     for j in range(K):
-                        gam[j] += Hh[col, j] * xa
-                # ratio test: first free variable to hit a bound / first multiplier to reach zero
-                best, jb = np.inf, -1
-                for j in range(K):
-                    if st[j] == _FREE:
-                        num = u[j] if d[j] < 0.0 else 1.0 - u[j]
-                        den = abs(d[j])
-                    elif st[j] == _LOWER:
-                        num, den = g[j], -gam[j]
-                    else:
-                        num, den = -g[j], gam[j]
-                    if den > 0.0:
-                        s = max(num, 0.0) / den
-                        if s < best and not (j == last and s <= 1e-13):  # no zero-length reversal
-                            best, jb = s, j
-                step = min(best, 1.0 - tau)
-                for j in range(K):
-                    if st[j] == _FREE:
-                        u[j] += step * d[j]
-                    else:
-                        g[j] += step * gam[j]
-                if best >= 1.0 - tau:
-                    break
-                tau += step
-                if seg >= max_seg:  # degenerate breakpoints: repairs, then the exact fallback
-                    break
-                seg += 1
-                last = jb
-                nupd += 1
-                if st[jb] == _FREE:  # joins the bound it reached
-                    st[jb] = _UPPER if d[jb] > 0.0 else _LOWER
-                    u[jb] = 1.0 if d[jb] > 0.0 else 0.0
-                    g[jb] = 0.0
-                    p = 0
-                    while F[p] != jb:
-                        p += 1
-                    _chol_delete(R, n, F, p)
-                    n -= 1
-                else:  # its multiplier reached zero: freed
-                    st[jb] = _FREE
-                    g[jb] = 0.0
-                    if not _chol_append(R, n, Hh, F, jb, w):
-                        broken = True
+                        u[j] = us[j]
+                        g[j] = gs[j]
+            if not done:
+                # ---- the homotopy, tau from 0 to 1
+                tau, seg, last, broken = 0.0, 0, -1, n < 0
+                while not broken:
+                    stats[_SEGMENTS] += 1
+                    for a in range(n):
+                        x[a] = -delta[F[a]]
+                    _chol_solve(R, n, x)
+                    for j in range(K):
+                        d[j] = 0.0
+                        gam[j] = delta[j]
+                    for a in range(n):
+                        col, xa = F[a], x[a]
+                        d[col] = xa
+                        for j in range(K):
+                            gam[j] += Hh[col, j] * xa
+                    # ratio test: first free variable to hit a bound / first multiplier to reach zero
+                    best, jb = np.inf, -1
+                    for j in range(K):
+                        if st[j] == _FREE:
+                            num = u[j] if d[j] < 0.0 else 1.0 - u[j]
+                            den = abs(d[j])
+                        elif st[j] == _LOWER:
+                            num, den = g[j], -gam[j]
+                        else:
+                            num, den = -g[j], gam[j]
+                        if den > 0.0:
+                            s = max(num, 0.0) / den
+                            if s < best and not (j == last and s <= 1e-13):  # no zero-length reversal
+                                best, jb = s, j
+                    step = min(best, 1.0 - tau)
+                    for j in range(K):
+                        if st[j] == _FREE:
+                            u[j] += step * d[j]
+                        else:
+                            g[j] += step * gam[j]
+                    if best >= 1.0 - tau:
                         break
-                    n += 1
-                if nupd >= refresh:
+                    tau += step
+                    if seg >= max_seg:  # degenerate breakpoints: repairs, then the exact fallback
+                        break
+                    seg += 1
+                    last = jb
+                    nupd += 1
+                    if st[jb] == _FREE:  # joins the bound it reached
+                        st[jb] = _UPPER if d[jb] > 0.0 else _LOWER
+                        u[jb] = 1.0 if d[jb] > 0.0 else 0.0
+                        g[jb] = 0.0
+                        p = 0
+                        while F[p] != jb:
+                            p += 1
+                        _chol_delete(R, n, F, p)
+                        n -= 1
+                    else:  # its multiplier reached zero: freed
+                        st[jb] = _FREE
+                        g[jb] = 0.0
+                        if not _chol_append(R, n, Hh, F, jb, w):
+                            broken = True
+                            break
+                        n += 1
+                    if nupd >= refresh:
+                        n = _factor(R, Hh, st, F, w)
+                        stats[_FACTORISATIONS] += 1
+                        nupd = 0
+                        broken = n < 0
+                # ---- tau = 1: certify, repair with the chain's factor
+                fresh = False  # the path's point first; a repair solves the free set afresh
+                jb = -3 if broken else _certify(Hh, ft, el, st, F, n, R, u, g, x, fresh)
+                rep, refactored = 0, False
+                while jb != -1 and jb != -3 and rep < max_rep:
+                    if jb == -2:  # stationarity residual only: a fresh factor, once
+                        if refactored:
+                            break
+                        refactored = True
+                    elif st[jb] == _FREE:  # outside the box: to the bound it crossed
+                        st[jb] = _LOWER if u[jb] < 0.5 else _UPPER
+                    else:  # a multiplier of the wrong sign: freed
+                        st[jb] = _FREE
+                    stats[_REPAIRS] += 1
+                    rep += 1
                     n = _factor(R, Hh, st, F, w)
                     stats[_FACTORISATIONS] += 1
                     nupd = 0
-                    broken = n < 0
-            # ---- tau = 1: certify, repair with the chain's factor
-            jb = -3 if broken else _certify(Hh, ft, el, st, F, n, R, u, g, x, False)
-            rep, refactored = 0, False
-            while jb != -1 and jb != -3 and rep < max_rep:
-                if jb == -2:  # stationarity residual only: a fresh factor, once
-                    if refactored:
+                    if n < 0:
+                        jb = -3
                         break
-                    refactored = True
-                elif st[jb] == _FREE:  # outside the box: to the bound it crossed
-                    st[jb] = _LOWER if u[jb] < 0.5 else _UPPER
-                else:  # a multiplier of the wrong sign: freed
-                    st[jb] = _FREE
-                stats[_REPAIRS] += 1
-                rep += 1
-                n = _factor(R, Hh, st, F, w)
-                stats[_FACTORISATIONS] += 1
-                nupd = 0
-                if n < 0:
-                    jb = -3
-                    break
-                jb = _certify(Hh, ft, el, st, F, n, R, u, g, x, True)
-            if jb != -1:  # the exact fallback finishes this frame; the chain goes on from the
-                flag[t, c] = True  # clipped point (any feasible point is an exact start)
-                stats[_FALLBACK] += 1
-                for j in range(K):
-                    u[j] = min(max(u[j], 0.0), 1.0)
-                    st[j] = _LOWER if u[j] <= 0.0 else (_UPPER if u[j] >= 1.0 else _FREE)
-                _gradient(Hh, ft, u, g)
-                n = _factor(R, Hh, st, F, w)
-                stats[_FACTORISATIONS] += 1
-                nupd = 0
-                cold = n < 0
+                    fresh = True
+                    jb = _certify(Hh, ft, el, st, F, n, R, u, g, x, fresh)
+                if jb != -1:  # the exact fallback finishes this frame; the chain goes on from the
+                    flag[t, c] = True  # clipped point (any feasible point is an exact start)
+                    stats[_FALLBACK] += 1
+                    for j in range(K):
+                        u[j] = min(max(u[j], 0.0), 1.0)
+                        st[j] = _LOWER if u[j] <= 0.0 else (_UPPER if u[j] >= 1.0 else _FREE)
+                    _gradient(Hh, ft, u, g)
+                    n = _factor(R, Hh, st, F, w)
+                    stats[_FACTORISATIONS] += 1
+                    nupd = 0
+                    cold = n < 0
             for j in range(K):
-                U[t, c, j] = u[j]
+                U[t, c, j] = min(max(u[j], 0.0), 1.0)

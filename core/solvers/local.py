@@ -187,12 +187,11 @@ class LocalProblem:
         M = len(self.neutral)
         if targets.ndim != 3 or targets.shape[1:] != (M, 3):
             raise ValueError(f"targets: expected (T, {M}, 3) marker positions, got {targets.shape}")
-        if valid is None:
-            valid = np.isfinite(targets).all(2)
-        valid = np.asarray(valid, dtype=bool)
+        finite = np.isfinite(targets).all(2)
+        valid = finite if valid is None else np.asarray(valid, dtype=bool)
         if valid.shape != targets.shape[:2]:
             raise ValueError(f"valid: expected {targets.shape[:2]}, got {valid.shape}")
-        if (valid & ~np.isfinite(targets).all(2)).any():
+        if (valid & ~finite).any():
             raise ValueError("targets: samples marked valid contain NaN/inf")
         empty = ~valid.any(1)
         if empty.any():
