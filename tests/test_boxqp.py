@@ -300,3 +300,24 @@ def test_real_sample_matches_bvls(sample):
     for t in (0, 150, 299):
         ref = scipy.optimize.lsq_linear(Bm, s[t], bounds=(lo, hi), method="bvls", tol=1e-12).x
         assert cost(Wp[t], t) <= cost(ref, t) * (1 + 1e-8), t
+
+
+def test_pieces_on_threads_give_the_same_bits(monkeypatch):
+    """Chains cut into pieces (each started cold) and shared among threads: the same result bit
+    for bit whatever the number of threads (the cut is a fixed rule), and the optimum."""
+    import core.solvers.boxqp as boxqp
+
+    rng = np.random.default_rng(8)
+    H, f, idx = random_walk_problem(rng, T=300, C=3, K=10, P=2, spread=3)
+    monkeypatch.setattr(boxqp, "PIECE", 70)  # 5 pieces per chain
+    monkeypatch.setattr(boxqp, "_threads", lambda work: 1)
+    one, info1 = solve_box_sequence(H, f, idx, return_info=True)
+    monkeypatch.setattr(boxqp, "_threads", lambda work: 4)
+    four, info4 = solve_box_sequence(H, f, idx, return_info=True)
+    np.testing.assert_array_equal(one, four)
+    assert info1 == info4 and info1["fallback"] == 0
+    ref = solve_qp_batch(H, f.reshape(-1, 10), idx.ravel(), constraint="box")[0]
+    h, ff, u = idx.ravel(), f.reshape(-1, 10), four.reshape(-1, 10)
+    scale = np.abs(J(H, ff, h, np.zeros_like(u)) - J(H, ff, h, ref)) + 1e-300
+    assert np.all(np.abs(J(H, ff, h, u) - J(H, ff, h, ref)) <= 1e-9 * scale)
+    assert boxqp.kernel_cached()  # the kernel compiled above is in numba's cache now

@@ -70,6 +70,9 @@ References
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numba
 import numpy as np
 import scipy.linalg
@@ -80,8 +83,18 @@ __all__ = ["solve_box_sequence", "solve_box_frame"]
 
 EPS_U = 1e-11  # primal tolerance in unit-box coordinates
 EPS_L = 1e-11  # dual tolerance relative to mean diag H + max |f|
+PIECE = 1024  # frames per piece of a chain (each starts cold; pieces run on separate cores)
+_THREAD_WORK = 2e6  # T C K^2 below which one thread does it all (a thread costs ~0.1 ms)
 _FREE, _LOWER, _UPPER = 0, 1, 2  # working-set codes of the compiled kernel
 _SEGMENTS, _FACTORISATIONS, _REPAIRS, _FALLBACK, _KEPT = range(5)  # counters of the compiled kernel
+
+
+def _threads(work: float) -> int:
+    """Threads for a solve of ``work`` = T C K^2: the cores this process may use, one for small
+    solves."""
+    if work < _THREAD_WORK:
+        return 1
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
 def _hmul(H, h, X):
@@ -192,8 +205,23 @@ def solve_box_sequence(H, f, idx=None, refresh: int = 64, return_info: bool = Fa
         scale = np.einsum("pii->p", H) / K
         start = np.zeros((C, K)) if warm is None else np.broadcast_to(np.asarray(warm, dtype=np.float64), (C, K))
         flag = np.zeros((T, C), np.bool_)
-        _solve_chains(np.ascontiguousarray(H), np.ascontiguousarray(f), np.ascontiguousarray(idx), scale,
-                      np.ascontiguousarray(start), warm is not None, max(1, int(refresh)), U, flag, stats)
+        # pieces: every chain cut into runs of at most PIECE frames (a cold start each), a fixed
+        # rule so that the result does not depend on the number of cores that share them out
+        cuts = -(-T // PIECE)
+        bounds = (np.arange(cuts + 1) * T) // cuts
+        pieces = np.array([(c, bounds[i], bounds[i + 1]) for c in range(C) for i in range(cuts)], np.int64)
+        args = (np.ascontiguousarray(H), np.ascontiguousarray(f), np.ascontiguousarray(idx), scale)
+        tail = (np.ascontiguousarray(start), warm is not None, max(1, int(refresh)), U, flag)
+        n_work = min(len(pieces), _threads(T * C * K * K))
+        if n_work == 1:
+            _solve_chains(*args, pieces, *tail, stats)
+        else:  # the kernel releases the GIL: the pieces, longest first, shared among threads
+            order = pieces[np.argsort(-(pieces[:, 2] - pieces[:, 1]), kind="stable")]
+            parts = [np.ascontiguousarray(order[i::n_work]) for i in range(n_work)]
+            counts = np.zeros((n_work, len(stats)), np.int64)
+            with ThreadPoolExecutor(n_work) as pool:
+                list(pool.map(lambda i: _solve_chains(*args, parts[i], *tail, counts[i]), range(n_work)))
+            stats += counts.sum(0)
         if flag.any():  # the exact fallback, from the working set the kernel ended with
             tt, cc = np.nonzero(flag)
             ub, ff = U[tt, cc], f[tt, cc]
@@ -236,6 +264,25 @@ def solve_box_frame(H, f, warm, memo: dict) -> np.ndarray:
         if _kkt_ok(u, g, lower, upper, eps):
             return np.clip(u, 0.0, 1.0)
     return solve_box_sequence(H[None], f[None], warm=warm)[0]
+
+
+def warm() -> None:
+    """Compile the kernel (the first call after an install or a change of this file: ~6 s of CPU,
+    written to numba's cache next to this module) or load it from that cache (~0.5 s: numba's
+    LLVM start-up), with a one-frame problem. :func:`dashboard.serve.serve` runs it in a separate
+    process at start-up when :func:`kernel_cached` says the cache is cold, so no request pays
+    the compile."""
+    solve_box_sequence(np.eye(2)[None], np.ones((1, 2)))
+
+
+def kernel_cached() -> bool:
+    """Whether numba's on-disk cache holds the kernel for this version of the module (its index
+    file is newer than the source), so the first call loads it instead of compiling it."""
+    try:
+        index = _solve_chains._cache._cache_file._index_path  # numba has no public query
+    except AttributeError:
+        return False
+    return os.path.exists(index) and os.path.getmtime(index) >= os.path.getmtime(__file__)
 
 
 # ---------------------------------------------------------------------------- the compiled kernel
@@ -382,11 +429,13 @@ def _certify(Hh, ft, el, st, F, n, R, u, g, x, fresh):
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve_chains(H, f, idx, scale, warm, use_warm, refresh, U, flag, stats):
-    """Every chain c, frame by frame: the homotopy from the previous frame's optimum (module
-    docstring), certification and repair at tau = 1. ``scale`` (P,): mean diag of each Hessian
-    (``eps_l = EPS_L (scale + max |f|)``). Writes ``U`` (T, C, K) clipped to [0, 1], ``flag``
-    (T, C) (frames left to the exact fallback) and the counters ``stats``."""
+def _solve_chains(H, f, idx, scale, pieces, warm, use_warm, refresh, U, flag, stats):
+    """Every piece (chain c, frames t0 <= t < t1; rows of ``pieces``, (n, 3) int), frame by frame:
+    the homotopy from the previous frame's optimum (module docstring), certification and repair
+    at tau = 1. ``scale`` (P,): mean diag of each Hessian (``eps_l = EPS_L (scale + max |f|)``).
+    A piece starts cold, or from ``warm[c]`` when ``use_warm`` and ``t0 == 0``. Writes ``U``
+    (T, C, K) clipped to [0, 1], ``flag`` (T, C) (frames left to the exact fallback) and the
+    counters ``stats``."""
     T, C, K = f.shape
     R = np.zeros((K, K))
     F = np.zeros(K, np.int64)
@@ -395,9 +444,10 @@ def _solve_chains(H, f, idx, scale, warm, use_warm, refresh, U, flag, stats):
     x, w, hu, us, gs = np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K)
     max_seg = 4 * K + 20
     max_rep = 2 * K + 10
-    for c in range(C):
-        h, n, nupd, cold = -1, 0, 0, not use_warm
-        for t in range(T):
+    for i in range(len(pieces)):
+        c, t0, t1 = pieces[i, 0], pieces[i, 1], pieces[i, 2]
+        h, n, nupd, cold = -1, 0, 0, not (use_warm and t0 == 0)
+        for t in range(t0, t1):
             ht = idx[t, c]
             Hh = H[ht]
             ft = f[t, c]
@@ -415,7 +465,7 @@ def _solve_chains(H, f, idx, scale, warm, use_warm, refresh, U, flag, stats):
                 n, h, nupd, cold, warm_start = 0, ht, 0, False, False
             else:
                 warm_start = True
-                if t == 0:  # the caller's point: its working set and gradient
+                if t == t0:  # the caller's point: its working set and gradient
                     for j in range(K):
                         u[j] = min(max(warm[c, j], 0.0), 1.0)
                         st[j] = _LOWER if u[j] <= 0.0 else (_UPPER if u[j] >= 1.0 else _FREE)
