@@ -2,8 +2,9 @@
 
 * ``bounded_perframe_*``: per-frame bounded least squares 0 <= w <= 1 for a real take (ICT
   driven by Live Link curves -> Rocketbox, 41 markers, 165 shapes), ours (``range_pf``: the
-  batched parametric active set of ``core/solvers/boxqp.py``, every frame warm-started from the
-  previous one and KKT-certified) vs SciPy's ``lsq_linear(method="bvls")`` called per frame on
+  compiled parametric active set of ``core/solvers/boxqp.py``, every frame warm-started from the
+  previous one and KKT-certified; ``segments`` = its homotopy segments, ``repairs`` = certificates
+  repaired at tau = 1) vs SciPy's ``lsq_linear(method="bvls")`` called per frame on
   the same problems (40 frames, scaled to the take: ``ref_kind``). ``rel_cost_gap`` = max over
   the checked frames of (ours - BVLS) / BVLS's cost of the first; ``kkt`` = the largest relative
   KKT violation over all frames (unit-box scaling, ``core.solvers.qp.max_kkt_violation``).

@@ -66,7 +66,7 @@ Every shape is written as
 * ``lower == upper``: fixed, no column.
 
 Each frame is then the unit-box QP ``min ½zᵀ(AᵀHA)z + (Aᵀ(H base − b) + c|a|)ᵀz`` (A: the
-columns), solved for all frames by the batched parametric active-set method of
+columns), solved for all frames by the compiled parametric active-set method of
 :func:`core.solvers.boxqp.solve_box_sequence` (the one behind ``range_pf`` and the local
 method's box), each frame warm-started from the previous one, every frame's KKT conditions
 checked. ``AᵀHA`` is singular when a split shape has both columns, but never on a free set:

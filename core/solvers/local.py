@@ -132,9 +132,9 @@ class LocalProblem:
             b = np.where(valid[..., None], b, 0.0)
         T, M, R, K = len(b), len(self.neutral), self.n_regions, self.n_shapes
         if valid is None:
-            # one GEMM: (T, 3M) @ (3M, R K) with the weighted bases Dᵀ M_k²
-            DW = self.deltas.reshape(K, 1, 3 * M) * np.repeat(self.marker_weights**2, 3, axis=1)[None]  # (K, R, 3M)
-            return -(b.reshape(T, 3 * M) @ DW.reshape(K * R, 3 * M).T).reshape(T, K, R).transpose(0, 2, 1)
+            # one GEMM: (T, 3M) @ (3M, R K) with the weighted bases Dᵀ M_k², (T, R, K) contiguous
+            DW = self.deltas.reshape(1, K, 3 * M) * np.repeat(self.marker_weights**2, 3, axis=1)[:, None]  # (R, K, 3M)
+            return -(b.reshape(T, 3 * M) @ DW.reshape(R * K, 3 * M).T).reshape(T, R, K)
         X = np.einsum("kmc,tmc->tkm", self.deltas, b, optimize=True)  # (T, K, M)
         return -np.einsum("tkm,trm->trk", X, w, optimize=True)
 
