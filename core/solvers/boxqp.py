@@ -287,13 +287,13 @@ def warm() -> None:
 
 
 def kernel_cached() -> bool:
-    """Whether numba's on-disk cache holds the kernel for this version of the module (its index
-    file is newer than the source), so the first call loads it instead of compiling it."""
+    """Whether numba's on-disk cache holds the kernel for this version of the module (an index
+    whose stamp, numba's hash of the source, matches), so the first call loads it instead of
+    compiling it."""
     try:
-        index = _solve_chains._cache._cache_file._index_path  # numba has no public query
-    except AttributeError:
+        return bool(_solve_chains._cache._cache_file._load_index())  # numba has no public query
+    except Exception:  # noqa: BLE001 -- a private API: anything unexpected means "not known to be cached"
         return False
-    return os.path.exists(index) and os.path.getmtime(index) >= os.path.getmtime(__file__)
 
 
 # ---------------------------------------------------------------------------- the compiled kernel
