@@ -12,7 +12,7 @@ import pytest
 import scipy.optimize
 
 from core.solvers.baselines import range_pf
-from core.solvers.boxqp import _finish, solve_box_sequence
+from core.solvers.boxqp import _chol_append, _chol_delete, _chol_solve, _finish, solve_box_sequence
 from core.solvers.qp import max_kkt_violation, solve_qp_batch
 from datapaths import PERFORMANCES, RIGS
 
@@ -53,7 +53,7 @@ def random_walk_problem(rng, T, C, K, P, spread=2.0, step=0.15):
 def test_sequence_matches_exhaustive_enumeration():
     rng = np.random.default_rng(0)
     H, f, idx = random_walk_problem(rng, T=50, C=3, K=4, P=3)
-    U, info = solve_box_sequence(H, f, idx, block=16, return_info=True)
+    U, info = solve_box_sequence(H, f, idx, return_info=True)
     ref = np.array([[enumerate_box(H[idx[t, c]], f[t, c]) for c in range(3)] for t in range(50)])
     h, ff = idx.ravel(), f.reshape(-1, 4)
     u, r = U.reshape(-1, 4), ref.reshape(-1, 4)
@@ -64,22 +64,71 @@ def test_sequence_matches_exhaustive_enumeration():
     assert (u == 0).any() and (u == 1).any() and ((u > 0) & (u < 1)).any()  # both bounds and free variables
 
 
-@pytest.mark.parametrize("kw", [dict(block=1), dict(block=7, lanes=3), dict(block=200, lookahead=0), dict(steal=0),
-                                dict(lookahead=16, refresh=2), dict(block=5, lanes=40, steal=2)])
-def test_schedule_does_not_change_the_result(kw):
-    """Lanes, look-ahead, refreshes and stealing only reorder the work: same optimum."""
+@pytest.mark.parametrize("kw", [dict(), dict(refresh=1), dict(refresh=3), dict(refresh=10**9)])
+def test_factor_refresh_does_not_change_the_result(kw):
+    """Cholesky updates along the chains or fresh factors (refresh=1: every change) reach the
+    same optimum as the independent PDAS solver."""
     rng = np.random.default_rng(1)
     H, f, idx = random_walk_problem(rng, T=120, C=2, K=12, P=2, spread=3)
     ref = solve_qp_batch(H, f.reshape(-1, 12), idx.ravel(), constraint="box")[0]  # independent PDAS
-    U = solve_box_sequence(H, f, idx, **kw).reshape(-1, 12)
+    U, info = solve_box_sequence(H, f, idx, return_info=True, **kw)
+    U = U.reshape(-1, 12)
     h, ff = idx.ravel(), f.reshape(-1, 12)
     scale = np.abs(J(H, ff, h, np.zeros_like(U)) - J(H, ff, h, ref)) + 1e-300
     assert np.all(np.abs(J(H, ff, h, U) - J(H, ff, h, ref)) <= 1e-9 * scale)
     assert max_kkt_violation(H, ff, h, U, "box") < 1e-10
+    assert info["segments"] > 2 * 120 and info["fallback"] == 0  # the homotopy did the work
+
+
+def test_split_sequence_with_warm_start_matches_one_sequence():
+    """Frames 60.. started from frame 59's solution (``warm``, as the live path does) reach the
+    optima of the single sequence."""
+    rng = np.random.default_rng(6)
+    H, f, idx = random_walk_problem(rng, T=120, C=2, K=12, P=1, spread=2)
+    U = solve_box_sequence(H, f)
+    V = solve_box_sequence(H, f[60:], warm=U[59])
+    h, ff = idx[60:].ravel() * 0, f[60:].reshape(-1, 12)
+    a, b = J(H, ff, h, U[60:].reshape(-1, 12)), J(H, ff, h, V.reshape(-1, 12))
+    assert np.all(np.abs(a - b) <= 1e-9 * (np.abs(a) + 1e-300))
+
+
+def test_cholesky_updates_keep_the_identity():
+    """The factor's column appends and deletes (Givens) keep R^T R = H_FF for the current free
+    list F, against numpy's Cholesky, along a random sequence of changes."""
+    rng = np.random.default_rng(7)
+    K = 9
+    A = rng.normal(size=(K + 2, K))
+    H = A.T @ A + 1e-6 * np.eye(K)
+    R, F, w = np.zeros((K, K)), np.zeros(K, np.int64), np.zeros(K)
+    free, n = [], 0
+    for step in range(60):
+        out = [j for j in range(K) if j not in free]
+        if out and (not free or rng.random() < 0.55):
+            j = int(rng.choice(out))
+            assert _chol_append(R, n, H, F, j, w)
+            free.append(j)
+            n += 1
+        else:
+            p = int(rng.integers(n))
+            _chol_delete(R, n, F, p)
+            free.pop(p)
+            n -= 1
+        assert list(F[:n]) == free
+        Rn = np.triu(R[:n, :n])
+        np.testing.assert_allclose(Rn.T @ Rn, H[np.ix_(free, free)], rtol=1e-10, atol=1e-10 * np.abs(H).max())
+        if n:
+            assert (np.diag(Rn) > 0).all()
+            np.testing.assert_allclose(Rn, np.linalg.cholesky(H[np.ix_(free, free)]).T, rtol=1e-8, atol=1e-10)
+            x = rng.normal(size=K)
+            y = x.copy()
+            _chol_solve(R, n, y)
+            np.testing.assert_allclose(H[np.ix_(free, free)] @ y[:n], x[:n], rtol=1e-8, atol=1e-10)
+    B = np.array([[1.0, 1.0], [1.0, 1.0]])  # singular: the second column cannot join
+    assert _chol_append(R, 0, B, F, 0, w) and not _chol_append(R, 1, B, F, 1, w)
 
 
 def test_degenerate_sequences():
-    """Constant frames (every look-ahead accepted), optima exactly on the bounds with zero
+    """Constant frames (every previous set kept), optima exactly on the bounds with zero
     multipliers, a single frame, a single shape."""
     rng = np.random.default_rng(2)
     K = 6
@@ -91,6 +140,7 @@ def test_degenerate_sequences():
     U, info = solve_box_sequence(H, f, return_info=True)
     np.testing.assert_allclose(U[:, 0], np.broadcast_to(w, (30, K)), atol=1e-9)
     assert info["fallback"] == 0 and U.min() >= 0 and U.max() <= 1
+    assert info["kept"] >= 28  # after the cold first frame, the previous set passes outright
     one = solve_box_sequence(H, f[:1])
     np.testing.assert_allclose(one[0, 0], w, atol=1e-9)
     u1 = solve_box_sequence(np.array([[[2.0]]]), np.array([[-5.0], [1.0], [-1.0]]))
@@ -251,3 +301,24 @@ def test_real_sample_matches_bvls(sample):
     for t in (0, 150, 299):
         ref = scipy.optimize.lsq_linear(Bm, s[t], bounds=(lo, hi), method="bvls", tol=1e-12).x
         assert cost(Wp[t], t) <= cost(ref, t) * (1 + 1e-8), t
+
+
+def test_pieces_on_threads_give_the_same_bits(monkeypatch):
+    """Chains cut into pieces (each started cold) and shared among threads: the same result bit
+    for bit whatever the number of threads (the cut is a fixed rule), and the optimum."""
+    import core.solvers.boxqp as boxqp
+
+    rng = np.random.default_rng(8)
+    H, f, idx = random_walk_problem(rng, T=300, C=3, K=10, P=2, spread=3)
+    monkeypatch.setattr(boxqp, "PIECE", 70)  # 5 pieces per chain
+    monkeypatch.setattr(boxqp, "_threads", lambda work: 1)
+    one, info1 = solve_box_sequence(H, f, idx, return_info=True)
+    monkeypatch.setattr(boxqp, "_threads", lambda work: 4)
+    four, info4 = solve_box_sequence(H, f, idx, return_info=True)
+    np.testing.assert_array_equal(one, four)
+    assert info1 == info4 and info1["fallback"] == 0
+    ref = solve_qp_batch(H, f.reshape(-1, 10), idx.ravel(), constraint="box")[0]
+    h, ff, u = idx.ravel(), f.reshape(-1, 10), four.reshape(-1, 10)
+    scale = np.abs(J(H, ff, h, np.zeros_like(u)) - J(H, ff, h, ref)) + 1e-300
+    assert np.all(np.abs(J(H, ff, h, u) - J(H, ff, h, ref)) <= 1e-9 * scale)
+    assert boxqp.kernel_cached()  # the kernel compiled above is in numba's cache now

@@ -333,7 +333,7 @@ def range_pf(B, S, lower: float = -0.5, upper: float = 1.5, valid=None, ridge: f
 
     With ``w = lower + D u``, ``D = diag(upper - lower)``, every frame is the unit-box QP
     ``min_u 1/2 u^T (D H D) u + (D (H lower - B_v^T s_t))^T u``, ``0 <= u <= 1``, ``H = B_v^T B_v``
-    (``B_v``: the frame's valid rows). All frames are solved together by the batched parametric
+    (``B_v``: the frame's valid rows). All frames are solved by the compiled parametric
     active-set method of :func:`core.solvers.boxqp.solve_box_sequence`, each frame warm-started
     from the previous one (one Hessian per mask pattern, so frames with missing samples stay in
     the sequence); every frame's KKT conditions are checked, so the result is the exact

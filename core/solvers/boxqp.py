@@ -1,4 +1,4 @@
-"""Box-constrained QPs along a sequence of frames: a batched parametric active-set method.
+"""Box-constrained QPs along a sequence of frames: a parametric active-set method, compiled.
 
 The problem
 -----------
@@ -18,49 +18,54 @@ Let ``u*`` be optimal for ``f_0`` with working set (lower / upper / free) ``W`` 
 Along ``f(tau) = f_0 + tau (f_1 - f_0)``, ``tau`` in [0, 1], the optimum is piecewise linear in
 ``tau``: while ``W`` holds, ``du/dtau = -H_FF^-1 (f_1 - f_0)_F`` on the free set ``F`` and the
 multipliers move linearly. The next breakpoint is the smallest step at which a free variable
-reaches a bound (it joins the bound) or a multiplier reaches zero (its variable is freed). One
-index changes per breakpoint, so ``H_FF^-1`` is kept as an explicit inverse and updated by a
-rank-one (bordering / Schur complement) formula in ``O(|F|^2)`` instead of refactorised [1, 2].
-Starting a frame from the previous frame's solution costs 1 + (number of active-set changes)
-segments; ``tau = 1`` reached means the frame is solved. This is the warm start of the issue
-("the active set of frame t-1 is usually right for frame t: try it first"): a frame whose set
-did not change costs one product with the stored inverse.
+reaches a bound (it joins the bound) or a multiplier reaches zero (its variable is freed) [1, 2].
+One index changes per breakpoint, so the Cholesky factor ``H_FF = R^T R`` is updated, not
+recomputed: a column appended in ``O(|F|^2)`` (one triangular solve), a column deleted in
+``O(|F|^2)`` (Givens rotations restore the triangle) [4, §12.5]. Every frame starts from the
+previous frame's solution, so it costs 1 + (number of active-set changes) segments. The
+previous working set is tried first: ``u + d`` (the first segment taken to ``tau = 1``) is
+accepted outright when it passes the certificate below, which skips the ratio test for a frame
+whose set does not change (81 % of the local benchmark's frames, 42 % of the 165-shape sample's).
 
 Any feasible ``u`` with sign-clamped multipliers is an exact optimum of *some* ``f_0``
 (``f_0 = lambda - H u``), so every start is consistent: the previous frame (warm), ``u = 0`` with
-positive multipliers (cold), or another lane's solution (work stealing, below).
+positive multipliers (cold: about as many breakpoints as free variables), or a point given by
+the caller (``warm``).
 
-Batching
---------
-Frames are cut into *lanes* of consecutive frames of one chain; every lane starts cold (for
-small K a few batched primal-dual active-set iterations [3] settle most first frames outright)
-and walks forward. All lanes advance one breakpoint per round in a few dozen numpy calls on
-stacked arrays (inverses ``(lanes, b, b)`` zero-padded to the largest free set ``b``). After a
-lane finishes a frame it checks the next ``lookahead`` frames against its current set with one
-product each (frames whose set does not change are accepted at once). Lanes that run out of
-frames take the second half of the longest remaining run of another lane, starting from that
-lane's latest solution (a short homotopy between two nearby frames instead of a cold start).
-
-Measured alternatives that lost (on the two benchmark cases): primal-dual active set (PDAS)
-warm-started with the previous frame's set settles 42 % of the sample's frames at once but
-cycles on 14 % (the rank-deficient rig makes wrong sets' equality-constrained minimisers wild);
-projected Newton (Bertsekas 1982) from the previous solution stalls in tiny projected steps for
-the same reason; grouping frames by identical active set (1,129 distinct sets in 2,028 frames)
-still needs one fresh factorisation per group and per iteration; the primal active set from the
-previous solution needs 3.6 fresh factorisations per frame on average with a long tail.
+Running it
+----------
+Each chain is walked frame by frame in compiled code (numba, ``_solve_chains``): the method is
+sequential per chain and its steps are ``O(K^2)`` scalar loops. The numpy version it replaces
+advanced lanes of frames in batched rounds and paid ~1 ms of call overhead per round for ~34
+lanes moving (291 rounds on the ``bounded_perframe`` sample: 3,600 frames/s on a loaded machine,
+where ~10,000 were wanted). Chains are cut into pieces of at most :data:`PIECE` frames, each
+started cold, and the pieces are shared among the process's cores (the kernel releases the GIL).
+The cut is a fixed rule, so the result does not depend on the number of cores. The kernel is
+compiled once after an install (~6 s of CPU; numba's cache next to this module) and loaded from
+that cache by later processes (~0.5 s, numba's start-up): :func:`warm`, :func:`kernel_cached`.
 
 Exactness
 ---------
-Every frame is accepted only after its KKT conditions are checked with a freshly computed
-gradient ``g = H u + f``: ``|g_F| <= eps_l``, ``-eps_u <= u_F <= 1 + eps_u``, ``g_L >= -eps_l``,
-``g_U <= eps_l`` with ``eps_u = 1e-11`` and ``eps_l = 1e-11 (mean diag H + max |f|)`` (the tests
-of :func:`core.solvers.qp.solve_qp_batch`). The updated inverses drift in ill-conditioned
-problems; they are refreshed from scratch every ``refresh`` updates, the point is refined by one
-step of iterative refinement before the check, and a frame that still fails (or a lane stuck in
-degenerate breakpoints) is finished by primal-dual active-set steps from its current set and the
-finite primal active-set method of :func:`core.solvers.qp.primal_active_set` (counted in
-``info["fallback"]``). The answer is therefore the optimum to rounding, as before, not to an
-iteration tolerance.
+At ``tau = 1`` the frame is accepted only after its KKT conditions are checked with the gradient
+``g = H u + f`` computed from scratch (after one step of iterative refinement with the factor
+where the stationarity residual is not tiny): ``|g_F| <= eps_l``, ``-eps_u <= u_F <= 1 + eps_u``,
+``g_L >= -eps_l``, ``g_U <= eps_l`` with ``eps_u = 1e-11`` and ``eps_l = 1e-11 (mean diag H +
+max |f|)`` (the tests of :func:`core.solvers.qp.solve_qp_batch`). A frame that fails is repaired
+at ``tau = 1`` (the worst violator changes side, the free set is solved afresh with a new
+factor); the few that still fail are
+finished by primal-dual active-set steps [3] and the finite primal active-set method of
+:func:`core.solvers.qp.primal_active_set` (counted in ``info["fallback"]``). The answer is
+therefore the optimum to the KKT tolerance, not to an iteration tolerance.
+
+What the tolerance leaves open: where ``H`` is ill-conditioned (the local solve's ridge of
+``1e-9`` mean diag: condition numbers up to ~1e10) a gradient tolerance ``eps_l`` admits weights
+that differ by up to ``~eps_l / lambda_min(H)`` along the weakly penalised directions, and a
+multiplier within ``eps_l`` of zero admits either working set. Two correct solvers, or one
+started from other points (the numpy lanes with another ``block``; other pieces), may then
+return weights that differ visibly (2e-2 measured on the local box benchmark, in the regions
+whose Hessians are nearly singular; 1e-11 in the well-conditioned ones) with objectives equal to
+~1e-13 relative. The minimiser is unique; the answer is pinned down to that tolerance, not
+tighter. For a given input the result is deterministic.
 
 References
 ----------
@@ -70,10 +75,16 @@ References
        limitations of explicit MPC", Int. J. Robust Nonlinear Control 18(8), 2008 (qpOASES).
 .. [3] M. Hintermueller, K. Ito, K. Kunisch, "The primal-dual active set strategy as a semismooth
        Newton method", SIAM J. Optim. 13(3), 2003 (the fallback's first steps).
+.. [4] G. H. Golub, C. F. Van Loan, "Matrix Computations", 4th ed., 2013 (§6.5.4 and §12.5:
+       updating the Cholesky / QR factorisation after adding or deleting a column).
 """
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
 import numpy as np
 import scipy.linalg
 
@@ -83,18 +94,18 @@ __all__ = ["solve_box_sequence", "solve_box_frame"]
 
 EPS_U = 1e-11  # primal tolerance in unit-box coordinates
 EPS_L = 1e-11  # dual tolerance relative to mean diag H + max |f|
-_MEMORY = 64e6  # bytes allowed for the stacked inverses (caps the number of lanes)
+PIECE = 1024  # frames per piece of a chain (each starts cold; pieces run on separate cores)
+_THREAD_WORK = 2e6  # T C K^2 below which one thread does it all (a thread costs ~0.1 ms)
+_FREE, _LOWER, _UPPER = 0, 1, 2  # working-set codes of the compiled kernel
+_SEGMENTS, _FACTORISATIONS, _REPAIRS, _FALLBACK, _KEPT = range(5)  # counters of the compiled kernel
 
 
-class _Lanes:
-    """Per-lane state, arrays with one row per lane (a lane = a run of frames of one chain)."""
-
-    FIELDS = ("t", "c", "end", "h", "Hl", "u", "g", "d", "fresh", "delta", "tau", "lower", "upper", "perm", "nfree",
-              "inv", "nupd", "seg", "last", "active")
-
-    def take(self, keep):
-        for name in self.FIELDS:
-            setattr(self, name, getattr(self, name)[keep])
+def _threads(work: float) -> int:
+    """Threads for a solve of ``work`` = T C K^2: the cores this process may use, one for small
+    solves."""
+    if work < _THREAD_WORK:
+        return 1
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
 def _hmul(H, h, X):
@@ -104,44 +115,6 @@ def _hmul(H, h, X):
     if X.ndim == 2:
         return np.einsum("nij,nj->ni", H[h], X)
     return X @ H[h]
-
-
-def _lmul(H, L, rows, X):
-    """``H_lane @ X`` for lanes ``rows`` (None: all lanes), with the lanes' Hessians stored in
-    ``L.Hl`` when there are several (a batched matmul, 2-3x faster than gathering per call)."""
-    if len(H) == 1:
-        return (X.reshape(-1, H.shape[1]) @ H[0]).reshape(X.shape)
-    Hl = L.Hl if rows is None else np.take(L.Hl, rows, axis=0)
-    return (Hl @ X[..., None])[..., 0] if X.ndim == 2 else X @ Hl
-
-
-def _blocks(L, rows, b):
-    """The lanes' inverses, (n, b, b): whole blocks copied with ``np.take`` (a memcpy per lane;
-    ``L.inv[rows, :b, :b]`` gathers element by element and cost 3x more)."""
-    return np.take(L.inv, rows, axis=0)[:, :b, :b]
-
-
-def _set_h(H, L, rows, h):
-    """Lanes ``rows`` now use Hessian ``h``."""
-    L.h[rows] = h
-    if len(H) > 1:
-        L.Hl[rows] = H[h]
-
-
-def _inverse(H, h, perm, nfree, b):
-    """Fresh inverses of the free blocks, zero-padded to (n, b, b)."""
-    live = np.arange(b)[None] < nfree[:, None]
-    p = perm[:, :b]
-    A = H[h[:, None, None], p[:, :, None], p[:, None, :]]
-    pair = live[:, :, None] & live[:, None, :]
-    M = np.linalg.inv(np.where(pair, A, np.eye(b)[None]))
-    # symmetric to rounding: the rank-one updates below assume M = M^T
-    return np.where(pair, 0.5 * (M + M.transpose(0, 2, 1)), 0.0)
-
-
-def _free_first(lower, upper):
-    free = ~(lower | upper)
-    return np.argsort(~free, axis=1, kind="stable"), free.sum(1)
 
 
 def _kkt_ok(u, g, lower, upper, eps_l):
@@ -181,12 +154,11 @@ def _finish(H, f, h, lower, upper, eps_l, pdas_steps=6):
     return np.clip(u, 0.0, 1.0)
 
 
-def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 4, refresh: int = 32,
-                       steal: int = 6, pdas=None, return_info: bool = False, warm=None):
+def solve_box_sequence(H, f, idx=None, refresh: int = 64, return_info: bool = False, warm=None):
     """Solve (1) of the module docstring for every frame, warm-started along the frames.
 
     ``min_u 1/2 u^T H_{idx[t,c]} u + f[t,c]^T u``  s.t. ``0 <= u <= 1``, exactly (KKT conditions
-    checked at ``1e-11`` relative tolerances for every frame).
+    checked at ``1e-11`` relative tolerances for every frame; module docstring, *Exactness*).
 
     Parameters
     ----------
@@ -196,29 +168,10 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
         Linear terms; axis 0 is time (consecutive frames are similar), C independent chains.
     idx : (T,) or (T, C) int, optional
         Which Hessian each problem uses; default 0 (then P must be 1).
-    block : int, optional
-        Frames per lane at the start (each lane starts cold). Default 128 for K <= 64 and 64
-        above: a cold start costs O(K) breakpoints, so small problems afford longer lanes
-        (measured on the two benchmark cases, ``benchmarks/bench_pipeline.py`` and
-        ``bench_local.py``).
-    lanes : int, optional
-        Lanes advanced together (default: the initial lanes plus as many idle ones for work
-        stealing, capped by memory). The result does not depend on ``block``, ``lanes``,
-        ``lookahead`` or ``steal``; only the time does.
-    lookahead : int
-        Frames checked against a lane's current active set after each solved frame (0: off).
-        Switched off by itself when, over the first 256 checks, the next frame kept the set
-        less than half the time (the 165-shape sample: 42 %; the regional problems: 81 %).
     refresh : int
-        Rank-one updates of an inverse before it is recomputed from scratch.
-    steal : int
-        A lane with at least this many frames left gives the second half to an idle lane.
-    pdas : int, optional
-        Primal-dual active-set iterations [3] tried on the lanes' first frames before the cold
-        homotopy (which needs about as many breakpoints as free variables). Default 8 for
-        K <= 64, 0 above: on the rank-deficient 165-shape sample PDAS from the clipped
-        unconstrained minimiser thrashes (none of 64 frames settled in 100 iterations), on the
-        22-shape regional problems it settles most first frames in a few.
+        Updates of the Cholesky factor (added or deleted columns) before it is recomputed from
+        scratch (Givens updates are stable; this bounds the drift of long chains). The result
+        does not depend on it beyond the KKT tolerance.
     return_info : bool
     warm : (K,) or (C, K) float, optional
         A point in the unit box to start frame 0 of each chain from instead of cold (the
@@ -229,11 +182,10 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     Returns
     -------
     U : same shape as ``f``, float64, in [0, 1]
-    info : dict (when ``return_info``): ``rounds`` (batched steps), ``segments`` (lane steps),
-        ``pdas_start`` (first frames settled by PDAS), ``lookahead`` (frames accepted by the
-        look-ahead check), ``steals``, ``refreshes`` (fresh inverses), ``repairs`` (certificates
-        that failed and were repaired with the lane's inverse), ``fallback`` (frames finished by
-        the exact PDAS / primal active-set fallback).
+    info : dict (when ``return_info``): ``segments`` (homotopy segments over all frames),
+        ``factorisations`` (Cholesky factors computed from scratch), ``repairs`` (certificates
+        that failed at ``tau = 1`` and were repaired with the chain's factor), ``fallback``
+        (frames finished by the exact PDAS / primal active-set fallback).
 
     Raises
     ------
@@ -258,133 +210,37 @@ def solve_box_sequence(H, f, idx=None, block=None, lanes=None, lookahead: int = 
     idx = np.asarray(idx, dtype=np.int64).reshape(T, -1) if np.ndim(idx) else np.full((T, C), int(idx))
     if idx.shape != (T, C) or (idx.size and (idx.min() < 0 or idx.max() >= len(H))):
         raise ValueError(f"idx: expected ({T}, {C}) ints in [0, {len(H)}), got shape {np.shape(idx)}")
-    info = dict(rounds=0, segments=0, pdas_start=0, lookahead=0, steals=0, refreshes=0, repairs=0, fallback=0)
+    stats = np.zeros(5, np.int64)
     U = np.zeros((T, C, K))
-    if T == 0 or C == 0 or K == 0:
-        return (U[:, 0] if squeeze else U, info) if return_info else (U[:, 0] if squeeze else U)
-    eps_all = EPS_L * (np.einsum("pii->p", H)[idx] / K + np.abs(f).max(2))  # (T, C)
-
-    # ---- lanes: blocks of `block` frames per chain, plus idle slots for work stealing
-    block = (128 if K <= 64 else 64) if block is None else max(1, int(block))
-    starts = np.arange(0, T, block)
-    n0 = len(starts) * C
-    cap_lanes = max(n0, int(_MEMORY // (8.0 * K * K * (1 if len(H) == 1 else 2))))
-    nl = int(min(cap_lanes, max(n0, lanes if lanes is not None else 2 * n0)))
-    L = _Lanes()
-    L.c = np.zeros(nl, np.int64)
-    L.t = np.zeros(nl, np.int64)
-    L.end = np.zeros(nl, np.int64)
-    L.c[:n0] = np.repeat(np.arange(C), len(starts))
-    L.t[:n0] = np.tile(starts, C)
-    L.end[:n0] = np.minimum(L.t[:n0] + block, T)
-    L.active = np.zeros(nl, bool)
-    L.active[:n0] = True
-    L.h = idx[L.t, L.c]
-    L.Hl = H[L.h] if len(H) > 1 else np.zeros((nl, 0, 0))
-    # cold start: u = 0 is the exact optimum of f_0 = max(f, 0) + margin (every lower bound binds)
-    ft = f[L.t, L.c]
-    L.g = np.maximum(ft, 0.0) + 1e-3 * np.abs(ft).max(1, keepdims=True) + 1e-300
-    L.delta = ft - L.g
-    L.u = np.zeros((nl, K))
-    L.d = np.zeros((nl, K))  # du/dtau of the current segment
-    L.fresh = np.ones(nl, bool)  # d must be recomputed from the inverse (new frame, new inverse, new set)
-    L.tau = np.zeros(nl)
-    L.lower = np.ones((nl, K), bool)
-    L.upper = np.zeros((nl, K), bool)
-    L.perm = np.tile(np.arange(K), (nl, 1))
-    L.nfree = np.zeros(nl, np.int64)
-    L.nupd = np.zeros(nl, np.int64)
-    L.seg = np.zeros(nl, np.int64)
-    L.last = np.full(nl, -1)
-    cap = min(K, 8)
-    L.inv = np.zeros((nl, cap, cap))
-    max_seg = 4 * K + 20
-    k_look = max(0, int(lookahead))
-    look = [0, 0]  # look-ahead checks, and checks whose first frame kept the set
-    pdas = (8 if K <= 64 else 0) if pdas is None else int(pdas)
-    cold = np.arange(n0)
-    if warm is not None:
-        cold = _warm_start(H, f, np.broadcast_to(np.asarray(warm, dtype=np.float64), (C, K)), L, n0, refresh)
-    if pdas > 0 and len(cold):
-        _pdas_start(H, f, idx, eps_all, L, cold, pdas, U, info, refresh)
-    rows = np.arange(nl)
-
-    while L.active.any():
-        info["rounds"] += 1
-        info["segments"] += int(L.active.sum())
-        nl = len(L.t)
-        if len(rows) != nl:
-            rows = np.arange(nl)
-        b = int(min(K, L.nfree.max() + 1))  # room for one more free variable
-        if b > cap:
-            cap = min(K, max(2 * cap, b))
-            grown = np.zeros((nl, cap, cap))
-            grown[:, :L.inv.shape[1], :L.inv.shape[2]] = L.inv
-            L.inv = grown
-        # -- fresh inverses (and a fresh point on the path) where the updates have piled up
-        ref = np.flatnonzero(L.active & (L.nupd >= refresh))
-        if len(ref):
-            info["refreshes"] += len(ref)
-            Mi = _inverse(H, L.h[ref], L.perm[ref], L.nfree[ref], b)
-            blk = np.zeros((len(ref),) + L.inv.shape[1:])
-            blk[:, :b, :b] = Mi
-            L.inv[ref] = blk
-            f_tau = f[L.t[ref], L.c[ref]] - (1.0 - L.tau[ref])[:, None] * L.delta[ref]
-            ur = L.upper[ref].astype(np.float64)
-            p = L.perm[ref, :b]
-            x = (Mi @ -np.take_along_axis(f_tau + _lmul(H, L, ref, ur), p, 1)[:, :, None])[:, :, 0]
-            live = np.arange(b)[None] < L.nfree[ref][:, None]
-            np.put_along_axis(ur, p, np.where(live, x, np.take_along_axis(ur, p, 1)), 1)
-            L.u[ref] = ur
-            L.g[ref] = _lmul(H, L, ref, ur) + f_tau
-            L.nupd[ref] = 0
-            L.fresh[ref] = True
-        # -- direction of the current segment: du/dtau on the free set (kept up to date by the
-        #    rank-one updates, recomputed after a new frame or inverse), dg/dtau everywhere
-        new = np.flatnonzero(L.fresh & L.active)
-        if len(new):
-            p = L.perm[new, :b]
-            x = (_blocks(L, new, b) @ -np.take_along_axis(L.delta[new], p, 1)[:, :, None])[:, :, 0]  # 0 beyond nfree
-            dn = np.zeros((len(new), K))
-            np.put_along_axis(dn, p, x, 1)
-            L.d[new] = dn
-            L.fresh[new] = False
-        d = L.d
-        gam = _lmul(H, L, None, d) + L.delta
-        # -- ratio test: first free variable to hit a bound / first multiplier to reach zero
-        free = ~(L.lower | L.upper)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            num = np.where(free, np.where(d < 0, L.u, 1.0 - L.u), np.where(L.lower, L.g, -L.g))
-            den = np.where(free, np.abs(d), np.where(L.lower, -gam, gam))
-            s = np.where(den > 0, np.maximum(num, 0.0) / den, np.inf)
-        back = np.flatnonzero(L.last >= 0)  # no immediate zero-length reversal of the last move
-        back = back[s[back, L.last[back]] <= 1e-13]
-        s[back, L.last[back]] = np.inf
-        j = np.argmin(s, axis=1)
-        sj = s[rows, j]
-        rem = 1.0 - L.tau
-        done = (sj >= rem) & L.active
-        step = np.minimum(sj, rem)
-        L.u += step[:, None] * d
-        L.g += step[:, None] * gam
-        L.tau += step
-        stuck = L.active & ~done & (L.seg >= max_seg)
-        move = np.flatnonzero(L.active & ~done & ~stuck)
-        fin = np.flatnonzero(done | stuck)
-        if len(fin):
-            go, Hu = _finish_frames(H, f, idx, eps_all, L, fin, free[fin], stuck[fin], b, U, info, k_look, look, refresh,
-                                    max_seg)
-            if k_look and look[0] >= 256 and look[1] < 0.5 * look[0]:
-                k_look = 0  # the next frame rarely keeps the set: a check costs about one segment
-            if steal:
-                _steal(H, f, idx, L, go, Hu, steal, info)
-        if len(move):
-            _move(H, L, move, j[move], free[move, j[move]], d[move, j[move]], gam[move, j[move]], b)
-        if L.active.sum() < 0.6 * len(L.t) and len(L.t) > 8 and (not steal or ((L.end - L.t)[L.active] < 2 * steal).all()):
-            L.take(np.flatnonzero(L.active))
-    U = np.clip(U, 0.0, 1.0)
+    if T and C and K:
+        scale = np.einsum("pii->p", H) / K
+        start = np.zeros((C, K)) if warm is None else np.broadcast_to(np.asarray(warm, dtype=np.float64), (C, K))
+        flag = np.zeros((T, C), np.bool_)
+        # pieces: every chain cut into runs of at most PIECE frames (a cold start each), a fixed
+        # rule so that the result does not depend on the number of cores that share them out
+        cuts = -(-T // PIECE)
+        bounds = (np.arange(cuts + 1) * T) // cuts
+        pieces = np.array([(c, bounds[i], bounds[i + 1]) for c in range(C) for i in range(cuts)], np.int64)
+        args = (np.ascontiguousarray(H), np.ascontiguousarray(f), np.ascontiguousarray(idx), scale)
+        tail = (np.ascontiguousarray(start), warm is not None, max(1, int(refresh)), U, flag)
+        n_work = min(len(pieces), _threads(T * C * K * K))
+        if n_work == 1:
+            _solve_chains(*args, pieces, *tail, stats)
+        else:  # the kernel releases the GIL: the pieces, longest first, shared among threads
+            order = pieces[np.argsort(-(pieces[:, 2] - pieces[:, 1]), kind="stable")]
+            parts = [np.ascontiguousarray(order[i::n_work]) for i in range(n_work)]
+            counts = np.zeros((n_work, len(stats)), np.int64)
+            with ThreadPoolExecutor(n_work) as pool:
+                list(pool.map(lambda i: _solve_chains(*args, parts[i], *tail, counts[i]), range(n_work)))
+            stats += counts.sum(0)
+        if flag.any():  # the exact fallback, from the working set the kernel ended with
+            tt, cc = np.nonzero(flag)
+            ub, ff = U[tt, cc], f[tt, cc]
+            U[tt, cc] = _finish(H, ff, idx[tt, cc], ub <= 0.0, ub >= 1.0, EPS_L * (scale[idx[tt, cc]] + np.abs(ff).max(1)))
     if squeeze:
         U = U[:, 0]
+    info = dict(segments=int(stats[_SEGMENTS]), factorisations=int(stats[_FACTORISATIONS]),
+                repairs=int(stats[_REPAIRS]), fallback=int(stats[_FALLBACK]), kept=int(stats[_KEPT]))
     return (U, info) if return_info else U
 
 
@@ -421,291 +277,355 @@ def solve_box_frame(H, f, warm, memo: dict) -> np.ndarray:
     return solve_box_sequence(H[None], f[None], warm=warm)[0]
 
 
-def _warm_start(H, f, warm, L, n0, refresh):
-    """Start the lanes that begin at frame 0 from ``warm`` (C, K): ``u`` clipped to the box, the
-    working set where it sits on a bound, multipliers ``lambda`` = the sign-clamped gradient
-    ``H u + f`` (0 on the free set), so ``u`` is the optimum of ``f_0 = lambda - H u`` and the
-    segment runs from ``f_0`` to ``f``. Returns the lanes left to start cold."""
-    ln = np.flatnonzero(L.t[:n0] == 0)
-    u = np.clip(warm[L.c[ln]], 0.0, 1.0)
-    lo, up = u <= 0.0, u >= 1.0
-    Hu = _hmul(H, L.h[ln], u)
-    g = Hu + f[0, L.c[ln]]
-    lam = np.where(lo, np.maximum(g, 0.0), np.where(up, np.minimum(g, 0.0), 0.0))
-    L.lower[ln], L.upper[ln] = lo, up
-    L.perm[ln], L.nfree[ln] = _free_first(lo, up)
-    L.u[ln], L.g[ln] = u, lam
-    L.delta[ln] = f[0, L.c[ln]] - lam + Hu
-    L.nupd[ln] = refresh  # fresh inverses (and directions) in the first round
-    return np.setdiff1d(np.arange(n0), ln)
+def warm() -> None:
+    """Compile the kernel (the first call after an install or a change of this file: ~6 s of CPU,
+    written to numba's cache next to this module) or load it from that cache (~0.5 s: numba's
+    LLVM start-up), with a one-frame problem. :func:`dashboard.serve.serve` runs it in a separate
+    process at start-up when :func:`kernel_cached` says the cache is cold, so no request pays
+    the compile."""
+    solve_box_sequence(np.eye(2)[None], np.ones((1, 2)))
 
 
-def _pdas_start(H, f, idx, eps_all, L, lanes, iters, U, info, refresh):
-    """Solve the lanes' first frames by a few PDAS iterations [3] from the clipped unconstrained
-    minimiser; lanes that settle (KKT verified) start their second frame warm."""
-    t, c, h = L.t[lanes], L.c[lanes], L.h[lanes]
-    f1 = f[t, c]
-    el = eps_all[t, c][:, None]
-    u0 = np.linalg.solve(H[h], -f1[:, :, None])[:, :, 0]
-    lower, upper = u0 <= 0.0, u0 >= 1.0
-    todo = np.arange(len(lanes))
-    for _ in range(iters):
-        lo, up = lower[todo], upper[todo]
-        ut, _ = solve_eqp_batch(H, f1[todo], h[todo], lo, up, np.zeros(len(todo), bool))
-        g = _hmul(H, h[todo], ut) + f1[todo]
-        ok = _kkt_ok(ut, g, lo, up, el[todo])
-        ln = lanes[todo[ok]]
-        if len(ln):
-            info["pdas_start"] += len(ln)
-            uo, go = np.clip(ut[ok], 0.0, 1.0), g[ok]
-            L.lower[ln], L.upper[ln] = lo[ok], up[ok]
-            L.perm[ln], L.nfree[ln] = _free_first(lo[ok], up[ok])
-            U[L.t[ln], L.c[ln]] = uo
-            nxt = L.t[ln] + 1
-            cont = nxt < L.end[ln]
-            L.active[ln[~cont]] = False
-            gl, ug, gg, f0 = ln[cont], uo[cont], go[cont], f1[todo[ok]][cont]
-            L.t[gl] = nxt[cont]
-            lam = np.where(L.lower[gl], np.maximum(gg, 0.0), np.where(L.upper[gl], np.minimum(gg, 0.0), 0.0))
-            Hu = gg - f0
-            hn = idx[L.t[gl], L.c[gl]]
-            new_h = hn != L.h[gl]
-            if new_h.any():  # the next frame has another mask pattern
-                _set_h(H, L, gl[new_h], hn[new_h])
-                Hu[new_h] = _hmul(H, hn[new_h], ug[new_h])
-            L.delta[gl] = f[L.t[gl], L.c[gl]] - lam + Hu
-            L.g[gl], L.u[gl] = lam, ug
-            L.nupd[gl] = refresh  # fresh inverses (and directions) in the first round
-        el_t = el[todo][~ok]
-        new_up = np.where(up[~ok], g[~ok] <= el_t, ut[~ok] > 1 + EPS_U)
-        new_lo = np.where(lo[~ok], g[~ok] >= -el_t, ut[~ok] < -EPS_U) & ~new_up
-        todo = todo[~ok]
-        lower[todo], upper[todo] = new_lo, new_up
-        if not len(todo):
-            break
+def kernel_cached() -> bool:
+    """Whether numba's on-disk cache holds the kernel for this version of the module (an index
+    whose stamp, numba's hash of the source, matches), so the first call loads it instead of
+    compiling it."""
+    try:
+        return bool(_solve_chains._cache._cache_file._load_index())  # numba has no public query
+    except Exception:  # noqa: BLE001 -- a private API: anything unexpected means "not known to be cached"
+        return False
 
 
-def _finish_frames(H, f, idx, eps_all, L, fin, free, stuck, b, U, info, k_look, look, refresh, max_seg):
-    """Lanes that reached tau = 1 (or got stuck): certify, store, look ahead, start the next frame.
+# ---------------------------------------------------------------------------- the compiled kernel
+# Cholesky factor of the free block, upper triangular: H_FF = R^T R, R[:n, :n], the free variables
+# in factor order F[:n]. Rows of R are contiguous, so every inner loop runs along a row.
 
-    Returns the lanes that continue and ``H u`` at their new starting points (for stealing).
-    """
-    t, c, h = L.t[fin], L.c[fin], L.h[fin]
-    f1 = f[t, c]
-    lo, up = L.lower[fin], L.upper[fin]
-    u1 = np.where(free, L.u[fin], up.astype(np.float64))
-    g1 = _lmul(H, L, fin, u1) + f1
-    el = eps_all[t, c][:, None]
-    # one step of iterative refinement where the stationarity residual is not tiny
-    need = np.flatnonzero((free & (np.abs(g1) > 0.1 * el)).any(1))
-    if len(need):
-        p = L.perm[fin[need], :b]
-        du = (_blocks(L, fin[need], b) @ -np.take_along_axis(g1[need], p, 1)[:, :, None])[:, :, 0]
-        un = u1[need]
-        np.put_along_axis(un, p, np.take_along_axis(un, p, 1) + du, 1)
-        u1[need] = np.where(free[need], un, u1[need])
-        g1[need] = _lmul(H, L, fin[need], u1[need]) + f1[need]
-    ok = _kkt_ok(u1, g1, lo, up, el)
-    hard = ~ok & (stuck | (L.seg[fin] >= max_seg))
-    fix = np.flatnonzero(~ok & ~hard)
-    if len(fix):
-        # repair at tau = 1 with the lane's own inverse (the updates drift where H_FF is badly
-        # conditioned): the worst violator moves -- a free variable outside [0, 1] joins its
-        # bound, a negative multiplier frees its variable -- and the frame is certified again in
-        # the next round (the refinement step above is then the Newton step to the new set's
-        # minimiser); a stationarity residual alone asks for a fresh inverse
-        info["repairs"] += len(fix)
-        fr, uf, gf, e = free[fix], u1[fix], g1[fix], el[fix]
-        score = np.maximum(np.where(fr, np.maximum(-uf, uf - 1.0) / EPS_U, 0.0),
-                           np.where(lo[fix], -gf, np.where(up[fix], gf, 0.0)) / e)
-        j = np.argmax(score, axis=1)
-        movable = score[np.arange(len(fix)), j] > 1.0
-        lanes = fin[fix]
-        L.u[lanes], L.g[lanes] = uf, gf
-        m = np.flatnonzero(movable)
-        if len(m):
-            _move(H, L, lanes[m], j[m], fr[m, j[m]], np.where(uf[m, j[m]] > 1.0, 1.0, -1.0), np.zeros(len(m)), b)
-        L.fresh[lanes] = True
-        L.nupd[lanes[~movable]] = refresh
-        L.seg[lanes[~movable]] += 1  # repairs count against the segment cap (then the exact fallback)
-        keep = np.ones(len(fin), bool)
-        keep[fix] = False
-        fin, t, c, h, f1, lo, up, u1, g1, free, el, hard = (
-            x[keep] for x in (fin, t, c, h, f1, lo, up, u1, g1, free, el, hard))
-    bad = np.flatnonzero(hard)
-    if len(bad):
-        info["fallback"] += len(bad)
-        ub = _finish(H, f1[bad], h[bad], lo[bad], up[bad], el[bad, 0])
-        u1[bad] = ub
-        g1[bad] = _hmul(H, h[bad], ub) + f1[bad]
-        fb = fin[bad]
-        L.lower[fb], L.upper[fb] = ub <= 0.0, ub >= 1.0
-        L.perm[fb], L.nfree[fb] = _free_first(L.lower[fb], L.upper[fb])
-        L.nupd[fb] = refresh  # the stored inverse belongs to another set now
-    U[t, c] = u1
-    # -- look ahead: the same working set for the next frames, one product with the inverse each
-    if k_look:
-        T = len(f)
-        ok_lane = np.flatnonzero((L.nupd[fin] < refresh) & (t + 1 < L.end[fin]))
-        if len(ok_lane):
-            ln = fin[ok_lane]
-            tt = t[ok_lane, None] + 1 + np.arange(k_look)[None]
-            tc = np.minimum(tt, T - 1)
-            cc = c[ok_lane, None]
-            df = f[tc, cc] - f1[ok_lane, None, :]  # (n, k, K)
-            p = L.perm[ln, :b]
-            x = -np.take_along_axis(df, p[:, None, :], axis=2) @ _blocks(L, ln, b)  # inverse symmetric
-            du = np.zeros(df.shape)
-            np.put_along_axis(du, np.broadcast_to(p[:, None, :], x.shape), x, axis=2)
-            Uk = u1[ok_lane, None, :] + du
-            Gk = g1[ok_lane, None, :] + df + _lmul(H, L, ln, du)
-            okk = _kkt_ok(Uk, Gk, L.lower[ln, None, :], L.upper[ln, None, :], eps_all[tc, cc][:, :, None])
-            okk &= (tt < L.end[ln, None]) & (idx[tc, cc] == L.h[ln, None])
-            n_ok = np.argmin(np.concatenate([okk, np.zeros((len(ln), 1), bool)], axis=1), axis=1)  # accepted prefix
-            look[0] += len(ln)
-            look[1] += int((n_ok > 0).sum())
-            hit = np.flatnonzero(n_ok > 0)
-            if len(hit):
-                info["lookahead"] += int(n_ok[hit].sum())
-                r, k = np.nonzero(np.arange(k_look)[None] < n_ok[hit, None])
-                U[tt[hit][r, k], cc[hit, 0][r]] = Uk[hit][r, k]
-                pos = ok_lane[hit]
-                last = n_ok[hit] - 1
-                u1[pos], g1[pos] = Uk[hit, last], Gk[hit, last]
-                t[pos] = tt[hit, last]
-                f1[pos] = f[t[pos], c[pos]]
-                L.t[fin[pos]] = t[pos]
-    # -- next frame: start from this one's solution (exact optimum of f_0 = lambda - H u1)
-    nxt = t + 1
-    cont = nxt < L.end[fin]
-    L.active[fin[~cont]] = False
-    go = fin[cont]
-    if not len(go):
-        return go, None
-    L.t[go] = nxt[cont]
-    hn = idx[L.t[go], L.c[go]]
-    new_h = hn != L.h[go]
-    if new_h.any():
-        _set_h(H, L, go[new_h], hn[new_h])
-    gg = g1[cont]
-    lam = np.where(L.lower[go], np.maximum(gg, 0.0), np.where(L.upper[go], np.minimum(gg, 0.0), 0.0))
-    Hu = gg - f1[cont]
-    if new_h.any():
-        Hu[new_h] = _hmul(H, hn[new_h], u1[cont][new_h])
-        L.nupd[go[new_h]] = refresh
-    L.delta[go] = f[L.t[go], L.c[go]] - lam + Hu
-    L.g[go] = lam
-    L.u[go] = u1[cont]
-    L.tau[go] = 0.0
-    L.seg[go] = 0
-    L.last[go] = -1
-    L.fresh[go] = True
-    return go, Hu
+@numba.njit(cache=True, nogil=True)
+def _chol_append(R, n, Hh, F, j, w):
+    """Variable ``j`` joins the free set at position ``n``: column n of R solves
+    ``R^T r = H_Fj``, ``R_nn = sqrt(H_jj - r^T r)``. False (R unchanged) when that is not
+    positive, i.e. H_FF + j is numerically singular."""
+    for a in range(n):
+        w[a] = Hh[j, F[a]]
+    for a in range(n):
+        w[a] /= R[a, a]
+        wa = w[a]
+        for k in range(a + 1, n):
+            w[k] -= wa * R[a, k]
+    s = Hh[j, j]
+    for a in range(n):
+        s -= w[a] * w[a]
+    if not s > 1e-15 * abs(Hh[j, j]):
+        return False
+    for a in range(n):
+        R[a, n] = w[a]
+    R[n, n] = np.sqrt(s)
+    F[n] = j
+    return True
 
 
-def _steal(H, f, idx, L, go, Hu, steal, info):
-    """Idle lanes take the second half of the longest remaining runs of the lanes ``go`` that
-    have just started a frame from an exact solution (module docstring)."""
-    idle = np.flatnonzero(~L.active)
-    if not len(idle) or not len(go):
-        return
-    left = L.end[go] - L.t[go]
-    cand = np.flatnonzero(left >= steal)
-    if not len(cand):
-        return
-    cand = cand[np.argsort(-left[cand], kind="stable")][:len(idle)]
-    v = go[cand]
-    th = idle[:len(cand)]
-    m = L.t[v] + left[cand] // 2
-    info["steals"] += len(v)
-    L.end[th] = L.end[v]
-    L.end[v] = m
-    L.t[th] = m
-    L.c[th] = L.c[v]
-    for name in ("lower", "upper", "perm", "nfree", "inv", "u", "g", "nupd"):
-        getattr(L, name)[th] = getattr(L, name)[v]
-    hth = idx[m, L.c[v]]
-    hu = Hu[cand]
-    other = hth != L.h[v]
-    if other.any():
-        hu[other] = _hmul(H, hth[other], L.u[v][other])
-        L.nupd[th[other]] = 10 ** 9  # refresh at the next round
-    _set_h(H, L, th, hth)
-    L.delta[th] = f[m, L.c[v]] - L.g[v] + hu
-    L.tau[th] = 0.0
-    L.seg[th] = 0
-    L.last[th] = -1
-    L.fresh[th] = True
-    L.active[th] = True
+@numba.njit(cache=True, nogil=True)
+def _chol_delete(R, n, F, p):
+    """The free variable at position ``p`` leaves: column p is deleted and the Hessenberg rows
+    below it are rotated back to a triangle (Givens, Golub & Van Loan §12.5)."""
+    for a in range(n):
+        for k in range(max(p, a - 1), n - 1):
+            R[a, k] = R[a, k + 1]
+    for k in range(p, n - 1):
+        F[k] = F[k + 1]
+    for k in range(p, n - 1):
+        x, y = R[k, k], R[k + 1, k]
+        r = np.sqrt(x * x + y * y)
+        R[k + 1, k] = 0.0
+        if r == 0.0:
+            continue
+        c, s = x / r, y / r
+        R[k, k] = r
+        for m in range(k + 1, n - 1):
+            x, y = R[k, m], R[k + 1, m]
+            R[k, m] = c * x + s * y
+            R[k + 1, m] = c * y - s * x
 
 
-def _move(H, L, mv, j, was_free, dj, gj, b):
-    """Apply the breakpoint of each moving lane: index j joins a bound or leaves the free set.
+@numba.njit(cache=True, nogil=True)
+def _chol_solve(R, n, x):
+    """``x[:n] <- (R^T R)^-1 x[:n]`` in place."""
+    for a in range(n):
+        x[a] /= R[a, a]
+        xa = x[a]
+        for k in range(a + 1, n):
+            x[k] -= xa * R[a, k]
+    for a in range(n - 1, -1, -1):
+        s = x[a]
+        for k in range(a + 1, n):
+            s -= R[a, k] * x[k]
+        x[a] = s / R[a, a]
 
-    Both cases are one symmetric rank-one change of the stored inverse ``M = H_FF^-1`` and of
-    the direction ``d = -M delta_F`` (so the next segment needs no product with M): with
-    ``x = M z``,
 
-    * j leaves (compact position p): ``z = e_p``, ``M <- M - x x^T / x_p``,
-      ``d <- d - x d_p / x_p``, then row/column p is replaced by the last free one;
-    * j joins (position q = nfree): ``z = H_Fj``, Schur complement ``s = H_jj - z^T x``,
-      ``M <- M + x x^T / s``, row/column q = ``-x / s``, ``M_qq = 1 / s``;
-      ``d_F <- d_F + x gamma_j / s``, ``d_j = -gamma_j / s`` (``gamma_j`` = dg_j/dtau).
-    """
-    L.seg[mv] += 1
-    L.last[mv] = j
-    L.nupd[mv] += 1
-    n = len(mv)
-    full = np.take(L.inv, mv, axis=0)  # whole blocks: a memcpy per lane, not an element-wise gather
-    Ms = full[:, :b, :b]
-    perm = L.perm[mv]
-    nfree = L.nfree[mv]
-    d = L.d[mv]
-    rm = np.flatnonzero(was_free)
-    ad = np.flatnonzero(~was_free)
-    p = np.argmax(perm[rm, :b] == j[rm, None], axis=1)  # compact position of a leaving index
-    Z = np.zeros((n, b))
-    Z[rm, p] = 1.0
-    live = np.arange(b)[None] < nfree[ad, None]
-    Z[ad] = H[L.h[mv[ad]][:, None], perm[ad, :b], j[ad, None]] * live
-    X = (Ms @ Z[:, :, None])[:, :, 0]
-    coef = np.empty(n)
-    coef[rm] = -1.0 / X[rm, p]
-    schur = H[L.h[mv[ad]], j[ad], j[ad]] - np.einsum("ni,ni->n", Z[ad], X[ad])
-    coef[ad] = 1.0 / schur
-    Ms += X[:, :, None] * (coef[:, None] * X)[:, None, :]
-    # direction, in the old compact order (before the permutation changes below)
-    scale = np.empty(n)
-    scale[rm] = -d[rm, j[rm]] / X[rm, p]
-    scale[ad] = gj[ad] / schur
-    np.put_along_axis(d, perm[:, :b], np.take_along_axis(d, perm[:, :b], 1) + scale[:, None] * X, 1)
-    d[rm, j[rm]] = 0.0
-    d[ad, j[ad]] = -gj[ad] / schur
-    if len(rm):  # free -> bound
-        ln, jr, to_up = mv[rm], j[rm], dj[rm] > 0
-        L.lower[ln, jr] = ~to_up
-        L.upper[ln, jr] = to_up
-        L.u[ln, jr] = to_up.astype(np.float64)
-        q = nfree[rm] - 1
-        Ms[rm, p, :] = Ms[rm, q, :]
-        Ms[rm, :, p] = Ms[rm, :, q]
-        Ms[rm, q, :] = 0.0
-        Ms[rm, :, q] = 0.0
-        perm[rm, p] = perm[rm, q]
-        perm[rm, q] = jr
-        nfree[rm] -= 1
-    if len(ad):  # bound -> free
-        ln, ja, q = mv[ad], j[ad], nfree[ad]
-        L.lower[ln, ja] = False
-        L.upper[ln, ja] = False
-        L.g[ln, ja] = 0.0
-        w = X[ad] * coef[ad, None]
-        Ms[ad, q, :] = -w
-        Ms[ad, :, q] = -w
-        Ms[ad, q, q] = coef[ad]
-        pj = np.argmax(perm[ad] == ja[:, None], axis=1)
-        perm[ad, pj] = perm[ad, q]
-        perm[ad, q] = ja
-        nfree[ad] += 1
-    L.inv[mv] = full
-    L.perm[mv], L.nfree[mv], L.d[mv] = perm, nfree, d
+@numba.njit(cache=True, nogil=True)
+def _factor(R, Hh, st, F, w):
+    """Factor of the free block from scratch; returns its size, -1 when H_FF is singular."""
+    n = 0
+    for j in range(len(st)):
+        if st[j] == _FREE:
+            if not _chol_append(R, n, Hh, F, j, w):
+                return -1
+            n += 1
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _gradient(Hh, ft, u, g):
+    """``g = H u + f`` (rows of H where u is non-zero)."""
+    K = len(u)
+    for j in range(K):
+        g[j] = ft[j]
+    for k in range(K):
+        uk = u[k]
+        if uk != 0.0:
+            for j in range(K):
+                g[j] += Hh[k, j] * uk
+
+
+@numba.njit(cache=True, nogil=True)
+def _violation(u, g, st, el):
+    """The worst KKT violator in tolerance units (module docstring): ``(j, score)``, score <= 1
+    everywhere means the point passes; ``j = -2`` flags a stationarity residual only."""
+    jb, best, resid = -1, 1.0, False
+    for j in range(len(u)):
+        if st[j] == _FREE:
+            s = max(-u[j], u[j] - 1.0) / EPS_U
+            if abs(g[j]) > el:
+                resid = True
+        elif st[j] == _LOWER:
+            s = -g[j] / el
+        else:
+            s = g[j] / el
+        if s > best:
+            jb, best = j, s
+    if jb < 0 and resid:
+        jb = -2
+    return jb
+
+
+@numba.njit(cache=True, nogil=True)
+def _certify(Hh, ft, el, st, F, n, R, u, g, x, fresh):
+    """At tau = 1: ``g = H u + f`` from scratch at the path's point (``fresh``: with the free
+    variables solved afresh, ``u_F = -H_FF^-1 (f_F + H_FU 1)``), one step of iterative refinement
+    where the stationarity residual is not tiny. Returns the worst violator as
+    :func:`_violation` (-1: the frame is certified)."""
+    K = len(u)
+    if fresh:
+        for k in range(K):
+            u[k] = 1.0 if st[k] == _UPPER else 0.0
+        _gradient(Hh, ft, u, g)  # f + H_:U 1
+        for a in range(n):
+            x[a] = -g[F[a]]
+        _chol_solve(R, n, x)
+        for a in range(n):
+            u[F[a]] = x[a]
+    _gradient(Hh, ft, u, g)
+    small = True
+    for a in range(n):
+        if abs(g[F[a]]) > 0.1 * el:
+            small = False
+    if not small:
+        for a in range(n):
+            x[a] = -g[F[a]]
+        _chol_solve(R, n, x)
+        for a in range(n):
+            u[F[a]] += x[a]
+        _gradient(Hh, ft, u, g)
+    return _violation(u, g, st, el)
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_chains(H, f, idx, scale, pieces, warm, use_warm, refresh, U, flag, stats):
+    """Every piece (chain c, frames t0 <= t < t1; rows of ``pieces``, (n, 3) int), frame by frame:
+    the homotopy from the previous frame's optimum (module docstring), certification and repair
+    at tau = 1. ``scale`` (P,): mean diag of each Hessian (``eps_l = EPS_L (scale + max |f|)``).
+    A piece starts cold, or from ``warm[c]`` when ``use_warm`` and ``t0 == 0``. Writes ``U``
+    (T, C, K) clipped to [0, 1], ``flag`` (T, C) (frames left to the exact fallback) and the
+    counters ``stats``."""
+    T, C, K = f.shape
+    R = np.zeros((K, K))
+    F = np.zeros(K, np.int64)
+    st = np.zeros(K, np.int8)
+    u, g, d, gam, delta = np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K)
+    x, w, hu, us, gs = np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K)
+    max_seg = 4 * K + 20
+    max_rep = 2 * K + 10
+    for i in range(len(pieces)):
+        c, t0, t1 = pieces[i, 0], pieces[i, 1], pieces[i, 2]
+        h, n, nupd, cold = -1, 0, 0, not (use_warm and t0 == 0)
+        for t in range(t0, t1):
+            ht = idx[t, c]
+            Hh = H[ht]
+            ft = f[t, c]
+            fmax = 0.0
+            for j in range(K):
+                fmax = max(fmax, abs(ft[j]))
+            el = EPS_L * (scale[ht] + fmax)
+            # ---- the start: u optimal for f_0 = lam - H u (lam: sign-clamped gradient, now in g)
+            if cold:  # u = 0 is the exact optimum of f_0 = max(f, 0) + margin
+                for j in range(K):
+                    u[j] = 0.0
+                    st[j] = _LOWER
+                    g[j] = max(ft[j], 0.0) + 1e-3 * fmax + 1e-300
+                    delta[j] = ft[j] - g[j]
+                n, h, nupd, cold, warm_start = 0, ht, 0, False, False
+            else:
+                warm_start = True
+                if t == t0:  # the caller's point: its working set and gradient
+                    for j in range(K):
+                        u[j] = min(max(warm[c, j], 0.0), 1.0)
+                        st[j] = _LOWER if u[j] <= 0.0 else (_UPPER if u[j] >= 1.0 else _FREE)
+                    _gradient(Hh, ft, u, g)
+                    h = -1
+                if ht == h:  # H u = g - f_prev
+                    fp = f[t - 1, c]
+                    for j in range(K):
+                        hu[j] = g[j] - fp[j]
+                else:
+                    _gradient(Hh, ft, u, hu)
+                    for j in range(K):
+                        hu[j] -= ft[j]
+                    h = ht
+                    nupd = refresh
+                for j in range(K):
+                    lam = 0.0 if st[j] == _FREE else (max(g[j], 0.0) if st[j] == _LOWER else min(g[j], 0.0))
+                    g[j] = lam
+                    delta[j] = ft[j] - lam + hu[j]
+                if nupd >= refresh:
+                    n = _factor(R, Hh, st, F, w)
+                    stats[_FACTORISATIONS] += 1
+                    nupd = 0
+            # ---- the previous working set first: u + d, the first segment taken to tau = 1, is
+            #      accepted outright when it passes the certificate (most frames keep their set)
+            done = False
+            if warm_start and n >= 0:
+                for a in range(n):
+                    x[a] = -delta[F[a]]
+                _chol_solve(R, n, x)
+                inbox = True
+                for a in range(n):
+                    v = u[F[a]] + x[a]
+                    if v < -EPS_U or v > 1.0 + EPS_U:
+                        inbox = False
+                        break
+                if inbox:  # the bound variables stay; u_F and g are kept to go back to
+                    for a in range(n):
+                        us[a] = u[F[a]]
+                        u[F[a]] += x[a]
+                    for j in range(K):
+                        gs[j] = g[j]
+                    fresh = False
+                    done = _certify(Hh, ft, el, st, F, n, R, u, g, x, fresh) == -1
+                    if done:
+                        stats[_KEPT] += 1
+                    else:
+                        for a in range(n):
+                            u[F[a]] = us[a]
+                        for j in range(K):
+                            g[j] = gs[j]
+            if not done:
+                # ---- the homotopy, tau from 0 to 1
+                tau, seg, last, broken = 0.0, 0, -1, n < 0
+                while not broken:
+                    stats[_SEGMENTS] += 1
+                    for a in range(n):
+                        x[a] = -delta[F[a]]
+                    _chol_solve(R, n, x)
+                    for j in range(K):
+                        d[j] = 0.0
+                        gam[j] = delta[j]
+                    for a in range(n):
+                        col, xa = F[a], x[a]
+                        d[col] = xa
+                        for j in range(K):
+                            gam[j] += Hh[col, j] * xa
+                    # ratio test: first free variable to hit a bound / first multiplier to reach zero
+                    best, jb = np.inf, -1
+                    for j in range(K):
+                        if st[j] == _FREE:
+                            num = u[j] if d[j] < 0.0 else 1.0 - u[j]
+                            den = abs(d[j])
+                        elif st[j] == _LOWER:
+                            num, den = g[j], -gam[j]
+                        else:
+                            num, den = -g[j], gam[j]
+                        if den > 0.0:
+                            s = max(num, 0.0) / den
+                            if s < best and not (j == last and s <= 1e-13):  # no zero-length reversal
+                                best, jb = s, j
+                    step = min(best, 1.0 - tau)
+                    for j in range(K):
+                        if st[j] == _FREE:
+                            u[j] += step * d[j]
+                        else:
+                            g[j] += step * gam[j]
+                    if best >= 1.0 - tau:
+                        break
+                    tau += step
+                    if seg >= max_seg:  # degenerate breakpoints: repairs, then the exact fallback
+                        break
+                    seg += 1
+                    last = jb
+                    nupd += 1
+                    if st[jb] == _FREE:  # joins the bound it reached
+                        st[jb] = _UPPER if d[jb] > 0.0 else _LOWER
+                        u[jb] = 1.0 if d[jb] > 0.0 else 0.0
+                        g[jb] = 0.0
+                        p = 0
+                        while F[p] != jb:
+                            p += 1
+                        _chol_delete(R, n, F, p)
+                        n -= 1
+                    else:  # its multiplier reached zero: freed
+                        st[jb] = _FREE
+                        g[jb] = 0.0
+                        if not _chol_append(R, n, Hh, F, jb, w):
+                            broken = True
+                            break
+                        n += 1
+                    if nupd >= refresh:
+                        n = _factor(R, Hh, st, F, w)
+                        stats[_FACTORISATIONS] += 1
+                        nupd = 0
+                        broken = n < 0
+                # ---- tau = 1: certify, repair with the chain's factor
+                fresh = False  # the path's point first; a repair solves the free set afresh
+                jb = -3 if broken else _certify(Hh, ft, el, st, F, n, R, u, g, x, fresh)
+                rep, refactored = 0, False
+                while jb != -1 and jb != -3 and rep < max_rep:
+                    if jb == -2:  # stationarity residual only: a fresh factor, once
+                        if refactored:
+                            break
+                        refactored = True
+                    elif st[jb] == _FREE:  # outside the box: to the bound it crossed
+                        st[jb] = _LOWER if u[jb] < 0.5 else _UPPER
+                    else:  # a multiplier of the wrong sign: freed
+                        st[jb] = _FREE
+                    stats[_REPAIRS] += 1
+                    rep += 1
+                    n = _factor(R, Hh, st, F, w)
+                    stats[_FACTORISATIONS] += 1
+                    nupd = 0
+                    if n < 0:
+                        jb = -3
+                        break
+                    fresh = True
+                    jb = _certify(Hh, ft, el, st, F, n, R, u, g, x, fresh)
+                if jb != -1:  # the exact fallback finishes this frame; the chain goes on from the
+                    flag[t, c] = True  # clipped point (any feasible point is an exact start)
+                    stats[_FALLBACK] += 1
+                    for j in range(K):
+                        u[j] = min(max(u[j], 0.0), 1.0)
+                        st[j] = _LOWER if u[j] <= 0.0 else (_UPPER if u[j] >= 1.0 else _FREE)
+                    _gradient(Hh, ft, u, g)
+                    n = _factor(R, Hh, st, F, w)
+                    stats[_FACTORISATIONS] += 1
+                    nupd = 0
+                    cold = n < 0
+            for j in range(K):
+                U[t, c, j] = min(max(u[j], 0.0), 1.0)

@@ -66,16 +66,13 @@ Every shape is written as
 * ``lower == upper``: fixed, no column.
 
 Each frame is then the unit-box QP ``min ½zᵀ(AᵀHA)z + (Aᵀ(H base − b) + c|a|)ᵀz`` (A: the
-columns), solved for all frames by the batched parametric active-set method of
+columns), solved for all frames by the compiled parametric active-set method of
 :func:`core.solvers.boxqp.solve_box_sequence` (the one behind ``range_pf`` and the local
 method's box), each frame warm-started from the previous one, every frame's KKT conditions
 checked. ``AᵀHA`` is singular when a split shape has both columns, but never on a free set:
 the scaled multipliers of a split pair sum to ``2c > 0`` along the whole homotopy (also from a
 cold or warm start), so p and n are never free together and every factorised block is a
-principal submatrix of H. (Its PDAS start from the unconstrained minimiser would need all of
-``AᵀHA``, so it is off when a shape is split; the lanes' length follows the shape count, not
-the column count: 128 frames for K ≤ 64, which on the ICT ROM benchmark with [-0.5, 1.5] took
-1.0 s instead of 2.4-3.1 s with the column count's 64.) A singular H (shapes no marker and no prior
+principal submatrix of H (the solver factorises free blocks only). A singular H (shapes no marker and no prior
 sees) gets the spacetime solver's relative ridge ``AUTO_RIDGE · λ_max(H)`` (``ridge_``) for the
 bounded solve, as ``range_pf`` does: the minimiser is then the ridged energy's (unique). The result is checked once more against the optimality conditions
 of eq. 16 in w (:func:`core.solvers.bounded_spacetime.kkt_violation`, including the kink at 0);
@@ -428,11 +425,7 @@ class GeometricSolver:
                 bases.append(bp)
             hcol = np.asarray(pats)[pidx][:, kcol]
             f = np.asarray(lin)[pidx] - np.where(hcol, 0.0, b[:, kcol] * a)
-            # sizes by the shapes, not the columns: a free set never holds both halves of a split
-            # shape (module docstring), so a cold start costs as many breakpoints as without the split
-            n_shapes = len(np.unique(kcol))
-            Z, info = solve_box_sequence(np.asarray(Htab), f, pidx, block=128 if n_shapes <= 64 else 64,
-                                         pdas=0 if len(kcol) > n_shapes else None, return_info=True)
+            Z, info = solve_box_sequence(np.asarray(Htab), f, pidx, return_info=True)
             W = np.asarray(bases)[pidx]
             np.add.at(W.T, kcol, (Z * a).T)  # the two columns of a split shape add up
             # a column at its far end puts the weight exactly on the bound (base + a rounds)

@@ -30,11 +30,10 @@ The simplex form goes through :func:`core.solvers.qp.solve_simplex_sequence` (pr
 active set on the first frame of every block of frames, the primal active set warm-started
 from the previous frame on the others; every QP solved to its KKT conditions, exactly).
 
-The box form goes through :func:`core.solvers.boxqp.solve_box_sequence` instead: a batched
+The box form goes through :func:`core.solvers.boxqp.solve_box_sequence` instead: a compiled
 parametric active-set method along the frames of every region (each frame starts from the
-previous frame's solution and active set, one rank-one update per set change, KKT conditions
-verified per frame): 0.20 s instead of 0.37 s for the 24,000 QPs of ``bench_local.py``'s box
-case, measured back to back on the same machine.
+previous frame's solution and active set, one Cholesky update per set change, KKT conditions
+verified per frame).
 
 Synthesis (eq. 3) blends the regional results with the masks: ``x = n + Σ_k B_k D̄ u_k``.
 
@@ -133,9 +132,9 @@ class LocalProblem:
             b = np.where(valid[..., None], b, 0.0)
         T, M, R, K = len(b), len(self.neutral), self.n_regions, self.n_shapes
         if valid is None:
-            # one GEMM: (T, 3M) @ (3M, R K) with the weighted bases Dᵀ M_k²
-            DW = self.deltas.reshape(K, 1, 3 * M) * np.repeat(self.marker_weights**2, 3, axis=1)[None]  # (K, R, 3M)
-            return -(b.reshape(T, 3 * M) @ DW.reshape(K * R, 3 * M).T).reshape(T, K, R).transpose(0, 2, 1)
+            # one GEMM: (T, 3M) @ (3M, R K) with the weighted bases Dᵀ M_k², (T, R, K) contiguous
+            DW = self.deltas.reshape(1, K, 3 * M) * np.repeat(self.marker_weights**2, 3, axis=1)[:, None]  # (R, K, 3M)
+            return -(b.reshape(T, 3 * M) @ DW.reshape(R * K, 3 * M).T).reshape(T, R, K)
         X = np.einsum("kmc,tmc->tkm", self.deltas, b, optimize=True)  # (T, K, M)
         return -np.einsum("tkm,trm->trk", X, w, optimize=True)
 
@@ -153,11 +152,10 @@ class LocalProblem:
             ``"simplex"``: PDAS iterations before the primal active-set fallback.
         return_info : bool
         block : int, optional
-            Frames per warm-start block: the first frame of each block is solved cold,
-            the others warm-started from their predecessor; all blocks run as one batch
-            (default 16 for ``"simplex"``; for ``"box"`` the initial lane length of
-            :func:`core.solvers.boxqp.solve_box_sequence`, default there). The result does not
-            depend on it (every QP is solved to its KKT conditions).
+            ``"simplex"``: frames per warm-start block: the first frame of each block is solved
+            cold, the others warm-started from their predecessor; all blocks run as one batch
+            (default 16). The result does not depend on it (every QP is solved to its KKT
+            conditions). ``"box"`` walks every region's frames in one chain and ignores it.
         warm_iter : int
             ``"simplex"``: active-set iterations a warm-started QP gets within its step; the few
             that need more are resumed from their (feasible) iterate in one batch at the end.
@@ -166,7 +164,7 @@ class LocalProblem:
             weight gets an identity row of the Hessian (module docstring). (T, K) holds them in
             every region.
 
-        ``"box"`` is solved by the batched parametric active-set method of
+        ``"box"`` is solved by the compiled parametric active-set method of
         :func:`core.solvers.boxqp.solve_box_sequence` (every region a chain of frames, each
         frame warm-started from the previous one's active set and verified by its KKT
         conditions); ``"simplex"`` by the block-warm-started PDAS / primal active set of
@@ -189,12 +187,11 @@ class LocalProblem:
         M = len(self.neutral)
         if targets.ndim != 3 or targets.shape[1:] != (M, 3):
             raise ValueError(f"targets: expected (T, {M}, 3) marker positions, got {targets.shape}")
-        if valid is None:
-            valid = np.isfinite(targets).all(2)
-        valid = np.asarray(valid, dtype=bool)
+        finite = np.isfinite(targets).all(2)
+        valid = finite if valid is None else np.asarray(valid, dtype=bool)
         if valid.shape != targets.shape[:2]:
             raise ValueError(f"valid: expected {targets.shape[:2]}, got {valid.shape}")
-        if (valid & ~np.isfinite(targets).all(2)).any():
+        if (valid & ~finite).any():
             raise ValueError("targets: samples marked valid contain NaN/inf")
         empty = ~valid.any(1)
         if empty.any():
@@ -215,9 +212,8 @@ class LocalProblem:
         unit = self._unit(Htab, f, hidx, zero)
         if unit is not None:  # bounds or held weights: the problems in unit-box coordinates
             Htab, f, hidx, start, dz = unit
-            kw = {} if block is None else {"block": block}
             if self.constraint == "box":
-                u, stats = solve_box_sequence(Htab, f, hidx, return_info=True, **kw)
+                u, stats = solve_box_sequence(Htab, f, hidx, return_info=True)
             else:
                 u, stats = solve_simplex_sequence(Htab, f, hidx, block, max_iter, warm_iter)
             U = start + u * dz
@@ -228,8 +224,7 @@ class LocalProblem:
             _, inf = self._finish(u, Htab, f, hidx, targets, valid, stats)  # KKT of the unit problems
             return U, dict(inf, objective=self._objective(U, targets, valid))
         if self.constraint == "box":
-            kw = {} if block is None else {"block": block}
-            U, stats = solve_box_sequence(Htab, f, hidx, return_info=True, **kw)
+            U, stats = solve_box_sequence(Htab, f, hidx, return_info=True)
             return self._finish(U, Htab, f, hidx, targets, valid, stats) if return_info else U
         U, stats = solve_simplex_sequence(Htab, f, hidx, block, max_iter, warm_iter)
         if not return_info:
