@@ -28,10 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from ..geometry import cotangent_laplacian, uniform_laplacian, vertex_adjacency, vertex_components
-from ._mesh import PinnedSolver, bbox_size, check_faces
+from ._mesh import CholeskyFactor, PinnedSolver, bbox_size, check_faces
 
 __all__ = [
     "TaubinFilter",
@@ -164,13 +163,6 @@ def laplacian_coating(positions, smoothed, L: sp.spmatrix) -> np.ndarray:
     return np.asarray(L @ d.transpose(1, 0, 2).reshape(V, -1)).reshape(V, T, 3).transpose(1, 0, 2).copy()
 
 
-def _splu_spd(A: sp.csc_matrix):
-    """SuperLU factorisation of a symmetric positive-definite ``A``: symmetric mode + minimum
-    degree on ``A + A^T`` keeps the factor ~30% sparser than the default COLAMD (4.9M vs 7.0M
-    entries on a 56K-vertex head)."""
-    return spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
-
-
 class PoissonReconstructor:
     r"""Factorise ``L`` once, reconstruct many frames (Xu et al. 2014 eq. 2, 4, 5).
 
@@ -213,11 +205,10 @@ class PoissonReconstructor:
         # (components, V) averaging operator of the gauge
         self.average = sp.csr_matrix((1.0 / counts[labels], (labels, np.arange(n_vertices))), shape=(ncomp, n_vertices))
         self._pinned = None
-        self._screened32 = None
+        self._screened = None
         if self.screening > 0:
             self.eps = self.screening * float(self.L.diagonal().mean())
-            self._A = (self.L + self.eps * sp.identity(n_vertices)).tocsc()
-            self._screened = _splu_spd(self._A)
+            self._A = (self.L + self.eps * sp.identity(n_vertices)).tocsr()
 
     @property
     def solver(self) -> PinnedSolver:
@@ -231,40 +222,28 @@ class PoissonReconstructor:
         """(components, 3) per-component mean of (V, 3) ``x``."""
         return self.average @ np.asarray(x, dtype=np.float64)
 
-    def solve(self, B: np.ndarray, block: int = 8, dtype=np.float64) -> np.ndarray:
+    @property
+    def screened_factor(self) -> CholeskyFactor:
+        """The Cholesky factorisation of ``L + εI`` (built on first use: the decomposition
+        needs only ``L``, the detail stage the solves)."""
+        if self._screened is None:
+            self._screened = CholeskyFactor(self._A)
+        return self._screened
+
+    def solve(self, B: np.ndarray, block: int | None = None) -> np.ndarray:
         r"""Solve for (V, m) right-hand sides at once: ``(L + εI)^{-1} B`` when screened, else
         the zero-mean ``L^+ B`` (``B`` must then be orthogonal to the per-component constants).
 
-        The m columns go to SuperLU in blocks of ``block``: its multi-column solve runs the
-        triangular solves per supernode over the block, ~2x faster per column than single
-        columns on a 56K-vertex head; blocks of 8-16 were fastest (8 when other processes
-        share the cache: 5.3 ms per column against 6.9 ms for 16 and 9.3 ms for 48).
-
-        ``dtype=np.float32`` solves the screened system with a single-precision factorisation
-        (built on first use): half the memory traffic of the triangular solves, ~2x faster.
-        ``L + εI`` is well conditioned (``cond <= (λ_max(L) + ε) / ε``, ~200 for ``s = 0.01``
-        on a uniform Laplacian), so the relative error is ~1e-6 (measured 1.7e-6 on the
-        56K-vertex head). The plain Poisson solve (condition ~V) always runs in float64.
-        Returns (V, m) ``dtype`` when screened, else float64.
+        One sparse Cholesky factorisation (:class:`~._mesh.CholeskyFactor`), all m columns
+        solved in blocks of ``block`` (default :attr:`~._mesh.CholeskyFactor.BLOCK`). Float64
+        throughout; returns (V, m) float64.
         """
-        dtype = np.dtype(dtype) if self.screening > 0 else np.dtype(np.float64)
-        B = np.asarray(B, dtype=dtype)
+        B = np.asarray(B, dtype=np.float64)
         if B.ndim != 2 or B.shape[0] != self.n:
             raise ValueError(f"B: expected ({self.n}, m), got {B.shape}")
         if self.screening == 0:
             return self.solver.solve(B, None, block)
-        if dtype == np.float32:
-            if self._screened32 is None:
-                self._screened32 = _splu_spd(self._A.astype(np.float32))
-            lu = self._screened32
-        elif dtype == np.float64:
-            lu = self._screened
-        else:
-            raise ValueError(f"dtype: expected float32 or float64, got {dtype}")
-        out = np.empty(B.shape, dtype=dtype, order="F")
-        for s in range(0, B.shape[1], block):
-            out[:, s:s + block] = lu.solve(np.asfortranarray(B[:, s:s + block]))
-        return out
+        return self.screened_factor.solve(B, block)
 
     def displacement(self, coating: np.ndarray, mean=None, prior=None) -> np.ndarray:
         """``L^+ ξ + m`` (or the screened solve with ``prior`` (V, 3)) for (V, 3) or (T, V, 3)
@@ -280,7 +259,7 @@ class PoissonReconstructor:
             y = self.solve(b)
         else:
             m = None if mean is None else np.tile(np.asarray(mean, dtype=np.float64), (1, T))
-            y = self.solver.solve(b, m, 8)
+            y = self.solver.solve(b, m)
         return y if c.ndim == 2 else y.reshape(self.n, T, 3).transpose(1, 0, 2).copy()
 
     def reconstruct(self, smoothed: np.ndarray, coating: np.ndarray, mean=None, prior=None) -> np.ndarray:
