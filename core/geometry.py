@@ -263,8 +263,14 @@ def edges(F):
     """Unique undirected edges ``(E, 2)`` with ``e[:, 0] < e[:, 1]``, sorted."""
     F = _check_faces(F)
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    e = np.sort(e, axis=1)
-    return np.unique(e, axis=0) if len(e) else np.zeros((0, 2), np.int64)
+    if not len(e):
+        return np.zeros((0, 2), np.int64)
+    e = np.sort(e, axis=1).astype(np.int64)
+    # unique rows through one int64 key per edge (lexicographic order = key order): a 1-D
+    # unique, about twice as fast as np.unique(axis=0)'s sort of structured rows
+    m = int(e.max()) + 1
+    key = np.unique(e[:, 0] * m + e[:, 1])
+    return np.stack([key // m, key % m], axis=1)
 
 
 def vertex_adjacency(F, n=None):

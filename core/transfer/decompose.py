@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg import solve_triangular
 
 from ..geometry import cotangent_laplacian, uniform_laplacian, vertex_adjacency, vertex_components
 from ._mesh import CholeskyFactor, PinnedSolver, bbox_size, check_faces
@@ -328,8 +329,9 @@ def factor_sequence(sequence, rtol: float = 1e-6, max_rank: int | None = None, p
     until the RMS residual per vertex, ``sqrt(Σ_t ||X_t - C_t Q||² / (T V))``, is below
     ``rtol * size``. ``X X^T`` is formed once, in float64 (it resolves residual energies
     down to ~1e-13 of the total, far below any useful ``rtol``); every pass then costs one
-    eigendecomposition of a (T, T) matrix and one product with ``X`` for the new directions.
-    ``X`` is streamed in column blocks and never held whole. The residual actually left is
+    eigendecomposition of a (T, T) matrix and one product with ``X`` for the new directions
+    (their coefficients ``X q^T`` follow from the Gram matrix and the QR factor of the new
+    directions). ``X`` is streamed in column blocks and never held whole. The residual actually left is
     measured explicitly (one more pass over ``X``) and returned, never assumed.
 
     Parameters
@@ -390,13 +392,15 @@ def factor_sequence(sequence, rtol: float = 1e-6, max_rank: int | None = None, p
         new = np.empty((k, 3 * V))
         for cols in blocks:
             new[:, cols] = Uk.T @ X(cols)
-        new -= (Uk.T @ C) @ Q  # U_k^T R
-        new -= (new @ Q.T) @ Q  # re-orthogonalised against what we have
-        qn, _ = np.linalg.qr(new.T)
+        M = Uk.T @ C
+        new -= M @ Q  # U_k^T R
+        M2 = new @ Q.T
+        new -= M2 @ Q  # re-orthogonalised against what we have
+        qn, R = np.linalg.qr(new.T)
         qn = qn.T
-        Cn = np.zeros((T, k))
-        for cols in blocks:
-            Cn += X(cols) @ qn[:, cols].T
+        # new = U_k^T X - M Q and new^T = qn^T R, so the coefficients X qn^T come from the
+        # Gram matrix without another pass over X: (G U_k - C M^T) R^{-1}
+        Cn = solve_triangular(R, (G @ Uk - C @ (M + M2).T).T, trans="T", lower=False).T
         Q = np.concatenate([Q, qn])
         C = np.concatenate([C, Cn], axis=1)
     res2 = 0.0
