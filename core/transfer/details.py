@@ -80,14 +80,6 @@ def local_coating(frames, coating: np.ndarray) -> np.ndarray:
 _WORK = np.float32  # working precision of the frames and the rotation
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(n, t) dot products over axis 0 of (3, n, t) blocks."""
-    out = a[0] * b[0]
-    out += a[1] * b[1]
-    out += a[2] * b[2]
-    return out
-
-
 #: a vertex whose normal is rounding noise, ``|Σ N_f| < NORMAL_CANCEL · Σ |e1_f| |e2_f|``, has
 #: no frame (see :func:`_frames_from_edges`)
 NORMAL_CANCEL = 1e-3
@@ -237,17 +229,42 @@ class _FramedSequence:
         return _frames_from_edges(e1, e2, et, self.faces, flags)
 
 
-def _rotate(Fs: tuple, Ft: tuple, x: np.ndarray, scale: float = 1.0, add_local=None) -> np.ndarray:
-    """``F'_t (scale * F_t^T x + add_local)`` for (3, V, t) blocks (``add_local`` (V, 3) or None)."""
-    out = np.zeros_like(x)
-    for k in range(3):
-        lk = _dot(Fs[k], x)
-        if scale != 1.0:
-            lk *= scale
-        if add_local is not None:
-            lk += add_local[:, k:k + 1]
-        out += Ft[k] * lk
-    return out
+def _rotate(Fs: tuple, Ft: tuple, x: np.ndarray, scale: float = 1.0, add_local=None, sub=None, ok=None,
+            sub_frameless=None, out=None) -> np.ndarray:
+    """``F'_t (scale * F_t^T x + add_local) - sub`` for (3, V, t) blocks; ``scale * (x - sub_frameless)``
+    where ``ok`` (V, t) is False (``add_local``, ``sub``, ``sub_frameless``: (V, 3) or None).
+
+    Returns (3, V, t) in the frames' dtype, or writes ``out`` (V, 3t) (column ``p t + j`` is
+    coordinate p of frame j: the right-hand sides of the Poisson solve) and returns it."""
+    V, t = x.shape[1], x.shape[2]
+    z = np.zeros((V, 3), dtype=x.dtype)
+    prm = lambda a: z if a is None else np.ascontiguousarray(a, dtype=x.dtype)
+    okb = np.ones((V, t), dtype=np.bool_) if ok is None else ok
+    res = np.empty((V, 3 * t), dtype=x.dtype) if out is None else out
+    _rotate_kernel(Fs[0], Fs[1], Fs[2], Ft[0], Ft[1], Ft[2], x, np.array([scale], dtype=x.dtype), prm(add_local),
+                   prm(sub), okb, prm(sub_frameless), res)
+    return res.reshape(V, 3, t).transpose(1, 0, 2) if out is None else res
+
+
+@numba.njit(cache=True, nogil=True)
+def _rotate_kernel(s0, s1, s2, t0, t1, t2, x, scale, add, sub, ok, sub2, out):  # pragma: no cover - compiled
+    """The arithmetic of :func:`_rotate` per vertex and frame, in the order of the numpy
+    version it replaced; ``out`` (V, 3t)."""
+    V, t = x.shape[1], x.shape[2]
+    g = scale[0]
+    for v in range(V):
+        for j in range(t):
+            x0, x1, x2 = x[0, v, j], x[1, v, j], x[2, v, j]
+            if ok[v, j]:
+                l0 = (s0[0, v, j] * x0 + s0[1, v, j] * x1 + s0[2, v, j] * x2) * g + add[v, 0]
+                l1 = (s1[0, v, j] * x0 + s1[1, v, j] * x1 + s1[2, v, j] * x2) * g + add[v, 1]
+                l2 = (s2[0, v, j] * x0 + s2[1, v, j] * x1 + s2[2, v, j] * x2) * g + add[v, 2]
+                c0 = t0[0, v, j] * l0 + t1[0, v, j] * l1 + t2[0, v, j] * l2 - sub[v, 0]
+                c1 = t0[1, v, j] * l0 + t1[1, v, j] * l1 + t2[1, v, j] * l2 - sub[v, 1]
+                c2 = t0[2, v, j] * l0 + t1[2, v, j] * l1 + t2[2, v, j] * l2 - sub[v, 2]
+            else:
+                c0, c1, c2 = g * (x0 - sub2[v, 0]), g * (x1 - sub2[v, 1]), g * (x2 - sub2[v, 2])
+            out[v, j], out[v, t + j], out[v, 2 * t + j] = c0, c1, c2
 
 
 class DetailTransfer:
@@ -297,24 +314,18 @@ class DetailTransfer:
         c += self.That0.T.astype(_WORK)[:, :, None]
         return np.ascontiguousarray(c.transpose(2, 1, 0))
 
-    def _change(self, Fs: tuple, Ft: tuple, xi: np.ndarray) -> np.ndarray:
+    def _change(self, Fs: tuple, Ft: tuple, xi: np.ndarray, out=None) -> np.ndarray:
         """``c_t - T̂_0`` (3, V, t) float32: ``g F'_t F_t^T (ξ_t - ξ_0)`` for ``xi = ξ_t - ξ_0``,
-        or, with ``rotate_reference`` and ``xi = ξ_t``, ``F'_t(F'^T_0 T̂_0 + g(F_t^T ξ_t - F_0^T ξ_0)) - T̂_0``."""
+        or, with ``rotate_reference`` and ``xi = ξ_t``, ``F'_t(F'^T_0 T̂_0 + g(F_t^T ξ_t - F_0^T ξ_0)) - T̂_0``;
+        with ``out`` (V, 3t), written there as the Poisson right-hand sides (see :func:`_rotate`)."""
         ok = None
         if len(Fs) == 4:  # frames with flags: no rotation where either side has no frame
             ok = Fs[3] & Ft[3]
             Fs, Ft = Fs[:3], Ft[:3]
         if not self.rotate_reference:
-            out = _rotate(Fs, Ft, xi, self.gain)
-            if ok is not None and not ok.all():
-                out = np.where(ok[None], out, self.gain * xi)
-            return out
-        add = (self.lt0 - self.gain * self.l0).astype(_WORK)
-        out = _rotate(Fs, Ft, xi, self.gain, add)
-        out -= self.That0.T.astype(_WORK)[:, :, None]
-        if ok is not None and not ok.all():  # frameless: the change as is, the reference unrotated
-            out = np.where(ok[None], out, self.gain * (xi - self.xi0.T.astype(_WORK)[:, :, None]))
-        return out
+            return _rotate(Fs, Ft, xi, self.gain, ok=ok, out=out)
+        # frameless: the change as is, the reference unrotated
+        return _rotate(Fs, Ft, xi, self.gain, self.lt0 - self.gain * self.l0, self.That0, ok, self.xi0, out=out)
 
     def displacements(self, source_smooth: FactoredSequence, source_coating: FactoredSequence,
                       target_smooth_frames, n_frames: int, chunk: int = 32, dtype=np.float32,
@@ -355,13 +366,12 @@ class DetailTransfer:
             Fs, Ft = src.frames(idx, flags=True), tgt.frames(idx, flags=True)
             xi = (G @ np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK)).reshape(3, V, t)
             xi += xi_base
-            c = self._change(Fs, Ft, xi)
-            # (3, t, V) C-order is (V, 3t) F-order: all frames x coordinates of the chunk as columns
-            B = np.empty((3, t, V), dtype=_WORK)
-            B[:] = c.transpose(0, 2, 1)
-            y = self.poisson.solve(B.reshape(3 * t, V).T).T.reshape(3, t, V)
-            for p in range(3):  # per coordinate: contiguous gathers, one strided write
-                out[idx, :, p] = y[p][:, rows] if y0 is None else y[p][:, rows] + y0[:, p]
+            # all frames x coordinates of the chunk as the columns of one (V, 3t) solve
+            B = self._change(Fs, Ft, xi, out=np.empty((V, 3 * t)))
+            y = self.poisson.solve(B)[rows].reshape(len(rows), 3, t)
+            if y0 is not None:
+                y += y0[:, :, None]
+            out[idx] = y.transpose(2, 0, 1)
             if progress is not None:
                 progress(idx.stop / n_frames, f"fine details: {idx.stop}/{n_frames} frames")
         return out
