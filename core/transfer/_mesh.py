@@ -76,7 +76,7 @@ class CholeskyFactor:
     Raises
     ------
     ValueError
-        ``A`` not square.
+        ``A`` not square, or not positive definite (CHOLMOD's verdict).
     """
 
     #: right-hand sides per CHOLMOD call (see above)
