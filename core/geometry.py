@@ -289,9 +289,17 @@ def vertex_adjacency(F, n=None):
     F = _check_faces(F, n)
     if n is None:
         n = int(F.max()) + 1 if F.size else 0
-    e = edges(F)
-    A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    return (A + A.T).tocsr()
+    # every half-edge both ways; the CSR conversion sums the duplicates (one pass, no unique of
+    # the edge list), then each edge counts once (a face's repeated corner: 2 on the diagonal,
+    # as (A + A^T) of the unique edges gave it)
+    i = F.T.ravel()
+    j = F[:, [1, 2, 0]].T.ravel()
+    rows, cols = np.concatenate([i, j]), np.concatenate([j, i])
+    A = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    A.sum_duplicates()
+    A.data[:] = 1.0
+    A.data[np.repeat(np.arange(n), np.diff(A.indptr)) == A.indices] = 2.0
+    return A
 
 
 def uniform_laplacian(F, n=None):
