@@ -200,12 +200,13 @@ class _FramedSequence:
         if isinstance(seq, FactoredSequence):
             X = np.ascontiguousarray(np.concatenate([seq.base[None], seq.basis]).transpose(2, 1, 0),
                                      dtype=np.float64)  # (3, V, m)
-            p0 = X[:, faces[:, 0]]
-            # (3n, m): row p*n + i is coordinate p of the edge of face/vertex i
-            rows = lambda E: E.reshape(-1, E.shape[-1]).astype(_WORK)
-            self.E1 = rows(X[:, faces[:, 1]] - p0)
-            self.E2 = rows(X[:, faces[:, 2]] - p0)
-            self.Et = rows(X[:, nbi] - X)
+            # (3n, m): row p*n + i is coordinate p of the edge of face/vertex i, differences in
+            # float64 rounded once to the working precision
+            rows = lambda a, b: _edge_rows(X, np.ascontiguousarray(a), np.ascontiguousarray(b),
+                                           np.empty((3, len(a), X.shape[2]), dtype=_WORK)).reshape(3 * len(a), -1)
+            self.E1 = rows(self.faces[:, 1], self.faces[:, 0])
+            self.E2 = rows(self.faces[:, 2], self.faces[:, 0])
+            self.Et = rows(np.asarray(nbi, dtype=np.int64), np.arange(len(nbi), dtype=np.int64))
 
     def frames(self, idx: slice, flags: bool = False) -> tuple:
         """``(t, b, n)`` (each (3, V, t) float32) of the frames ``idx``; with ``flags`` also
@@ -227,6 +228,19 @@ class _FramedSequence:
             e2 = np.take(x, self.faces[:, 2], axis=1) - p0
             et = np.take(x, self.nbi, axis=1) - x
         return _frames_from_edges(e1, e2, et, self.faces, flags)
+
+
+@numba.njit(cache=True, nogil=True)
+def _edge_rows(X, head, tail, out):  # pragma: no cover - compiled
+    """``out[p, i] = X[p, head[i]] - X[p, tail[i]]`` for (3, V, m) float64 ``X``, rounded to
+    ``out``'s dtype; returns ``out`` (3, n, m)."""
+    m = X.shape[2]
+    for p in range(3):
+        for i in range(len(head)):
+            a, b = head[i], tail[i]
+            for k in range(m):
+                out[p, i, k] = X[p, a, k] - X[p, b, k]
+    return out
 
 
 def _rotate(Fs: tuple, Ft: tuple, x: np.ndarray, scale: float = 1.0, add_local=None, sub=None, ok=None,
