@@ -243,6 +243,18 @@ def _edge_rows(X, head, tail, out):  # pragma: no cover - compiled
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _scatter_frames(y, rows, y0, out, start):  # pragma: no cover - compiled
+    """``out[start + j, i, p] = y[rows[i], p t + j] + y0[i, p]`` for the (V, 3t) solution ``y``
+    of a chunk of t frames, rounded to ``out``'s dtype."""
+    t = y.shape[1] // 3
+    for j in range(t):
+        for i in range(len(rows)):
+            r = rows[i]
+            for p in range(3):
+                out[start + j, i, p] = y[r, p * t + j] + y0[i, p]
+
+
 def _rotate(Fs: tuple, Ft: tuple, x: np.ndarray, scale: float = 1.0, add_local=None, sub=None, ok=None,
             sub_frameless=None, out=None) -> np.ndarray:
     """``F'_t (scale * F_t^T x + add_local) - sub`` for (3, V, t) blocks; ``scale * (x - sub_frameless)``
@@ -373,7 +385,7 @@ class DetailTransfer:
         G = source_coating.basis.transpose(2, 1, 0).reshape(3 * V, source_coating.rank).astype(_WORK)
         xi_base = ((source_coating.base - self.xi0) if not self.rotate_reference else source_coating.base)
         xi_base = xi_base.T.astype(_WORK)[:, :, None]
-        y0 = None if relative else self.ref_displacement[rows]
+        y0 = np.zeros((len(rows), 3)) if relative else self.ref_displacement[rows]
         for s in range(0, n_frames, chunk):
             idx = slice(s, min(s + chunk, n_frames))
             t = idx.stop - idx.start
@@ -382,10 +394,7 @@ class DetailTransfer:
             xi += xi_base
             # all frames x coordinates of the chunk as the columns of one (V, 3t) solve
             B = self._change(Fs, Ft, xi, out=np.empty((V, 3 * t)))
-            y = self.poisson.solve(B)[rows].reshape(len(rows), 3, t)
-            if y0 is not None:
-                y += y0[:, :, None]
-            out[idx] = y.transpose(2, 0, 1)
+            _scatter_frames(self.poisson.solve(B), rows, y0, out, idx.start)
             if progress is not None:
                 progress(idx.stop / n_frames, f"fine details: {idx.stop}/{n_frames} frames")
         return out
