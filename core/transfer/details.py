@@ -54,7 +54,7 @@ import numpy as np
 
 from ..geometry import first_neighbour, vertex_face_incidence, vertex_frames
 from ._mesh import to_local
-from .decompose import FactoredSequence, PoissonReconstructor, factor_sequence
+from .decompose import FactoredSequence, PoissonReconstructor
 
 __all__ = ["local_coating", "DetailTransfer", "detail_morph_targets"]
 
