@@ -248,10 +248,10 @@ def _scatter_frames(y, rows, y0, out, start):  # pragma: no cover - compiled
     """``out[start + j, i, p] = y[rows[i], p t + j] + y0[i, p]`` for the (V, 3t) solution ``y``
     of a chunk of t frames, rounded to ``out``'s dtype."""
     t = y.shape[1] // 3
-    for j in range(t):
-        for i in range(len(rows)):
-            r = rows[i]
-            for p in range(3):
+    for i in range(len(rows)):  # one row of y at a time (read once); t output rows stay cached
+        r = rows[i]
+        for p in range(3):
+            for j in range(t):
                 out[start + j, i, p] = y[r, p * t + j] + y0[i, p]
 
 
