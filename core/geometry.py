@@ -263,8 +263,14 @@ def edges(F):
     """Unique undirected edges ``(E, 2)`` with ``e[:, 0] < e[:, 1]``, sorted."""
     F = _check_faces(F)
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    e = np.sort(e, axis=1)
-    return np.unique(e, axis=0) if len(e) else np.zeros((0, 2), np.int64)
+    if not len(e):
+        return np.zeros((0, 2), np.int64)
+    e = np.sort(e, axis=1).astype(np.int64)
+    # unique rows through one int64 key per edge (lexicographic order = key order): a 1-D
+    # unique, about twice as fast as np.unique(axis=0)'s sort of structured rows
+    m = int(e.max()) + 1
+    key = np.unique(e[:, 0] * m + e[:, 1])
+    return np.stack([key // m, key % m], axis=1)
 
 
 def vertex_adjacency(F, n=None):
@@ -283,9 +289,17 @@ def vertex_adjacency(F, n=None):
     F = _check_faces(F, n)
     if n is None:
         n = int(F.max()) + 1 if F.size else 0
-    e = edges(F)
-    A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    return (A + A.T).tocsr()
+    # every half-edge both ways; the CSR conversion sums the duplicates (one pass, no unique of
+    # the edge list), then each edge counts once (a face's repeated corner: 2 on the diagonal,
+    # as (A + A^T) of the unique edges gave it)
+    i = F.T.ravel()
+    j = F[:, [1, 2, 0]].T.ravel()
+    rows, cols = np.concatenate([i, j]), np.concatenate([j, i])
+    A = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    A.sum_duplicates()
+    A.data[:] = 1.0
+    A.data[np.repeat(np.arange(n), np.diff(A.indptr)) == A.indices] = 2.0
+    return A
 
 
 def uniform_laplacian(F, n=None):

@@ -53,6 +53,28 @@ def test_taubin_matches_dense_reference_real(tiger):
     assert np.abs(ours - ref).max() < 1e-10 * tiger.size
 
 
+def test_taubin_renumbering_is_bit_identical(tiger):
+    """The filter runs on vertices renumbered for locality (reverse Cuthill-McKee) with each row's
+    sum in its original order: the very same floats as the products in the mesh's numbering."""
+    import scipy.sparse as sp
+
+    from core.geometry import vertex_adjacency
+
+    V, F = tiger.neutral, tiger.faces
+    filt = TaubinFilter(F, len(V), 40)
+    assert not np.array_equal(filt._order, np.arange(len(V)))  # it did renumber
+    A = vertex_adjacency(F, len(V))
+    inv = 1.0 / np.asarray(A.sum(axis=1)).ravel()
+    U = (sp.diags(inv) @ A - sp.identity(len(V))).tocsr()
+    I = sp.identity(len(V), format="csr")
+    a, b = (I + 0.5 * U).tocsr(), (I - 0.53 * U).tocsr()
+    x = np.concatenate([V, np.random.default_rng(2).standard_normal((len(V), 40))], axis=1)
+    y = x.copy()
+    for _ in range(40):
+        y = b @ (a @ y)
+    np.testing.assert_array_equal(filt.apply(x), y)
+
+
 def test_taubin_sequence_equals_per_frame_and_keeps_input(tiger):
     rng = np.random.default_rng(1)
     seq = tiger.evaluate(rng.random((3, tiger.n_shapes)))
@@ -215,7 +237,7 @@ def test_screened_poisson_returns_prior_and_matches_dense_solve(tiger):
 
 @pytest.mark.parametrize("screening", [0.0, 0.05])
 def test_poisson_block_solve_matches_dense(screening, tiger):
-    """(V, m) right-hand sides at once (any m, blocks of 16 inside) = dense solves column by column."""
+    """(V, m) right-hand sides at once (any m, in blocks of columns) = dense solves column by column."""
     wi, rep, Fw = weld_vertices(tiger.neutral, tiger.faces)
     V = len(rep)
     P = PoissonReconstructor(Fw, V, screening=screening)
@@ -237,14 +259,8 @@ def test_poisson_block_solve_matches_dense(screening, tiger):
     assert np.allclose(P.solve(np.asfortranarray(B[:, :5])), ours[:, :5], atol=1e-12 * np.abs(ref).max())
     with pytest.raises(ValueError, match="B"):
         P.solve(B[:-1])
-    # single precision: the screened system (well conditioned) is solved with a float32
-    # factorisation to ~1e-6 relative; the plain Poisson solve ignores the request
-    low = P.solve(B, dtype=np.float32)
-    if screening:
-        err = np.abs(low - ref).max() / np.abs(ref).max()
-        assert low.dtype == np.float32 and 1e-12 < err < 1e-5  # really float32, and close
-    else:
-        assert low.dtype == np.float64 and np.abs(low - ours).max() == 0
+    # any block size gives the same columns (the blocks only group the triangular solves)
+    assert np.abs(P.solve(B, block=5) - ours).max() < 1e-12 * np.abs(ref).max()
 
 
 def test_factor_sequence_truncates_like_the_svd():
@@ -272,3 +288,29 @@ def test_factor_sequence_truncates_like_the_svd():
     assert capped.rank == 5 and capped.residual_rms > 0
     with pytest.raises(ValueError, match="NaN"):
         factor_sequence(np.where(np.arange(T)[:, None, None] == 3, np.nan, seq), 1e-6)
+
+
+def test_cholesky_factor_matches_dense_solves_in_any_block():
+    """CholeskyFactor (CHOLMOD through cholespy) against np.linalg.solve: a random sparse SPD
+    matrix, one vector and 37 columns solved in blocks that do not divide them."""
+    import scipy.sparse as sp
+
+    from core.transfer._mesh import CholeskyFactor
+
+    rng = np.random.default_rng(3)
+    n = 200
+    R = sp.random(n, n, density=0.02, random_state=4)
+    A = (R @ R.T + sp.identity(n)).tocsr()  # SPD, cond ~ 1 + |R|^2
+    ch = CholeskyFactor(A)
+    B = rng.standard_normal((n, 37))
+    ref = np.linalg.solve(A.toarray(), B)
+    for block in (None, 5, 37, 64):
+        assert np.abs(ch.solve(B, block) - ref).max() < 1e-10 * np.abs(ref).max()
+    assert np.abs(ch.solve(B[:, 3]) - ref[:, 3]).max() < 1e-10 * np.abs(ref).max()
+    assert np.abs(ch.solve(np.asfortranarray(B)) - ref).max() < 1e-10 * np.abs(ref).max()
+    with pytest.raises(ValueError, match="b"):
+        ch.solve(B[:-1])
+    with pytest.raises(ValueError, match="square"):
+        CholeskyFactor(sp.csr_matrix((3, 4)))
+    with pytest.raises(ValueError, match="positive definite"):  # singular: SuperLU raised here too
+        CholeskyFactor(sp.csr_matrix(np.array([[1.0, 1, 0], [1, 1, 0], [0, 0, 1]])))

@@ -300,7 +300,7 @@ def test_batched_frames_equal_vertex_frames(tiger_detail_case, factored, work, m
     V = len(c["N"])
     nb = first_neighbour(F, V)
     seq = c["smooth"] if factored else (lambda idx: c["smooth"].frames(idx))
-    fs = _FramedSequence(seq, F, np.where(nb < 0, np.arange(V), nb), vertex_face_incidence(F, V))
+    fs = _FramedSequence(seq, F, np.where(nb < 0, np.arange(V), nb))
     got = fs.frames(slice(2, 6))  # (3, V, t) each
     for i, t in enumerate(range(2, 6)):
         want = vertex_frames(c["smooth"].frames(t)[0], F)
@@ -325,7 +325,7 @@ def test_batched_frames_fall_back_where_the_tangent_edge_vanishes():
     nb = first_neighbour(F, len(V))
     V[nb[0]] = V[0] + 1e-9 * (V[nb[0]] - V[0])  # the edge 0 -> nb[0] shrinks to nothing
     fac = FactoredSequence(V, np.zeros((1, 0)), np.zeros((0, len(V), 3)), 0.0)
-    fs = _FramedSequence(fac, F, np.where(nb < 0, np.arange(len(V)), nb), vertex_face_incidence(F, len(V)))
+    fs = _FramedSequence(fac, F, np.where(nb < 0, np.arange(len(V)), nb))
     got = fs.frames(slice(0, 1))
     want = vertex_frames(V, F)
     n0 = want[2][0]
