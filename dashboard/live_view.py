@@ -4,8 +4,8 @@ the shot's take (so the offline methods can refine them afterwards).
 
 The view holds no numerics: :class:`core.live.LiveRetargeter` is built from the page's
 pipeline, :func:`core.live.listen` runs in a thread, and a periodic callback of the page pushes
-the latest frame's weights to the two viewers (``MeshViewer.stream_weights``: a message of a few hundred bytes
-per update) and the counts to the status line.
+the latest frame's weights to the two viewers (``MeshViewer.stream_weights``: a message of a few
+hundred bytes per update, the K float32 as one base64 string) and the counts to the status line.
 """
 
 from __future__ import annotations
@@ -157,9 +157,10 @@ class LiveView(pn.viewable.Viewer):
         if f is not None and f is not self._shown and self.target_viewer is not None:
             self._shown = f
             t = time.perf_counter()
-            self.target_viewer.stream_weights(f.weights)
-            if f.values is not None:
-                self.source_viewer.stream_weights(np.clip(self.rt.source_weights(f.values), -1.0, 2.0))
+            with pn.io.unlocked():  # both views' messages go out as one patch (one websocket write)
+                self.target_viewer.stream_weights(f.weights)
+                if f.values is not None:
+                    self.source_viewer.stream_weights(np.clip(self.rt.source_weights(f.values), -1.0, 2.0))
             self.push_ms = 1e3 * (time.perf_counter() - t)
             self.pushes += 1
         t0, n0, rate = self._rate

@@ -1470,11 +1470,20 @@ class Viewer {
     m.on("fps", () => this.clock.setFps(m.fps));
     m.on("loop", () => { this.clock.loop = m.loop; });
     m.on("weights", () => { this.streamed = null; this.applyFrame(this.clock.frame); this.requestRender(); });
-    // weights streamed as messages (a live stream: MeshViewer.stream_weights), shown at once
-    // into one buffer per view (no allocation per message); blended and drawn at most once per
+    // weights streamed as messages (a live stream: MeshViewer.stream_weights: K float32,
+    // little-endian, base64), shown at once, decoded into buffers kept per view (no typed-array
+    // allocation per message); blended and drawn at most once per
     // animation frame, in that frame (the latest weights win); a hidden view only keeps them
     m.on("msg:custom", (data) => {
-      if (data && data.weights && data.weights.length === this.K) this.receiveStreamed(data.weights);
+      if (!data || typeof data.w32 !== "string") return;
+      const bin = atob(data.w32);
+      if (bin.length !== 4 * this.K) return;
+      if (!this.streamBytes || this.streamBytes.length !== 4 * this.K) {
+        this.streamBytes = new Uint8Array(4 * this.K);
+        this.streamF32 = new Float32Array(this.streamBytes.buffer);
+      }
+      for (let i = 0; i < bin.length; i++) this.streamBytes[i] = bin.charCodeAt(i);
+      this.receiveStreamed(this.streamF32);
     });
     m.on(["track", "track_url"], () => this.reloadTrack());
     m.on(["geometry_url", "geometry"], () => this.reloadGeometry());

@@ -737,6 +737,24 @@ def test_assets_locates_three_and_explains_npm_ci(monkeypatch, tmp_path):
         assets.static_dirs()
 
 
+def test_stream_weights_sends_the_float32_weights_as_one_string(ict, monkeypatch):
+    import base64
+
+    from dashboard.viewer import MeshViewer
+
+    v = MeshViewer.from_rig(ict, np.zeros((1, ict.n_shapes)))
+    sent = []
+    monkeypatch.setattr(v, "_send_msg", sent.append)
+    w = np.random.default_rng(3).uniform(0, 1, ict.n_shapes)
+    v.stream_weights(w)
+    assert list(sent[0]) == ["w32"] and isinstance(sent[0]["w32"], str)
+    got = np.frombuffer(base64.b64decode(sent[0]["w32"]), dtype="<f4")
+    np.testing.assert_array_equal(got, w.astype(np.float32))
+    with pytest.raises(ValueError, match="weights"):
+        v.stream_weights(w[:-1])
+    assert len(sent) == 1
+
+
 def test_from_rig_packs_float32_and_validates(ict):
     from core.model import MarkerLayout
     from dashboard.viewer import MeshViewer
