@@ -358,6 +358,37 @@ def test_streamed_weights_blend_incrementally_without_drift(shared, demo):
     assert np.abs(mesh - rig.evaluate(track[0])).max() < 1e-5 * rig.size
 
 
+@pytest.mark.browser
+def test_hidden_view_keeps_time_but_draws_nothing_until_shown(shared, demo):
+    """A view hidden while its group plays (another tab, display: none) keeps the group's frame
+    and draws nothing; shown again, it draws the group's current frame at once."""
+    page = shared
+    rig, track, _ = demo.load()["source"]
+    js(page, SRC, "(v.self.root.style.display = 'none', 0)")
+    page.wait_for_function(f"() => !window.__faceRetarget.viewers[{json.dumps(SRC)}].visible()", timeout=10_000)
+    try:
+        page.get_by_role("button", name="Play").click()
+        page.wait_for_function("() => Object.values(window.__faceRetarget.viewers).every(v => v.playing)", timeout=10_000)
+        before = {lab: js(page, lab, "v.self.stats.renders") for lab in (SRC, TGT)}
+        page.wait_for_timeout(1500)
+        after = {lab: js(page, lab, "v.self.stats.renders") for lab in (SRC, TGT)}
+        assert after[SRC] == before[SRC] and after[TGT] > before[TGT] + 5, (before, after)
+        shown = page.evaluate("([a, b]) => [a, b].map(l => window.__faceRetarget.viewers[l].self.lastShown)", [SRC, TGT])
+        assert shown[0] == shown[1] > 0, shown  # the hidden view kept the group's time
+        page.get_by_role("button", name="Play").click()
+        page.wait_for_function("() => Object.values(window.__faceRetarget.viewers).every(v => !v.playing)", timeout=10_000)
+    finally:
+        js(page, SRC, "(v.self.root.style.display = '', 0)")
+    page.wait_for_function(f"() => window.__faceRetarget.viewers[{json.dumps(SRC)}].visible()", timeout=10_000)
+    page.wait_for_timeout(300)
+    frame = js(page, SRC, "v.frame")
+    assert js(page, SRC, "v.self.stats.renders") > after[SRC]
+    mesh = np.array(js(page, SRC, "v.positions()")).reshape(-1, 3)
+    assert np.abs(mesh - rig.evaluate(track[frame])).max() < 1e-5 * rig.size
+    drag_slider_to(page, -0.1)
+    wait_synced(page, "f === 0")
+
+
 # -- browser tests on their own pages -----------------------------------------------------
 @pytest.mark.browser
 @pytest.mark.slow
