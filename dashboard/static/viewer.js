@@ -893,7 +893,10 @@ class Viewer {
     this.M = M;
     if (!M || !this.V) return;
     const r = m.marker_radius * (this.size || 1);
-    const sphere = new THREE.SphereGeometry(r, 10, 8);
+    // drawn flat (MeshBasicMaterial): only the outline shows, and an icosphere of 80 triangles
+    // outlines as round as a 10 x 8 UV sphere of 140; SwiftShader's time is about linear in
+    // triangles, and the markers were a quarter of a live view's draw (docs/live.md)
+    const sphere = new THREE.IcosahedronGeometry(r, 1);
     this.markers = new THREE.InstancedMesh(sphere, this.markerMaterial, M);
     this.markers.frustumCulled = false;
     this.markers.visible = m.show_markers;
@@ -972,9 +975,9 @@ class Viewer {
 
   // -- picking -------------------------------------------------------------------------------
   // Vertex v as shown now: neutral + sum_k w_k delta_k (+ offset) with the weights of the
-  // shown frame (the JS blend wrote exactly this into the position buffer, in the same order
-  // of float32 operations; on the gpu it never leaves the shader, so it is recomputed here
-  // from the same weights).
+  // shown frame (the JS blend wrote this into the position buffer, up to float32 rounding; for
+  // streamed weights within the bound of its deferred changes, DEFER_TOL x size; on the gpu it
+  // never leaves the shader, so it is recomputed here from the same weights).
   vertexPosition(v, out) {
     const N = this.neutral, D = this.deltas, w = this.current, V = this.V, O = this.offsets;
     let x = N[3 * v], y = N[3 * v + 1], z = N[3 * v + 2];
@@ -1098,10 +1101,11 @@ class Viewer {
     this.lastShown = frame;
     // a hidden view (another tab, scrolled away) keeps time with its group and draws nothing
     // until it shows again (setVisible)
-    if (fromPlayback && !this.visible) this.hiddenFrame = true;
-    else this.applyFrame(frame);
+    const hidden = fromPlayback && !this.visible;
+    this.hiddenFrame = hidden;
+    if (!hidden) this.applyFrame(frame);
     if (fromPlayback) {
-      if (!this.hiddenFrame) this.renderNow();
+      if (!hidden) this.renderNow();
       const si = this.model.sync_interval;
       const now = performance.now();
       // while playing only the group's first viewer reports (they all show the same frame)
@@ -1179,6 +1183,7 @@ class Viewer {
       if (this.offsets) this.blendedW = null;
       else (this.blendedW && this.blendedW.length === K ? this.blendedW : (this.blendedW = new Float32Array(K))).set(w);
       this.sinceFull = 0;
+      this.deferredBound = 0;
       st.fullBlends = (st.fullBlends || 0) + 1;
     } else {
       for (const k of apply) this.addShape(k, w[k] - bw[k], P, Nn);
