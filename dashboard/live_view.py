@@ -4,8 +4,8 @@ the shot's take (so the offline methods can refine them afterwards).
 
 The view holds no numerics: :class:`core.live.LiveRetargeter` is built from the page's
 pipeline, :func:`core.live.listen` runs in a thread, and a periodic callback of the page pushes
-the latest frame's weights to the two viewers (``MeshViewer.stream_weights``: a message of a few hundred bytes
-per update) and the counts to the status line.
+the latest frame's weights to the two viewers (``MeshViewer.stream_weights``: a message of a few
+hundred bytes per update, the K float32 as one base64 string) and the counts to the status line.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from typing import Callable, Optional
 
 import numpy as np
 import panel as pn
+from panel.io.callbacks import PeriodicCallback
 
 from core.io.livelink import write_livelink
 from core.live import LiveRetargeter, LiveSession, listen, parse_address
@@ -62,6 +63,8 @@ class LiveView(pn.viewable.Viewer):
         self._rate = (time.monotonic(), 0, 0.0)
         self.bound = None
         self.push_ms = 0.0
+        self.pushes = self._pushes0 = 0  # frames sent to the viewers, and at the last status
+        self.push_rate = 0.0
 
     def update(self, snap) -> None:
         """Nothing to redraw for a new result: Listen builds the per-frame system from the pipeline."""
@@ -103,7 +106,11 @@ class LiveView(pn.viewable.Viewer):
         if failed:
             raise ValueError(f"cannot listen on {host}:{port}: {failed[0]}")
         if pn.state.curdoc is not None and self._callback is None:
-            self._callback = pn.state.add_periodic_callback(self.push, period=PUSH_MS)
+            # background: not counted as the app being busy (pn.state.add_periodic_callback's
+            # callbacks set state.busy on and off at every call: the template's busy indicator
+            # changed twice per push, 120 model updates a second to the page); no log line per call
+            self._callback = PeriodicCallback(callback=self.push, period=PUSH_MS, background=True, log=False)
+            self._callback.start()
         self.w_record.disabled = False
         self._rate = (time.monotonic(), 0, 0.0)
         return self.bound
@@ -150,16 +157,20 @@ class LiveView(pn.viewable.Viewer):
         if f is not None and f is not self._shown and self.target_viewer is not None:
             self._shown = f
             t = time.perf_counter()
-            self.target_viewer.stream_weights(f.weights)
-            if f.values is not None:
-                self.source_viewer.stream_weights(np.clip(self.rt.source_weights(f.values), -1.0, 2.0))
+            with pn.io.unlocked():  # both views' messages go out as one patch (one websocket write)
+                self.target_viewer.stream_weights(f.weights)
+                if f.values is not None:
+                    self.source_viewer.stream_weights(np.clip(self.rt.source_weights(f.values), -1.0, 2.0))
             self.push_ms = 1e3 * (time.perf_counter() - t)
+            self.pushes += 1
         t0, n0, rate = self._rate
         now = time.monotonic()
         if self.session is not None and now - t0 >= 0.5:
             st = self.session.stats()
             n = sum(s["answered"] for s in st["subjects"].values())
             rate = (n - n0) / (now - t0)
+            self.push_rate = (self.pushes - self._pushes0) / (now - t0)
+            self._pushes0 = self.pushes
             self._rate = (now, n, rate)
             self.status.object = self.summary(st, rate)
 
@@ -175,7 +186,7 @@ class LiveView(pn.viewable.Viewer):
                          + (f", {s['recorded']} recorded" if s["recorded"] else ""))
         bad = sum(st["bad"].values())
         parts.append(f"bad packets: {bad}" + (f" ({', '.join(f'{k} {v}' for k, v in st['bad'].items())})" if bad else ""))
-        parts.append(f"page update {self.push_ms:.1f} ms")
+        parts.append(f"page update {self.push_ms:.1f} ms, {self.push_rate:.0f}/s")
         return " · ".join(parts)
 
     # -- recording --------------------------------------------------------------------------

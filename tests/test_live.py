@@ -28,13 +28,18 @@ TAKE = PERFORMANCES / "livelinkface_take_s07.csv"
 
 
 def packet_by_hand(subject, device, frame, subframe, num, den, values):
-    """A version-6 packet written from the protocol description, field by field."""
+    """A version-6 packet written from the protocol description, field by field; ``values``
+    None: the app's frame without a face (it ends after the frame time)."""
     d, s = device.encode(), subject.encode()
     out = struct.pack(">B", 6) + struct.pack(">i", len(d)) + d + struct.pack(">i", len(s)) + s
     out += struct.pack(">i", frame) + struct.pack(">f", subframe) + struct.pack(">i", num) + struct.pack(">i", den)
     if values is None:
-        return out + struct.pack(">B", 0)
+        return out
     return out + struct.pack(">B", 61) + b"".join(struct.pack(">f", v) for v in values)
+
+
+#: A device id as the app sends it: the device's UUID, 36 upper-case characters.
+APP_DEVICE = "0C5E7A1F-3B2D-4E8A-9F61-7D2C4B8A1E93"
 
 
 def stream_values(perf):
@@ -62,9 +67,59 @@ def test_decode_reads_a_packet_built_from_the_description():
     assert encode("iPhone", 4321, dict(zip(CHANNELS, vals)), subframe=0.25, device_id="A1B2-C3") == pk
 
 
+def test_packets_laid_out_as_the_app_sends_them():
+    """The byte layout of a netcat capture of Live Link Face's stream (aelzeiny/Animoji,
+    experimentation/livelink.udp; docs/live.md): a 36-character device UUID, the subject
+    '<name>_iPhone', the timecode's frame of the day with a non-zero subframe at 60/1, 61
+    big-endian floats: 319 bytes; a frame without a face is the same header and frame time
+    alone, 74 bytes. Our own values, the capture's layout, written out byte by byte."""
+    vals = np.linspace(0, 1, 61, dtype=np.float32)
+    pk = (b"\x06" + b"\x00\x00\x00\x24" + APP_DEVICE.encode() + b"\x00\x00\x00\x0d" + b"Actors_iPhone"
+          + bytes.fromhex("0010b89b") + bytes.fromhex("3eb0a3d7") + bytes.fromhex("0000003c") + bytes.fromhex("00000001")
+          + b"\x3d" + vals.astype(">f4").tobytes())
+    assert len(pk) == 319
+    p = decode(pk)
+    assert (p.device_id, p.subject, p.frame, p.rate) == (APP_DEVICE, "Actors_iPhone", 1095835, (60, 1))
+    assert p.subframe == pytest.approx(0.345, abs=1e-6)
+    assert p.time == pytest.approx((1095835 + 0.345) / 60) and not p.tracking_lost
+    np.testing.assert_array_equal(p.values, vals)
+    assert p.arkit["JawOpen"] == vals[17] and p.arkit["HeadYaw"] == vals[52]
+    no_face = pk[:74]  # header and frame time: what the app sends while it sees no face
+    lost = decode(no_face)
+    assert lost.tracking_lost and lost.values is None and lost.frame == 1095835
+    # what we send is laid out the same way, byte for byte
+    assert encode("Actors_iPhone", 1095835, vals, subframe=np.float32(0.345), device_id=APP_DEVICE) == pk
+    assert encode("Actors_iPhone", 1095835, None, subframe=np.float32(0.345), device_id=APP_DEVICE) == no_face
+
+
+def test_a_stream_laid_out_as_the_app_sends_it(bounded_pipe, take):
+    """The capture's stream shape through a session: frame numbers of the day, subframes that
+    drift by ~0.0016 frame per frame, two 2-frame steps (one frame dropped each), and 7 frames
+    without a face in the middle: nothing is bad, the gaps are dropped frames, the faceless
+    frames hold the pose and are flagged."""
+    _, rt = bounded_pipe
+    X = stream_values(take)
+    sess = LiveSession(rt)
+    frame, sub, got = 1095835, 0.3453, []
+    steps = [1] * 20 + [2] + [1] * 15 + [2] + [1] * 10
+    for i, step in enumerate(steps):
+        frame, sub = frame + step, (sub + 0.0016) % 1.0
+        no_face = 20 <= i < 27
+        got.append(sess.receive(encode("Actors_iPhone", frame, None if no_face else X[i], subframe=sub,
+                                       device_id=APP_DEVICE)))
+    st = sess.stats()
+    s = st["subjects"]["Actors_iPhone"]
+    assert st["bad"] == {} and s["answered"] == len(steps)
+    assert (s["dropped"], s["tracking_lost"], s["repeated"], s["out_of_order"]) == (2, 7, 0, 0)
+    assert all(g.held for g in got[20:27]) and not any(g.held for g in got[:20] + got[27:])
+    np.testing.assert_array_equal(got[26].weights, got[19].weights)
+
+
 def test_tracking_loss_packets():
     lost = decode(packet_by_hand("s", "d", 1, 0.0, 60, 1, None))
     assert lost.values is None and lost.tracking_lost
+    counted = decode(packet_by_hand("s", "d", 1, 0.0, 60, 1, None) + b"\x00")  # count 0, as the CSV takes
+    assert counted.values is None and counted.tracking_lost
     zeros = np.zeros(61)
     zeros[52:] = 0.1  # the head may still be reported; no face values at all = no face
     assert decode(packet_by_hand("s", "d", 1, 0.0, 60, 1, zeros)).tracking_lost
@@ -75,10 +130,17 @@ def test_tracking_loss_packets():
 
 def test_bad_packets_raise_packet_error_with_the_reason():
     good = packet_by_hand("iPhone", "dev", 10, 0.0, 60, 1, np.full(61, 0.5))
-    for n in range(len(good)):  # every truncation
+    header = len(packet_by_hand("iPhone", "dev", 10, 0.0, 60, 1, None))
+    for n in range(len(good)):  # every truncation but the app's frame without a face
+        if n == header:
+            continue
         with pytest.raises(PacketError) as e:
             decode(good[:n])
-        assert e.value.reason == "truncated"
+        assert e.value.reason == "truncated", n
+    assert decode(good[:header]).tracking_lost
+    with pytest.raises(PacketError) as e:  # the count says 61 and no value follows
+        decode(good[:header + 1])
+    assert e.value.reason == "truncated"
     with pytest.raises(PacketError) as e:
         decode(bytes([5]) + good[1:])
     assert e.value.reason == "version"

@@ -10,9 +10,16 @@ one packet per UDP datagram)::
     float32  subframe                     the fraction of a frame
     int32    rate numerator               e.g. 60
     int32    rate denominator             e.g. 1
-    uint8    blend shape count    61
+    uint8    blend shape count    61      (absent in a frame without a face: see below)
     float32  x 61                         52 ARKit shapes in EARFaceBlendShape order, then head
                                           yaw, pitch, roll and left/right eye yaw, pitch, roll
+
+A packet of the app is therefore 1 + 4 + n + 4 + m + 16 + 1 + 244 bytes: 319 for a 36-character
+device UUID and the subject ``Ahmeds_iPhone``, as in a netcat capture of the app's stream
+(aelzeiny/Animoji, ``experimentation/livelink.udp``, 567 datagrams: 560 of 319 bytes and 7 of
+74). The frame number is the timecode's frame of the day at the rate (1,095,835: 05:04:24 at
+60 fps) and the subframe is not 0 (0.345, 0.347, ...: the capture clock's phase
+within the timecode frame).
 
 The time of a packet is ``(frame + subframe) * denominator / numerator`` seconds. Sources read
 (docs/live.md lists them with their addresses): Epic's receiver and sender in
@@ -26,12 +33,17 @@ The channel order of the packet is Unreal's ``EARFaceBlendShape`` enum (``JawLef
 ``JawRight``, ``MouthLeft`` before ``MouthRight``), *not* the order of the app's CSV header
 (:data:`core.io.livelink.LIVELINK_CHANNELS`); channels are therefore always handled by name.
 
-Tracking loss: in its CSV takes the app marks a frame without a face by a blend-shape count of
-0 and no values (:mod:`core.io.livelink`). A packet with count 0 is read the same way, and so is
-a packet whose 52 ARKit values are all exactly 0 (what a sender that zero-fills a lost face
-sends; a tracked face never gives 52 exact zeros). Both are :attr:`FacePacket.tracking_lost`.
+Tracking loss: the app sends a frame without a face as the header and the frame time alone, no
+count byte and no values (the 74-byte datagrams of the capture above, 7 frames in a row in the
+middle of the stream, their frame times continuing the others'; Unreal's receiver drops them as
+shorter than its minimum packet size, VRCFaceTracking's LiveLink module as shorter than 244
+bytes). In its CSV takes the app marks such a frame by a blend-shape count of 0 and no values
+(:mod:`core.io.livelink`); a packet with count 0 is read the same way, and so is a packet whose
+52 ARKit values are all exactly 0 (what a sender that zero-fills a lost face sends; a tracked
+face never gives 52 exact zeros). All three are :attr:`FacePacket.tracking_lost`; :func:`encode`
+writes the app's form.
 
-Anything else — a datagram too short for its fields, another version, a count other than 0 or
+Anything else — a datagram that ends inside a field, another version, a count other than 0 or
 61, string lengths that run past the end, non-UTF-8 names, bytes left over — raises
 :class:`PacketError` with the reason (``truncated``, ``version``, ``count``, ``garbage``); a
 receiver counts and skips them.
@@ -150,7 +162,8 @@ def decode(data: bytes) -> FacePacket:
     Raises
     ------
     PacketError
-        ``truncated`` (ends before a field), ``version`` (not 6), ``count`` (neither 0 nor 61),
+        ``truncated`` (ends inside a field; ending right after the frame time is the app's
+        frame without a face), ``version`` (not 6), ``count`` (neither 0 nor 61),
         ``garbage`` (impossible string length, non-UTF-8 names, bytes left over, non-finite values).
     """
     data = bytes(data)
@@ -160,12 +173,12 @@ def decode(data: bytes) -> FacePacket:
         raise PacketError("version", f"packet version {data[0]}, this reads version {VERSION}")
     device, at = _string(data, 1, "device id")
     subject, at = _string(data, at, "subject name")
-    if at + _FRAME_TIME.size + 1 > len(data):
+    if at + _FRAME_TIME.size > len(data):
         raise PacketError("truncated", f"{len(data)} bytes end inside the frame time")
     frame, subframe, num, den = _FRAME_TIME.unpack_from(data, at)
     at += _FRAME_TIME.size
-    count = data[at]
-    at += 1
+    count = data[at] if at < len(data) else 0  # the app's frame without a face ends here
+    at = min(at + 1, len(data))
     if count == 0:
         values = None
     elif count == N_VALUES:
@@ -188,7 +201,7 @@ def encode(subject: str, frame: int, values=None, subframe: float = 0.0, rate=(6
            device_id: str = "face-retarget") -> bytes:
     """One version-6 packet: ``values`` (61,) in :data:`CHANNELS` order, a ``{channel: value}``
     dict (missing channels 0; names in any case, CSV or ARKit spelling), or None for a
-    tracking-loss packet (count 0).
+    tracking-loss packet as the app sends it (header and frame time, no count, no values).
 
     Raises
     ------
@@ -208,7 +221,7 @@ def encode(subject: str, frame: int, values=None, subframe: float = 0.0, rate=(6
     head = (bytes([VERSION]) + _INT.pack(len(d)) + d + _INT.pack(len(s)) + s
             + _FRAME_TIME.pack(int(frame), float(subframe), int(rate[0]), int(rate[1])))
     if values is None:
-        return head + b"\x00"
+        return head
     arr = np.asarray(values, dtype=np.float32).ravel()
     if arr.shape != (N_VALUES,):
         raise ValueError(f"values: expected {N_VALUES} floats ({', '.join(CHANNELS[:3])}, ...), got {arr.shape}")

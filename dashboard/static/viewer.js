@@ -14,7 +14,15 @@
 // Mesh:    position = neutral + sum_k w_k delta_k
 //          blend "gpu": three.js morph targets (morphAttributes, morphTargetsRelative), the
 //          vertex shader loops over all K targets held in a texture;
-//          blend "cpu": the same sum in JS over the non-zero weights, uploaded per frame.
+//          blend "cpu": the same sum in JS, uploaded per frame. Streamed weights (a live stream)
+//          update the buffers incrementally, position += (w_k - b_k) delta_k (normals alike)
+//          for the shapes whose weight changed since the buffers were blended with b; a change
+//          too small to see is deferred while the deferred shapes' bound on the error,
+//          sum_k |w_k - b_k| max|delta_k| (per coordinate), stays under DEFER_TOL x the mesh's
+//          size (and sum_k |w_k - b_k| max|dn_k| under DEFER_TOL_NORMAL). Re-blended from scratch
+//          (the dense sum over non-zero w_k, as a track frame is) every REBLEND_EVERY updates and
+//          when as many shapes changed as are non-zero, so float32 rounding cannot drift.
+//          window.__faceRetargetFullBlend = true: every frame from scratch (bench_live_page.py's ref).
 //          "auto" picks cpu on a software WebGL (SwiftShader, llvmpipe), where the "GPU" is
 //          the CPU and the generic shader fetches every target for every vertex.
 // Normals: n(w) = n0 + sum_k w_k (n_k - n0), renormalised in the shader, with n_k the
@@ -46,12 +54,18 @@ if (!STATS.reset) {
   STATS.reset = () => {
     for (const s of Object.values(STATS.viewers)) {
       s.renders = 0; s.renderMs = 0; s.framesShown = 0; s.framesSkipped = 0;
+      // the streamed path's profile (drawStreamed, blendCpu, the message handler)
+      s.streamed = 0; s.messageMs = 0; s.streamDraws = 0; s.streamDrawMs = 0;
+      s.blendMs = 0; s.fullBlends = 0; s.incrementalBlends = 0; s.blendShapes = 0; s.deferredShapes = 0;
       s.t0 = performance.now();
     }
   };
 }
 
 const RIGHT_ANGLE = Math.PI / 2;
+const REBLEND_EVERY = 60; // incremental JS blends between two blends from scratch (drift bound)
+const DEFER_TOL = 1e-4;         // streamed blend: deferred changes move a coordinate < this x size
+const DEFER_TOL_NORMAL = 1e-3;  // ... and a normal's coordinate < this (normals are unit vectors)
 const DRAG_PX = 4; // a pointer that moves less than this between down and up is a click
 
 // ---------------------------------------------------------------------------------------
@@ -431,6 +445,11 @@ class Viewer {
     this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
     this.resizeObserver = new ResizeObserver(() => this.resize());
     this.resizeObserver.observe(this.root);
+    this.visible = true;
+    this.streamHidden = false;
+    this.hiddenFrame = false;
+    this.intersection = new IntersectionObserver((es) => this.setVisible(es[es.length - 1].isIntersecting));
+    this.intersection.observe(this.root);
     this.bindControls();
   }
 
@@ -675,6 +694,9 @@ class Viewer {
     // only when a shape is first blended (normalDelta), the rest while the page is idle — the
     // first frame is drawn without waiting for every shape of a large rig (issue 30)
     this.normalDeltas = new Array(this.K).fill(null);
+    this.normalExtent = new Float32Array(this.K); // per shape, max |dn_k| (set by normalDelta)
+    this.blendedW = null;   // the weights the JS blend's buffers hold (null: re-blend from scratch)
+    this.sinceFull = 0;
     this.nk = new Float32Array(3 * V);
     if (this.idleNormals) { cancelIdle(this.idleNormals); this.idleNormals = null; }
     const eager = this.K && this.blend === "gpu";
@@ -736,7 +758,9 @@ class Viewer {
     const V = this.V, n0 = this.normal0, nk = this.nk;
     vertexNormals(this.neutral, this.deltas.subarray(k * 3 * V, (k + 1) * 3 * V), this.faces, this.weld, nk, this.acc);
     dn = new Float32Array(3 * V);
-    for (let i = 0; i < 3 * V; i++) dn[i] = nk[i] - n0[i];
+    let ext = 0;
+    for (let i = 0; i < 3 * V; i++) { dn[i] = nk[i] - n0[i]; if (Math.abs(dn[i]) > ext) ext = Math.abs(dn[i]); }
+    this.normalExtent[k] = ext;
     this.normalDeltas[k] = dn;
     this.stats.normalsMs += performance.now() - t;
     return dn;
@@ -800,6 +824,7 @@ class Viewer {
     this.offsets = o != null && this.V > 0 && rows(o) === this.V && o.length === 3 * this.V ? asF32(o) : null;
     if (this.mesh) this.useMorphTargets(this.offsets === null);
     this.blended = null;
+    this.blendedW = null;
     this.stats.offsetUpdates += 1;
   }
 
@@ -868,7 +893,10 @@ class Viewer {
     this.M = M;
     if (!M || !this.V) return;
     const r = m.marker_radius * (this.size || 1);
-    const sphere = new THREE.SphereGeometry(r, 10, 8);
+    // drawn flat (MeshBasicMaterial): only the outline shows, and an icosphere of 80 triangles
+    // outlines as round as a 10 x 8 UV sphere of 140; SwiftShader's time is about linear in
+    // triangles, and the markers were a quarter of a live view's draw (docs/live.md)
+    const sphere = new THREE.IcosahedronGeometry(r, 1);
     this.markers = new THREE.InstancedMesh(sphere, this.markerMaterial, M);
     this.markers.frustumCulled = false;
     this.markers.visible = m.show_markers;
@@ -947,9 +975,9 @@ class Viewer {
 
   // -- picking -------------------------------------------------------------------------------
   // Vertex v as shown now: neutral + sum_k w_k delta_k (+ offset) with the weights of the
-  // shown frame (the JS blend wrote exactly this into the position buffer, in the same order
-  // of float32 operations; on the gpu it never leaves the shader, so it is recomputed here
-  // from the same weights).
+  // shown frame (the JS blend wrote this into the position buffer, up to float32 rounding; for
+  // streamed weights within the bound of its deferred changes, DEFER_TOL x size; on the gpu it
+  // never leaves the shader, so it is recomputed here from the same weights).
   vertexPosition(v, out) {
     const N = this.neutral, D = this.deltas, w = this.current, V = this.V, O = this.offsets;
     let x = N[3 * v], y = N[3 * v + 1], z = N[3 * v + 2];
@@ -1071,9 +1099,13 @@ class Viewer {
       if (step > 1) this.stats.framesSkipped += step - 1;
     }
     this.lastShown = frame;
-    this.applyFrame(frame);
+    // a hidden view (another tab, scrolled away) keeps time with its group and draws nothing
+    // until it shows again (setVisible)
+    const hidden = fromPlayback && !this.visible;
+    this.hiddenFrame = hidden;
+    if (!hidden) this.applyFrame(frame);
     if (fromPlayback) {
-      this.renderNow();
+      if (!hidden) this.renderNow();
       const si = this.model.sync_interval;
       const now = performance.now();
       // while playing only the group's first viewer reports (they all show the same frame)
@@ -1097,7 +1129,7 @@ class Viewer {
         const infl = this.mesh.morphTargetInfluences;
         for (let k = 0; k < K; k++) infl[k] = cur[k];
       } else {
-        this.blendCpu(cur);
+        this.blendCpu(cur, w === this.streamed);
       }
       this.blended = frame;
     }
@@ -1128,14 +1160,79 @@ class Viewer {
     return this.gapOf(frame) !== null;
   }
 
-  // position = neutral + sum_k w_k delta_k, normal = n0 + sum_k w_k dn_k over non-zero w_k;
-  // with offsets: position += offset, normal = the area-weighted vertex normal of the final
-  // positions (exact: blended normal deltas know nothing of the offsets).
-  blendCpu(w) {
+  // position = neutral + sum_k w_k delta_k, normal = n0 + sum_k w_k dn_k: streamed weights
+  // incrementally (header), anything else from scratch, so that a track frame, a probe or a
+  // seek shows the same bits however it was reached. With offsets: position += offset, normal =
+  // the area-weighted vertex normal of the final positions (exact: blended normal deltas know
+  // nothing of the offsets).
+  blendCpu(w, incremental = false) {
     const t = performance.now();
     const geom = this.mesh.geometry;
     const pa = geom.getAttribute("position"), na = geom.getAttribute("normal");
-    const P = pa.array, Nn = na.array, D = this.deltas, n3 = 3 * this.V, O = this.offsets;
+    const P = pa.array, Nn = na.array, K = this.K, st = this.stats;
+    const bw = this.blendedW;
+    let apply = null;
+    if (incremental && bw && !this.offsets && !window.__faceRetargetFullBlend && this.sinceFull < REBLEND_EVERY) {
+      apply = this.changedShapes(w, bw);
+      let nonzero = 0;
+      for (let k = 0; k < K; k++) if (w[k] !== 0) nonzero += 1;
+      if (apply.length >= nonzero) apply = null; // from scratch costs no more
+    }
+    if (apply === null) {
+      this.blendDense(w, P, Nn);
+      if (this.offsets) this.blendedW = null;
+      else (this.blendedW && this.blendedW.length === K ? this.blendedW : (this.blendedW = new Float32Array(K))).set(w);
+      this.sinceFull = 0;
+      this.deferredBound = 0;
+      st.fullBlends = (st.fullBlends || 0) + 1;
+    } else {
+      for (const k of apply) this.addShape(k, w[k] - bw[k], P, Nn);
+      for (const k of apply) bw[k] = w[k];
+      this.sinceFull += 1;
+      st.incrementalBlends = (st.incrementalBlends || 0) + 1;
+      st.blendShapes = (st.blendShapes || 0) + apply.length;
+    }
+    pa.needsUpdate = true;
+    na.needsUpdate = true;
+    st.blendMs = (st.blendMs || 0) + performance.now() - t;
+  }
+
+  // The shapes to blend for w when the buffers hold bw: those whose change is not deferred.
+  // Changes are deferred smallest bound first while the deferred shapes' bounds on the error,
+  // sum |w_k - bw_k| max|delta_k| and sum |w_k - bw_k| max|dn_k|, stay within DEFER_TOL x size
+  // and DEFER_TOL_NORMAL (the header): what the buffers show then differs from the exact blend
+  // of w by at most that in any coordinate.
+  changedShapes(w, bw) {
+    const changed = [];
+    for (let k = 0; k < this.K; k++) if (w[k] !== bw[k]) changed.push(k);
+    const ext = this.deltaExtent, next = this.normalExtent;
+    const boundP = (k) => Math.abs(w[k] - bw[k]) * Math.max(ext[3 * k], ext[3 * k + 1], ext[3 * k + 2]);
+    const boundN = (k) => Math.abs(w[k] - bw[k]) * next[k];
+    changed.sort((a, b) => boundP(a) - boundP(b));
+    let eP = 0, eN = 0, deferred = 0;
+    const tolP = DEFER_TOL * this.size;
+    for (const k of changed) {
+      this.normalDelta(k); // makes normalExtent[k]
+      const p = boundP(k), n = boundN(k);
+      if (eP + p > tolP || eN + n > DEFER_TOL_NORMAL) break;
+      eP += p; eN += n; deferred += 1;
+    }
+    this.stats.deferredShapes = (this.stats.deferredShapes || 0) + deferred;
+    this.deferredBound = eP / (this.size || 1);
+    return changed.slice(deferred);
+  }
+
+  // P += c delta_k, Nn += c dn_k (3V each).
+  addShape(k, c, P, Nn) {
+    const n3 = 3 * this.V, d = this.deltas.subarray(k * n3, (k + 1) * n3), dn = this.normalDelta(k);
+    for (let i = 0; i < n3; i++) { P[i] += c * d[i]; Nn[i] += c * dn[i]; }
+  }
+
+  // The blend from scratch over the dense deltas into P (3V) and Nn (3V): neutral (+ offsets)
+  // + sum over non-zero w_k of w_k delta_k; normals n0 + sum w_k dn_k, or with offsets the
+  // vertex normals of the final positions. The reference the incremental blend is tested against.
+  blendDense(w, P, Nn) {
+    const D = this.deltas, n3 = 3 * this.V, O = this.offsets;
     P.set(this.neutral);
     if (O) {
       for (let k = 0; k < this.K; k++) {
@@ -1150,16 +1247,8 @@ class Viewer {
       this.stats.offsetNormalsMs = performance.now() - tn;
     } else {
       Nn.set(this.normal0);
-      for (let k = 0; k < this.K; k++) {
-        const wk = w[k];
-        if (wk === 0) continue;
-        const d = D.subarray(k * n3, (k + 1) * n3), dn = this.normalDelta(k);
-        for (let i = 0; i < n3; i++) { P[i] += wk * d[i]; Nn[i] += wk * dn[i]; }
-      }
+      for (let k = 0; k < this.K; k++) if (w[k] !== 0) this.addShape(k, w[k], P, Nn);
     }
-    pa.needsUpdate = true;
-    na.needsUpdate = true;
-    this.stats.blendMs = (this.stats.blendMs || 0) + performance.now() - t;
   }
 
   reportFrame(frame) {
@@ -1181,7 +1270,48 @@ class Viewer {
     if (this.model.playing) { this.reporting = true; try { this.model.playing = false; } finally { this.reporting = false; } }
   }
 
+  // Streamed weights (K numbers) kept in one buffer per view, drawn at the next animation frame.
+  receiveStreamed(weights) {
+    const t = performance.now();
+    if (!this.streamed || this.streamed.length !== this.K) this.streamed = new Float32Array(this.K);
+    this.streamed.set(weights);
+    const st = this.stats;
+    st.streamed = (st.streamed || 0) + 1;
+    st.messageMs = (st.messageMs || 0) + performance.now() - t;
+    if (!this.visible) { this.streamHidden = true; return; }
+    if (!this.streamPending) this.streamPending = requestAnimationFrame(() => this.drawStreamed());
+  }
+
   // -- rendering ---------------------------------------------------------------------------
+  // The latest streamed weights, blended and drawn in this animation frame (one draw).
+  drawStreamed() {
+    this.streamPending = null;
+    if (this.disposed) return;
+    const t = performance.now();
+    this.applyFrame(this.clock.frame);
+    if (this.pendingRender !== null) { cancelAnimationFrame(this.pendingRender); this.pendingRender = null; }
+    this.renderNow();
+    const st = this.stats;
+    st.streamDraws = (st.streamDraws || 0) + 1;
+    st.streamDrawMs = (st.streamDrawMs || 0) + performance.now() - t;
+  }
+
+  // Shown on the page or not (a tab not selected, scrolled away): streamed weights and playback
+  // skip hidden views, which draw the latest when they show again.
+  setVisible(on) {
+    if (on === this.visible) return;
+    this.visible = on;
+    if (on && this.hiddenFrame && !this.disposed && this.clock) {
+      this.hiddenFrame = false;
+      this.applyFrame(this.clock.frame);
+      this.requestRender();
+    }
+    if (on && this.streamHidden && !this.disposed) {
+      this.streamHidden = false;
+      if (!this.streamPending) this.streamPending = requestAnimationFrame(() => this.drawStreamed());
+    }
+  }
+
   requestRender() {
     if (this.pendingRender !== null || this.disposed) return;
     this.pendingRender = requestAnimationFrame(() => { this.pendingRender = null; this.renderNow(); });
@@ -1345,18 +1475,20 @@ class Viewer {
     m.on("fps", () => this.clock.setFps(m.fps));
     m.on("loop", () => { this.clock.loop = m.loop; });
     m.on("weights", () => { this.streamed = null; this.applyFrame(this.clock.frame); this.requestRender(); });
-    // weights streamed as messages (a live stream: MeshViewer.stream_weights), shown at once
+    // weights streamed as messages (a live stream: MeshViewer.stream_weights: K float32,
+    // little-endian, base64), shown at once, decoded into buffers kept per view (no typed-array
+    // allocation per message); blended and drawn at most once per
+    // animation frame, in that frame (the latest weights win); a hidden view only keeps them
     m.on("msg:custom", (data) => {
-      if (!data || !data.weights || data.weights.length !== this.K) return;
-      this.streamed = Float32Array.from(data.weights);
-      this.stats.streamed = (this.stats.streamed || 0) + 1;
-      if (this.streamPending) return; // blended once per drawn frame: the latest weights win
-      this.streamPending = requestAnimationFrame(() => {
-        this.streamPending = null;
-        if (this.disposed) return;
-        this.applyFrame(this.clock.frame);
-        this.requestRender();
-      });
+      if (!data || typeof data.w32 !== "string") return;
+      const bin = atob(data.w32);
+      if (bin.length !== 4 * this.K) return;
+      if (!this.streamBytes || this.streamBytes.length !== 4 * this.K) {
+        this.streamBytes = new Uint8Array(4 * this.K);
+        this.streamF32 = new Float32Array(this.streamBytes.buffer);
+      }
+      for (let i = 0; i < bin.length; i++) this.streamBytes[i] = bin.charCodeAt(i);
+      this.receiveStreamed(this.streamF32);
     });
     m.on(["track", "track_url"], () => this.reloadTrack());
     m.on(["geometry_url", "geometry"], () => this.reloadGeometry());
@@ -1400,6 +1532,49 @@ class Viewer {
       // morph targets blend it on the gpu (it never leaves the shader)
       positions: () => (!this.morphing && this.mesh ? Array.from(this.mesh.geometry.getAttribute("position").array) : null),
       normals: () => (!this.morphing && this.mesh ? Array.from(this.mesh.geometry.getAttribute("normal").array) : null),
+      // the weights shown blended from scratch over the dense deltas (blendDense), in new arrays:
+      // what the incrementally kept buffers must equal up to float32 rounding
+      denseBlend: () => {
+        if (!this.mesh || !this.V) return null;
+        const P = new Float32Array(3 * this.V), Nn = new Float32Array(3 * this.V);
+        this.blendDense(this.current, P, Nn);
+        return { positions: Array.from(P), normals: Array.from(Nn) };
+      },
+      visible: () => this.visible,
+      // the JS blend of a sequence of streamed weights (lists of K), ms per blend, the best of
+      // `reps` runs: ours (incremental, deferring invisible changes) and ref
+      // (window.__faceRetargetFullBlend: from scratch); blend "cpu" only. The view is
+      // re-blended as it was afterwards.
+      benchBlend: (ws, reps = 3) => {
+        if (this.morphing || !this.mesh) return null;
+        const seq = ws.map((w) => Float32Array.from(w));
+        const saved = window.__faceRetargetFullBlend, out = {};
+        for (const full of [false, true]) {
+          window.__faceRetargetFullBlend = full;
+          let best = Infinity;
+          for (let r = 0; r < reps; r++) {
+            this.blendedW = null;
+            const t = performance.now();
+            for (const w of seq) this.blendCpu(w, true);
+            best = Math.min(best, (performance.now() - t) / seq.length);
+          }
+          out[full ? "ref" : "ours"] = best;
+        }
+        window.__faceRetargetFullBlend = saved;
+        this.blendedW = null;
+        this.blended = null;
+        this.applyFrame(this.clock.frame);
+        this.requestRender();
+        return out;
+      },
+      // weights (K) as a streamed message brings them (MeshViewer.stream_weights), drawn now;
+      // null: back to the track
+      stream: (w) => {
+        if (w === null) { this.streamed = null; this.applyFrame(this.clock.frame); this.renderNow(); return null; }
+        this.receiveStreamed(w);
+        if (this.streamPending) { cancelAnimationFrame(this.streamPending); this.drawStreamed(); }
+        return { full: this.stats.fullBlends || 0, incremental: this.stats.incrementalBlends || 0 };
+      },
       offsets: () => (this.offsets ? Array.from(this.offsets) : null),
       showMarkers: (on) => { if (this.markers) this.markers.visible = on && this.model.show_markers; this.renderNow(); },
       // show probe weights (K floats) or null to go back to the track, render at once
@@ -1477,6 +1652,8 @@ class Viewer {
     if (this.pendingRender !== null) cancelAnimationFrame(this.pendingRender);
     if (this.clock) this.clock.leave(this); // not joined yet while the mesh was still loading
     this.resizeObserver.disconnect();
+    this.intersection.disconnect();
+    if (this.streamPending) cancelAnimationFrame(this.streamPending);
     if (this.mesh) this.disposeGeometry();
     if (this.markers) this.markers.geometry.dispose();
     this.material.dispose();

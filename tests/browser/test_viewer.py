@@ -314,6 +314,81 @@ def test_forced_renders_render_every_frame_and_restore_the_view(shared):
         assert after["infl"] == before["infl"] and after["pos"] == before["pos"], lab
 
 
+@pytest.mark.browser
+def test_streamed_weights_blend_incrementally_without_drift(shared, demo):
+    """A stream in which a few shapes change a lot and others a little per message: the big
+    changes are blended incrementally (only the changed shapes), the little ones deferred while
+    their error bound stays under DEFER_TOL x size (1e-4; normals 1e-3), and everything is
+    re-blended from scratch every REBLEND_EVERY (60) messages. Just before a re-blend, after 59
+    incremental updates, the buffers equal the blend from scratch of the same weights (viewer.js
+    blendDense) and numpy's rig.evaluate within that bound."""
+    page = shared
+    rig, track, _ = demo.load()["source"]
+    K = rig.n_shapes
+    rng = np.random.default_rng(7)
+    w = track[120].astype(np.float32).copy()
+    checked = 0
+    try:
+        for step in range(130):
+            big = rng.choice(K, size=4, replace=False)
+            w[big] = np.clip(w[big] + rng.normal(0, 0.15, 4), 0, 1)
+            small = rng.choice(K, size=10, replace=False)
+            w[small] = np.clip(w[small] + rng.normal(0, 2e-4, 10), 0, 1)
+            js(page, SRC, "v.stream(arg)", w.tolist())
+            if js(page, SRC, "v.self.sinceFull") != 59:
+                continue
+            checked += 1
+            shown = js(page, SRC, "({p: v.positions(), n: v.normals(), c: Array.from(v.self.current), "
+                                  "bound: v.self.deferredBound})")
+            dense = js(page, SRC, "v.denseBlend()")
+            np.testing.assert_array_equal(np.array(shown["c"], np.float32), w)
+            pos, ref = np.array(shown["p"]).reshape(-1, 3), np.array(dense["positions"]).reshape(-1, 3)
+            err = np.abs(pos - ref).max() / rig.size
+            assert err <= shown["bound"] + 1e-6 and shown["bound"] <= 1e-4, (err, shown["bound"])
+            assert np.abs(pos - rig.evaluate(w)).max() < 1.1e-4 * rig.size
+            assert np.abs(np.array(shown["n"]) - np.array(dense["normals"])).max() < 1e-3 + 1e-5
+        stats = js(page, SRC, "({...v.self.stats})")
+        assert checked == 2 and stats["incrementalBlends"] >= 2 * 59, (checked, stats)
+        assert stats["deferredShapes"] > 0 and stats["blendShapes"] / stats["incrementalBlends"] < 14, stats
+    finally:
+        js(page, SRC, "v.stream(null)")
+    assert js(page, SRC, "v.influences()") == pytest.approx(track[0].astype(np.float32).tolist())
+    # back on the track: blended from scratch, as before any stream
+    mesh = np.array(js(page, SRC, "v.positions()")).reshape(-1, 3)
+    assert np.abs(mesh - rig.evaluate(track[0])).max() < 1e-5 * rig.size
+
+
+@pytest.mark.browser
+def test_hidden_view_keeps_time_but_draws_nothing_until_shown(shared, demo):
+    """A view hidden while its group plays (another tab, display: none) keeps the group's frame
+    and draws nothing; shown again, it draws the group's current frame at once."""
+    page = shared
+    rig, track, _ = demo.load()["source"]
+    js(page, SRC, "(v.self.root.style.display = 'none', 0)")
+    page.wait_for_function(f"() => !window.__faceRetarget.viewers[{json.dumps(SRC)}].visible()", timeout=10_000)
+    try:
+        page.get_by_role("button", name="Play").click()
+        page.wait_for_function("() => Object.values(window.__faceRetarget.viewers).every(v => v.playing)", timeout=10_000)
+        before = {lab: js(page, lab, "v.self.stats.renders") for lab in (SRC, TGT)}
+        page.wait_for_timeout(1500)
+        after = {lab: js(page, lab, "v.self.stats.renders") for lab in (SRC, TGT)}
+        assert after[SRC] == before[SRC] and after[TGT] > before[TGT] + 5, (before, after)
+        shown = page.evaluate("([a, b]) => [a, b].map(l => window.__faceRetarget.viewers[l].self.lastShown)", [SRC, TGT])
+        assert shown[0] == shown[1] > 0, shown  # the hidden view kept the group's time
+        page.get_by_role("button", name="Play").click()
+        page.wait_for_function("() => Object.values(window.__faceRetarget.viewers).every(v => !v.playing)", timeout=10_000)
+    finally:
+        js(page, SRC, "(v.self.root.style.display = '', 0)")
+    page.wait_for_function(f"() => window.__faceRetarget.viewers[{json.dumps(SRC)}].visible()", timeout=10_000)
+    page.wait_for_timeout(300)
+    frame = js(page, SRC, "v.frame")
+    assert js(page, SRC, "v.self.stats.renders") > after[SRC]
+    mesh = np.array(js(page, SRC, "v.positions()")).reshape(-1, 3)
+    assert np.abs(mesh - rig.evaluate(track[frame])).max() < 1e-5 * rig.size
+    drag_slider_to(page, -0.1)
+    wait_synced(page, "f === 0")
+
+
 # -- browser tests on their own pages -----------------------------------------------------
 @pytest.mark.browser
 @pytest.mark.slow
@@ -691,6 +766,24 @@ def test_assets_locates_three_and_explains_npm_ci(monkeypatch, tmp_path):
         assets.three_dir()
     with pytest.raises(FileNotFoundError, match=assets.ENV_VAR):
         assets.static_dirs()
+
+
+def test_stream_weights_sends_the_float32_weights_as_one_string(ict, monkeypatch):
+    import base64
+
+    from dashboard.viewer import MeshViewer
+
+    v = MeshViewer.from_rig(ict, np.zeros((1, ict.n_shapes)))
+    sent = []
+    monkeypatch.setattr(v, "_send_msg", sent.append)
+    w = np.random.default_rng(3).uniform(0, 1, ict.n_shapes)
+    v.stream_weights(w)
+    assert list(sent[0]) == ["w32"] and isinstance(sent[0]["w32"], str)
+    got = np.frombuffer(base64.b64decode(sent[0]["w32"]), dtype="<f4")
+    np.testing.assert_array_equal(got, w.astype(np.float32))
+    with pytest.raises(ValueError, match="weights"):
+        v.stream_weights(w[:-1])
+    assert len(sent) == 1
 
 
 def test_from_rig_packs_float32_and_validates(ict):
