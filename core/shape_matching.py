@@ -51,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from .motion_alignment import apply_alignment, covariance_alignment
 from .solvers.baselines import box_lsq, range_pf
 
 #: a match is sure (it pulls) when both sides' best and at least this affine (eq. 1)
@@ -244,6 +245,24 @@ def mapped_weights(shape_map_, source_weights, lower=0.0, upper=1.0) -> np.ndarr
     if W.ndim != 2 or W.shape[1] != M.shape[1]:
         raise ValueError(f"source_weights: expected (T, {M.shape[1]}) curves over the source shapes, got shape {W.shape}")
     return np.clip(W @ M.T, lower, upper)
+
+
+def aligned_shape_map(source, target, lower=0.0, upper=1.0, l1: float = SPARSE_L1) -> np.ndarray:
+    """(K, J) the sparse :func:`shape_map` (``ridge = 0``, L1 ``l1``) of the source shapes mapped into
+    the target's motion space point by point (:func:`core.motion_alignment.covariance_alignment`
+    of the two sets of shapes): what ``auto`` maps a source rig's curves through when no name is
+    shared (docs/evaluation.md, "Dense shape matching").
+
+    Parameters
+    ----------
+    source : (J, M, 3), target : (K, M, 3) float
+        The shapes' displacements at the same M points (dense correspondence: M in the thousands;
+        the target's calibrated into the actor's proportions).
+    lower, upper : float or (K,) float, ``lower >= 0``
+    l1 : float > 0
+    """
+    s, t = _deltas(source, "source"), _deltas(target, "target")
+    return shape_map(apply_alignment(covariance_alignment(s, t), s), t, lower, upper, ridge=0.0, l1=l1)
 
 
 def restyled_motion(match: ShapeMatch, source, target, source_weights, beta: float = RESTYLE) -> np.ndarray:
