@@ -22,8 +22,8 @@ pair *sure* when it is each side's best match (mutual) and ``a_jk >= min_affinit
 spacetime solver takes (``name_target``, NaN = no namesake), each with its confidence.
 :func:`shape_map` is the other design: each source shape fitted by the target's shapes within the
 bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖² + l1 ‖s_j‖² Σ_k x_k``
-(the batched exact box QP of :func:`core.solvers.baselines.range_pf`, or with the L1 term of
-:func:`core.solvers.baselines.box_lsq`), a whole-take mapping ``W = clip(W_source Mᵀ, lower, upper)``
+(the batched exact box QP of :func:`core.solvers.baselines.range_pf`, with the L1 term its unit-box
+solver :func:`core.solvers.boxqp.solve_box_sequence` on the normal equations), a whole-take mapping ``W = clip(W_source Mᵀ, lower, upper)``
 (:func:`mapped_weights`). The L1 term (``lower ≥ 0``, so ``Σ_k x_k = ‖x‖₁``) keeps each source
 shape to the few target shapes that carry it (:data:`SPARSE_L1`: about 4 of 175 on the sample) instead
 of rebuilding the source's own sculpt out of many — compared over dense correspondence, the whole
@@ -52,7 +52,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from .motion_alignment import apply_alignment, covariance_alignment
-from .solvers.baselines import box_lsq, range_pf
+from .solvers.baselines import range_pf
+from .solvers.boxqp import solve_box_sequence
 
 #: a match is sure (it pulls) when both sides' best and at least this affine (eq. 1)
 MIN_AFFINITY = 0.75
@@ -197,8 +198,8 @@ def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2, l1: flo
         M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖² + l1 ‖s_j‖² Σ_k x_k,
 
     exact: :func:`core.solvers.baselines.range_pf` with the source shapes as its frames (``l1 = 0``),
-    else :func:`core.solvers.baselines.box_lsq` on the normal equations with the L1 term moved into
-    the linear part (``½ xᵀ G x − (T s_j − ½ l1 ‖s_j‖² 1)ᵀ x``, ``G = T Tᵀ + ρ I``; when ``ridge`` is
+    else the same exact box QP (:func:`core.solvers.boxqp.solve_box_sequence`) on the normal
+    equations with the L1 term moved into the linear part (``½ xᵀ G x − (T s_j − ½ l1 ‖s_j‖² 1)ᵀ x``, ``G = T Tᵀ + ρ I``; when ``ridge`` is
     0 a floor ``ρ = 1e-9 σ_max(T)²`` keeps ``G`` definite, as range_pf does).
 
     Parameters
@@ -227,14 +228,21 @@ def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2, l1: flo
         return range_pf(t, s, lower, upper, np.ones(s.shape[:2], bool), ridge=ridge).T
     if np.any(np.asarray(lower) < 0):
         raise ValueError(f"lower: the L1 term of shape_map needs lower >= 0 (the weights' sum is then their L1 norm), got {lower}")
-    T = t.reshape(len(t), -1)  # (K, 3M)
+    K = len(t)
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,))
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,))
+    if not (hi > lo).all():
+        raise ValueError(f"upper: the L1 term of shape_map needs lower < upper for every shape, got {lower}, {upper}")
+    T = t.reshape(K, -1)  # (K, 3M)
     S = s.reshape(len(s), -1)  # (J, 3M)
     G = T @ T.T
-    smax2 = float(np.linalg.eigvalsh(G)[-1]) if len(G) else 0.0
+    smax2 = float(np.linalg.eigvalsh(G)[-1]) if K else 0.0
     G[np.diag_indices_from(G)] += max(ridge, 1e-9) * smax2
     rhs = S @ T.T - 0.5 * l1 * (S ** 2).sum(1)[:, None]
-    M, _ = box_lsq(G, rhs, lower, upper)
-    return M.T
+    # the unit box x = lo + d u, as range_pf: one Hessian, the source shapes its "frames"
+    d = hi - lo
+    u = solve_box_sequence((G * d[:, None] * d[None, :])[None], (lo @ G - rhs) * d)
+    return np.clip(lo + u * d, lo, hi).T
 
 
 def mapped_weights(shape_map_, source_weights, lower=0.0, upper=1.0) -> np.ndarray:
