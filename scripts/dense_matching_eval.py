@@ -38,7 +38,7 @@ import quality_cases as qc  # noqa: E402
 from core.motion_alignment import apply_alignment, covariance_alignment  # noqa: E402
 from core.names import NameMap  # noqa: E402
 from core.pipeline import Pipeline, StageCache  # noqa: E402
-from core.report import _vertex_errors  # noqa: E402
+from core.metrics import vertex_errors  # noqa: E402
 from core.shape_matching import aligned_shape_map, mapped_weights, match_shapes  # noqa: E402
 
 STAGES = ["load", "frames", "correspond", "shapes", "stabilize", "calibrate", "dense_correspondence"]
@@ -53,7 +53,7 @@ def mm(case, idx, W) -> float:
     full = np.zeros((len(W), case["rig"].n_shapes))
     full[:, idx] = W
     Wt = case["truth"]["weights"]
-    return float(np.nanmean(_vertex_errors(case["rig"], full, Wt, case["face"], np.isfinite(Wt).all(1))[0]))
+    return float(np.nanmean(vertex_errors(case["rig"].deltas, full, Wt, case["face"], np.isfinite(Wt).all(1))[0]))
 
 
 def main(argv=None) -> int:

@@ -253,4 +253,4 @@ def test_auto_without_names_maps_shapes_and_beats_plain_geometry(hidden_rocketbo
     s = SettingsView("solve", dict(AUTO_UNNAMED, lower=0.0, upper=1.0, quadratic=None, zero=None))
     Wr = np.zeros_like(W)
     Wr[:, res["shapes"]["shape_index"]] = _bounded_restyled(res, s)["weights"]
-    assert err < float(np.nanmean(_vertex_errors(rig, Wr, Wt, face, ok)[0]))
+    assert err < float(np.nanmean(vertex_errors(rig.deltas, Wr, Wt, face, ok)[0]))
