@@ -21,9 +21,14 @@ pair *sure* when it is each side's best match (mutual) and ``a_jk >= min_affinit
 :func:`pseudo_names` turns the pairs into the per-shape "namesake" curves the name pull of the
 spacetime solver takes (``name_target``, NaN = no namesake), each with its confidence.
 :func:`shape_map` is the other design: each source shape fitted by the target's shapes within the
-bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖²`` (the batched
-exact box QP of :func:`core.solvers.baselines.range_pf`), a whole-take mapping
-``W = clip(W_source Mᵀ, lower, upper)``.
+bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖² + l1 ‖s_j‖² Σ_k x_k``
+(the batched exact box QP of :func:`core.solvers.baselines.range_pf`, with the L1 term its unit-box
+solver :func:`core.solvers.boxqp.solve_box_sequence` on the normal equations), a whole-take mapping ``W = clip(W_source Mᵀ, lower, upper)``
+(:func:`mapped_weights`). The L1 term (``lower ≥ 0``, so ``Σ_k x_k = ‖x‖₁``) keeps each source
+shape to the few target shapes that carry it (:data:`SPARSE_L1`: about 4 of 175 on the sample) instead
+of rebuilding the source's own sculpt out of many — compared over dense correspondence, the whole
+face rather than 41 markers, it is what worked best without names (docs/evaluation.md, "Dense shape
+matching").
 :func:`restyled_motion` is the third, what ``auto`` uses without shared names: the source's motion
 re-sculpted in the character's style, each sure pair's source shape moved part of the way
 towards its match, ``s'_j = (1 − β) s_j + β g t_k`` — then an ordinary geometric solve fits it (the
@@ -46,12 +51,17 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from .motion_alignment import apply_alignment, covariance_alignment
 from .solvers.baselines import range_pf
+from .solvers.boxqp import solve_box_sequence
 
 #: a match is sure (it pulls) when both sides' best and at least this affine (eq. 1)
 MIN_AFFINITY = 0.75
 #: how far :func:`restyled_motion` moves a sure pair's source shape towards its match (β)
 RESTYLE = 0.5
+#: the L1 weight of the sparse :func:`shape_map` (relative to each source shape's squared size):
+#: the best of 0, 0.1 … 4 on the sample over 2,000 dense points (docs/evaluation.md)
+SPARSE_L1 = 0.3
 
 
 def _deltas(x, name: str) -> np.ndarray:
@@ -182,14 +192,85 @@ def pseudo_names(match: ShapeMatch, source_weights, n_target: int, lower=0.0, up
     return named, conf
 
 
-def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2) -> np.ndarray:
+def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2, l1: float = 0.0) -> np.ndarray:
     """(K, J) each source shape fitted by the target's shapes within the bounds (module docstring):
-    ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖²``, exact
-    (:func:`core.solvers.baselines.range_pf` with the source shapes as its frames)."""
+
+        M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖² + l1 ‖s_j‖² Σ_k x_k,
+
+    exact: :func:`core.solvers.baselines.range_pf` with the source shapes as its frames (``l1 = 0``),
+    else the same exact box QP (:func:`core.solvers.boxqp.solve_box_sequence`) on the normal
+    equations with the L1 term moved into the linear part (``½ xᵀ G x − (T s_j − ½ l1 ‖s_j‖² 1)ᵀ x``, ``G = T Tᵀ + ρ I``; when ``ridge`` is
+    0 a floor ``ρ = 1e-9 σ_max(T)²`` keeps ``G`` definite, as range_pf does).
+
+    Parameters
+    ----------
+    source : (J, M, 3), target : (K, M, 3) float
+        The shapes' displacements at the same M points.
+    lower, upper : float or (K,) float
+        The target's weight bounds.
+    ridge : float >= 0
+        Relative Tikhonov weight.
+    l1 : float >= 0
+        Sparsity weight relative to each source shape's squared size (scale-free); needs
+        ``lower >= 0`` (then ``Σ_k x_k`` is the L1 norm).
+
+    Raises
+    ------
+    ValueError
+        Shapes that are not (K, M, 3) or differ in M; ``l1 < 0``; ``l1 > 0`` with a negative lower bound.
+    """
     s, t = _deltas(source, "source"), _deltas(target, "target")
     if s.shape[1] != t.shape[1]:
         raise ValueError(f"source and target: the same points are needed, got {s.shape[1]} and {t.shape[1]}")
-    return range_pf(t, s, lower, upper, np.ones(s.shape[:2], bool), ridge=ridge).T
+    if l1 < 0:
+        raise ValueError(f"l1: expected a weight >= 0, got {l1}")
+    if l1 == 0:
+        return range_pf(t, s, lower, upper, np.ones(s.shape[:2], bool), ridge=ridge).T
+    if np.any(np.asarray(lower) < 0):
+        raise ValueError(f"lower: the L1 term of shape_map needs lower >= 0 (the weights' sum is then their L1 norm), got {lower}")
+    K = len(t)
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,))
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,))
+    if not (hi > lo).all():
+        raise ValueError(f"upper: the L1 term of shape_map needs lower < upper for every shape, got {lower}, {upper}")
+    T = t.reshape(K, -1)  # (K, 3M)
+    S = s.reshape(len(s), -1)  # (J, 3M)
+    G = T @ T.T
+    smax2 = float(np.linalg.eigvalsh(G)[-1]) if K else 0.0
+    G[np.diag_indices_from(G)] += max(ridge, 1e-9) * smax2
+    rhs = S @ T.T - 0.5 * l1 * (S ** 2).sum(1)[:, None]
+    # the unit box x = lo + d u, as range_pf: one Hessian, the source shapes its "frames"
+    d = hi - lo
+    u = solve_box_sequence((G * d[:, None] * d[None, :])[None], (lo @ G - rhs) * d)
+    return np.clip(lo + u * d, lo, hi).T
+
+
+def mapped_weights(shape_map_, source_weights, lower=0.0, upper=1.0) -> np.ndarray:
+    """(T, K) the whole-take mapping ``clip(W_source Mᵀ, lower, upper)`` of the source's curves
+    ``(T, J)`` through a (K, J) :func:`shape_map` (NaN frames stay NaN)."""
+    M = np.asarray(shape_map_, dtype=np.float64)
+    W = np.asarray(source_weights, dtype=np.float64)
+    if W.ndim != 2 or W.shape[1] != M.shape[1]:
+        raise ValueError(f"source_weights: expected (T, {M.shape[1]}) curves over the source shapes, got shape {W.shape}")
+    return np.clip(W @ M.T, lower, upper)
+
+
+def aligned_shape_map(source, target, lower=0.0, upper=1.0, l1: float = SPARSE_L1) -> np.ndarray:
+    """(K, J) the sparse :func:`shape_map` (``ridge = 0``, L1 ``l1``) of the source shapes mapped into
+    the target's motion space point by point (:func:`core.motion_alignment.covariance_alignment`
+    of the two sets of shapes): what ``auto`` maps a source rig's curves through when no name is
+    shared (docs/evaluation.md, "Dense shape matching").
+
+    Parameters
+    ----------
+    source : (J, M, 3), target : (K, M, 3) float
+        The shapes' displacements at the same M points (dense correspondence: M in the thousands;
+        the target's calibrated into the actor's proportions).
+    lower, upper : float or (K,) float, ``lower >= 0``
+    l1 : float > 0
+    """
+    s, t = _deltas(source, "source"), _deltas(target, "target")
+    return shape_map(apply_alignment(covariance_alignment(s, t), s), t, lower, upper, ridge=0.0, l1=l1)
 
 
 def restyled_motion(match: ShapeMatch, source, target, source_weights, beta: float = RESTYLE) -> np.ndarray:

@@ -27,7 +27,7 @@ from ..motion_alignment import apply_alignment
 from ..examples import learn_from_poses, poses_from_items, suggest_poses
 from ..names import NameMap, recognise
 from ..prior import prior_quadratic
-from ..shape_matching import match_shapes, restyled_motion
+from ..shape_matching import SPARSE_L1, aligned_shape_map, mapped_weights, match_shapes, restyled_motion
 from ..solvers import baselines
 from ..solvers.geometric import GeometricSolver
 from ..solvers.local import blend_weights, local_precompute, local_spacetime, reconstruct_markers, smooth_weights
@@ -166,10 +166,17 @@ def weighted_markers(inputs):
 #: * the target has the take's own ARKit names: the whole take at once (bounded spacetime, Sobolev
 #:   beta 10) pulled towards each shape's namesake curve — 0.02-0.1 mm where the per-frame solve
 #:   gives 0.4-0.6, in seconds (dense correspondence: the same error after a registration);
-#: * otherwise the per-frame bounded solve (a pull through the vocabularies' approximate
-#:   combinations did not beat geometry alone: 0.556 at best), on the source's motion re-sculpted
-#:   in the character's style where the source is a rig's curves: each source shape that surely
-#:   matches a target shape by its motion (:mod:`core.shape_matching`) moved half-way towards it.
+#: * otherwise, when the take is a source rig's curves, the rig pair's dense correspondence
+#:   (registration cached per rig pair) compares the two rigs' shapes over the face's first
+#:   :data:`AUTO_DENSE_POINTS` points and each source shape is carried by the few target shapes that
+#:   rebuild it (the sparse shape map, :func:`core.shape_matching.aligned_shape_map`): the curves are
+#:   mapped through it, no per-frame solve (names hidden 0.465 -> 0.355 mm, non-ARKit shapes 0.519 ->
+#:   0.466; docs/evaluation.md "Dense shape matching");
+#: * a capture, or example poses: the per-frame bounded solve (a pull through the vocabularies'
+#:   approximate combinations did not beat geometry alone: 0.556 at best); without poses, on the
+#:   source's motion re-sculpted in the character's style when there is a source rig but no dense
+#:   correspondence: each source shape that surely matches a target shape by its motion
+#:   (:mod:`core.shape_matching`) moved half-way towards it.
 AUTO_RIDGE = 1e-2
 AUTO_MOTION_SCALE = "covariance"
 AUTO_NAMED = {"alpha": 0.01, "beta": 10.0, "boundary": "perframe", "spacetime_bounds": True, "l1": 0.0,
@@ -177,6 +184,10 @@ AUTO_NAMED = {"alpha": 0.01, "beta": 10.0, "boundary": "perframe", "spacetime_bo
 AUTO_UNNAMED = {"ridge": AUTO_RIDGE}
 #: names are trusted when at least this fraction of the solver's shapes has a namesake channel
 AUTO_MIN_NAMED = 0.3
+#: the dense correspondence points (a prefix of the farthest-point order) auto's shape map compares
+#: the rigs' shapes at: 1,000 gave 0.355 / 0.466 mm (names hidden / non-ARKit), 2,000 0.399 / 0.495,
+#: 5,000 0.383 / 0.481 — the fewest is the best and the cheapest
+AUTO_DENSE_POINTS = 1000
 
 
 def _exact_names(inputs) -> np.ndarray:
@@ -223,6 +234,11 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
            "the vocabularies' combinations are approximate)" if recognised.recognised else
            "the target's shapes share no names with the take's curves")
     restyle = src.kind == "curves" and inputs["load"]["source_rig"] is not None and not posed
+    if restyle and inputs.get("dense_correspondence") is not None:
+        n_points = min(AUTO_DENSE_POINTS, len(inputs["dense_correspondence"]["weights"]))
+        return _shape_mapped, AUTO_UNNAMED, (
+            f"auto: the take's curves mapped shape by shape, each source shape carried by the few target shapes that "
+            f"rebuild it over {n_points} face points (dense correspondence), within the bounds — {why}")
     if restyle:
         return _bounded_restyled, AUTO_UNNAMED, (
             f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, each source shape "
@@ -247,6 +263,48 @@ def restyled_inputs(inputs) -> tuple:
     match = match_shapes(Ds, B)
     add = restyled_motion(match, Ds, B, np.nan_to_num(np.asarray(st.source_weights, dtype=np.float64)))
     return {**inputs, "calibrate": {**cal, "source": replace(st, deltas=st.deltas + add)}}, match
+
+
+def dense_shape_map(inputs, lower=0.0, upper=1.0) -> np.ndarray:
+    """(K_solver, J) :func:`core.shape_matching.aligned_shape_map` of the source rig's shapes and the
+    solver's at the first :data:`AUTO_DENSE_POINTS` points of the rig pair's dense correspondence
+    (the ``dense_correspondence`` stage), the target's warped into the actor's proportions by the
+    calibrate stage's warp (Seol 2012 §3.2, fitted at the markers; none when calibration is off)."""
+    dc, ld = inputs["dense_correspondence"], inputs["load"]
+    names = list(dc["source_layout"].names[:AUTO_DENSE_POINTS])
+    Ds = dc["source_layout"].select(names).points(ld["source_rig"].deltas)
+    n, d = dc["target_layout"].select(names).on_rig(inputs["shapes"]["rig"])
+    warp = inputs["calibrate"]["target"].warp
+    T = d if warp is None else warp(n[None] + d) - warp(n)[None]
+    return aligned_shape_map(Ds, T, lower, upper, l1=SPARSE_L1)
+
+
+def _shape_mapped(inputs, s):
+    """The source rig's curves mapped through :func:`dense_shape_map` within the bounds
+    (``clip(W_source Mᵀ, lower, upper)``); shapes held at zero are left out of the map (per frame:
+    set to zero). A negative lower bound (the L1 term needs ``lower >= 0``): the re-sculpted
+    per-frame solve instead."""
+    lo, hi = s.lower, s.upper
+    if np.any(np.asarray(lo) < 0):
+        return _bounded_restyled(inputs, s)
+    rig, src = inputs["shapes"]["rig"], inputs["load"]["source_rig"]
+    K = rig.n_shapes
+    keep = np.ones(K, bool) if s.zero is None or np.ndim(s.zero) != 1 else ~np.asarray(s.zero, bool)
+    lo_k, hi_k = np.broadcast_to(np.asarray(lo, float), (K,)), np.broadcast_to(np.asarray(hi, float), (K,))
+    free = keep & (hi_k > lo_k)
+    M = np.zeros((K, src.n_shapes))
+    if free.any():
+        sub = {**inputs, "shapes": {**inputs["shapes"], "rig": rig.subset([rig.names[k] for k in np.flatnonzero(free)])}}
+        M[free] = dense_shape_map(sub, lo_k[free], hi_k[free])
+    Ws = np.nan_to_num(np.asarray(inputs["calibrate"]["source"].source_weights, dtype=np.float64))
+    W = mapped_weights(M, Ws, lo_k, hi_k)
+    W[:, ~free] = np.clip(0.0, lo_k, hi_k)[~free]
+    if s.zero is not None and np.ndim(s.zero) == 2:
+        W = np.where(s.zero, np.clip(0.0, lo_k, hi_k)[None], W)
+    top = M.argmax(0)
+    matches = {src.names[j]: rig.names[top[j]] for j in range(src.n_shapes) if M[top[j], j] > 0.05}
+    return {"weights": W, "info": {"shape_matches": matches, "dense_points": min(AUTO_DENSE_POINTS, len(
+        inputs["dense_correspondence"]["weights"]))}, "edit": edit_options(s, alpha=0.01, lower=lo, upper=hi)}
 
 
 def _bounded_restyled(inputs, s):

@@ -180,13 +180,16 @@ class DenseCorrespondence(Stage):
     target by the rig pair's registration (:func:`core.correspondence.rig_correspondence`), with
     its weight: computed once per rig pair; ``correspond`` takes the first ``dense_points``
     (a prefix of a farthest-point order is the farthest-point sample of that size). Runs only
-    for ``correspondence = dense`` with a source rig (a capture is densified by ``correspond``)."""
+    with a source rig (a capture is densified by ``correspond``), for ``correspondence = dense``
+    or a method that chooses its configuration (``auto``: its shape map compares the rigs' shapes
+    over the face when no name is shared, :func:`core.stages.methods.dense_shape_map`)."""
 
     deps = ("source_face", "target_face", "weld", "register")
     persist = True
 
     def active(self, cfg):
-        return cfg.correspond.correspondence == "dense" and bool(cfg.source_face.source_rig)
+        # auto compares the rigs' shapes over the face (its shape map without shared names)
+        return (cfg.correspond.correspondence == "dense" or method_of(cfg).chooses) and bool(cfg.source_face.source_rig)
 
     def run(self, inputs, s, progress=None):
 
@@ -515,7 +518,7 @@ class Solve(Stage):
     :mod:`core.stages.methods` with the settings it reads and the stages it needs."""
 
     deps = ("load", "correspond", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior",
-            "vocabulary", "gram")
+            "vocabulary", "gram", "dense_correspondence")
     group, title = "solve", "Solver"
     method = param.Selector(label='Method', default="auto", objects={m.label: n for n, m in METHODS.items()}, doc=(
         "auto: what serves this pair and take best, said in one sentence (the default); lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
