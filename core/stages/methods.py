@@ -156,17 +156,23 @@ def _weighted(inputs):
 
 #: what ``auto`` runs (measured on the sample, S07 -> Rocketbox: scripts/quality_cases.py,
 #: docs/evaluation.md). Both on the markers with the actor's motion space aligned to the
-#: character's (``motion_scale = covariance``, a 3x3 map per marker, :mod:`core.motion_alignment`,
-#: derived by the calibrate stage: 0.53 -> 0.47 mm on the renamed rig against ``rom``'s scale), a ridge of 1e-2:
+#: character's (``motion_scale = matched``, a 3x3 map per marker refitted on the take from the
+#: rigs' nearest shapes, :mod:`core.motion_alignment`, derived by the calibrate stage: 0.53 -> 0.42
+#: mm on the renamed rig against ``rom``'s scale, 0.47 with the covariance map alone), a ridge of 1e-2:
 #: * the target has the take's own ARKit names: the whole take at once (bounded spacetime, Sobolev
 #:   beta 10) pulled towards each shape's namesake curve — 0.02-0.1 mm where the per-frame solve
 #:   gives 0.4-0.6, in seconds (dense correspondence: the same error after a registration);
 #: * otherwise the per-frame bounded solve (a pull through the vocabularies' approximate
-#:   combinations did not beat geometry alone: 0.556 at best), on the source's motion re-sculpted
-#:   in the character's style where the source is a rig's curves: each source shape that surely
-#:   matches a target shape by its motion (:mod:`core.shape_matching`) moved half-way towards it.
+#:   combinations did not beat geometry alone: 0.556 at best); where the map is only the
+#:   covariance one (no take curves to refit it on) on the source's motion re-sculpted in the
+#:   character's style: each source shape that surely matches a target shape by its motion
+#:   (:mod:`core.shape_matching`) moved half-way towards it (on top of the matched map the
+#:   re-sculpt measured worse: B 0.474 -> 0.487, C 0.420 -> 0.430 mm).
 AUTO_RIDGE = 1e-2
-AUTO_MOTION_SCALE = "covariance"
+AUTO_MOTION_SCALE = "matched"
+#: ... but with example poses, which carry the meaning, the solve goes back to the covariance map
+#: (:func:`covariance_inputs`; under the matched one the poses measured worse on the renamed rig:
+#: 2 poses 0.362 -> 0.418 mm, 8 poses 0.081 -> 0.086)
 AUTO_NAMED = {"alpha": 0.01, "beta": 10.0, "boundary": "perframe", "spacetime_bounds": True, "l1": 0.0,
               "name_weight": 30.0, "ridge": AUTO_RIDGE}
 AUTO_UNNAMED = {"ridge": AUTO_RIDGE}
@@ -188,6 +194,9 @@ def _alignment_phrase(inputs) -> str:
     cal = inputs.get("calibrate") or {}
     if cal.get("source_map") is None:
         return "the actor's motion as captured"
+    if cal.get("alignment") == "matched":
+        return ("the actor's motion space aligned to the character's (a 3×3 map per point, fitted on the take "
+                "to the character's nearest shapes)")
     if cal.get("source_scale") is None:
         return "the actor's motion space aligned to the character's (a 3×3 map per point)"
     return "the actor's range of motion matched to the character's"
@@ -217,7 +226,8 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
            f"the target's shapes are not the take's ARKit names ({', '.join(recognised.vocabularies[:3])}: "
            "the vocabularies' combinations are approximate)" if recognised.recognised else
            "the target's shapes share no names with the take's curves")
-    restyle = src.kind == "curves" and inputs["load"]["source_rig"] is not None and not posed
+    restyle = (src.kind == "curves" and inputs["load"]["source_rig"] is not None and not posed
+               and (inputs.get("calibrate") or {}).get("alignment") != "matched")
     if restyle:
         return _bounded_restyled, AUTO_UNNAMED, (
             f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, each source shape "
@@ -242,6 +252,18 @@ def restyled_inputs(inputs) -> tuple:
     match = match_shapes(Ds, B)
     add = restyled_motion(match, Ds, B, np.nan_to_num(np.asarray(st.source_weights, dtype=np.float64)))
     return {**inputs, "calibrate": {**cal, "source": replace(st, deltas=st.deltas + add)}}, match
+
+
+def covariance_inputs(inputs) -> dict:
+    """The solve's inputs with the source's motion mapped by the calibrate stage's covariance map
+    instead of its matched one (:func:`core.motion_alignment.matched_alignment`); unchanged under
+    any other alignment."""
+    cal = inputs["calibrate"]
+    if cal.get("alignment") != "matched":
+        return inputs
+    st = inputs["stabilize"]["source"]
+    src = replace(cal["source"], deltas=apply_alignment(cal["covariance_map"], st.deltas))
+    return {**inputs, "calibrate": {**cal, "source": src, "source_map": cal["covariance_map"], "alignment": "covariance"}}
 
 
 def _bounded_restyled(inputs, s):
@@ -297,6 +319,8 @@ def _auto(inputs, s):
     what it leaves, regularised towards the solution where no pose speaks). Says what it chose
     and why (``info["auto"]``)."""
     poses = example_poses(inputs, s.example_poses) if s.example_poses else {}
+    if poses:
+        inputs = covariance_inputs(inputs)
     run, chosen, sentence = auto_choice(inputs, s.zero, posed=bool(poses))
     out = run(inputs, s.with_values(**chosen))
     if poses:
