@@ -24,10 +24,13 @@ spacetime solver takes (``name_target``, NaN = no namesake), each with its confi
 bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖²`` (the batched
 exact box QP of :func:`core.solvers.baselines.range_pf`), a whole-take mapping
 ``W = clip(W_source Mᵀ, lower, upper)``.
-:func:`restyled_motion` is the third, what ``auto`` uses without shared names: the source's motion
-re-sculpted in the character's style, each sure pair's source shape moved part of the way
-towards its match, ``s'_j = (1 − β) s_j + β g t_k`` — then an ordinary geometric solve fits it (the
-actor's jaw drop then asks for the character's jaw drop, not for a chin pulled back by other shapes).
+:func:`restyled_motion` is the third: the source's motion re-sculpted in the character's style, each
+sure pair's source shape moved part of the way towards its match, ``s'_j = (1 − β) s_j + β g t_k`` —
+then an ordinary geometric solve fits it (the actor's jaw drop then asks for the character's jaw
+drop, not for a chin pulled back by other shapes). ``auto`` uses it without shared names only where
+the take's curves cannot refit the motion map (:func:`core.motion_alignment.matched_alignment`,
+which pairs shapes by relative distance instead and measured better; on top of it the re-sculpt
+measured worse).
 
 What was measured with them (issue 29, cases B and C): docs/evaluation.md, "Shape matching".
 

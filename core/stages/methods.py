@@ -163,11 +163,9 @@ def _weighted(inputs):
 #:   beta 10) pulled towards each shape's namesake curve — 0.02-0.1 mm where the per-frame solve
 #:   gives 0.4-0.6, in seconds (dense correspondence: the same error after a registration);
 #: * otherwise the per-frame bounded solve (a pull through the vocabularies' approximate
-#:   combinations did not beat geometry alone: 0.556 at best); where the map is only the
-#:   covariance one (no take curves to refit it on) on the source's motion re-sculpted in the
-#:   character's style: each source shape that surely matches a target shape by its motion
-#:   (:mod:`core.shape_matching`) moved half-way towards it (on top of the matched map the
-#:   re-sculpt measured worse: B 0.474 -> 0.487, C 0.420 -> 0.430 mm).
+#:   combinations did not beat geometry alone: 0.556 at best; re-sculpting the source's motion
+#:   towards the shapes it matches, :func:`restyled_inputs`, helped on the covariance map but
+#:   measured worse on the matched one: B 0.474 -> 0.487, C 0.420 -> 0.430 mm).
 AUTO_RIDGE = 1e-2
 AUTO_MOTION_SCALE = "matched"
 #: ... but with example poses, which carry the meaning, the solve goes back to the covariance map
@@ -202,11 +200,9 @@ def _alignment_phrase(inputs) -> str:
     return "the actor's range of motion matched to the character's"
 
 
-def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
+def auto_choice(inputs, zero=None) -> tuple:
     """``(method function, settings, sentence)``: what ``auto`` runs on these inputs and why.
-    ``zero``: the shapes the controls hold at zero already ((K,) bool or None); ``posed``: example
-    poses will be learned from (without shared names they carry the meaning: the motion is not
-    re-sculpted, which measured worse under 8 poses, 0.093 -> 0.102 mm with the names hidden)."""
+    ``zero``: the shapes the controls hold at zero already ((K,) bool or None)."""
     src, rig = inputs["load"]["source"], inputs["shapes"]["rig"]
     named = _exact_names(inputs) if src.kind == "curves" else np.zeros(rig.n_shapes, bool)
     n = int(named.sum())
@@ -226,18 +222,14 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
            f"the target's shapes are not the take's ARKit names ({', '.join(recognised.vocabularies[:3])}: "
            "the vocabularies' combinations are approximate)" if recognised.recognised else
            "the target's shapes share no names with the take's curves")
-    restyle = (src.kind == "curves" and inputs["load"]["source_rig"] is not None and not posed
-               and (inputs.get("calibrate") or {}).get("alignment") != "matched")
-    if restyle:
-        return _bounded_restyled, AUTO_UNNAMED, (
-            f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, each source shape "
-            f"that surely matches a target shape by its motion re-sculpted half-way towards it — {why}")
     return _bounded, AUTO_UNNAMED, (f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, "
                                     f"by geometry alone — {why}")
 
 
 def restyled_inputs(inputs) -> tuple:
-    """``(inputs, match)``: the solve's inputs with the source's motion (the calibrate stage's, in the
+    """The re-sculpt design of issue 29 (docs/evaluation.md, *Shape matching*), which ``auto`` ran
+    before the take-fitted map replaced it (on top of that map it measured worse); kept to measure
+    against. ``(inputs, match)``: the solve's inputs with the source's motion (the calibrate stage's, in the
     character's range) re-sculpted in the character's style (:func:`core.shape_matching.restyled_motion`
     over :func:`~core.shape_matching.match_shapes` of the source rig's shapes and the solver's, at the
     same points); ``(inputs, None)`` unchanged unless the source is weight curves on a source rig."""
@@ -264,18 +256,6 @@ def covariance_inputs(inputs) -> dict:
     st = inputs["stabilize"]["source"]
     src = replace(cal["source"], deltas=apply_alignment(cal["covariance_map"], st.deltas))
     return {**inputs, "calibrate": {**cal, "source": src, "source_map": cal["covariance_map"], "alignment": "covariance"}}
-
-
-def _bounded_restyled(inputs, s):
-    """``bounded`` on the source's motion re-sculpted in the character's style (:func:`restyled_inputs`)."""
-    restyled, match = restyled_inputs(inputs)
-    out = _bounded(restyled, s)
-    if match is not None:
-        rig = inputs["shapes"]["rig"]
-        src = inputs["load"]["source_rig"]
-        out.setdefault("info", {})["shape_matches"] = {src.names[j]: rig.names[k] for j, k in
-                                                       zip(match.source[match.sure], match.target[match.sure])}
-    return out
 
 
 def pose_features(inputs) -> np.ndarray:
@@ -321,7 +301,7 @@ def _auto(inputs, s):
     poses = example_poses(inputs, s.example_poses) if s.example_poses else {}
     if poses:
         inputs = covariance_inputs(inputs)
-    run, chosen, sentence = auto_choice(inputs, s.zero, posed=bool(poses))
+    run, chosen, sentence = auto_choice(inputs, s.zero)
     out = run(inputs, s.with_values(**chosen))
     if poses:
         out["weights"] = learn_from_poses(np.asarray(out["weights"]), pose_features(inputs), poses,
