@@ -51,8 +51,10 @@ X, Y (3, J) the shapes s_j(p), t_k(j)(p); Q = WᵀW / T (J, J) the take's second
 weight curves W (T, J), so the pairs the take uses most decide the map; τ(p) = tr(X Q Xᵀ)/3, λ
 the pull towards the covariance map. Weighting by the take is what matters: with the *true* pairs
 (names known) the same fit gives 0.35 mm on case C, unweighted (Q = I) 0.48, worse than A₀.
-Measured (every 4th frame): B 0.522 → 0.474 mm, C 0.472 → 0.420 mm; iterating the pairing and
-the refit measured worse (C 0.45 after 3 steps), so it is one step.
+Each singular value of A(p) is then capped at κ σ_max(A₀(p)) (κ = 1.5): the refit may turn and
+reshape the map, not make it stronger than 1.5× the covariance map in any direction. Measured
+(every 4th frame): B 0.522 → 0.472 mm, C 0.472 → 0.415 mm; iterating the pairing and the refit
+measured worse (C 0.45 after 3 steps), so it is one step.
 """
 
 from __future__ import annotations
@@ -65,6 +67,11 @@ COVARIANCE_EPS = 0.1
 #: pull of :func:`matched_alignment`'s refit towards the covariance map (λ above, relative to each
 #: point's take-weighted moment); 0.03-0.3 within 0.01 mm on the sample, 1 lost 0.02 in case C
 MATCH_PRIOR = 0.1
+#: the refitted map's singular values are capped at this times the covariance map's largest (κ): at
+#: a point the take barely moves, partners that move it a lot would blow the map up (the jeeliz
+#: triceratops: σ_max 164 where the covariance map has 9); 1.5 and 2 cost nothing on the sample
+#: (B 0.472 / 0.474, C 0.415 / 0.418 mm), 1 costs 0.004
+MATCH_CAP = 1.5
 
 
 def second_moments(deltas, eps: float = COVARIANCE_EPS) -> np.ndarray:
@@ -129,10 +136,11 @@ def nearest_shapes(source_deltas, target_deltas) -> np.ndarray:
 
 
 def matched_alignment(source_deltas, target_deltas, source_weights, eps: float = COVARIANCE_EPS,
-                      prior: float = MATCH_PRIOR, initial=None) -> np.ndarray:
+                      prior: float = MATCH_PRIOR, cap: float = MATCH_CAP, initial=None) -> np.ndarray:
     """(M, 3, 3) per-point maps refitted on the take from matched shapes (module docstring):
     ``A(p) = (Y Q Xᵀ + λ τ A₀)(X Q Xᵀ + λ τ I)⁻¹``, ``A₀`` :func:`covariance_alignment`, each
-    source shape paired with its :func:`nearest_shapes` under ``A₀``, ``Q = WᵀW / T``.
+    source shape paired with its :func:`nearest_shapes` under ``A₀``, ``Q = WᵀW / T``; then each
+    singular value of ``A(p)`` capped at ``κ σ_max(A₀(p))``.
 
     Parameters
     ----------
@@ -141,6 +149,7 @@ def matched_alignment(source_deltas, target_deltas, source_weights, eps: float =
     source_weights : (T, J) the take's weight curves over the source shapes (NaN: no data, as 0).
     eps : float >= 0, the covariance map's regularisation (:func:`covariance_alignment`).
     prior : float >= 0, λ, the pull towards ``A₀``; a point the take does not move keeps ``A₀``.
+    cap : float > 0, κ (``np.inf``: no cap).
     initial : (M, 3, 3), optional, ``A₀`` when already computed (``covariance_alignment(source, target, eps)``).
 
     Raises ValueError on shapes that do not match or a negative ``prior``.
@@ -152,6 +161,8 @@ def matched_alignment(source_deltas, target_deltas, source_weights, eps: float =
                          f"with T >= 1, got {W.shape}")
     if prior < 0:
         raise ValueError(f"matched_alignment: prior must be >= 0, got {prior}")
+    if not cap > 0:
+        raise ValueError(f"matched_alignment: cap must be > 0, got {cap}")
     A0 = covariance_alignment(s, t, eps) if initial is None else np.asarray(initial, dtype=np.float64)
     Y = t[nearest_shapes(apply_alignment(A0, s), t)]  # (J, M, 3) each source shape's partner
     Q = W.T @ W / len(W)
@@ -163,4 +174,8 @@ def matched_alignment(source_deltas, target_deltas, source_weights, eps: float =
     still = np.trace(G, axis1=1, axis2=2) <= 0
     A = np.einsum("mij,mjk->mik", R, np.linalg.pinv(G, hermitian=True))
     A[still] = A0[still]
+    if np.isfinite(cap):
+        U, sv, Vt = np.linalg.svd(A)
+        limit = cap * np.linalg.norm(A0, ord=2, axis=(1, 2))
+        A = np.einsum("mij,mj,mjk->mik", U, np.minimum(sv, limit[:, None]), Vt)
     return A

@@ -132,7 +132,7 @@ def test_matched_alignment_recovers_a_known_per_point_map():
         rng = np.random.default_rng(seed)
         src, target, W, A_true = synthetic_pair(rng)
         A0 = covariance_alignment(src, target)
-        exact = matched_alignment(src, target, W, prior=0.0)
+        exact = matched_alignment(src, target, W, prior=0.0, cap=np.inf)
         np.testing.assert_allclose(exact, A_true, atol=1e-9 * np.abs(A_true).max())
         pulled = matched_alignment(src, target, W)
 
@@ -152,9 +152,26 @@ def test_matched_alignment_is_weighted_by_the_take():
     mapped3 = apply_alignment(A_true, src[3:4])[0]
     target = target[~np.all(np.isclose(target, mapped3), axis=(1, 2))]
     assert len(target) == len(src) - 1
-    np.testing.assert_allclose(matched_alignment(src, target, W, prior=0.0), A_true, atol=1e-9 * np.abs(A_true).max())
+    np.testing.assert_allclose(matched_alignment(src, target, W, prior=0.0, cap=np.inf), A_true,
+                               atol=1e-9 * np.abs(A_true).max())
     W[:, 3] = 0.5  # used: the wrong pair now moves the map
-    assert not np.allclose(matched_alignment(src, target, W, prior=0.0), A_true, atol=1e-3)
+    assert not np.allclose(matched_alignment(src, target, W, prior=0.0, cap=np.inf), A_true, atol=1e-3)
+
+
+def test_matched_alignment_caps_the_map_where_the_take_barely_moves():
+    """A point the take barely moves (its source shapes tiny there) whose partners move it a lot:
+    uncapped the refit multiplies its motion ~1000-fold; capped, no singular value of the map
+    exceeds κ times the covariance map's largest."""
+    rng = np.random.default_rng(3)
+    src, target, W, A_true = synthetic_pair(rng, distractors=0)
+    src[:, 0] *= 1e-3  # point 0: the source barely moves it, the target as before
+    A0 = covariance_alignment(src, target)
+    free = matched_alignment(src, target, W, prior=0.0, cap=np.inf)
+    capped = matched_alignment(src, target, W, prior=0.0, cap=1.5)
+    s0, sfree, scap = (np.linalg.norm(A, ord=2, axis=(1, 2)) for A in (A0, free, capped))
+    assert sfree[0] > 100 * np.linalg.norm(A_true[0], ord=2)
+    assert np.all(scap <= 1.5 * s0 * (1 + 1e-12))
+    assert scap[0] < sfree[0]
 
 
 def test_matched_alignment_rejects_bad_input():
@@ -164,6 +181,8 @@ def test_matched_alignment_rejects_bad_input():
         matched_alignment(src, target, W[:, :-1])
     with pytest.raises(ValueError, match="prior"):
         matched_alignment(src, target, W, prior=-1.0)
+    with pytest.raises(ValueError, match="cap"):
+        matched_alignment(src, target, W, cap=0.0)
     with pytest.raises(ValueError, match="same M points"):
         matched_alignment(src[:, :3], target, W)
 

@@ -157,7 +157,7 @@ def _weighted(inputs):
 #: what ``auto`` runs (measured on the sample, S07 -> Rocketbox: scripts/quality_cases.py,
 #: docs/evaluation.md). Both on the markers with the actor's motion space aligned to the
 #: character's (``motion_scale = matched``, a 3x3 map per marker refitted on the take from the
-#: rigs' nearest shapes, :mod:`core.motion_alignment`, derived by the calibrate stage: 0.53 -> 0.42
+#: rigs' nearest shapes, :mod:`core.motion_alignment`, derived by the calibrate stage: 0.53 -> 0.415
 #: mm on the renamed rig against ``rom``'s scale, 0.47 with the covariance map alone), a ridge of 1e-2:
 #: * the target has the take's own ARKit names: the whole take at once (bounded spacetime, Sobolev
 #:   beta 10) pulled towards each shape's namesake curve — 0.02-0.1 mm where the per-frame solve
@@ -165,7 +165,7 @@ def _weighted(inputs):
 #: * otherwise the per-frame bounded solve (a pull through the vocabularies' approximate
 #:   combinations did not beat geometry alone: 0.556 at best; re-sculpting the source's motion
 #:   towards the shapes it matches, :func:`restyled_inputs`, helped on the covariance map but
-#:   measured worse on the matched one: B 0.474 -> 0.487, C 0.420 -> 0.430 mm).
+#:   measured worse on the matched one, before its cap: B 0.474 -> 0.487, C 0.420 -> 0.430 mm).
 AUTO_RIDGE = 1e-2
 AUTO_MOTION_SCALE = "matched"
 #: ... but with example poses, which carry the meaning, the solve goes back to the covariance map
