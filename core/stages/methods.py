@@ -160,9 +160,10 @@ def weighted_markers(inputs):
 
 
 #: what ``auto`` runs (measured on the sample, S07 -> Rocketbox: scripts/quality_cases.py,
-#: docs/evaluation.md). Both on the markers with the actor's motion space aligned to the
-#: character's (``motion_scale = covariance``, a 3x3 map per marker, :mod:`core.motion_alignment`,
-#: derived by the calibrate stage: 0.53 -> 0.47 mm on the renamed rig against ``rom``'s scale), a ridge of 1e-2:
+#: docs/evaluation.md). The solves run on the markers with the actor's motion space aligned to the
+#: character's (``motion_scale = matched``, a 3x3 map per marker refitted on the take from the
+#: rigs' nearest shapes, :mod:`core.motion_alignment`, derived by the calibrate stage: 0.53 -> 0.415
+#: mm on the renamed rig against ``rom``'s scale, 0.47 with the covariance map alone), a ridge of 1e-2:
 #: * the target has the take's own ARKit names: the whole take at once (bounded spacetime, Sobolev
 #:   beta 10) pulled towards each shape's namesake curve — 0.02-0.1 mm where the per-frame solve
 #:   gives 0.4-0.6, in seconds (dense correspondence: the same error after a registration);
@@ -172,13 +173,16 @@ def weighted_markers(inputs):
 #:   rebuild it (the sparse shape map, :func:`core.shape_matching.aligned_shape_map`): the curves are
 #:   mapped through it, no per-frame solve (names hidden 0.465 -> 0.355 mm, non-ARKit shapes 0.519 ->
 #:   0.466; docs/evaluation.md "Dense shape matching");
-#: * a capture, or example poses: the per-frame bounded solve (a pull through the vocabularies'
-#:   approximate combinations did not beat geometry alone: 0.556 at best); without poses, on the
-#:   source's motion re-sculpted in the character's style when there is a source rig but no dense
-#:   correspondence: each source shape that surely matches a target shape by its motion
-#:   (:mod:`core.shape_matching`) moved half-way towards it.
+#: * otherwise (a capture, example poses, no dense correspondence, or a negative lower bound) the
+#:   per-frame bounded solve (a pull through the vocabularies' approximate combinations did not beat
+#:   geometry alone: 0.556 at best; re-sculpting the source's motion towards the shapes it matches,
+#:   :func:`restyled_inputs`, helped on the covariance map but measured worse on the matched one,
+#:   before its cap: B 0.474 -> 0.487, C 0.420 -> 0.430 mm).
 AUTO_RIDGE = 1e-2
-AUTO_MOTION_SCALE = "covariance"
+AUTO_MOTION_SCALE = "matched"
+#: ... but with example poses, which carry the meaning, the solve goes back to the covariance map
+#: (:func:`covariance_inputs`; under the matched one the poses measured worse on the renamed rig:
+#: 2 poses 0.362 -> 0.418 mm, 8 poses 0.081 -> 0.086)
 AUTO_NAMED = {"alpha": 0.01, "beta": 10.0, "boundary": "perframe", "spacetime_bounds": True, "l1": 0.0,
               "name_weight": 30.0, "ridge": AUTO_RIDGE}
 AUTO_UNNAMED = {"ridge": AUTO_RIDGE}
@@ -204,6 +208,9 @@ def _alignment_phrase(inputs) -> str:
     cal = inputs.get("calibrate") or {}
     if cal.get("source_map") is None:
         return "the actor's motion as captured"
+    if cal.get("alignment") == "matched":
+        return ("the actor's motion space aligned to the character's (a 3×3 map per point, fitted on the take "
+                "to the character's nearest shapes)")
     if cal.get("source_scale") is None:
         return "the actor's motion space aligned to the character's (a 3×3 map per point)"
     return "the actor's range of motion matched to the character's"
@@ -212,8 +219,8 @@ def _alignment_phrase(inputs) -> str:
 def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
     """``(method function, settings, sentence)``: what ``auto`` runs on these inputs and why.
     ``zero``: the shapes the controls hold at zero already ((K,) bool or None); ``posed``: example
-    poses will be learned from (without shared names they carry the meaning: the motion is not
-    re-sculpted, which measured worse under 8 poses, 0.093 -> 0.102 mm with the names hidden)."""
+    poses will be learned from (without shared names they carry the meaning: the per-frame solve is
+    their base; the shape map as their base measured worse up to 8 poses, docs/evaluation.md)."""
     src, rig = inputs["load"]["source"], inputs["shapes"]["rig"]
     named = _exact_names(inputs) if src.kind == "curves" else np.zeros(rig.n_shapes, bool)
     n = int(named.sum())
@@ -239,16 +246,14 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
         return _shape_mapped, AUTO_UNNAMED, (
             f"auto: the take's curves mapped shape by shape, each source shape carried by the few target shapes that "
             f"rebuild it over {n_points} face points (dense correspondence), within the bounds — {why}")
-    if restyle:
-        return _bounded_restyled, AUTO_UNNAMED, (
-            f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, each source shape "
-            f"that surely matches a target shape by its motion re-sculpted half-way towards it — {why}")
     return _bounded, AUTO_UNNAMED, (f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, "
                                     f"by geometry alone — {why}")
 
 
 def restyled_inputs(inputs) -> tuple:
-    """``(inputs, match)``: the solve's inputs with the source's motion (the calibrate stage's, in the
+    """The re-sculpt design of issue 29 (docs/evaluation.md, *Shape matching*), which ``auto`` ran
+    before the take-fitted map replaced it (on top of that map it measured worse); kept to measure
+    against. ``(inputs, match)``: the solve's inputs with the source's motion (the calibrate stage's, in the
     character's range) re-sculpted in the character's style (:func:`core.shape_matching.restyled_motion`
     over :func:`~core.shape_matching.match_shapes` of the source rig's shapes and the solver's, at the
     same points); ``(inputs, None)`` unchanged unless the source is weight curves on a source rig."""
@@ -282,11 +287,11 @@ def dense_shape_map(inputs, lower=0.0, upper=1.0) -> np.ndarray:
 def _shape_mapped(inputs, s):
     """The source rig's curves mapped through :func:`dense_shape_map` within the bounds
     (``clip(W_source Mᵀ, lower, upper)``); shapes held at zero are left out of the map (per frame:
-    set to zero). A negative lower bound (the L1 term needs ``lower >= 0``): the re-sculpted
-    per-frame solve instead."""
+    set to zero). A negative lower bound (the L1 term needs ``lower >= 0``): the per-frame bounded
+    solve instead."""
     lo, hi = s.lower, s.upper
     if np.any(np.asarray(lo) < 0):
-        return _bounded_restyled(inputs, s)
+        return _bounded(inputs, s)
     rig, src = inputs["shapes"]["rig"], inputs["load"]["source_rig"]
     K = rig.n_shapes
     keep = np.ones(K, bool) if s.zero is None or np.ndim(s.zero) != 1 else ~np.asarray(s.zero, bool)
@@ -307,16 +312,17 @@ def _shape_mapped(inputs, s):
         inputs["dense_correspondence"]["weights"]))}, "edit": edit_options(s, alpha=0.01, lower=lo, upper=hi)}
 
 
-def _bounded_restyled(inputs, s):
-    """``bounded`` on the source's motion re-sculpted in the character's style (:func:`restyled_inputs`)."""
-    restyled, match = restyled_inputs(inputs)
-    out = _bounded(restyled, s)
-    if match is not None:
-        rig = inputs["shapes"]["rig"]
-        src = inputs["load"]["source_rig"]
-        out.setdefault("info", {})["shape_matches"] = {src.names[j]: rig.names[k] for j, k in
-                                                       zip(match.source[match.sure], match.target[match.sure])}
-    return out
+
+def covariance_inputs(inputs) -> dict:
+    """The solve's inputs with the source's motion mapped by the calibrate stage's covariance map
+    instead of its matched one (:func:`core.motion_alignment.matched_alignment`); unchanged under
+    any other alignment."""
+    cal = inputs["calibrate"]
+    if cal.get("alignment") != "matched":
+        return inputs
+    st = inputs["stabilize"]["source"]
+    src = replace(cal["source"], deltas=apply_alignment(cal["covariance_map"], st.deltas))
+    return {**inputs, "calibrate": {**cal, "source": src, "source_map": cal["covariance_map"], "alignment": "covariance"}}
 
 
 def pose_features(inputs) -> np.ndarray:
@@ -360,6 +366,8 @@ def _auto(inputs, s, warm=None):
     what it leaves, regularised towards the solution where no pose speaks). Says what it chose
     and why (``info["auto"]``)."""
     poses = example_poses(inputs, s.example_poses) if s.example_poses else {}
+    if poses:
+        inputs = covariance_inputs(inputs)
     run, chosen, sentence = auto_choice(inputs, s.zero, posed=bool(poses))
     out = run(inputs, s.with_values(**chosen), **({"warm": warm} if run is _spacetime else {}))
     if poses:

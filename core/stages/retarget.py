@@ -30,7 +30,7 @@ from ..gaps import fill_gaps
 from ..io.layout import default_layout_path
 from ..io.performance import read_performance
 from ..io.rigs import load_rig, read_layout_for
-from ..motion_alignment import apply_alignment, covariance_alignment
+from ..motion_alignment import apply_alignment, covariance_alignment, matched_alignment
 from ..names import ARKIT_NAMES, NameMap, bundled_vocabulary_files, canonical, load_vocabularies
 from ..personalize import personalize
 from ..prior import PCAPrior, prior_quadratic
@@ -339,19 +339,26 @@ class Calibrate(Stage):
     instead (:func:`core.motion_alignment.covariance_alignment`): the source rig's shapes' motion
     at the point whitened and coloured with the target's, so an actor's chin that drops back
     drives a character's chin that drops down; it needs the source rig's shapes at the points
-    (a capture without a source rig falls back to ``rom``, with a warning). The result's
-    ``source`` is the motion the solvers fit (mapped or not), ``source_map`` the (M, 3, 3) map
-    (None for ``none``) and ``source_scale`` the (M,) scale of ``rom`` (else None).
+    (a capture without a source rig falls back to ``rom``, with a warning). ``motion_scale =
+    "matched"`` refits that map on the take (:func:`core.motion_alignment.matched_alignment`):
+    each source shape paired with the target shape nearest to it under the covariance map, the
+    map fitted so that the take's motion built from the source shapes lands on the same curves
+    driving their partners; it needs the take's weight curves (without them: ``covariance``, with a
+    warning). The result's ``source`` is the motion the solvers fit (mapped or not), ``source_map``
+    the (M, 3, 3) map (None for ``none``), ``source_scale`` the (M,) scale of ``rom`` (else None)
+    ``alignment`` the mode that ran (after any fallback) and ``covariance_map`` the covariance map
+    (under ``covariance`` and ``matched``, else None).
     """
 
     deps = ("load", "correspond", "shapes", "stabilize")
     group, title = "calibrate", "Source & calibration"
     calibrate = param.Boolean(label="Match the actor's proportions (Seol RBF)", default=True, doc="Warp the target's marker blendshapes into the actor's proportions with an RBF")
     rbf_smoothing = param.Number(label='Proportion warp smoothing', default=0.0, bounds=(0, 1), softbounds=(0, 0.1), doc="RBF ridge relative to the mean marker distance (0: exact interpolation)")
-    motion_scale = param.Selector(label="Match the actor's range of motion", default="none", objects=["none", "rom", "covariance"], doc=(
+    motion_scale = param.Selector(label="Match the actor's range of motion", default="none", objects=["none", "rom", "covariance", "matched"], doc=(
         "Match the actor's range of motion to the character's, point by point (rom: an actor's full jaw drop drives "
         "the character's full jaw drop; covariance: also the direction each point moves in, a 3x3 map learned from "
-        "both rigs' shapes); none = the actor's motion as captured"))
+        "both rigs' shapes; matched: that map refitted on the take, each source shape paired with the nearest "
+        "target shape); none = the actor's motion as captured"))
 
     def relevant(self, cfg):
         c = cfg.calibrate
@@ -370,22 +377,30 @@ class Calibrate(Stage):
         src = st["source"]
         tm = target_markers(sh["rig"], sh["layout"], st["names"], src.neutral, s.calibrate,
                             s.rbf_smoothing if s.calibrate else 0.0)
-        scale = amap = None
+        scale = amap = cov = None
         source_rig, source_layout = inputs["load"]["source_rig"], inputs["correspond"]["source_layout"]
         mode = s.motion_scale
-        if mode == "covariance" and (source_rig is None or source_layout is None):
-            warnings.warn("motion_scale = covariance needs the source rig's shapes at the points; "
+        if mode in ("covariance", "matched") and (source_rig is None or source_layout is None):
+            warnings.warn(f"motion_scale = {mode} needs the source rig's shapes at the points; "
                           "this source has none: the range of motion is matched by scale (rom)")
             mode = "rom"
+        if mode == "matched" and src.source_weights is None:
+            warnings.warn("motion_scale = matched needs the take's weight curves; this source has none: "
+                          "the motion space is aligned by the rigs' shapes alone (covariance)")
+            mode = "covariance"
         if mode == "rom":
             scale = rom_scale(tm.calibrated, src, source_rig, source_layout, st["names"])
             amap = scale[:, None, None] * np.eye(3)
             src = replace(src, deltas=src.deltas * scale[None, :, None])
-        elif mode == "covariance":
-            amap = covariance_alignment(source_layout.select(list(st["names"])).points(source_rig.deltas), tm.calibrated)
+        elif mode in ("covariance", "matched"):
+            Bs = source_layout.select(list(st["names"])).points(source_rig.deltas)
+            amap = cov = covariance_alignment(Bs, tm.calibrated)
+            if mode == "matched":
+                amap = matched_alignment(Bs, tm.calibrated, src.source_weights, initial=cov)
             src = replace(src, deltas=apply_alignment(amap, src.deltas))
         return {"target": tm, "deltas": tm.calibrated, "shape_index": sh["shape_index"], "rig": sh["rig"],
-                "unseen": sh["unseen"], "source": src, "source_scale": scale, "source_map": amap}
+                "unseen": sh["unseen"], "source": src, "source_scale": scale, "source_map": amap, "alignment": mode,
+                "covariance_map": cov}
 
 
 def rom_scale(target_deltas, source, source_rig=None, source_layout=None, names=None) -> np.ndarray:
