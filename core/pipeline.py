@@ -566,7 +566,7 @@ class Pipeline:
             if f in values:
                 values[f] = file_key(values[f])
         extra = stage.content(cfg)
-        memo[name] = content_key(name, values, [self.key(d, memo, cfg) for d in stage.deps],
+        memo[name] = content_key(name, values, [self.key(d, memo, cfg) for d in stage.reads(cfg)],
                                  *(() if extra is None else (extra,)))
         return memo[name]
 
@@ -600,7 +600,7 @@ class Pipeline:
                     hint = {"warm": self._last.get(name)} if stage.warm_start else {}
                     with warnings.catch_warnings(record=True) as caught:
                         warnings.simplefilter("always")
-                        value = stage.run({d: results[d] for d in stage.deps}, self.view(name, cfg), inner, **hint)
+                        value = stage.run({d: results[d] for d in stage.reads(cfg)}, self.view(name, cfg), inner, **hint)
                     _freeze(value)
                     return value, tuple((w.message, w.category, w.filename, w.lineno) for w in caught)
 
@@ -650,7 +650,7 @@ class Pipeline:
             if n not in need:
                 need.add(n)
                 if self.stages[n].active(cfg):
-                    stack.extend(self.stages[n].deps)
+                    stack.extend(self.stages[n].reads(cfg))
         return [n for n in self.stages if n in need]
 
 

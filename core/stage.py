@@ -3,7 +3,10 @@
 A stage is one ``param.Parameterized`` object: its parameters are its settings (they become
 dashboard widgets, CLI flags and the shot's ``settings[stage]``), and the class says
 
-* ``deps`` — the stages whose results ``run`` reads;
+* ``deps`` — the stages whose results ``run`` may read;
+* ``reads(cfg)`` — those it reads in the current configuration (default: all): the key hashes
+  only their keys, the pipeline computes and hands over only their results (e.g. ``correspond``
+  reads the rig pair's dense correspondence only when the faces are compared densely);
 * ``files`` — settings that name files: the cache key hashes their content, not their path;
 * ``relevant(cfg)`` — which of its settings change the output in the current configuration (a
   setting of a disabled feature is not in the key, so changing it re-runs nothing);
@@ -153,6 +156,11 @@ class Stage(param.Parameterized):
 
     def active(self, cfg) -> bool:
         return True
+
+    def reads(self, cfg) -> tuple:
+        """The dependencies ``run`` reads now (a subset of ``deps``): the key hashes these and
+        ``run``'s ``inputs`` hold only these. Default: all of ``deps``."""
+        return self.deps
 
     def derived(self, cfg) -> dict:
         """Settings whose value here follows from the rest of the configuration, not from what the

@@ -16,6 +16,8 @@ them, so a missing optional piece fails only the method that needs it.
 from __future__ import annotations
 
 import difflib
+import functools
+import os
 import warnings
 from dataclasses import replace
 
@@ -42,7 +44,7 @@ from ..solvers.baselines import data_gram
 from ..solvers.local import masks_at
 from ..solvers.spacetime import PoseEdit, SpacetimeSolver
 from ..stage import Stage, register
-from .methods import AUTO_MOTION_SCALE, METHODS, method_of, named_target, weighted_markers
+from .methods import AUTO_MIN_NAMED, AUTO_MOTION_SCALE, METHODS, method_of, named_target, weighted_markers
 
 #: a shape whose largest marker displacement is below this fraction of the largest shape's
 #: is invisible to the markers
@@ -189,7 +191,7 @@ class DenseCorrespondence(Stage):
 
     def active(self, cfg):
         # auto compares the rigs' shapes over the face (its shape map without shared names)
-        return (cfg.correspond.correspondence == "dense" or method_of(cfg).chooses) and bool(cfg.source_face.source_rig)
+        return (cfg.correspond.correspondence == "dense" or auto_maps_shapes(cfg)) and bool(cfg.source_face.source_rig)
 
     def run(self, inputs, s, progress=None):
 
@@ -215,6 +217,10 @@ class Correspond(Stage):
 
     def relevant(self, cfg):
         return ("correspondence", "dense_points") if cfg.correspond.correspondence == "dense" else ("correspondence",)
+
+    def reads(self, cfg):
+        # the markers alone need no registration: auto's shape map reads the dense stage itself
+        return self.deps if cfg.correspond.correspondence == "dense" else ("load",)
 
     def run(self, inputs, s, progress=None):
         ld = inputs["load"]
@@ -265,6 +271,52 @@ def solver_shapes(rig, spec: str) -> list:
         idx = [i for i, n in enumerate(rig.names) if canonical(n) in ARKIT_NAMES]
         return idx or list(range(rig.n_shapes))
     return [rig.index(n.strip()) for n in spec.split(",") if n.strip()]
+
+
+def _stamp(path: str):
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_mtime_ns, st.st_size
+
+
+@functools.lru_cache(maxsize=8)
+def _names_carry_the_take(source, source_kind, target_rig, target_shapes, stamps) -> bool:
+    """Whether ``auto`` can go by names (so never compares the rigs' shapes over the face): the take
+    is not weight curves, or enough of the solver's target shapes have a channel of the take by
+    their ARKit name (:data:`AUTO_MIN_NAMED`, as ``auto_choice`` decides on the loaded data). Read
+    from the files (``stamps``: their modification times and sizes, so an edited file is read
+    again); a file that cannot be read says True (the load stage reports it)."""
+    try:
+        perf = read_performance(source, kind=source_kind)
+        rig = load_rig(target_rig)
+    except Exception:  # noqa: BLE001 - the stages that read these files raise the user's error
+        return True
+    if perf.kind != "curves":
+        return True
+    channels = {canonical(n) for n in perf.names} & set(ARKIT_NAMES)
+    try:
+        idx = solver_shapes(rig, target_shapes)
+    except (KeyError, ValueError):
+        return True
+    named = sum(canonical(rig.names[i]) in channels for i in idx)
+    return named >= max(1, AUTO_MIN_NAMED * len(idx))
+
+
+def auto_maps_shapes(cfg) -> bool:
+    """Whether ``auto`` will map a source rig's curves through the rigs' shape map over their dense
+    correspondence (:func:`core.stages.methods.auto_choice`): a chooser method, a source rig, no
+    example pose, and a target whose shapes do not carry the take by name. Decided from the files
+    before anything runs, so the rig pair's registration (tens of seconds the first time) is paid
+    only when that map is made: never for the sample's ARKit-named pair."""
+    if not (method_of(cfg).chooses and cfg.source_face.source_rig and cfg.take.source and cfg.target_face.target_rig):
+        return False
+    if cfg.solve.example_poses:
+        return False
+    t, f = cfg.take, cfg.target_face
+    return not _names_carry_the_take(t.source, t.source_kind, f.target_rig, cfg.shapes.target_shapes,
+                                     (_stamp(t.source), _stamp(f.target_rig)))
 
 
 @register("shapes")
@@ -615,6 +667,10 @@ class Solve(Stage):
 
     def active(self, cfg):
         return not method_of(cfg).dense
+
+    def reads(self, cfg):
+        # the rig pair's dense correspondence only for auto's shape map (auto_maps_shapes)
+        return self.deps if auto_maps_shapes(cfg) else tuple(d for d in self.deps if d != "dense_correspondence")
 
     def run(self, inputs, s, progress=None, warm=None):
         m = METHODS[s.method]
