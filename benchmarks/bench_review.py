@@ -23,6 +23,7 @@ The SQLite write latency of an edit is ``store_edit_write`` in bench_store.py.
 """
 
 import asyncio
+import math
 import os
 import re
 import shutil
@@ -40,6 +41,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 import review_client as rc  # noqa: E402
 
 ALPHA = re.compile(r"Seol α")
+METHOD = re.compile(r"^Method$")
 
 
 def _models(page):
@@ -55,9 +57,15 @@ async def _drive_alpha(base, sid, n, on_patch, on_track, mark, changes, gap, sta
     for p in pages:
         p.m = _models(p)
         p.on_patch, p.on_track = on_patch, on_track
+    if sid is None:
+        # a page of its own opens on auto, which sets its own α: page 0 chooses spacetime, as the shot has
+        method = pages[0].one("CustomSelect", title=METHOD)  # options are [value, label] pairs
+        pages[0].set(method, value="spacetime")
+        await asyncio.sleep(settle)
     await asyncio.sleep(2.0)
     for k in range(changes):
-        v = round(start + 0.001 * k, 4)
+        # the α slider is over log10 α (dashboard.widgets.LogSlider): α itself would be out of its range
+        v = math.log10(round(start + 0.001 * k, 4))
         mark(v)
         pages[0].set(pages[0].m[0], value=v, value_throttled=v)
         await asyncio.sleep(gap)
@@ -114,7 +122,8 @@ async def _open_many(base, sid, n, server=None):
 def main():
     rc.register_models()
     tmp = Path(tempfile.mkdtemp(prefix="bench-review-"))
-    sid = rc.sample_shot(tmp / "data", "bench", last_frame=-1)
+    # spacetime: auto (the default) chooses its own α, so an α change would solve nothing
+    sid = rc.sample_shot(tmp / "data", "bench", last_frame=-1, method="spacetime")
     with rc.Server("--data-dir", str(tmp / "data"), "--warm-pages", str(WARM), log=tmp / "ours.log") as ours, \
             rc.Server("--no-review", log=tmp / "ref.log") as ref:
         # warm both (the shot computed once, the per-tab sample once)

@@ -60,14 +60,15 @@ def run(coro):
     return out.get("value")
 
 
-def sample_shot(data_dir, title: str, last_frame: int = 299) -> str:
-    """A new shot of the bundled sample (its first ``last_frame + 1`` frames; -1: all) in the review
-    store at ``data_dir``, made from outside the server as another process would; returns its id."""
+def sample_shot(data_dir, title: str, last_frame: int = 299, **settings) -> str:
+    """A new shot of the bundled sample (its first ``last_frame + 1`` frames; -1: all; other
+    ``settings`` as the pipeline takes them) in the review store at ``data_dir``, made from outside
+    the server as another process would; returns its id."""
     from core.store import Store
     from dashboard.session import Session
 
     s = Session()
-    s.pipeline.configure(last_frame=last_frame)
+    s.pipeline.configure(last_frame=last_frame, **settings)
     store = Store(data_dir)
     try:
         return store.create_shot(s.shot(), title=title, author="lead")
