@@ -191,6 +191,13 @@ AUTO_UNNAMED = {"ridge": AUTO_RIDGE}
 #: the registration, ``core.stages.retarget.auto_maps_shapes``, counts before the shapes no marker
 #: sees are dropped, so it must agree with this on such a rig)
 AUTO_MIN_NAMED = 0.25
+
+
+def names_carry(named: int, shapes: int) -> bool:
+    """Whether ``named`` namesakes among ``shapes`` solver shapes are enough for auto to go by
+    names (:data:`AUTO_MIN_NAMED`): one rule for :func:`auto_choice` on the loaded data and for the
+    files-only check that spares the registration (``core.stages.retarget.auto_maps_shapes``)."""
+    return named >= max(1, AUTO_MIN_NAMED * shapes)
 #: the dense correspondence points (a prefix of the farthest-point order) auto's shape map compares
 #: the rigs' shapes at: 1,000 gave 0.355 / 0.466 mm (names hidden / non-ARKit), 2,000 0.399 / 0.495,
 #: 5,000 0.383 / 0.481 — the fewest is the best and the cheapest
@@ -229,7 +236,7 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
     n = int(named.sum())
     where = (f"dense correspondence ({len(inputs['shapes']['weights'])} face points)"
              if inputs["shapes"].get("weights") is not None else f"the {len(inputs['shapes']['names'])} markers")
-    if n >= max(1, AUTO_MIN_NAMED * rig.n_shapes):
+    if names_carry(n, rig.n_shapes):
         # the rig's other shapes (another vocabulary's smile, a viseme) would add the same
         # expressions a second time: the namesakes carry the take
         held = ~named if zero is None else (~named | np.asarray(zero, bool))

@@ -44,7 +44,7 @@ from ..solvers.baselines import data_gram
 from ..solvers.local import masks_at
 from ..solvers.spacetime import PoseEdit, SpacetimeSolver
 from ..stage import Stage, register
-from .methods import AUTO_MIN_NAMED, AUTO_MOTION_SCALE, METHODS, method_of, named_target, weighted_markers
+from .methods import AUTO_MOTION_SCALE, METHODS, method_of, named_target, names_carry, weighted_markers
 
 #: a shape whose largest marker displacement is below this fraction of the largest shape's
 #: is invisible to the markers
@@ -285,7 +285,7 @@ def _stamp(path: str):
 def _names_carry_the_take(source, source_kind, target_rig, target_shapes, stamps) -> bool:
     """Whether ``auto`` can go by names (so never compares the rigs' shapes over the face): the take
     is not weight curves, or enough of the solver's target shapes have a channel of the take by
-    their ARKit name (:data:`AUTO_MIN_NAMED`, as ``auto_choice`` decides on the loaded data). Read
+    their ARKit name (:func:`~core.stages.methods.names_carry`, the rule ``auto_choice`` applies to the loaded data). Read
     from the files (``stamps``: their modification times and sizes, so an edited file is read
     again); a file that cannot be read says True (the load stage reports it)."""
     try:
@@ -301,7 +301,7 @@ def _names_carry_the_take(source, source_kind, target_rig, target_shapes, stamps
     except (KeyError, ValueError):
         return True
     named = sum(canonical(rig.names[i]) in channels for i in idx)
-    return named >= max(1, AUTO_MIN_NAMED * len(idx))
+    return names_carry(named, len(idx))
 
 
 def auto_maps_shapes(cfg) -> bool:
