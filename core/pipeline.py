@@ -617,7 +617,8 @@ class Pipeline:
                     self.runs[name] += 1
                 results[name] = value
                 self.keys[name] = k
-                self._last[name] = value
+                if stage.warm_start:  # only a warm start reads it: other results stay the cache's to drop
+                    self._last[name] = value
             if progress:
                 progress(1.0, "done")
             return results
