@@ -128,7 +128,9 @@ def test_own_rig_markers_retarget_play_download(page, my_rig, artifacts):
     page.get_by_role("button", name=re.compile("Play")).first.click()
     # on a loaded machine the first frames can take longer than a fixed wait (it failed once at 1.5 s
     # in a fresh-clone run beside the benchmarks): wait for the target view to leave frame 0
-    page.wait_for_function("() => Object.values(window.__faceRetarget.viewers)[1].frame > 0", timeout=30_000)
+    # (the viewers may be re-registered while the page updates: a missing one is "not yet")
+    page.wait_for_function("() => { const v = Object.values(window.__faceRetarget.viewers)[1]; return !!v && v.frame > 0; }",
+                           timeout=30_000)
     page.get_by_role("button", name=re.compile("Play")).first.click()
     frame = page.evaluate("() => Object.values(window.__faceRetarget.viewers)[1].frame")
     assert frame > 0, "playback did not advance"
