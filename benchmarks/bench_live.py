@@ -11,6 +11,12 @@
 * ``live_three_streams``: three subjects at 60 Hz each (180 packets/s) to one listener;
   ``dropped`` = packets not answered + frames the streams counted as missing; ``ref_s`` = the
   one-stream p95 above.
+* ``live_shape_map``: the same take to Rocketbox with every shape renamed (no shared names: live
+  maps each packet through auto's shape map, ``clip(M G x, lo, hi)``, no solve), one stream at
+  60 Hz on sockets; ``ours_s`` = p95 wall latency as above, ``cpu_p95_ms`` its thread CPU time;
+  ``ref_s`` = p95 wall latency of the per-frame bounded solve on the same renamed rig (what live
+  ran there before it took auto's map; covariance map, ridge 1e-2), streamed in the same run.
+  The first run on a machine pays the rig pair's registration (then cached on disk).
 """
 
 import os
@@ -144,6 +150,31 @@ def main(n_frames=1200, n_ref=60, n_three=600):
     print(f"BENCH live_three_streams ours_s={p95_3:.5f} ref_s={p95:.5f} ratio={p95 / p95_3:.2f} p95_ms={1e3 * p95_3:.2f} "
           f"cpu_p95_ms={1e3 * np.percentile(cpu3, 95):.2f} dropped={dropped} answered={answered}/{3 * n_three} "
           f"osc_got={got3} ref_kind=one_stream_p95 load1={load1:.1f}", flush=True)
+    shape_map(X[:n_three])
+
+
+def shape_map(X):
+    import tempfile
+
+    from core.io.rigs import write_renamed_rig
+
+    with tempfile.TemporaryDirectory(prefix="bench-live-") as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hidden = str(write_renamed_rig(FILES["target_rig"], Path(tmp) / "rocketbox_hidden.glb"))
+        files = {**FILES, "target_rig": hidden}
+        rt = LiveRetargeter(Pipeline(cache=StageCache(), **files))
+        ref_rt = LiveRetargeter(Pipeline(cache=StageCache(), method="bounded", motion_scale="covariance", ridge=1e-2,
+                                         **files))
+    assert rt.shape_map_ is not None, rt.choice
+    load1 = os.getloadavg()[0]
+    lat, cpu, sess, got = run_stream(rt, X, ["iPhone"])
+    ref_lat, ref_cpu, _, _ = run_stream(ref_rt, X, ["iPhone"])
+    p95, ref95 = np.percentile(lat, 95), np.percentile(ref_lat, 95)
+    answered = sess.stats()["subjects"]["iPhone"]["answered"]
+    print(f"BENCH live_shape_map ours_s={p95:.5f} ref_s={ref95:.5f} ratio={ref95 / p95:.1f} p95_ms={1e3 * p95:.2f} "
+          f"p50_ms={1e3 * np.median(lat):.2f} cpu_p95_ms={1e3 * np.percentile(cpu, 95):.3f} "
+          f"ref_cpu_p95_ms={1e3 * np.percentile(ref_cpu, 95):.3f} answered={answered}/{len(X)} osc_got={got} "
+          f"ref_kind=bounded_per_frame_same_rig load1={load1:.1f} shapes={len(rt.lo_)}", flush=True)
 
 
 if __name__ == "__main__":

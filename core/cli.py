@@ -229,6 +229,7 @@ def _live(args) -> int:
         if not pipe.take.source:  # no recorded take: the stages run on a neutral one (core.live.neutral_take)
             pipe.configure(source=str(neutral_take(Path(tmp) / "neutral.csv")))
         rt = LiveRetargeter(pipe)
+    print(rt.choice, flush=True)  # what it does per packet, in auto's sentence style
     session = LiveSession(rt, record=bool(args.record))
     outputs = []
     if outputs_at[0]:

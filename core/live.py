@@ -7,18 +7,31 @@ and the per-shape controls. A packet's 61 values ``x`` then become source marker
 the source rig, linearly::
 
     s = A x,      A (3M, 61) = the source rig's marker deltas of each channel (through the name
-                  map, :func:`core.retarget.source_markers`), times the calibrate stage's scale
+                  map, :func:`core.retarget.source_markers`), each marker's mapped by the
+                  calibrate stage's motion map (:func:`live_alignment`: the 3×3 map per marker,
+                  or the range-of-motion scale; linear, so folded into A once)
 
 and target weights by the bounded per-frame solve of the ``bounded`` method (Seol et al. 2012,
 §7 Range PF with the controls' per-shape bounds, active shapes, symmetry term and ridge)::
 
     w_t = argmin ||B w - s_t||^2 + rho ||w||^2 + sigma^2 w^T Q w   s.t.  lower <= w <= upper
 
-With the default method ``auto`` (which solves the whole take at once offline) the solve is the
-per-frame form of what :func:`core.stages.methods.auto_choice` picks for the pair: its ridge,
-the range-of-motion match, and, when the target has the take's ARKit names, auto's name prior
-``c sigma^2 ||w_N - G_N x||^2`` (each named shape pulled towards its namesake channel, ``c`` =
-``AUTO_NAMED["name_weight"]``) with the other shapes held at zero as auto holds them.
+With the default method ``auto`` (which solves the whole take at once offline) live does what
+:func:`core.stages.methods.auto_choice` picks for the pair, in its per-packet form, with the
+motion map auto's calibrate stage made (``matched``: fitted on the shot's take when it has a
+recorded one; on the neutral placeholder take of a shot without one that fit has nothing to fit
+and is the covariance map of the two rigs' shapes, which live then names):
+
+* the target has the take's ARKit names: the per-frame solve with auto's ridge and its name prior
+  ``c sigma^2 ||w_N - G_N x||^2`` (each named shape pulled towards its namesake channel, ``c`` =
+  ``AUTO_NAMED["name_weight"]``), the other shapes held at zero as auto holds them;
+* no shared names and a source rig (auto's shape map over the rigs' dense correspondence): no
+  solve at all, each packet's source-rig weights mapped through the sparse shape map ``M`` the
+  solve stage made (taken from its cached result, :func:`core.stages.methods._shape_mapped`)::
+
+      w_t = clip(M G x_t, lower, upper)          (M G: one (K, 61) matrix, a few microseconds)
+
+* otherwise the per-frame solve with auto's ridge, by geometry alone.
 
 solved exactly by :class:`core.solvers.baselines.RangePFPrecompute` (the Hessian built once,
 each frame warm-started from the previous one), then the causal One Euro filter
@@ -57,7 +70,9 @@ from .model import Performance
 from .retarget import drive_rig, source_markers
 from .solvers.baselines import RangePFPrecompute
 from .names import NameMap
-from .stages.methods import auto_choice, method_of
+from .motion_alignment import apply_alignment
+from .stages.methods import _shape_mapped, auto_choice, method_of
+from .stages.retarget import auto_maps_shapes
 
 __all__ = ["LiveRetargeter", "LiveStream", "LiveSession", "LiveFrame", "OscOut", "LiveLinkOut", "listen",
            "parse_address", "neutral_take"]
@@ -94,6 +109,40 @@ def neutral_take(path) -> Path:
     return Path(path)
 
 
+def live_alignment(calibrate, posed: bool = False) -> tuple:
+    """``(map (M, 3, 3) or None, kind)``: the calibrate stage's motion map a live stream is
+    aligned by, computed once before the stream. ``matched`` is fitted on a take: the shot's
+    recorded take when it has one (its curves move), else (a neutral placeholder take, on which
+    the refit has nothing to fit and returns its start) the covariance map of the two rigs'
+    shapes, said as such; ``covariance``, ``rom`` (the scale as a diagonal map) and ``none`` as
+    the stage ran them. ``posed``: auto with example poses solves on the covariance map
+    (:func:`core.stages.methods.covariance_inputs`), and so does live."""
+    mode = calibrate.get("alignment")
+    if mode == "matched" and posed:
+        return calibrate["covariance_map"], "covariance"
+    if mode == "matched":
+        W = calibrate["source"].source_weights
+        if W is not None and np.nan_to_num(np.asarray(W)).any():
+            return calibrate["source_map"], "matched"
+        return calibrate["covariance_map"], "covariance"
+    return calibrate.get("source_map"), (mode or "none")
+
+
+def alignment_phrase(kind: str, take: str = "", frames=None, instead: str = "") -> str:
+    """How a live stream's motion is matched to the character's (:func:`live_alignment`), in words;
+    ``instead``: why the covariance map stands for the shot's matched one."""
+    if kind == "matched":
+        span = f", frames {frames['first']}–{frames['stop'] - 1}" if frames else ""
+        return (f"the actor's motion space aligned to the character's by the 3×3 map per point fitted on the shot's "
+                f"take ({take}{span})")
+    if kind == "covariance":
+        return ("the actor's motion space aligned to the character's (a 3×3 map per point from the two rigs' shapes"
+                + (f"; {instead})" if instead else ")"))
+    if kind == "rom":
+        return "the actor's range of motion matched to the character's"
+    return "the actor's motion as captured"
+
+
 class LiveRetargeter:
     """The per-frame system of a shot, built once (module docstring).
 
@@ -109,9 +158,14 @@ class LiveRetargeter:
     channels : the 61 stream channels (:data:`core.io.livelink_udp.CHANNELS`)
     target_names : the target rig's shape names (the weights :meth:`solve` returns)
     source_names : the source rig's shape names (:meth:`source_weights`)
-    A_ : (61, 3M) stream values -> source marker deltas (metres, range-of-motion scaled)
+    choice : what it does per packet, one sentence in auto's style (the CLI prints it, the page shows it)
+    A_ : (61, 3M) stream values -> source marker deltas (metres, motion-mapped)
     G_ : (61, K_source) stream values -> source rig weights
+    motion_map_ : (M, 3, 3) or None, the calibrate stage's motion map folded into ``A_``
+    alignment_ : "matched", "covariance", "rom" or "none": which map (:func:`live_alignment`)
+    shape_map_ : (61, K_solver) or None, ``(M G)ᵀ`` when auto maps the curves through its shape map
     solver_ : RangePFPrecompute over the solver's shapes
+    lo_, hi_ : (K_solver,) the controls' bounds
     shape_index_ : (K_solver,) int, the solver's shapes among the target's
 
     Raises
@@ -126,7 +180,10 @@ class LiveRetargeter:
         if method_of(cfg).dense:
             raise ValueError("live: the transfer method builds a new rig offline; choose a per-frame method "
                              "(--method bounded or auto)")
-        res = pipeline.results(["load", "frames", "correspond", "shapes", "calibrate", "personalize", "vocabulary"])
+        # auto's shape map needs the rig pair's dense correspondence (decided from the files, as the solve stage does)
+        maps = auto_maps_shapes(cfg)
+        res = pipeline.results(["load", "frames", "correspond", "shapes", "calibrate", "personalize", "vocabulary"]
+                               + (["dense_correspondence"] if maps else []))
         ld, cor, sh, cal = res["load"], res["correspond"], res["shapes"], res["calibrate"]
         rig = ld["source_rig"]
         if rig is None or cor["source_layout"] is None:
@@ -140,8 +197,11 @@ class LiveRetargeter:
         idx = [sm.names.index(n) for n in sh["names"]]
         D = sm.deltas[:, idx]  # (1 + C, M, 3)
         D = D[1:] - D[:1]
-        if cal["source_scale"] is not None:
-            D = D * cal["source_scale"][None, :, None]
+        # the calibrate stage's motion map, per marker (linear: folded into A once)
+        posed = method_of(cfg).chooses and bool(cfg.solve.example_poses)
+        self.motion_map_, self.alignment_ = live_alignment(cal, posed)
+        if self.motion_map_ is not None:
+            D = apply_alignment(self.motion_map_, D)
         B = np.asarray(res["personalize"]["deltas"], dtype=np.float64)
         w = sh.get("weights")
         if w is not None:  # dense correspondence: each point's rows weighted (as methods.weighted_markers)
@@ -157,11 +217,24 @@ class LiveRetargeter:
         K = len(names)
         Q = ctl.symmetry_matrix(s.symmetry_weight) if s.symmetry_weight > 0 and len(ctl.symmetry) else np.zeros((K, K))
         zero = ctl.zero() if (~ctl.active).any() else None
-        ridge, self.pull_ = s.ridge, None
-        self.choice = "bounded: frame by frame within the bounds, by geometry alone"
-        if method_of(cfg).chooses:  # auto: what it would choose for this pair, frame by frame
-            run, chosen, _ = auto_choice(res, zero)
+        ridge, self.pull_, self.shape_map_ = s.ridge, None, None
+        instead = "" if cal["alignment"] == self.alignment_ else (
+            "auto's base under example poses" if posed else "no recorded take to fit the take's map on")
+        aligned = alignment_phrase(self.alignment_, ld["source"].name, res["frames"], instead)
+        self.choice = f"{cfg.solve.method}: frame by frame within the bounds, {aligned}, by geometry alone"
+        if method_of(cfg).chooses:  # auto: what it would choose for this pair, per packet
+            run, chosen, sentence = auto_choice(res, zero)
+            why = sentence.rpartition(" — ")[2]
             ridge = chosen["ridge"]
+            if run is _shape_mapped:
+                # the map the solve stage made (cached by the pipeline, content-keyed); none when a
+                # negative lower bound sent it to the per-frame solve
+                info = pipeline.results(["solve"])["solve"]["info"]
+                if info.get("shape_map") is not None:
+                    self.shape_map_ = self.G_ @ np.asarray(info["shape_map"], dtype=np.float64).T  # (61, K): M (G x)
+                    self.choice = ("auto, live: each packet's curves mapped shape by shape, each source shape carried by "
+                                   f"the few target shapes that rebuild it over {info['dense_points']} face points (dense "
+                                   f"correspondence), within the bounds, no per-frame solve — {why}")
             if "name_weight" in chosen:
                 # each shape pulled towards its namesake channel, c sigma^2 ||w_N - G_N x||^2
                 # (auto's name prior, per frame), the other shapes held at zero as auto holds them
@@ -172,12 +245,15 @@ class LiveRetargeter:
                 Q = Q + c * np.diag(N.astype(float))
                 self.pull_ = (c, np.where(N[:, None], G, 0.0).T)  # (61, K)
                 zero = chosen["zero"]
-                self.choice = ("auto, live: frame by frame within the bounds, each shape pulled towards its namesake "
-                               f"channel ({int(N.sum())} of {K} shapes), the others at zero")
-            else:
-                self.choice = "auto, live: frame by frame within the bounds, by geometry alone"
+                self.choice = (f"auto, live: frame by frame within the bounds, {aligned}, each shape pulled towards its "
+                               f"namesake channel ({int(N.sum())} of {K} shapes), the others at zero")
+            elif self.shape_map_ is None:
+                self.choice = f"auto, live: frame by frame within the bounds, {aligned}, by geometry alone — {why}"
+        if posed:
+            self.choice += "; the shot's example poses are learned over a whole take (offline auto), not per packet"
         self.ridge_, self.quadratic_ = ridge, (Q if Q.any() else None)
         self.solver_ = RangePFPrecompute(B, lo, hi, ridge=ridge, quadratic=self.quadratic_, zero=zero)
+        self.lo_, self.hi_ = self.solver_.lo_, self.solver_.hi_
         if self.pull_ is not None:
             self.pull_ = self.pull_[1] * (self.pull_[0] * self.solver_.smax2_)
         self.controls_ = ctl
@@ -188,7 +264,7 @@ class LiveRetargeter:
         self.source_names = tuple(rig.names)
         self.filter_ = (s.filter_min_cutoff, s.filter_beta) if s.weights_filter == "one_euro" else None
         self.neutral_ = np.zeros(len(self.target_names))
-        self.neutral_[self.shape_index_] = self.solver_.held_
+        self.neutral_[self.shape_index_] = self.solve(np.zeros(C))[0] if self.shape_map_ is not None else self.solver_.held_
 
     def markers(self, values) -> np.ndarray:
         """(M, 3) source marker deltas of one packet's 61 values (``s = A x``)."""
@@ -202,6 +278,8 @@ class LiveRetargeter:
         """The bounded solve of one frame: ``(w (K_solver,), u)``, ``u`` to pass as the next
         frame's ``warm`` (:meth:`core.solvers.baselines.RangePFPrecompute.solve`)."""
         x = np.asarray(values, dtype=np.float64)
+        if self.shape_map_ is not None:  # auto's shape map: clip(M w_source, lower, upper), no solve
+            return np.clip(x @ self.shape_map_, self.lo_, self.hi_), warm
         W, u = self.solver_.solve(self.markers(x), warm=warm, linear=None if self.pull_ is None else x @ self.pull_)
         return W[0], u
 

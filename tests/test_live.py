@@ -230,6 +230,95 @@ def test_live_frames_equal_the_offline_bounded_solve(take, bounded_pipe):
     assert sess.stats()["subjects"]["iPhone"]["answered"] == 300
 
 
+def replay(rt, X, subject="iPhone"):
+    """(T, K_target) the frames of ``X`` replayed through a live stream as float64 packets (no
+    float32 wire rounding: what the retargeter computes, to compare at 1e-6)."""
+    st = rt.stream(subject)
+    return np.array([st.update(FacePacket(subject, "dev", i, 0.0, (60, 1), np.asarray(x, dtype=np.float64))).weights
+                     for i, x in enumerate(X)])
+
+
+@pytest.mark.parametrize("motion_scale", ["matched", "covariance", "rom"])
+def test_live_uses_the_shots_motion_map(take, motion_scale):
+    """A replayed take through live = the offline per-frame bounded solve with the same motion map
+    (the calibrate stage's: the matched one fitted on the shot's take), filter off, to 1e-6; and
+    the map matters (the same solve without it differs)."""
+    files = dict(source=str(TAKE), source_rig=str(RIGS / "ict_facekit.glb"),
+                 target_rig=str(RIGS / "rocketbox_female_adult_02.glb"), method="bounded", last_frame=199)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pipe = Pipeline(motion_scale=motion_scale, **files)
+        rt = LiveRetargeter(pipe)
+        res = pipe.results(["calibrate", "synthesize"])
+        plain = Pipeline(**files).results(["synthesize"])["synthesize"]["weights"]
+    cal, ref = res["calibrate"], res["synthesize"]["weights"]
+    assert rt.alignment_ == motion_scale and rt.motion_map_ is cal["source_map"]
+    out = replay(rt, stream_values(take)[:200])
+    assert np.abs(out - ref).max() < 1e-6
+    assert np.abs(ref - plain).max() > 1e-2  # without the map the face differs: the test can fail
+    phrase = {"matched": "fitted on the shot's take (livelinkface_take_s07, frames 0–199)",
+              "covariance": "a 3×3 map per point from the two rigs' shapes", "rom": "range of motion matched"}
+    assert rt.choice.startswith("bounded: frame by frame") and phrase[motion_scale] in rt.choice
+
+
+def test_live_without_a_recorded_take_uses_the_covariance_map(tmp_path, take):
+    """The CLI's neutral placeholder take (no recorded take): auto's matched map has nothing to be
+    fitted on (it is the covariance map there), and live says it uses the covariance map."""
+    from core.live import neutral_take
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pipe = Pipeline(source=str(neutral_take(tmp_path / "neutral.csv")), source_rig=str(RIGS / "ict_facekit.glb"),
+                        target_rig=str(RIGS / "rocketbox_female_adult_02.glb"))
+        rt = LiveRetargeter(pipe)
+        cal = pipe.results(["calibrate"])["calibrate"]
+    assert cal["alignment"] == "matched"
+    np.testing.assert_allclose(cal["source_map"], cal["covariance_map"], atol=1e-12)
+    assert rt.alignment_ == "covariance" and rt.motion_map_ is cal["covariance_map"]
+    assert rt.choice.startswith("auto, live: frame by frame") and "no recorded take to fit" in rt.choice
+    assert "namesake channel" in rt.choice and rt.shape_map_ is None
+    W = replay(rt, stream_values(take)[:50])
+    assert W.min() >= 0 and W.max() <= 1
+
+
+def test_live_under_example_poses_uses_autos_covariance_base(take):
+    """auto with example poses solves on the covariance map (methods.covariance_inputs): live too,
+    and it says the poses are not learned per packet."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pipe = Pipeline(source=str(TAKE), source_rig=str(RIGS / "ict_facekit.glb"),
+                        target_rig=str(RIGS / "rocketbox_female_adult_02.glb"), last_frame=99,
+                        example_poses=[{"frame": 10, "weights": {"AK_25_JawOpen": 0.5}}])
+        rt = LiveRetargeter(pipe)
+        cal = pipe.results(["calibrate"])["calibrate"]
+    assert cal["alignment"] == "matched" and rt.alignment_ == "covariance" and rt.motion_map_ is cal["covariance_map"]
+    assert "auto's base under example poses" in rt.choice and "not per packet" in rt.choice
+
+
+@pytest.mark.slow
+def test_live_maps_curves_through_autos_shape_map(take, hidden_rocketbox):
+    """No shared names, a source rig's curves: live maps each packet through the shape map auto
+    made (the solve stage's, cached), ``clip(M w, lo, hi)``: equal to ``_shape_mapped`` on the
+    same frames to 1e-6, with no per-frame solve."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pipe = Pipeline(source=str(TAKE), source_rig=str(RIGS / "ict_facekit.glb"), target_rig=str(hidden_rocketbox),
+                        last_frame=199)
+        rt = LiveRetargeter(pipe)
+        res = pipe.results(["solve", "synthesize", "shapes"])
+    info = res["solve"]["info"]
+    assert info["chosen"]["method"] == "shape_mapped" and rt.shape_map_ is not None
+    assert "mapped shape by shape" in rt.choice and "no per-frame solve" in rt.choice
+    X = stream_values(take)[:200]
+    W = np.array([rt.solve(x)[0] for x in X])  # the solver's shapes
+    np.testing.assert_allclose(W, res["solve"]["weights"], atol=1e-6)
+    out = replay(rt, X)
+    np.testing.assert_allclose(out, res["synthesize"]["weights"], atol=1e-6)
+    assert out.max() > 0.3  # the face moves
+    rt.solver_ = None  # per packet: the map only, never the solver
+    replay(rt, X[:5])
+
+
 def test_stream_order_drops_repeats_and_tracking_loss(take, bounded_pipe):
     _, rt = bounded_pipe
     X = stream_values(take)
@@ -294,15 +383,18 @@ def test_live_command_answers_a_replayed_take(tmp_path, take):
            "--stats", str(stats), "--duration", "120", "--record", str(tmp_path / "rec.csv")]
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        port = None
+        port, said = None, []
         t0 = time.monotonic()
         while port is None and time.monotonic() - t0 < 90:
             line = proc.stdout.readline()
             if not line:
                 break
+            said.append(line)
             if line.startswith("listening on "):
                 port = int(line.strip().rsplit(":", 1)[1])
         assert port, f"no 'listening on' line: {proc.stderr.read() if proc.poll() is not None else ''}"
+        # what it does per packet, said before listening: no recorded take, so the covariance map
+        assert any(l.startswith("auto, live: frame by frame") and "no recorded take to fit" in l for l in said), said
         received = []
 
         def receive():

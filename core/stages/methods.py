@@ -318,7 +318,8 @@ def _shape_mapped(inputs, s):
         W = np.where(s.zero, np.clip(0.0, lo_k, hi_k)[None], W)
     top = M.argmax(0)
     matches = {src.names[j]: rig.names[top[j]] for j in range(src.n_shapes) if M[top[j], j] > 0.05}
-    return {"weights": W, "info": {"shape_matches": matches, "dense_points": min(AUTO_DENSE_POINTS, len(
+    # the map itself: the live retargeter maps each packet through it (core.live), from the cached result
+    return {"weights": W, "info": {"shape_matches": matches, "shape_map": M, "dense_points": min(AUTO_DENSE_POINTS, len(
         inputs["dense_correspondence"]["weights"]))}, "edit": edit_options(s, alpha=0.01, lower=lo, upper=hi)}
 
 

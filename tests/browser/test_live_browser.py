@@ -77,6 +77,9 @@ def test_live_tab_draws_the_stream_and_records_a_take(page, server, artifacts):
         timeout=120_000)
     text = page_text(page)
     assert re.search(rf"Listening on 127\.0\.0\.1:{udp}", text), re.findall(r"Listening on [^ ]+|Error[^\n]*", text)
+    # what live does per packet, in auto's words: the sample's take is recorded, so its fitted map
+    assert "auto, live: frame by frame" in text and "fitted on the shot's take" in text, \
+        re.findall(r"Listening on [^\n]*", text)
 
     X = take_values()
     stop = threading.Event()
