@@ -21,31 +21,21 @@ pair *sure* when it is each side's best match (mutual) and ``a_jk >= min_affinit
 :func:`pseudo_names` turns the pairs into the per-shape "namesake" curves the name pull of the
 spacetime solver takes (``name_target``, NaN = no namesake), each with its confidence.
 :func:`shape_map` is the other design: each source shape fitted by the target's shapes within the
-<<<<<<< HEAD
 bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖² + l1 ‖s_j‖² Σ_k x_k``
 (the batched exact box QP of :func:`core.solvers.baselines.range_pf`, with the L1 term its unit-box
-solver :func:`core.solvers.boxqp.solve_box_sequence` on the normal equations), a whole-take mapping ``W = clip(W_source Mᵀ, lower, upper)``
-(:func:`mapped_weights`). The L1 term (``lower ≥ 0``, so ``Σ_k x_k = ‖x‖₁``) keeps each source
-shape to the few target shapes that carry it (:data:`SPARSE_L1`: about 4 of 175 on the sample) instead
-of rebuilding the source's own sculpt out of many — compared over dense correspondence, the whole
-face rather than 41 markers, it is what worked best without names (docs/evaluation.md, "Dense shape
-matching").
-:func:`restyled_motion` is the third, what ``auto`` uses without shared names: the source's motion
-re-sculpted in the character's style, each sure pair's source shape moved part of the way
-towards its match, ``s'_j = (1 − β) s_j + β g t_k`` — then an ordinary geometric solve fits it (the
-actor's jaw drop then asks for the character's jaw drop, not for a chin pulled back by other shapes).
-=======
-bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖²`` (the batched
-exact box QP of :func:`core.solvers.baselines.range_pf`), a whole-take mapping
-``W = clip(W_source Mᵀ, lower, upper)``.
+solver :func:`core.solvers.boxqp.solve_box_sequence` on the normal equations), a whole-take mapping
+``W = clip(W_source Mᵀ, lower, upper)`` (:func:`mapped_weights`). The L1 term (``lower ≥ 0``, so
+``Σ_k x_k = ‖x‖₁``) keeps each source shape to the few target shapes that carry it (:data:`SPARSE_L1`:
+about 4 of 175 on the sample) instead of rebuilding the source's own sculpt out of many — compared
+over dense correspondence, the whole face rather than 41 markers, it is what ``auto`` uses without
+shared names (:func:`aligned_shape_map`; docs/evaluation.md, "Dense shape matching"). Per-shape L1
+weights (``l1_scale``) let another source of meaning steer the fit; steered by the vocabularies it
+measured no better (docs/evaluation.md, "Vocabulary-guided shape map").
 :func:`restyled_motion` is the third: the source's motion re-sculpted in the character's style, each
 sure pair's source shape moved part of the way towards its match, ``s'_j = (1 − β) s_j + β g t_k`` —
 then an ordinary geometric solve fits it (the actor's jaw drop then asks for the character's jaw
-drop, not for a chin pulled back by other shapes). ``auto`` uses it without shared names only where
-the take's curves cannot refit the motion map (:func:`core.motion_alignment.matched_alignment`,
-which pairs shapes by relative distance instead and measured better; on top of it the re-sculpt
-measured worse).
->>>>>>> q-procrustes
+drop, not for a chin pulled back by other shapes); kept to measure against (on top of the take-fitted
+motion map, :func:`core.motion_alignment.matched_alignment`, it measured worse).
 
 What was measured with them (issue 29, cases B and C): docs/evaluation.md, "Shape matching".
 
@@ -205,14 +195,15 @@ def pseudo_names(match: ShapeMatch, source_weights, n_target: int, lower=0.0, up
     return named, conf
 
 
-def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2, l1: float = 0.0) -> np.ndarray:
+def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2, l1: float = 0.0,
+              l1_scale=None) -> np.ndarray:
     """(K, J) each source shape fitted by the target's shapes within the bounds (module docstring):
 
-        M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖² + l1 ‖s_j‖² Σ_k x_k,
+        M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖² + l1 ‖s_j‖² Σ_k c_jk x_k,
 
     exact: :func:`core.solvers.baselines.range_pf` with the source shapes as its frames (``l1 = 0``),
     else the same exact box QP (:func:`core.solvers.boxqp.solve_box_sequence`) on the normal
-    equations with the L1 term moved into the linear part (``½ xᵀ G x − (T s_j − ½ l1 ‖s_j‖² 1)ᵀ x``, ``G = T Tᵀ + ρ I``; when ``ridge`` is
+    equations with the L1 term moved into the linear part (``½ xᵀ G x − (T s_j − ½ l1 ‖s_j‖² c_j)ᵀ x``, ``G = T Tᵀ + ρ I``; when ``ridge`` is
     0 a floor ``ρ = 1e-9 σ_max(T)²`` keeps ``G`` definite, as range_pf does).
 
     Parameters
@@ -226,17 +217,28 @@ def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2, l1: flo
     l1 : float >= 0
         Sparsity weight relative to each source shape's squared size (scale-free); needs
         ``lower >= 0`` (then ``Σ_k x_k`` is the L1 norm).
+    l1_scale : (K,) or (J, K) float >= 0, optional
+        Each target shape's L1 weight as a multiple of ``l1`` (per source shape when (J, K)): the
+        term becomes ``l1 ‖s_j‖² Σ_k c_jk x_k`` — a smaller weight for the shapes another source
+        of meaning (a vocabulary) proposes for ``s_j``, a large one to leave a shape out
+        (scripts/vocab_map_eval.py). None: ``c_jk = 1``.
 
     Raises
     ------
     ValueError
-        Shapes that are not (K, M, 3) or differ in M; ``l1 < 0``; ``l1 > 0`` with a negative lower bound.
+        Shapes that are not (K, M, 3) or differ in M; ``l1 < 0``; ``l1 > 0`` with a negative lower bound;
+        ``l1_scale`` of another shape or with a negative weight.
     """
     s, t = _deltas(source, "source"), _deltas(target, "target")
     if s.shape[1] != t.shape[1]:
         raise ValueError(f"source and target: the same points are needed, got {s.shape[1]} and {t.shape[1]}")
     if l1 < 0:
         raise ValueError(f"l1: expected a weight >= 0, got {l1}")
+    c = np.ones((len(s), len(t))) if l1_scale is None else np.asarray(l1_scale, dtype=np.float64)
+    if c.shape not in ((len(t),), (len(s), len(t))):
+        raise ValueError(f"l1_scale: expected shape ({len(t)},) or ({len(s)}, {len(t)}), got {c.shape}")
+    if not np.all(c >= 0):
+        raise ValueError(f"l1_scale: expected weights >= 0, got a minimum of {c.min()}")
     if l1 == 0:
         return range_pf(t, s, lower, upper, np.ones(s.shape[:2], bool), ridge=ridge).T
     if np.any(np.asarray(lower) < 0):
@@ -251,7 +253,7 @@ def shape_map(source, target, lower=0.0, upper=1.0, ridge: float = 1e-2, l1: flo
     G = T @ T.T
     smax2 = float(np.linalg.eigvalsh(G)[-1]) if K else 0.0
     G[np.diag_indices_from(G)] += max(ridge, 1e-9) * smax2
-    rhs = S @ T.T - 0.5 * l1 * (S ** 2).sum(1)[:, None]
+    rhs = S @ T.T - 0.5 * l1 * (S ** 2).sum(1)[:, None] * np.broadcast_to(c, (len(S), K))
     # the unit box x = lo + d u, as range_pf: one Hessian, the source shapes its "frames"
     d = hi - lo
     u = solve_box_sequence((G * d[:, None] * d[None, :])[None], (lo @ G - rhs) * d)

@@ -130,6 +130,38 @@ def test_sparse_shape_map_against_bvls(ridge, l1):
     assert (M > 1e-9).sum() < (shape_map(source, target, 0.0, 1.0, ridge=ridge) > 1e-9).sum()
 
 
+
+@pytest.mark.parametrize("per_source", [False, True])
+def test_weighted_l1_shape_map_against_bvls(per_source):
+    """Per-shape L1 weights ``c_jk`` (``l1_scale``) against SciPy's bounded least squares, as the
+    plain L1 fit above: the shift of the right-hand side is then ``z = Tᵀ(T Tᵀ)⁻¹ ½ l1 ‖s‖² c_j``.
+    A weight of 0 frees a shape from the L1 term, a large one leaves it out (exactly 0); all ones
+    is the plain L1 fit."""
+    rng = np.random.default_rng(11)
+    target = rng.normal(size=(8, 15, 3))
+    source = rng.normal(size=(4, 15, 3))
+    c = rng.uniform(0.0, 3.0, (4, 8)) if per_source else rng.uniform(0.0, 3.0, 8)
+    c[..., 2] = 0.0
+    c[..., 5] = 1e6
+    l1 = 0.3
+    M = shape_map(source, target, 0.0, 1.0, ridge=0.0, l1=l1, l1_scale=c)
+    T = target.reshape(8, -1)
+    G = T @ T.T
+    A = np.vstack([T.T, np.sqrt(1e-9 * np.linalg.eigvalsh(G)[-1]) * np.eye(8)])
+    for j in range(4):
+        s = source[j].ravel()
+        cj = c[j] if per_source else c
+        z = T.T @ np.linalg.solve(G, 0.5 * l1 * (s @ s) * cj)
+        ref = lsq_linear(A, np.concatenate([s - z, np.zeros(8)]), bounds=(0, 1), method="bvls", tol=1e-12).x
+        np.testing.assert_allclose(M[:, j], ref, atol=1e-7)
+    assert (M[5] == 0).all()
+    np.testing.assert_allclose(shape_map(source, target, 0.0, 1.0, ridge=0.0, l1=l1, l1_scale=np.ones(8)),
+                               shape_map(source, target, 0.0, 1.0, ridge=0.0, l1=l1), atol=1e-12)
+    with pytest.raises(ValueError, match="l1_scale"):
+        shape_map(source, target, l1=l1, l1_scale=np.ones(7))
+    with pytest.raises(ValueError, match="l1_scale"):
+        shape_map(source, target, l1=l1, l1_scale=-np.ones(8))
+
 def _decoys(rng, K=8, M=300, markers=12):
     """Target shapes and decoys that agree with the source at a few 'markers' but not elsewhere.
 
