@@ -1,0 +1,243 @@
+"""Avatars as real apps write them: several meshes sharing morph names, node transforms, skins,
+quantised attributes.
+
+The files are small synthetic replicas of the structure of real avatars (their licences forbid
+copying them; see data/SOURCES.md, "Files from elsewhere"):
+
+* Ready Player Me (``avatars/brunette-t.glb`` of met4citizen/TalkingHead, generator "Ready Player
+  Me"): meshes in the order EyeLeft, EyeRight, Wolf3D_Head, Wolf3D_Teeth, ..., the first four with
+  the same 67 targetNames in ``mesh.extras``; the head skinned; hair and clothes without targets.
+  The reader used to take the first mesh with targets, the 120-vertex left eyeball, as the rig.
+* VRoid through glTF-Transform (``avatars/vroid.glb`` of the same repository): KHR_mesh_quantization
+  (int16 normalised POSITION and targets, dequantised by the node transform) and
+  EXT_meshopt_compression (required).
+
+Every expected value is computed here independently of the reader (scipy's rotations, explicit
+loops over vertices and joints).
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from core.io.gltf import GltfError, read_rig
+
+# -- a minimal independent GLB builder ---------------------------------------------------------
+
+
+class Glb:
+    def __init__(self):
+        self.doc = {"asset": {"version": "2.0", "generator": "test"}, "buffers": [], "bufferViews": [],
+                    "accessors": [], "meshes": [], "nodes": [], "scenes": [{"nodes": []}], "scene": 0}
+        self.blob = bytearray()
+
+    def accessor(self, array, type_, component=5126, normalized=False):
+        array = np.ascontiguousarray(array)
+        self.blob += b"\0" * (-len(self.blob) % 4)
+        self.doc["bufferViews"].append({"buffer": 0, "byteOffset": len(self.blob), "byteLength": array.nbytes})
+        self.blob += array.tobytes()
+        acc = {"bufferView": len(self.doc["bufferViews"]) - 1, "componentType": component,
+               "count": len(array), "type": type_}
+        if normalized:
+            acc["normalized"] = True
+        if type_ == "VEC3" and component == 5126:
+            acc["min"], acc["max"] = array.min(0).tolist(), array.max(0).tolist()
+        self.doc["accessors"].append(acc)
+        return len(self.doc["accessors"]) - 1
+
+    def mesh(self, name, pos, faces, deltas=(), names=None, quantize=None, extra_attributes=None):
+        """``quantize``: None (float32) or a scale s: int16 normalised ``round(x / s * 32767)``."""
+        def enc(x):
+            if quantize is None:
+                return self.accessor(np.asarray(x, np.float32), "VEC3")
+            q = np.round(np.asarray(x) / quantize * 32767).astype(np.int16)
+            return self.accessor(q, "VEC3", 5122, normalized=True)
+        prim = {"attributes": {"POSITION": enc(pos), **(extra_attributes or {})},
+                "indices": self.accessor(np.asarray(faces, np.uint32).reshape(-1), "SCALAR", 5125)}
+        if len(deltas):
+            prim["targets"] = [{"POSITION": enc(d)} for d in deltas]
+        m = {"name": name, "primitives": [prim]}
+        if names is not None:
+            m["extras"] = {"targetNames": list(names)}
+        self.doc["meshes"].append(m)
+        return len(self.doc["meshes"]) - 1
+
+    def node(self, root=True, **fields):
+        self.doc["nodes"].append(fields)
+        i = len(self.doc["nodes"]) - 1
+        if root:
+            self.doc["scenes"][0]["nodes"].append(i)
+        return i
+
+    def write(self, path, extensions=None):
+        doc = dict(self.doc, buffers=[{"byteLength": len(self.blob)}])
+        if extensions:
+            doc.update(extensions)
+        text = json.dumps(doc).encode()
+        text += b" " * (-len(text) % 4)
+        blob = bytes(self.blob) + b"\0" * (-len(self.blob) % 4)
+        path.write_bytes(struct.pack("<4sII", b"glTF", 2, 28 + len(text) + len(blob))
+                         + struct.pack("<II", len(text), 0x4E4F534A) + text
+                         + struct.pack("<II", len(blob), 0x004E4942) + blob)
+        return path
+
+
+def blob_mesh(n, seed, centre, radius):
+    """A closed fan of ``n`` triangles around a point: vertices (n + 2, 3), faces (n, 3)."""
+    rng = np.random.default_rng(seed)
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    rim = np.c_[np.cos(ang), np.sin(ang), 0 * ang] * radius
+    pos = np.vstack([[0, 0, radius], rim, [0, 0, -radius]]) + centre + rng.normal(0, radius * 0.01, (n + 2, 3))
+    faces = [(0, 1 + k, 1 + (k + 1) % n) for k in range(n)] + [(n + 1, 1 + (k + 1) % n, 1 + k) for k in range(n)]
+    return pos, np.array(faces)
+
+
+NAMES = ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "mouthSmileLeft", "viseme_aa"]
+
+
+def rpm_like(tmp_path, head_skin=True):
+    """EyeLeft first (small, all names, on a translated node), the head (largest, skinned, joints
+    at rest = bind pose), teeth (a subset of the names, a rotated and scaled node), hair (no
+    targets). Returns the path and, per mesh, what the rig must hold for it."""
+    g = Glb()
+    rng = np.random.default_rng(0)
+    K = len(NAMES)
+    eye_p, eye_f = blob_mesh(6, 1, [0, 0, 0], 0.012)
+    eye_d = rng.normal(0, 0.002, (K, len(eye_p), 3))
+    head_p, head_f = blob_mesh(40, 2, [0, 1.6, 0.1], 0.09)
+    head_d = rng.normal(0, 0.005, (K, len(head_p), 3))
+    teeth_names = ["viseme_aa", "jawOpen"]  # a subset, in another order
+    teeth_p, teeth_f = blob_mesh(8, 3, [0, 0, 0], 0.02)
+    teeth_d = rng.normal(0, 0.004, (2, len(teeth_p), 3))
+    hair_p, hair_f = blob_mesh(30, 4, [0, 1.7, 0.1], 0.11)
+
+    m_eye = g.mesh("EyeLeft", eye_p, eye_f, eye_d, NAMES)
+    m_head = g.mesh("Wolf3D_Head", head_p, head_f, head_d, NAMES,
+                    extra_attributes={"JOINTS_0": g.accessor(np.zeros((len(head_p), 4), np.uint8), "VEC4", 5121),
+                                      "WEIGHTS_0": g.accessor(np.tile(np.float32([1, 0, 0, 0]), (len(head_p), 1)), "VEC4")})
+    m_teeth = g.mesh("Wolf3D_Teeth", teeth_p, teeth_f, teeth_d, teeth_names)
+    m_hair = g.mesh("Wolf3D_Hair", hair_p, hair_f)
+    # skeleton: Armature (scaled 0.5, as an FBX export might be) > Head joint at (0, 1.5, 0)
+    joint_world = np.diag([0.5, 0.5, 0.5, 1.0])
+    joint_world[:3, 3] = [0, 0.75, 0]
+    ibm = np.linalg.inv(joint_world)  # bind pose = rest pose
+    g.doc["skins"] = [{"joints": [1], "inverseBindMatrices": g.accessor(ibm.T.reshape(1, 16).astype(np.float32), "MAT4")}]
+    g.node(name="Armature", scale=[0.5, 0.5, 0.5], children=[1])
+    g.node(root=False, name="Head", translation=[0, 1.5, 0])
+    # the skinned node carries a transform glTF says to ignore (§3.7.3.1)
+    g.node(name="Wolf3D_Head", mesh=m_head, skin=0 if head_skin else None, translation=[5, 5, 5])
+    eye_t = np.array([0.033, 1.632, 0.113])
+    g.node(name="EyeLeft", mesh=m_eye, translation=eye_t.tolist())
+    teeth_q = Rotation.from_euler("x", 20, degrees=True)
+    g.node(name="Teeth", mesh=m_teeth, translation=[0, 1.565, 0.117], rotation=teeth_q.as_quat().tolist(),
+           scale=[1.5, 1.5, 1.5])
+    g.node(name="Wolf3D_Hair", mesh=m_hair)
+    if not head_skin:
+        del g.doc["nodes"][2]["skin"]
+    path = g.write(tmp_path / "rpm_like.glb")
+
+    head_expect = (head_p + ([5, 5, 5] if not head_skin else 0), head_d)
+    teeth_full = np.zeros((K, len(teeth_p), 3))
+    for k, n in enumerate(teeth_names):
+        teeth_full[NAMES.index(n)] = teeth_q.apply(teeth_d[k]) * 1.5
+    expect = {
+        "Wolf3D_Head": head_expect,
+        "EyeLeft": (eye_p + eye_t, eye_d),
+        "Wolf3D_Teeth": (teeth_q.apply(teeth_p) * 1.5 + [0, 1.565, 0.117], teeth_full),
+    }
+    faces = {"Wolf3D_Head": head_f, "EyeLeft": eye_f, "Wolf3D_Teeth": teeth_f}
+    return path, expect, faces
+
+
+@pytest.mark.parametrize("head_skin", [True, False])
+def test_ready_player_me_like_avatar_is_the_head_with_teeth_and_eyes(tmp_path, head_skin):
+    path, expect, faces = rpm_like(tmp_path, head_skin)
+    rig = read_rig(path)
+    spans = rig.extras["meshes"]
+    assert [s["name"] for s in spans] == ["Wolf3D_Head", "EyeLeft", "Wolf3D_Teeth"]  # the head first, no hair
+    assert list(rig.names) == NAMES
+    assert rig.n_vertices == sum(len(p) for p, _ in expect.values())
+    for s in spans:
+        a, b = s["vertices"]
+        pos, d = expect[s["name"]]
+        np.testing.assert_allclose(rig.neutral[a:b], pos, atol=1e-6)
+        np.testing.assert_allclose(rig.deltas[:, a:b], d, atol=1e-6)
+        inside = (rig.faces >= a) & (rig.faces < b)
+        rows = inside.all(1)
+        np.testing.assert_array_equal(rig.faces[rows] - a, faces[s["name"]])
+    assert ((rig.faces >= 0).all() and not ((rig.faces < spans[0]["vertices"][1]).any(1)
+                                           & (rig.faces >= spans[0]["vertices"][1]).any(1)).any())
+    # teeth have no eyeBlink target: zero there
+    a, b = spans[2]["vertices"]
+    assert not rig.deltas[NAMES.index("eyeBlinkLeft"), a:b].any()
+
+
+def test_explicit_mesh_is_read_alone(tmp_path):
+    path, expect, _ = rpm_like(tmp_path)
+    eye = read_rig(path, mesh=0)
+    assert "meshes" not in eye.extras and eye.n_vertices == len(expect["EyeLeft"][0])
+    np.testing.assert_allclose(eye.neutral, expect["EyeLeft"][0], atol=1e-6)
+
+
+def test_meshes_with_other_names_are_left_out(tmp_path):
+    """A mesh whose targets are not all the head's (a VRoid body with its own shapes) is not merged."""
+    g = Glb()
+    p, f = blob_mesh(20, 0, [0, 1.6, 0], 0.1)
+    q, h = blob_mesh(6, 1, [0, 1.0, 0], 0.05)
+    g.node(mesh=g.mesh("Face", p, f, np.ones((2, len(p), 3)) * 0.01, ["A", "B"]))
+    g.node(mesh=g.mesh("Body", q, h, np.ones((2, len(q), 3)) * 0.01, ["A", "Breathe"]))
+    rig = read_rig(g.write(tmp_path / "v.glb"))
+    assert rig.n_vertices == len(p) and list(rig.names) == ["A", "B"] and "meshes" not in rig.extras
+
+
+def test_two_joint_skin_is_blended_per_vertex(tmp_path):
+    """Joints at rest away from the bind pose: each vertex placed by sum_j w_j world_j inverseBind_j."""
+    g = Glb()
+    p, f = blob_mesh(10, 5, [0, 1.6, 0], 0.1)
+    d = np.random.default_rng(6).normal(0, 0.01, (1, len(p), 3))
+    w = np.random.default_rng(7).random((len(p), 2))
+    w /= w.sum(1, keepdims=True)
+    joints = np.zeros((len(p), 4), np.uint16)
+    joints[:, 1] = 1
+    weights = np.zeros((len(p), 4), np.float32)
+    weights[:, :2] = w
+    m = g.mesh("Head", p, f, d, ["jawOpen"], extra_attributes={
+        "JOINTS_0": g.accessor(joints, "VEC4", 5123), "WEIGHTS_0": g.accessor(weights, "VEC4")})
+    r0, r1 = Rotation.from_euler("y", 10, degrees=True), Rotation.from_euler("z", -15, degrees=True)
+    g.node(name="J0", rotation=r0.as_quat().tolist(), translation=[0.1, 0, 0])
+    g.node(name="J1", rotation=r1.as_quat().tolist(), translation=[0, 0.2, 0])
+    g.doc["skins"] = [{"joints": [0, 1]}]  # no inverseBindMatrices: identity
+    g.node(mesh=m, skin=0)
+    weights = weights[:, :2].astype(np.float64)
+    weights /= weights.sum(1, keepdims=True)
+    rig = read_rig(g.write(tmp_path / "s.glb"))
+    want_p, want_d = np.zeros_like(p), np.zeros_like(d[0])
+    for v in range(len(p)):
+        for wj, (rot, t) in zip(weights[v], [(r0, [0.1, 0, 0]), (r1, [0, 0.2, 0])]):
+            want_p[v] += wj * (rot.apply(p[v]) + t)
+            want_d[v] += wj * rot.apply(d[0, v])
+    np.testing.assert_allclose(rig.neutral, want_p, atol=1e-6)
+    np.testing.assert_allclose(rig.deltas[0], want_d, atol=1e-6)
+
+
+def test_quantized_mesh_is_dequantized_by_its_node(tmp_path):
+    """KHR_mesh_quantization as glTF-Transform / gltfpack write it: int16 normalised POSITION and
+    targets in [-1, 1], the node's scale and translation bringing them back to metres."""
+    p, f = blob_mesh(30, 8, [0, 0, 0], 0.08)
+    d = np.random.default_rng(9).normal(0, 0.004, (3, len(p), 3))
+    s, t = 0.1, np.array([0.0, 1.6, 0.1])
+    g = Glb()
+    g.node(mesh=g.mesh("Face", p / s, f, d / s, ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight"], quantize=1.0),
+           scale=[s, s, s], translation=t.tolist())
+    path = g.write(tmp_path / "q.glb", {"extensionsUsed": ["KHR_mesh_quantization"],
+                                        "extensionsRequired": ["KHR_mesh_quantization"]})
+    rig = read_rig(path)
+    step = s / 32767  # one quantisation step, in metres
+    np.testing.assert_allclose(rig.neutral, p + t, atol=step)
+    np.testing.assert_allclose(rig.deltas, d, atol=step)
+    assert list(rig.names) == ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight"]
