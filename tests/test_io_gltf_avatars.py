@@ -241,3 +241,114 @@ def test_quantized_mesh_is_dequantized_by_its_node(tmp_path):
     np.testing.assert_allclose(rig.neutral, p + t, atol=step)
     np.testing.assert_allclose(rig.deltas, d, atol=step)
     assert list(rig.names) == ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight"]
+
+
+# -- EXT_meshopt_compression, as glTF-Transform writes it (TalkingHead's vroid.glb) -------------
+
+
+def meshopt_file(tmp_path):
+    """A quantised face whose POSITION, target and index bufferViews are meshopt-compressed into
+    buffers[0]; buffers[1] is the fallback placeholder with no bytes, as in vroid.glb."""
+    import meshopt
+
+    p, f = blob_mesh(24, 11, [0, 0, 0], 0.9)
+    d = np.random.default_rng(12).normal(0, 0.05, (2, len(p), 3))
+    g = Glb()
+    fallback = 0
+
+    def compressed(raw, mode, type_, component, count, normalized=False, stride=None):
+        nonlocal fallback
+        data = meshopt.encode_gltf_buffer(raw, mode)
+        g.blob += b"\0" * (-len(g.blob) % 4)
+        ext = {"buffer": 0, "byteOffset": len(g.blob), "byteLength": len(data), "mode": mode,
+               "byteStride": raw.itemsize * (raw.shape[1] if raw.ndim > 1 else 1), "count": len(raw)}
+        g.blob += data
+        bv = {"buffer": 1, "byteOffset": fallback, "byteLength": raw.nbytes,
+              "extensions": {"EXT_meshopt_compression": ext}}
+        if stride:
+            bv["byteStride"] = stride
+        fallback += raw.nbytes + (-raw.nbytes % 4)
+        g.doc["bufferViews"].append(bv)
+        acc = {"bufferView": len(g.doc["bufferViews"]) - 1, "componentType": component, "count": count, "type": type_}
+        if normalized:
+            acc["normalized"] = True
+        g.doc["accessors"].append(acc)
+        return len(g.doc["accessors"]) - 1
+
+    def vec3(x):  # int16 normalised, padded to 8-byte rows (meshopt rows are multiples of 4 bytes)
+        q = np.zeros((len(x), 4), np.int16)
+        q[:, :3] = np.round(x * 32767)
+        return compressed(q, "ATTRIBUTES", "VEC3", 5122, len(x), normalized=True, stride=8)
+
+    prim = {"attributes": {"POSITION": vec3(p)},
+            "indices": compressed(f.astype(np.uint32).reshape(-1), "TRIANGLES", "SCALAR", 5125, f.size),
+            "targets": [{"POSITION": vec3(dk)} for dk in d]}
+    g.doc["meshes"].append({"name": "Face", "primitives": [prim], "extras": {"targetNames": ["jawOpen", "eyeBlinkLeft"]}})
+    s = 0.1
+    g.node(mesh=0, scale=[s, s, s])
+    doc_ext = {"extensionsUsed": ["EXT_meshopt_compression", "KHR_mesh_quantization"],
+               "extensionsRequired": ["EXT_meshopt_compression", "KHR_mesh_quantization"]}
+    path = g.write(tmp_path / "meshopt.glb", doc_ext)
+    raw = json.loads(path.read_bytes()[20:20 + struct.unpack_from("<I", path.read_bytes(), 12)[0]])
+    raw["buffers"] = [raw["buffers"][0], {"byteLength": fallback, "extensions": {"EXT_meshopt_compression": {"fallback": True}}}]
+    text = json.dumps(raw).encode()
+    text += b" " * (-len(text) % 4)
+    blob = bytes(g.blob) + b"\0" * (-len(g.blob) % 4)
+    path.write_bytes(struct.pack("<4sII", b"glTF", 2, 28 + len(text) + len(blob))
+                     + struct.pack("<II", len(text), 0x4E4F534A) + text + struct.pack("<II", len(blob), 0x004E4942) + blob)
+    return path, p * s, f, d * s, s / 32767
+
+
+def test_meshopt_compressed_rig_is_decoded(tmp_path):
+    path, pos, faces, deltas, step = meshopt_file(tmp_path)
+    rig = read_rig(path)
+
+    def rotated(tri):  # the triangle codec may start a triangle at another corner (same winding)
+        k = np.argmin(tri, axis=1)
+        return np.stack([np.roll(t, -i) for t, i in zip(tri, k)])
+    np.testing.assert_array_equal(rotated(rig.faces), rotated(faces))
+    np.testing.assert_allclose(rig.neutral, pos, atol=step)
+    np.testing.assert_allclose(rig.deltas, deltas, atol=step)
+
+
+def test_meshopt_without_the_package_names_the_extra(tmp_path, monkeypatch):
+    import sys
+
+    path = meshopt_file(tmp_path)[0]
+    monkeypatch.setitem(sys.modules, "meshopt", None)  # as if not installed
+    with pytest.raises(GltfError, match=r"EXT_meshopt_compression.*face-retarget\[meshopt\]"):
+        read_rig(path)
+
+
+def test_meshopt_corrupt_stream_is_named(tmp_path):
+    path = meshopt_file(tmp_path)[0]
+    data = bytearray(path.read_bytes())
+    jlen = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + jlen])
+    ext = doc["bufferViews"][0]["extensions"]["EXT_meshopt_compression"]
+    at = 28 + jlen + ext["byteOffset"]
+    data[at:at + ext["byteLength"]] = b"\xff" * ext["byteLength"]
+    path.write_bytes(bytes(data))
+    with pytest.raises(GltfError, match=r"bufferViews\[0\]\.extensions\.EXT_meshopt_compression does not decode"):
+        read_rig(path)
+
+
+def test_buffer_without_uri_other_than_the_first(tmp_path):
+    """Only buffers[0] of a GLB is its BIN chunk; the compressed file's old reading of buffers[1] as
+    the BIN chunk gave 'truncated file?'. A plain second buffer without uri is now named as such."""
+    g = Glb()
+    p, f = blob_mesh(6, 0, [0, 0, 0], 0.1)
+    g.node(mesh=g.mesh("Face", p, f, np.ones((1, len(p), 3)) * 0.01, ["jawOpen"]))
+    path = g.write(tmp_path / "b.glb")
+    data = path.read_bytes()
+    jlen = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + jlen])
+    doc["buffers"].append({"byteLength": 4})
+    doc["bufferViews"][0]["buffer"] = 1
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    blob = data[28 + jlen:]
+    path.write_bytes(struct.pack("<4sII", b"glTF", 2, 28 + len(text) + len(blob))
+                     + struct.pack("<II", len(text), 0x4E4F534A) + text + struct.pack("<II", len(blob), 0x004E4942) + blob)
+    with pytest.raises(GltfError, match=r"buffers\[1\] has no uri; only buffers\[0\] can be a GLB's BIN chunk"):
+        read_rig(path)

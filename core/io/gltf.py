@@ -59,6 +59,7 @@ _FLOAT, _UINT = 5126, 5125
 
 #: mesh.extras keys this module manages; they never end up in ``Rig.extras``
 _RESERVED_EXTRAS = ("targetNames", "markerLayout")
+_MESHOPT = "EXT_meshopt_compression"
 
 
 class GltfError(ValueError):
@@ -147,7 +148,12 @@ def _buffer_bytes(gltf, path: Path, index: int) -> bytes:
     if cache is not None and index in cache:
         return cache[index]
     buf = _item(gltf.buffers, index, path, "bufferView.buffer (buffers)")
+    if buf.uri is None and _ext(buf, _MESHOPT).get("fallback"):
+        raise GltfError(f"{path}: buffers[{index}] is the placeholder of {_MESHOPT} compressed data (no bytes of its "
+                        "own), and a bufferView reads it directly")
     if buf.uri is None:
+        if index != 0:
+            raise GltfError(f"{path}: buffers[{index}] has no uri; only buffers[0] can be a GLB's BIN chunk")
         data = gltf.binary_blob()
         if data is None:
             raise GltfError(f"{path}: buffers[{index}] has no uri and the file has no BIN chunk (truncated GLB?)")
@@ -171,16 +177,64 @@ def _buffer_bytes(gltf, path: Path, index: int) -> bytes:
     return data
 
 
+def _ext(obj, name: str) -> dict:
+    ext = getattr(obj, "extensions", None)
+    ext = ext.get(name) if isinstance(ext, dict) else None
+    return ext if isinstance(ext, dict) else {}
+
+
+def _meshopt_view(gltf, path: Path, bv_index: int, ext: dict) -> bytes:
+    """The bytes of an EXT_meshopt_compression bufferView, decoded (the extension's spec:
+    ``buffer``/``byteOffset``/``byteLength`` of the compressed stream, ``count`` elements of
+    ``byteStride`` bytes, ``mode`` ATTRIBUTES/TRIANGLES/INDICES, ``filter``). Decoding is
+    meshoptimizer's codec, through the optional ``meshopt`` package (no pure-Python decoder
+    exists, and the codec is not one to write again)."""
+    cache = getattr(gltf, "_face_retarget_buffers", None)
+    key = ("meshopt", bv_index)
+    if cache is not None and key in cache:
+        return cache[key]
+    try:
+        import meshopt
+    except ImportError:
+        raise GltfError(f"{path}: bufferViews[{bv_index}] is compressed with {_MESHOPT}; decoding it needs the optional "
+                        "package meshopt (pip install 'face-retarget[meshopt]'), or export the file without meshopt "
+                        "compression") from None
+    where = f"bufferViews[{bv_index}].extensions.{_MESHOPT}"
+    try:
+        src_index, count, stride = int(ext["buffer"]), int(ext["count"]), int(ext["byteStride"])
+        start, length = int(ext.get("byteOffset", 0)), int(ext["byteLength"])
+        mode, filt = str(ext.get("mode", "ATTRIBUTES")), str(ext.get("filter", "NONE"))
+    except (KeyError, TypeError, ValueError) as e:
+        raise GltfError(f"{path}: {where} lacks or garbles {e}; expected buffer, byteLength, byteStride, count, mode") from None
+    src = _buffer_bytes(gltf, path, src_index)
+    if start < 0 or start + length > len(src):
+        raise GltfError(f"{path}: {where} reads bytes {start}..{start + length} of buffers[{src_index}], "
+                        f"which has {len(src)} (truncated file?)")
+    try:
+        out = meshopt.decode_gltf_buffer(src[start:start + length], count, stride, mode, filt).tobytes()
+    except (ValueError, RuntimeError) as e:
+        raise GltfError(f"{path}: {where} does not decode ({e}; corrupt file?)") from None
+    if cache is not None:
+        cache[key] = out
+    return out
+
+
 def _view(gltf, path, bv_index: int, offset: int, count: int, dtype, ncomp: int, what: str) -> np.ndarray:
     bv = _item(gltf.bufferViews, bv_index, path, f"{what}.bufferView (bufferViews)")
-    data = _buffer_bytes(gltf, path, bv.buffer)
+    ext = _ext(bv, _MESHOPT)
+    if ext:
+        data, base = _meshopt_view(gltf, path, bv_index, ext), 0
+        if bv.byteLength is None or len(data) < bv.byteLength:
+            raise GltfError(f"{path}: bufferViews[{bv_index}] decodes to {len(data)} bytes, byteLength says {bv.byteLength}")
+    else:
+        data, base = _buffer_bytes(gltf, path, bv.buffer), bv.byteOffset or 0
     itemsize = np.dtype(dtype).itemsize * ncomp
     stride = bv.byteStride or itemsize
-    start = (bv.byteOffset or 0) + (offset or 0)
+    start = base + (offset or 0)
     need = start + (count - 1) * stride + itemsize if count else start
-    if bv.byteLength is None or (bv.byteOffset or 0) + bv.byteLength > len(data):
+    if bv.byteLength is None or base + bv.byteLength > len(data):
         raise GltfError(f"{path}: bufferViews[{bv_index}] (used by {what}) extends past the end of buffers[{bv.buffer}]")
-    if need > (bv.byteOffset or 0) + bv.byteLength:
+    if need > base + bv.byteLength:
         raise GltfError(f"{path}: {what} reads past the end of bufferViews[{bv_index}] (truncated or corrupt file)")
     raw = np.frombuffer(data, dtype=np.uint8, count=need - start, offset=start)
     if stride == itemsize:
