@@ -352,3 +352,42 @@ def test_buffer_without_uri_other_than_the_first(tmp_path):
                      + struct.pack("<II", len(text), 0x4E4F534A) + text + struct.pack("<II", len(blob), 0x004E4942) + blob)
     with pytest.raises(GltfError, match=r"buffers\[1\] has no uri; only buffers\[0\] can be a GLB's BIN chunk"):
         read_rig(path)
+
+
+def test_draco_compressed_primitive_is_refused_by_name(tmp_path):
+    """Ready Player Me and Avaturn serve Draco-compressed avatars on request: POSITION then has no
+    bufferView (its data is in the Draco stream), which read as all-zero vertices."""
+    g = Glb()
+    p, f = blob_mesh(6, 0, [0, 0, 0], 0.1)
+    g.node(mesh=g.mesh("Wolf3D_Head", p, f, np.ones((1, len(p), 3)) * 0.01, ["jawOpen"]))
+    prim = g.doc["meshes"][0]["primitives"][0]
+    del g.doc["accessors"][prim["attributes"]["POSITION"]]["bufferView"]
+    prim["extensions"] = {"KHR_draco_mesh_compression": {"bufferView": 0, "attributes": {"POSITION": 0}}}
+    path = g.write(tmp_path / "draco.glb", {"extensionsUsed": ["KHR_draco_mesh_compression"],
+                                            "extensionsRequired": ["KHR_draco_mesh_compression"]})
+    with pytest.raises(GltfError, match=r"meshes\[0\]\.primitives\[0\] is Draco-compressed"):
+        read_rig(path)
+
+
+@pytest.mark.parametrize("where", ["primitive", "target"])
+def test_vrm0_target_names_on_primitives(tmp_path, where):
+    """UniVRM (VRM 0.x) stores the names in ``primitives[j].extras.targetNames`` (since 0.36; before:
+    ``targets[k].extras.name``), every primitive of the face repeating them; they used to read as
+    target_0, target_1 ..., so no ARKit name of a Perfect Sync avatar was seen."""
+    g = Glb()
+    p, f = blob_mesh(12, 0, [0, 1.5, 0], 0.1)
+    q, h = blob_mesh(5, 1, [0, 1.5, 0.1], 0.02)
+    names = ["Fcl_MTH_A", "jawOpen", "eyeBlinkLeft"]
+    m = g.mesh("Face", p, f, np.ones((3, len(p), 3)) * 0.01)
+    prim2 = dict(g.doc["meshes"][g.mesh("x", q, h, np.ones((3, len(q), 3)) * 0.01)]["primitives"][0])
+    g.doc["meshes"].pop()
+    g.doc["meshes"][m]["primitives"].append(prim2)  # a second material's primitive, same targets
+    for prim in g.doc["meshes"][m]["primitives"]:
+        if where == "primitive":
+            prim["extras"] = {"targetNames": names}
+        else:
+            for t, n in zip(prim["targets"], names):
+                t["extras"] = {"name": n}
+    g.node(mesh=m)
+    rig = read_rig(g.write(tmp_path / "vrm0.glb"))
+    assert list(rig.names) == names and rig.n_vertices == len(p) + len(q)

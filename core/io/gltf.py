@@ -60,6 +60,7 @@ _FLOAT, _UINT = 5126, 5125
 #: mesh.extras keys this module manages; they never end up in ``Rig.extras``
 _RESERVED_EXTRAS = ("targetNames", "markerLayout")
 _MESHOPT = "EXT_meshopt_compression"
+_DRACO = "KHR_draco_mesh_compression"
 
 
 class GltfError(ValueError):
@@ -304,14 +305,34 @@ def _n_targets(gltf, path: Path, mesh: int) -> int:
     return counts.pop() if counts else 0
 
 
-def _target_names(gltf, path: Path, mesh: int, n_targets: int) -> list:
+def _stored_target_names(gltf, mesh: int):
+    """(names, where) as the file stores them, or (None, None): ``mesh.extras.targetNames`` (three.js,
+    Blender), else ``primitives[j].extras.targetNames`` (UniVRM since 0.36, so VRM 0.x avatars),
+    else ``primitives[j].targets[k].extras.name`` (UniVRM before 0.36)."""
     names = _mesh_extras(gltf, mesh).get("targetNames")
+    if names is not None:
+        return names, f"meshes[{mesh}].extras.targetNames"
+    prims = [(j, p) for j, p in enumerate(gltf.meshes[mesh].primitives) if p.mode in (None, 4) and p.targets]
+    for j, p in prims:
+        names = p.extras.get("targetNames") if isinstance(p.extras, dict) else None
+        if names is not None:
+            return names, f"meshes[{mesh}].primitives[{j}].extras.targetNames"
+    for j, p in prims:
+        old = [t.get("extras", {}).get("name") if isinstance(t, dict) and isinstance(t.get("extras"), dict) else None
+               for t in p.targets]
+        if all(isinstance(n, str) for n in old):
+            return old, f"meshes[{mesh}].primitives[{j}].targets[*].extras.name"
+    return None, None
+
+
+def _target_names(gltf, path: Path, mesh: int, n_targets: int) -> list:
+    names, where = _stored_target_names(gltf, mesh)
     if names is None:
         return [f"target_{k}" for k in range(n_targets)]
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-        raise GltfError(f"{path}: meshes[{mesh}].extras.targetNames must be a list of strings")
+        raise GltfError(f"{path}: {where} must be a list of strings")
     if len(names) != n_targets:
-        raise GltfError(f"{path}: meshes[{mesh}].extras.targetNames has {len(names)} names for {n_targets} morph targets")
+        raise GltfError(f"{path}: {where} has {len(names)} names for {n_targets} morph targets")
     return names
 
 
@@ -398,6 +419,10 @@ def _read_mesh(gltf, path: Path, mesh: int, n_targets: int, worlds: dict):
         what = f"meshes[{mesh}].primitives[{pi}]"
         if prim.attributes.POSITION is None:
             raise GltfError(f"{path}: {what} has no POSITION attribute")
+        pos_acc = _item(gltf.accessors, prim.attributes.POSITION, path, f"{what}.attributes.POSITION (accessors)")
+        if pos_acc.bufferView is None and _ext(prim, _DRACO):
+            raise GltfError(f"{path}: {what} is Draco-compressed ({_DRACO}), which this reader does not decode; "
+                            "export the avatar without Draco mesh compression")
         pos = read_accessor(gltf, path, prim.attributes.POSITION, f"{what}.attributes.POSITION").astype(np.float64)
         if pos.shape[1] != 3:
             raise GltfError(f"{path}: {what}.attributes.POSITION must be a VEC3 accessor, got {pos.shape[1]} components")
@@ -477,12 +502,12 @@ def _face_meshes(gltf, path: Path) -> list:
     if not morphs:
         return [0]
     head = max(morphs, key=lambda i: (_mesh_size(gltf, i), -i))
-    names = _mesh_extras(gltf, head).get("targetNames")
+    names = _stored_target_names(gltf, head)[0]
     if not isinstance(names, list):
         return [head]
     group = [head]
     for i in morphs:
-        other = _mesh_extras(gltf, i).get("targetNames")
+        other = _stored_target_names(gltf, i)[0]
         if i != head and isinstance(other, list) and other and len(set(other)) == len(other) and set(other) <= set(names):
             group.append(i)
     return group
@@ -496,7 +521,9 @@ def read_rig(path, mesh: int | None = None) -> Rig:
     ``Wolf3D_Head`` with ``Wolf3D_Teeth``, ``EyeLeft`` and ``EyeRight``, which share the 67 names),
     merged, each target of a smaller mesh added to its namesake (zero where it has none). All
     triangle primitives of a mesh are merged. Shape names come from ``mesh.extras.targetNames``
-    (the de-facto convention three.js and Blender use), else ``target_<k>``. Meshes are placed
+    (the de-facto convention three.js and Blender use), else a primitive's ``extras.targetNames``
+    (UniVRM's, so VRM 0.x avatars) or its targets' ``extras.name`` (UniVRM before 0.36), else
+    ``target_<k>``. Meshes are placed
     as the scene places them (node world matrices; a skinned mesh by its joints at rest), which
     also dequantises KHR_mesh_quantization attributes. glTF is metres, +Y up, so no unit
     conversion. ``mesh.extras`` of the (first) mesh other than ``targetNames`` and
@@ -597,7 +624,7 @@ def read_animation(path, animation: int = 0, fps: Optional[float] = None) -> Per
     targets is read (glTF 2.0 §3.11). Its sampler's input gives ``times`` (seconds, as in the
     file); its output holds T*K weights, frame-major, for LINEAR and STEP, or 3*T*K
     (in-tangent, value, out-tangent) for CUBICSPLINE, of which the values are kept. Channel
-    names are the mesh's ``extras.targetNames``.
+    names are the mesh's target names (as :func:`read_rig` reads them).
 
     Parameters
     ----------
