@@ -239,3 +239,24 @@ def test_names_command_shows_vocabularies_and_pairs(tmp_path, capsys, rocketbox)
     assert lines["AU_26_JawDrop"].endswith("<- jawOpen  [facs]") and "SR_21_Jaw_Open" not in lines  # one jaw
     assert lines["AU_12_L_LipCornerPuller"].endswith("<- mouthSmileLeft  [facs]") and "AA_VI_00_Sil" not in lines
     assert lines["AU_23_LipTightener"].endswith("<- mouthRollLower  [facs]") and "SR_26_Mouth_Lower_Inside" not in lines
+
+
+def test_character_creator_arkit_names():
+    """Reallusion Character Creator's ARKit set on CC_Base_Body is numbered A01_..A52_ with words
+    split by '_' (``A01_Brow_Inner_Up``, ``A14_Eye_Blink_Left``), beside CC's own spellings of some
+    of the same shapes (``Eye_Blink_L``). The numbered names are ARKit names; with ``exclusive`` one
+    shape per ARKit name is driven, the ARKit-set one, so the eye does not blink twice over."""
+    assert canonical("A01_Brow_Inner_Up") == "browInnerUp"
+    assert canonical("A14_Eye_Blink_Left") == "eyeBlinkLeft"
+    assert canonical("A52_Tongue_Out") == "tongueOut"
+    assert canonical("A99_Not_A_Shape") == "A99_Not_A_Shape"
+    cc = ["Eye_Blink_L", "A14_Eye_Blink_Left", "A01_Brow_Inner_Up", "Mouth_Smile_L", "Jaw_Open"]
+    nm = NameMap.automatic(ARKIT_NAMES, cc)
+    assert nm.entries == {"A14_Eye_Blink_Left": [("eyeBlinkLeft", 1.0)], "A01_Brow_Inner_Up": [("browInnerUp", 1.0)],
+                          "Mouth_Smile_L": [("mouthSmileLeft", 1.0)], "Jaw_Open": [("jawOpen", 1.0)]}
+    G = nm.matrix(ARKIT_NAMES, cc)
+    assert (G.sum(axis=0) <= 1).all()  # every ARKit channel drives one shape at most
+    both = NameMap.automatic(ARKIT_NAMES, cc, exclusive=False)  # a per-shape guess: both spellings
+    assert both.entries["Eye_Blink_L"] == both.entries["A14_Eye_Blink_Left"] == [("eyeBlinkLeft", 1.0)]
+    # the exact ARKit spelling wins over a prefixed one
+    assert list(NameMap.automatic(ARKIT_NAMES, ["AK_09_EyeBlinkLeft", "eyeBlinkLeft"]).entries) == ["eyeBlinkLeft"]
