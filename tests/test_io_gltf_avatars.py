@@ -391,3 +391,47 @@ def test_vrm0_target_names_on_primitives(tmp_path, where):
     g.node(mesh=m)
     rig = read_rig(g.write(tmp_path / "vrm0.glb"))
     assert list(rig.names) == names and rig.n_vertices == len(p) + len(q)
+
+
+@pytest.mark.parametrize("index_type,base", [(5121, False), (5123, False), (5125, True)])
+def test_sparse_morph_targets(tmp_path, index_type, base):
+    """Blender's glTF exporter writes shape keys as sparse accessors by default (only the moved
+    vertices; no bufferView, so the rest is zero), indices as the smallest unsigned type; another
+    writer may give a dense base that the sparse values override."""
+    p, f = blob_mesh(40, 3, [0, 1.6, 0], 0.1)
+    V = len(p)
+    rng = np.random.default_rng(4)
+    dense = np.zeros((2, V, 3))
+    g = Glb()
+    m = g.mesh("Face", p, f, np.zeros((2, V, 3)), ["jawOpen", "mouthSmileLeft"])
+    itype = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32}[index_type]
+    for k, t in enumerate(g.doc["meshes"][m]["primitives"][0]["targets"]):
+        moved = np.sort(rng.choice(V, 9, replace=False))
+        vals = rng.normal(0, 0.01, (9, 3)).astype(np.float32)
+        acc = g.doc["accessors"][t["POSITION"]]
+        if base:
+            b = rng.normal(0, 0.001, (V, 3)).astype(np.float32)
+            acc["bufferView"] = g.doc["accessors"][g.accessor(b, "VEC3")]["bufferView"]
+            dense[k] = b
+        else:
+            del acc["bufferView"]
+        dense[k, moved] = vals
+        iv = g.doc["accessors"][g.accessor(moved.astype(itype), "SCALAR", index_type)]["bufferView"]
+        vv = g.doc["accessors"][g.accessor(vals, "VEC3")]["bufferView"]
+        acc["sparse"] = {"count": 9, "indices": {"bufferView": iv, "componentType": index_type},
+                         "values": {"bufferView": vv}}
+    rig = read_rig(g.write(tmp_path / "sparse.glb"))
+    np.testing.assert_array_equal(rig.deltas, dense.astype(np.float32).astype(np.float64))
+
+
+def test_sparse_index_out_of_range_is_named(tmp_path):
+    p, f = blob_mesh(6, 3, [0, 0, 0], 0.1)
+    g = Glb()
+    m = g.mesh("Face", p, f, np.zeros((1, len(p), 3)), ["jawOpen"])
+    acc = g.doc["accessors"][g.doc["meshes"][m]["primitives"][0]["targets"][0]["POSITION"]]
+    del acc["bufferView"]
+    iv = g.doc["accessors"][g.accessor(np.array([2, 99], np.uint16), "SCALAR", 5123)]["bufferView"]
+    vv = g.doc["accessors"][g.accessor(np.ones((2, 3), np.float32), "VEC3")]["bufferView"]
+    acc["sparse"] = {"count": 2, "indices": {"bufferView": iv, "componentType": 5123}, "values": {"bufferView": vv}}
+    with pytest.raises(GltfError, match=r"targets\[0\]\.POSITION sparse index 99 >= count 8"):
+        read_rig(g.write(tmp_path / "bad_sparse.glb"))
