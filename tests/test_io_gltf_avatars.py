@@ -435,3 +435,33 @@ def test_sparse_index_out_of_range_is_named(tmp_path):
     acc["sparse"] = {"count": 2, "indices": {"bufferView": iv, "componentType": 5123}, "values": {"bufferView": vv}}
     with pytest.raises(GltfError, match=r"targets\[0\]\.POSITION sparse index 99 >= count 8"):
         read_rig(g.write(tmp_path / "bad_sparse.glb"))
+
+
+def test_one_eye_mesh_on_two_nodes_mirrored(tmp_path):
+    """Blender exports linked-duplicate eyes as one mesh on two nodes; a mirrored one (scale -1 in
+    x) must keep its triangles facing out (glTF reverses the winding when the determinant is < 0)."""
+    g = Glb()
+    head_p, head_f = blob_mesh(30, 0, [0, 1.6, 0], 0.09)
+    eye_p, eye_f = blob_mesh(6, 1, [0, 0, 0.01], 0.012)
+    eye_p[:, 0] += 0.004  # not symmetric in x, so the mirror shows
+    eye_d = np.random.default_rng(2).normal(0, 0.002, (1, len(eye_p), 3))
+    g.node(name="Head", mesh=g.mesh("Head", head_p, head_f, np.ones((2, len(head_p), 3)) * 0.01, ["eyeLookInLeft", "jawOpen"]))
+    eye = g.mesh("Eye", eye_p, eye_f, eye_d, ["eyeLookInLeft"])
+    g.node(name="EyeLeft", mesh=eye, translation=[0.03, 1.63, 0.08])
+    g.node(name="EyeRight", mesh=eye, translation=[-0.03, 1.63, 0.08], scale=[-1, 1, 1])
+    rig = read_rig(g.write(tmp_path / "eyes.glb"))
+    spans = rig.extras["meshes"]
+    assert [(s["name"], s["node"]) for s in spans] == [("Head", 0), ("Eye", 1), ("Eye", 2)]
+    (a1, b1), (a2, b2) = spans[1]["vertices"], spans[2]["vertices"]
+    mirror = np.array([-1.0, 1, 1])
+    np.testing.assert_allclose(rig.neutral[a1:b1], eye_p + [0.03, 1.63, 0.08], atol=1e-6)
+    np.testing.assert_allclose(rig.neutral[a2:b2], eye_p * mirror + [-0.03, 1.63, 0.08], atol=1e-6)
+    np.testing.assert_allclose(rig.deltas[0, a2:b2], eye_d[0] * mirror, atol=1e-7)
+    assert not rig.deltas[1, a1:].any()  # the eyes have no jawOpen
+
+    def outward(a, b):  # every triangle's normal points away from its mesh's centre
+        tri = rig.faces[((rig.faces >= a) & (rig.faces < b)).all(1)]
+        P = rig.neutral[tri]
+        n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+        return np.einsum("ij,ij->i", n, P.mean(1) - rig.neutral[a:b].mean(0)) > 0
+    assert outward(a1, b1).all() and outward(a2, b2).all()

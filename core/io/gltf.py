@@ -370,17 +370,19 @@ def _world_matrices(gltf) -> dict:
     return out
 
 
-def _placement(gltf, path: Path, mesh: int, worlds: dict):
-    """How mesh ``mesh`` sits in the scene: (node index or None, 4x4 or None for skinned).
+def _placement(gltf, path: Path, mesh: int, worlds: dict, node: Optional[int] = None):
+    """How mesh ``mesh`` sits in the scene, on ``node`` (default: the first node in the scene
+    that holds it): (node index or None, 4x4 or None for skinned).
 
     A mesh on a node without a skin is placed by the node's world matrix (glTF 2.0 §3.5.3);
     a skinned mesh ignores its node's transform (§3.7.3.1) and is placed by its joints at
     rest, which :func:`_read_mesh` applies per vertex. A mesh no node uses is left as it is.
     """
-    for i, node in enumerate(gltf.nodes or []):
-        if node.mesh == mesh and i in worlds:
-            return i, (None if node.skin is not None else worlds[i])
-    return None, np.eye(4)
+    if node is None:
+        node = next((i for i, n in enumerate(gltf.nodes or []) if n.mesh == mesh and i in worlds), None)
+    if node is None:
+        return None, np.eye(4)
+    return node, (None if gltf.nodes[node].skin is not None else worlds[node])
 
 
 def _skin_matrices(gltf, path: Path, node: int, worlds: dict) -> np.ndarray:
@@ -398,18 +400,20 @@ def _skin_matrices(gltf, path: Path, node: int, worlds: dict) -> np.ndarray:
     return np.stack([worlds.get(j, np.eye(4)) @ ibm[k] for k, j in enumerate(skin.joints or [])]) if J else np.eye(4)[None]
 
 
-def _read_mesh(gltf, path: Path, mesh: int, n_targets: int, worlds: dict):
+def _read_mesh(gltf, path: Path, mesh: int, n_targets: int, worlds: dict, node: Optional[int] = None):
     """(positions (V, 3), faces (F, 3), deltas (K, V, 3), uvs (V, 2) or None) of ``meshes[mesh]``'s
-    triangle primitives, placed in the scene (:func:`_placement`): ``p' = A p + t`` and
-    ``d' = A d`` (a delta moves with the linear part only); a skinned mesh by linear blend
-    skinning at rest, ``A = sum_j w_j world(joint_j) inverseBind_j`` per vertex.
+    triangle primitives, placed in the scene (:func:`_placement`, on ``node``): ``p' = A p + t``
+    and ``d' = A d`` (a delta moves with the linear part only); a skinned mesh by linear blend
+    skinning at rest, ``A = sum_j w_j world(joint_j) inverseBind_j`` per vertex. A mirroring
+    placement (``det A < 0``, e.g. one eye mesh on two nodes, one scaled by -1) reverses the
+    winding (§3.7.4), so the faces keep facing out.
 
     Quantised attributes (KHR_mesh_quantization: int8/int16 POSITION and targets, normalised or
     not) are read as numbers; the transform that dequantises them is the node's (or the skin's),
     which the placement applies.
     """
     m = gltf.meshes[mesh]
-    node, world = _placement(gltf, path, mesh, worlds)
+    node, world = _placement(gltf, path, mesh, worlds, node)
     skins = _skin_matrices(gltf, path, node, worlds) if node is not None and world is None else None
     positions, faces, deltas, uvs = [], [], [], []
     offset = 0
@@ -446,20 +450,26 @@ def _read_mesh(gltf, path: Path, mesh: int, n_targets: int, worlds: dict):
             if dk.shape != (V, 3):
                 raise GltfError(f"{path}: {what}.targets[{k}].POSITION has {len(dk)} vertices, POSITION has {V}")
             d[k] = dk
+        tri = idx.reshape(-1, 3)
         if skins is not None:
             A = _blend_skin(gltf, path, prim, what, skins, V)
             pos = np.einsum("vij,vj->vi", A[:, :3, :3], pos) + A[:, :3, 3]
             d = np.einsum("vij,kvj->kvi", A[:, :3, :3], d)
-        elif world is not None and not np.array_equal(world, np.eye(4)):
-            pos = pos @ world[:3, :3].T + world[:3, 3]
-            d = d @ world[:3, :3].T
+            flip = np.linalg.det(A[0, :3, :3]) < 0 if V else False
+        else:
+            if world is not None and not np.array_equal(world, np.eye(4)):
+                pos = pos @ world[:3, :3].T + world[:3, 3]
+                d = d @ world[:3, :3].T
+            flip = world is not None and np.linalg.det(world[:3, :3]) < 0
+        if flip:
+            tri = tri[:, ::-1]
         tex = getattr(prim.attributes, "TEXCOORD_0", None)
         uv = read_accessor(gltf, path, tex, f"{what}.attributes.TEXCOORD_0") if tex is not None else None
         if uv is not None and uv.shape != (V, 2):
             raise GltfError(f"{path}: {what}.attributes.TEXCOORD_0 has shape {uv.shape}, expected ({V}, 2)")
         uvs.append(None if uv is None else uv.astype(np.float64))
         positions.append(pos)
-        faces.append(idx.reshape(-1, 3) + offset)
+        faces.append(tri + offset)
         deltas.append(d)
         offset += V
     if not positions:
@@ -491,25 +501,27 @@ def _mesh_size(gltf, mesh: int) -> int:
                and isinstance(p.attributes.POSITION, int) and 0 <= p.attributes.POSITION < len(gltf.accessors or []))
 
 
-def _face_meshes(gltf, path: Path) -> list:
-    """The meshes that make the face rig when no ``mesh`` is given: the largest mesh with morph
-    targets (the head), then every other mesh with named targets all of which the head also has
-    (teeth, eyes, lashes of a Ready Player Me or VRoid avatar: one weight moves them together)."""
-    worlds = _world_matrices(gltf)
-    used = {n.mesh for i, n in enumerate(gltf.nodes or []) if n.mesh is not None and i in worlds}
+def _face_meshes(gltf, path: Path, worlds: dict) -> list:
+    """``[(mesh, node or None), ...]`` that make the face rig when no ``mesh`` is given: the
+    largest mesh with morph targets (the head), then every other placed mesh with named targets
+    all of which the head also has (teeth, eyes, lashes of a Ready Player Me or VRoid avatar: one
+    weight moves them together), once per node that holds it (one eye mesh on two nodes is two eyes)."""
     morphs = [i for i, m in enumerate(gltf.meshes) if any(p.targets for p in m.primitives)]
-    morphs = [i for i in morphs if i in used] or morphs
-    if not morphs:
-        return [0]
-    head = max(morphs, key=lambda i: (_mesh_size(gltf, i), -i))
-    names = _stored_target_names(gltf, head)[0]
+    placed = [(n.mesh, i) for i, n in enumerate(gltf.nodes or [])
+              if i in worlds and isinstance(n.mesh, int) and n.mesh in morphs]
+    if not placed:  # meshes no scene node holds: the largest, where it is
+        if not morphs:
+            return [(0, None)]
+        return [(max(morphs, key=lambda i: (_mesh_size(gltf, i), -i)), None)]
+    head = max(placed, key=lambda mn: (_mesh_size(gltf, mn[0]), -mn[0], -mn[1]))
+    names = _stored_target_names(gltf, head[0])[0]
     if not isinstance(names, list):
         return [head]
     group = [head]
-    for i in morphs:
-        other = _stored_target_names(gltf, i)[0]
-        if i != head and isinstance(other, list) and other and len(set(other)) == len(other) and set(other) <= set(names):
-            group.append(i)
+    for m, n in placed:
+        other = _stored_target_names(gltf, m)[0]
+        if m != head[0] and isinstance(other, list) and other and len(set(other)) == len(other) and set(other) <= set(names):
+            group.append((m, n))
     return group
 
 
@@ -528,7 +540,8 @@ def read_rig(path, mesh: int | None = None) -> Rig:
     also dequantises KHR_mesh_quantization attributes. glTF is metres, +Y up, so no unit
     conversion. ``mesh.extras`` of the (first) mesh other than ``targetNames`` and
     ``markerLayout`` become ``Rig.extras``; with several meshes ``Rig.extras["meshes"]`` lists
-    each one's ``{"mesh", "name", "vertices": [first, stop)}``.
+    each one's ``{"mesh", "node", "name", "vertices": [first, stop)}`` (a mesh on two nodes, such as
+    one eye mesh placed twice, is there twice).
 
     Parameters
     ----------
@@ -552,36 +565,36 @@ def read_rig(path, mesh: int | None = None) -> Rig:
     """
     path = Path(path)
     gltf = _load(path)
+    worlds = _world_matrices(gltf)
     if mesh is None:
         if not gltf.meshes:
             raise GltfError(f"{path}: meshes: the file has no meshes")
-        group = _face_meshes(gltf, path)
+        group = _face_meshes(gltf, path, worlds)
     else:
-        group = [_mesh_index(gltf, path, mesh)]
-    worlds = _world_matrices(gltf)
-    head = group[0]
+        group = [(_mesh_index(gltf, path, mesh), None)]
+    head, head_node = group[0]
     n_targets = _n_targets(gltf, path, head)
     names = _target_names(gltf, path, head, n_targets)
-    neutral, faces, deltas, uvs = _read_mesh(gltf, path, head, n_targets, worlds)
+    neutral, faces, deltas, uvs = _read_mesh(gltf, path, head, n_targets, worlds, head_node)
     other = {k: v for k, v in _mesh_extras(gltf, head).items() if k not in _RESERVED_EXTRAS}
     if len(group) > 1:
-        parts, spans = [(neutral, faces, deltas, uvs)], [(head, 0, len(neutral))]
+        parts, spans = [(neutral, faces, deltas, uvs)], [(head, head_node, 0, len(neutral))]
         at = {n: k for k, n in enumerate(names)}
         V = len(neutral)
-        for i in group[1:]:
+        for i, node in group[1:]:
             k_i = _n_targets(gltf, path, i)
-            p, f, d, u = _read_mesh(gltf, path, i, k_i, worlds)
+            p, f, d, u = _read_mesh(gltf, path, i, k_i, worlds, node)
             full = np.zeros((n_targets, len(p), 3))
             full[[at[n] for n in _target_names(gltf, path, i, k_i)]] = d
             parts.append((p, f + V, full, u))
-            spans.append((i, V, V + len(p)))
+            spans.append((i, node, V, V + len(p)))
             V += len(p)
         neutral = np.concatenate([q[0] for q in parts])
         faces = np.concatenate([q[1] for q in parts])
         deltas = np.concatenate([q[2] for q in parts], axis=1)
         uvs = np.concatenate([q[3] for q in parts]) if all(q[3] is not None for q in parts) else None
-        other["meshes"] = [{"mesh": int(i), "name": gltf.meshes[i].name or f"mesh_{i}", "vertices": [a, b]}
-                           for i, a, b in spans]
+        other["meshes"] = [{"mesh": int(i), "node": int(n), "name": gltf.meshes[i].name or f"mesh_{i}", "vertices": [a, b]}
+                           for i, n, a, b in spans]
     try:
         return Rig(neutral=neutral, faces=faces, deltas=deltas, names=names, uvs=uvs, units="m",
                    name=path.stem, extras=other)
