@@ -260,3 +260,21 @@ def test_character_creator_arkit_names():
     assert both.entries["Eye_Blink_L"] == both.entries["A14_Eye_Blink_Left"] == [("eyeBlinkLeft", 1.0)]
     # the exact ARKit spelling wins over a prefixed one
     assert list(NameMap.automatic(ARKIT_NAMES, ["AK_09_EyeBlinkLeft", "eyeBlinkLeft"]).entries) == ["eyeBlinkLeft"]
+
+
+def test_vroid_face_shapes_are_a_vocabulary():
+    """A VRoid Studio avatar's morph targets are Fcl_* (the VRM presets only bind to them): the
+    names of a real export (TalkingHead's vroid.glb) are all recognised, and the parts are driven,
+    each ARKit channel at most once; whole-face emotions drive nothing."""
+    fcl = ["Fcl_ALL_Neutral", "Fcl_ALL_Angry", "Fcl_ALL_Joy", "Fcl_BRW_Angry", "Fcl_BRW_Sorrow", "Fcl_EYE_Close",
+           "Fcl_EYE_Close_R", "Fcl_EYE_Close_L", "Fcl_EYE_Joy", "Fcl_EYE_Surprised", "Fcl_EYE_Iris_Hide", "Fcl_MTH_Joy",
+           "Fcl_MTH_A", "Fcl_MTH_I", "Fcl_MTH_U", "Fcl_MTH_E", "Fcl_MTH_O", "Fcl_HA_Fung1"]
+    rec = recognise(fcl)
+    assert rec.recognised == len(fcl) and rec.vocabularies[0] == "vroid"
+    nm = NameMap.automatic(ARKIT_NAMES, fcl)
+    assert nm.entries["Fcl_EYE_Close_L"] == [("eyeBlinkLeft", 1.0)]
+    assert nm.entries["Fcl_MTH_A"] == [("jawOpen", 1.0)]
+    assert nm.entries["Fcl_BRW_Angry"] == [("browDownLeft", 0.5), ("browDownRight", 0.5)]
+    assert nm.entries["Fcl_MTH_Joy"] == [("mouthSmileLeft", 0.5), ("mouthSmileRight", 0.5)]
+    assert not {"Fcl_ALL_Angry", "Fcl_ALL_Joy", "Fcl_EYE_Close", "Fcl_HA_Fung1"} & set(nm.entries)
+    assert (nm.matrix(ARKIT_NAMES, fcl).sum(axis=0) <= 1 + 1e-12).all()
