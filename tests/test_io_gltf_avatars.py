@@ -465,3 +465,32 @@ def test_one_eye_mesh_on_two_nodes_mirrored(tmp_path):
         n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
         return np.einsum("ij,ij->i", n, P.mean(1) - rig.neutral[a:b].mean(0)) > 0
     assert outward(a1, b1).all() and outward(a2, b2).all()
+
+
+def test_animated_avatar_as_a_mesh_sequence_is_the_whole_face(tmp_path):
+    """A Ready Player Me-like avatar whose weight animation's first channel is on the EyeLeft node
+    (exporters write one channel per mesh node): read as a mesh sequence it is the face (head,
+    eyes, teeth), each frame ``neutral + sum_k w_tk delta_k``, not the eyeball."""
+    from core.io.sequence import read_gltf_sequence
+
+    path, expect, _ = rpm_like(tmp_path)
+    data = path.read_bytes()
+    jlen = struct.unpack_from("<I", data, 12)[0]
+    g = Glb()
+    g.doc = json.loads(data[20:20 + jlen])
+    g.blob = bytearray(data[28 + jlen:])
+    T, K = 5, len(NAMES)
+    W = np.random.default_rng(5).random((T, K)).astype(np.float32)
+    times = g.accessor((np.arange(T) / 30).astype(np.float32), "SCALAR")
+    g.doc["accessors"][times]["min"], g.doc["accessors"][times]["max"] = [0.0], [float((T - 1) / 30)]
+    out = g.accessor(W.reshape(-1), "SCALAR")
+    eye_node = next(i for i, n in enumerate(g.doc["nodes"]) if n.get("name") == "EyeLeft")
+    head_node = next(i for i, n in enumerate(g.doc["nodes"]) if n.get("name") == "Wolf3D_Head")
+    g.doc["animations"] = [{"samplers": [{"input": times, "output": out}],
+                            "channels": [{"sampler": 0, "target": {"node": eye_node, "path": "weights"}},
+                                         {"sampler": 0, "target": {"node": head_node, "path": "weights"}}]}]
+    seq = read_gltf_sequence(g.write(tmp_path / "animated.glb"))
+    rig = read_rig(path)
+    assert seq.kind == "meshes" and seq.data.shape == (T, rig.n_vertices, 3)
+    want = rig.neutral + np.einsum("tk,kvi->tvi", W.astype(np.float64), rig.deltas)
+    np.testing.assert_allclose(seq.data, want, atol=1e-6)
