@@ -494,3 +494,16 @@ def test_animated_avatar_as_a_mesh_sequence_is_the_whole_face(tmp_path):
     assert seq.kind == "meshes" and seq.data.shape == (T, rig.n_vertices, 3)
     want = rig.neutral + np.einsum("tk,kvi->tvi", W.astype(np.float64), rig.deltas)
     np.testing.assert_allclose(seq.data, want, atol=1e-6)
+
+
+def test_face_is_the_mesh_with_most_targets_not_the_biggest(tmp_path):
+    """A full-body avatar whose body mesh (larger) carries one shape of its own (a breathing
+    shape) and whose face mesh carries the expressions: the face is the rig."""
+    g = Glb()
+    body_p, body_f = blob_mesh(200, 0, [0, 1.0, 0], 0.5)
+    face_p, face_f = blob_mesh(40, 1, [0, 1.6, 0.1], 0.1)
+    g.node(name="Body", mesh=g.mesh("Body", body_p, body_f, np.ones((1, len(body_p), 3)) * 0.01, ["Breathe"]))
+    g.node(name="Face", mesh=g.mesh("Face", face_p, face_f, np.ones((3, len(face_p), 3)) * 0.01,
+                                    ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight"]))
+    rig = read_rig(g.write(tmp_path / "body.glb"))
+    assert list(rig.names) == ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight"] and rig.n_vertices == len(face_p)

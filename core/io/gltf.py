@@ -501,9 +501,14 @@ def _mesh_size(gltf, mesh: int) -> int:
                and isinstance(p.attributes.POSITION, int) and 0 <= p.attributes.POSITION < len(gltf.accessors or []))
 
 
+def _target_count(gltf, mesh: int) -> int:
+    return max((len(p.targets or []) for p in gltf.meshes[mesh].primitives), default=0)
+
+
 def _face_meshes(gltf, path: Path, worlds: dict) -> list:
-    """``[(mesh, node or None), ...]`` that make the face rig when no ``mesh`` is given: the
-    largest mesh with morph targets (the head), then every other placed mesh with named targets
+    """``[(mesh, node or None), ...]`` that make the face rig when no ``mesh`` is given: the mesh
+    with the most morph targets, the largest of those (the head: not a body mesh with a breathing
+    shape of its own, not an eye with the head's names), then every other placed mesh with named targets
     all of which the head also has (teeth, eyes, lashes of a Ready Player Me or VRoid avatar: one
     weight moves them together), once per node that holds it (one eye mesh on two nodes is two eyes)."""
     morphs = [i for i, m in enumerate(gltf.meshes) if any(p.targets for p in m.primitives)]
@@ -512,8 +517,8 @@ def _face_meshes(gltf, path: Path, worlds: dict) -> list:
     if not placed:  # meshes no scene node holds: the largest, where it is
         if not morphs:
             return [(0, None)]
-        return [(max(morphs, key=lambda i: (_mesh_size(gltf, i), -i)), None)]
-    head = max(placed, key=lambda mn: (_mesh_size(gltf, mn[0]), -mn[0], -mn[1]))
+        return [(max(morphs, key=lambda i: (_target_count(gltf, i), _mesh_size(gltf, i), -i)), None)]
+    head = max(placed, key=lambda mn: (_target_count(gltf, mn[0]), _mesh_size(gltf, mn[0]), -mn[0], -mn[1]))
     names = _stored_target_names(gltf, head[0])[0]
     if not isinstance(names, list):
         return [head]
@@ -528,8 +533,8 @@ def _face_meshes(gltf, path: Path, worlds: dict) -> list:
 def read_rig(path, mesh: int | None = None) -> Rig:
     """Read a blendshape rig from a glTF 2.0 file (``.glb`` or ``.gltf``).
 
-    The rig is ``meshes[mesh]``, or by default the face: the largest mesh with morph targets
-    and every other mesh whose named targets all appear in its names (a Ready Player Me avatar's
+    The rig is ``meshes[mesh]``, or by default the face: the mesh with the most morph targets
+    (the largest of those) and every other mesh whose named targets all appear in its names (a Ready Player Me avatar's
     ``Wolf3D_Head`` with ``Wolf3D_Teeth``, ``EyeLeft`` and ``EyeRight``, which share the 67 names),
     merged, each target of a smaller mesh added to its namesake (zero where it has none). All
     triangle primitives of a mesh are merged. Shape names come from ``mesh.extras.targetNames``
