@@ -507,3 +507,29 @@ def test_face_is_the_mesh_with_most_targets_not_the_biggest(tmp_path):
                                     ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight"]))
     rig = read_rig(g.write(tmp_path / "body.glb"))
     assert list(rig.names) == ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight"] and rig.n_vertices == len(face_p)
+
+
+def test_vrm_file_is_read_as_a_rig(tmp_path):
+    """A VRM (VRoid Studio, VRM 0.x / 1.0) is a GLB named .vrm: the CLI, load_rig and the page's
+    upload check read it; one with no morph targets (the VRM 1.0 specification's expression
+    samples animate textures only) is refused in plain words."""
+    from core.cli import main
+    from core.io.check import check_upload
+    from core.io.rigs import load_rig
+
+    path, expect, _ = rpm_like(tmp_path)
+    vrm = tmp_path / "avatar.vrm"
+    vrm.write_bytes(path.read_bytes())
+    rig = load_rig(vrm)
+    assert rig.n_vertices == sum(len(p) for p, _ in expect.values())
+    assert check_upload(vrm)["kind"] == "rig"
+    assert main(["info", str(vrm)]) == 0
+    g = Glb()
+    p, f = blob_mesh(4, 0, [0, 0, 0], 0.1)
+    g.node(mesh=g.mesh("Quad", p, f))
+    bare = g.write(tmp_path / "bare.vrm", {"extensionsUsed": ["VRMC_vrm"]})
+    with pytest.raises(ValueError, match=r"bare\.vrm has no blend shapes"):
+        check_upload(bare)
+    (tmp_path / "fake.vrm").write_bytes(b"PK\x03\x04 not a glb")
+    with pytest.raises(ValueError, match=r"fake\.vrm is not a GLB file"):
+        check_upload(tmp_path / "fake.vrm")

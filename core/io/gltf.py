@@ -59,6 +59,8 @@ _FLOAT, _UINT = 5126, 5125
 
 #: mesh.extras keys this module manages; they never end up in ``Rig.extras``
 _RESERVED_EXTRAS = ("targetNames", "markerLayout")
+#: suffixes :func:`read_rig` reads: glTF, and VRM (0.x and 1.0), which is a GLB by its specification
+RIG_SUFFIXES = (".glb", ".gltf", ".vrm")
 _MESHOPT = "EXT_meshopt_compression"
 _DRACO = "KHR_draco_mesh_compression"
 
