@@ -312,7 +312,7 @@ def _is_rig(p: Path) -> bool:
     suffix = p.suffix.lower()
     if p.is_dir():
         return (p / "neutral.obj").exists()
-    if suffix in (".glb", ".gltf"):
+    if suffix in (".glb", ".gltf", ".vrm"):
         return True
     if suffix in (".usd", ".usda", ".usdc", ".usdz"):
         from .io.usd import has_blendshapes

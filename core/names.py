@@ -49,7 +49,9 @@ ARKIT_NAMES = (
     "noseSneerRight", "tongueOut",
 )
 _BY_KEY = {n.lower(): n for n in ARKIT_NAMES}
-_PREFIX = re.compile(r"^(?:AK_\d+_|ARKit_|arkit[._])", re.IGNORECASE)
+#: ARKit names' own prefixes: Rocketbox ``AK_09_``, Reallusion Character Creator ``A14_`` (its ARKit
+#: set ``A01_Brow_Inner_Up`` ... on ``CC_Base_Body``), ``ARKit_``
+_PREFIX = re.compile(r"^(?:AK_\d+_|A\d{2}_|ARKit_|arkit[._])", re.IGNORECASE)
 _SIDE = re.compile(r"^(?P<base>.+?)[_.\-]?(?P<side>L|R|Left|Right)$")
 
 
@@ -62,6 +64,8 @@ def canonical(name: str) -> str:
 
     >>> canonical("eyeBlink_L"), canonical("AK_09_EyeBlinkLeft"), canonical("EyeBlinkLeft")
     ('eyeBlinkLeft', 'eyeBlinkLeft', 'eyeBlinkLeft')
+    >>> canonical("A14_Eye_Blink_Left"), canonical("A01_Brow_Inner_Up")
+    ('eyeBlinkLeft', 'browInnerUp')
     >>> canonical("AU_01_InnerBrowRaiser")
     'AU_01_InnerBrowRaiser'
     """
@@ -343,7 +347,9 @@ class NameMap:
 
         1. Same canonical name; a target side-split shape (``browInnerUp_L``) is driven by the
            sideless source channel (``browInnerUp``), and a sideless target shape by the mean of a
-           source's split pair.
+           source's split pair. With ``exclusive``, of several target shapes with one canonical
+           ARKit name (``A14_Eye_Blink_Left`` and ``Eye_Blink_L``) only one is paired: the ARKit
+           spelling, else an ARKit-prefixed one (``AK_``, ``A14_``), else the first.
         2. The target shapes left, through the vocabularies (:func:`load_vocabularies` when None):
            with ``A`` (C, 52) the ARKit rows (eq. 1) of the recognised source channels, the ARKit
            weights are estimated by least squares, ``x̂ = A⁺ s`` (exact for ARKit curves, the mean
@@ -365,8 +371,16 @@ class NameMap:
             if base:
                 split_src.setdefault(base, []).append(s)
         entries = {}
+        # with exclusive, one target shape per ARKit name: a rig with two spellings of one shape
+        # (Character Creator's CC_Base_Body has A14_Eye_Blink_Left and its own Eye_Blink_L) would
+        # otherwise blink twice over. The ARKit spelling, then an ARKit-prefixed one, then the first.
+        first = {}
+        for i, t in sorted(enumerate(target), key=lambda it: (it[1] != canonical(it[1]), not _PREFIX.match(it[1]), it[0])):
+            first.setdefault(canonical(t), t)
         for t in target:
             c = canonical(t)
+            if c in src_by_canon and exclusive and c in _ARKIT and first[c] != t:
+                continue
             if c in src_by_canon:
                 entries[t] = [(src_by_canon[c], 1.0)]
             elif split_base(t) and split_base(t) in src_by_canon:

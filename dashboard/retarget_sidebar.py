@@ -32,8 +32,8 @@ log = logging.getLogger("face_retarget.dashboard")
 SIDEBAR_WIDTH = 330
 
 #: what the one upload box takes: takes, rigs, .json (shot, marker layout, name map, controls), a review .zip
-UPLOAD_ACCEPT = ".csv,.trc,.c3d,.glb,.gltf,.usd,.usda,.usdc,.usdz,.json,.zip"
-UPLOAD_HINT = ("Drop a file anywhere on the page, or choose it here: a take (.csv/.trc/.c3d), a rig (.glb/.usd), "
+UPLOAD_ACCEPT = ".csv,.trc,.c3d,.glb,.gltf,.vrm,.usd,.usda,.usdc,.usdz,.json,.zip"
+UPLOAD_HINT = ("Drop a file anywhere on the page, or choose it here: a take (.csv/.trc/.c3d), a rig (.glb/.vrm/.usd), "
                "a .json shot, marker layout or name map, or a review (.zip)")
 
 #: the heading of the sidebar's timings, above the table draw_timings() puts under it

@@ -549,3 +549,22 @@ def test_header_trailing_comma_and_empty_name(tmp_path, rom_lines):
         rows[0][10] = ""
     with pytest.raises(ValueError, match=r"small\.csv: line 1: header column 11 has no name"):
         read_livelink(_small(tmp_path, rom_lines, hole))
+
+
+def test_header_blendshapecount_in_another_case(tmp_path, rom_lines):
+    """A real take of another app version (``MySlate_1_iPhone.csv`` of dwskillman/BlendFiles, no
+    licence, so not copied: this replica keeps its header) spells the count ``BlendshapeCount``.
+    The reader and the format sniffer both take it; the data is the same as the canonical spelling."""
+    def other_case(rows):
+        rows[0][1] = "BlendshapeCount"
+    p = _small(tmp_path, rom_lines, other_case, name="MySlate_1_iPhone.csv")
+    ref = read_livelink(_small(tmp_path, rom_lines))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for perf in (read_livelink(p), read_performance(p)):
+            assert perf.names == ref.names and perf.n_frames == 40
+            np.testing.assert_array_equal(perf.data, ref.data)
+            np.testing.assert_array_equal(perf.times, ref.times)
+    p.write_text(p.read_text().replace("BlendshapeCount", "ShapeCount", 1))
+    with pytest.raises(ValueError, match="unrecognised CSV header"):
+        read_performance(p)

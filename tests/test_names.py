@@ -239,3 +239,42 @@ def test_names_command_shows_vocabularies_and_pairs(tmp_path, capsys, rocketbox)
     assert lines["AU_26_JawDrop"].endswith("<- jawOpen  [facs]") and "SR_21_Jaw_Open" not in lines  # one jaw
     assert lines["AU_12_L_LipCornerPuller"].endswith("<- mouthSmileLeft  [facs]") and "AA_VI_00_Sil" not in lines
     assert lines["AU_23_LipTightener"].endswith("<- mouthRollLower  [facs]") and "SR_26_Mouth_Lower_Inside" not in lines
+
+
+def test_character_creator_arkit_names():
+    """Reallusion Character Creator's ARKit set on CC_Base_Body is numbered A01_..A52_ with words
+    split by '_' (``A01_Brow_Inner_Up``, ``A14_Eye_Blink_Left``), beside CC's own spellings of some
+    of the same shapes (``Eye_Blink_L``). The numbered names are ARKit names; with ``exclusive`` one
+    shape per ARKit name is driven, the ARKit-set one, so the eye does not blink twice over."""
+    assert canonical("A01_Brow_Inner_Up") == "browInnerUp"
+    assert canonical("A14_Eye_Blink_Left") == "eyeBlinkLeft"
+    assert canonical("A52_Tongue_Out") == "tongueOut"
+    assert canonical("A99_Not_A_Shape") == "A99_Not_A_Shape"
+    cc = ["Eye_Blink_L", "A14_Eye_Blink_Left", "A01_Brow_Inner_Up", "Mouth_Smile_L", "Jaw_Open"]
+    nm = NameMap.automatic(ARKIT_NAMES, cc)
+    assert nm.entries == {"A14_Eye_Blink_Left": [("eyeBlinkLeft", 1.0)], "A01_Brow_Inner_Up": [("browInnerUp", 1.0)],
+                          "Mouth_Smile_L": [("mouthSmileLeft", 1.0)], "Jaw_Open": [("jawOpen", 1.0)]}
+    G = nm.matrix(ARKIT_NAMES, cc)
+    assert (G.sum(axis=0) <= 1).all()  # every ARKit channel drives one shape at most
+    both = NameMap.automatic(ARKIT_NAMES, cc, exclusive=False)  # a per-shape guess: both spellings
+    assert both.entries["Eye_Blink_L"] == both.entries["A14_Eye_Blink_Left"] == [("eyeBlinkLeft", 1.0)]
+    # the exact ARKit spelling wins over a prefixed one
+    assert list(NameMap.automatic(ARKIT_NAMES, ["AK_09_EyeBlinkLeft", "eyeBlinkLeft"]).entries) == ["eyeBlinkLeft"]
+
+
+def test_vroid_face_shapes_are_a_vocabulary():
+    """A VRoid Studio avatar's morph targets are Fcl_* (the VRM presets only bind to them): the
+    names of a real export (TalkingHead's vroid.glb) are all recognised, and the parts are driven,
+    each ARKit channel at most once; whole-face emotions drive nothing."""
+    fcl = ["Fcl_ALL_Neutral", "Fcl_ALL_Angry", "Fcl_ALL_Joy", "Fcl_BRW_Angry", "Fcl_BRW_Sorrow", "Fcl_EYE_Close",
+           "Fcl_EYE_Close_R", "Fcl_EYE_Close_L", "Fcl_EYE_Joy", "Fcl_EYE_Surprised", "Fcl_EYE_Iris_Hide", "Fcl_MTH_Joy",
+           "Fcl_MTH_A", "Fcl_MTH_I", "Fcl_MTH_U", "Fcl_MTH_E", "Fcl_MTH_O", "Fcl_HA_Fung1"]
+    rec = recognise(fcl)
+    assert rec.recognised == len(fcl) and rec.vocabularies[0] == "vroid"
+    nm = NameMap.automatic(ARKIT_NAMES, fcl)
+    assert nm.entries["Fcl_EYE_Close_L"] == [("eyeBlinkLeft", 1.0)]
+    assert nm.entries["Fcl_MTH_A"] == [("jawOpen", 1.0)]
+    assert nm.entries["Fcl_BRW_Angry"] == [("browDownLeft", 0.5), ("browDownRight", 0.5)]
+    assert nm.entries["Fcl_MTH_Joy"] == [("mouthSmileLeft", 0.5), ("mouthSmileRight", 0.5)]
+    assert not {"Fcl_ALL_Angry", "Fcl_ALL_Joy", "Fcl_EYE_Close", "Fcl_HA_Fung1"} & set(nm.entries)
+    assert (nm.matrix(ARKIT_NAMES, fcl).sum(axis=0) <= 1 + 1e-12).all()

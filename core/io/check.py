@@ -22,7 +22,7 @@ from .performance import read_performance
 from .rigs import load_rig
 
 TAKES = (".csv", ".trc", ".c3d")
-RIGS = (".glb", ".gltf", ".usd", ".usda", ".usdc", ".usdz")
+RIGS = (".glb", ".gltf", ".vrm", ".usd", ".usda", ".usdc", ".usdz")
 
 
 def _plain(msg: str, path: Path, name: str) -> str:
@@ -69,7 +69,7 @@ def check_upload(path, name: Optional[str] = None, target_rig=None) -> dict:
         raise ValueError(f"{name} could not be read as a {'take' if suffix in TAKES else 'rig' if suffix in RIGS else 'file'}: "
                          f"{_plain(str(e), path, name) or type(e).__name__}") from None
     raise ValueError(f"{name}: files of type {suffix or '(no suffix)'} are not something this program reads; upload a take "
-                     "(.csv from Live Link Face, a marker .csv/.trc/.c3d), a rig (.glb/.gltf/.usd) or a .json shot, "
+                     "(.csv from Live Link Face, a marker .csv/.trc/.c3d), a rig (.glb/.gltf/.vrm/.usd) or a .json shot, "
                      "marker layout or name map")
 
 
@@ -112,7 +112,7 @@ def _take(path: Path, name: str) -> dict:
 
 
 def _rig(path: Path, name: str) -> dict:
-    if path.suffix.lower() == ".glb" and path.read_bytes()[:4] != b"glTF":
+    if path.suffix.lower() in (".glb", ".vrm") and path.read_bytes()[:4] != b"glTF":
         raise ValueError(f"{name} is not a GLB file (it does not start like one): export the rig as binary glTF (.glb)")
     rig = load_rig(path)
     if rig.n_shapes == 0:

@@ -59,6 +59,10 @@ _FLOAT, _UINT = 5126, 5125
 
 #: mesh.extras keys this module manages; they never end up in ``Rig.extras``
 _RESERVED_EXTRAS = ("targetNames", "markerLayout")
+#: suffixes :func:`read_rig` reads: glTF, and VRM (0.x and 1.0), which is a GLB by its specification
+RIG_SUFFIXES = (".glb", ".gltf", ".vrm")
+_MESHOPT = "EXT_meshopt_compression"
+_DRACO = "KHR_draco_mesh_compression"
 
 
 class GltfError(ValueError):
@@ -147,7 +151,12 @@ def _buffer_bytes(gltf, path: Path, index: int) -> bytes:
     if cache is not None and index in cache:
         return cache[index]
     buf = _item(gltf.buffers, index, path, "bufferView.buffer (buffers)")
+    if buf.uri is None and _ext(buf, _MESHOPT).get("fallback"):
+        raise GltfError(f"{path}: buffers[{index}] is the placeholder of {_MESHOPT} compressed data (no bytes of its "
+                        "own), and a bufferView reads it directly")
     if buf.uri is None:
+        if index != 0:
+            raise GltfError(f"{path}: buffers[{index}] has no uri; only buffers[0] can be a GLB's BIN chunk")
         data = gltf.binary_blob()
         if data is None:
             raise GltfError(f"{path}: buffers[{index}] has no uri and the file has no BIN chunk (truncated GLB?)")
@@ -171,16 +180,64 @@ def _buffer_bytes(gltf, path: Path, index: int) -> bytes:
     return data
 
 
+def _ext(obj, name: str) -> dict:
+    ext = getattr(obj, "extensions", None)
+    ext = ext.get(name) if isinstance(ext, dict) else None
+    return ext if isinstance(ext, dict) else {}
+
+
+def _meshopt_view(gltf, path: Path, bv_index: int, ext: dict) -> bytes:
+    """The bytes of an EXT_meshopt_compression bufferView, decoded (the extension's spec:
+    ``buffer``/``byteOffset``/``byteLength`` of the compressed stream, ``count`` elements of
+    ``byteStride`` bytes, ``mode`` ATTRIBUTES/TRIANGLES/INDICES, ``filter``). Decoding is
+    meshoptimizer's codec, through the optional ``meshopt`` package (no pure-Python decoder
+    exists, and the codec is not one to write again)."""
+    cache = getattr(gltf, "_face_retarget_buffers", None)
+    key = ("meshopt", bv_index)
+    if cache is not None and key in cache:
+        return cache[key]
+    try:
+        import meshopt
+    except ImportError:
+        raise GltfError(f"{path}: bufferViews[{bv_index}] is compressed with {_MESHOPT}; decoding it needs the optional "
+                        "package meshopt (pip install 'face-retarget[meshopt]'), or export the file without meshopt "
+                        "compression") from None
+    where = f"bufferViews[{bv_index}].extensions.{_MESHOPT}"
+    try:
+        src_index, count, stride = int(ext["buffer"]), int(ext["count"]), int(ext["byteStride"])
+        start, length = int(ext.get("byteOffset", 0)), int(ext["byteLength"])
+        mode, filt = str(ext.get("mode", "ATTRIBUTES")), str(ext.get("filter", "NONE"))
+    except (KeyError, TypeError, ValueError) as e:
+        raise GltfError(f"{path}: {where} lacks or garbles {e}; expected buffer, byteLength, byteStride, count, mode") from None
+    src = _buffer_bytes(gltf, path, src_index)
+    if start < 0 or start + length > len(src):
+        raise GltfError(f"{path}: {where} reads bytes {start}..{start + length} of buffers[{src_index}], "
+                        f"which has {len(src)} (truncated file?)")
+    try:
+        out = meshopt.decode_gltf_buffer(src[start:start + length], count, stride, mode, filt).tobytes()
+    except (ValueError, RuntimeError) as e:
+        raise GltfError(f"{path}: {where} does not decode ({e}; corrupt file?)") from None
+    if cache is not None:
+        cache[key] = out
+    return out
+
+
 def _view(gltf, path, bv_index: int, offset: int, count: int, dtype, ncomp: int, what: str) -> np.ndarray:
     bv = _item(gltf.bufferViews, bv_index, path, f"{what}.bufferView (bufferViews)")
-    data = _buffer_bytes(gltf, path, bv.buffer)
+    ext = _ext(bv, _MESHOPT)
+    if ext:
+        data, base = _meshopt_view(gltf, path, bv_index, ext), 0
+        if bv.byteLength is None or len(data) < bv.byteLength:
+            raise GltfError(f"{path}: bufferViews[{bv_index}] decodes to {len(data)} bytes, byteLength says {bv.byteLength}")
+    else:
+        data, base = _buffer_bytes(gltf, path, bv.buffer), bv.byteOffset or 0
     itemsize = np.dtype(dtype).itemsize * ncomp
     stride = bv.byteStride or itemsize
-    start = (bv.byteOffset or 0) + (offset or 0)
+    start = base + (offset or 0)
     need = start + (count - 1) * stride + itemsize if count else start
-    if bv.byteLength is None or (bv.byteOffset or 0) + bv.byteLength > len(data):
+    if bv.byteLength is None or base + bv.byteLength > len(data):
         raise GltfError(f"{path}: bufferViews[{bv_index}] (used by {what}) extends past the end of buffers[{bv.buffer}]")
-    if need > (bv.byteOffset or 0) + bv.byteLength:
+    if need > base + bv.byteLength:
         raise GltfError(f"{path}: {what} reads past the end of bufferViews[{bv_index}] (truncated or corrupt file)")
     raw = np.frombuffer(data, dtype=np.uint8, count=need - start, offset=start)
     if stride == itemsize:
@@ -250,60 +307,131 @@ def _n_targets(gltf, path: Path, mesh: int) -> int:
     return counts.pop() if counts else 0
 
 
-def _target_names(gltf, path: Path, mesh: int, n_targets: int) -> list:
+def _stored_target_names(gltf, mesh: int):
+    """(names, where) as the file stores them, or (None, None): ``mesh.extras.targetNames`` (three.js,
+    Blender), else ``primitives[j].extras.targetNames`` (UniVRM since 0.36, so VRM 0.x avatars),
+    else ``primitives[j].targets[k].extras.name`` (UniVRM before 0.36)."""
     names = _mesh_extras(gltf, mesh).get("targetNames")
+    if names is not None:
+        return names, f"meshes[{mesh}].extras.targetNames"
+    prims = [(j, p) for j, p in enumerate(gltf.meshes[mesh].primitives) if p.mode in (None, 4) and p.targets]
+    for j, p in prims:
+        names = p.extras.get("targetNames") if isinstance(p.extras, dict) else None
+        if names is not None:
+            return names, f"meshes[{mesh}].primitives[{j}].extras.targetNames"
+    for j, p in prims:
+        old = [t.get("extras", {}).get("name") if isinstance(t, dict) and isinstance(t.get("extras"), dict) else None
+               for t in p.targets]
+        if all(isinstance(n, str) for n in old):
+            return old, f"meshes[{mesh}].primitives[{j}].targets[*].extras.name"
+    return None, None
+
+
+def _target_names(gltf, path: Path, mesh: int, n_targets: int) -> list:
+    names, where = _stored_target_names(gltf, mesh)
     if names is None:
         return [f"target_{k}" for k in range(n_targets)]
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-        raise GltfError(f"{path}: meshes[{mesh}].extras.targetNames must be a list of strings")
+        raise GltfError(f"{path}: {where} must be a list of strings")
     if len(names) != n_targets:
-        raise GltfError(f"{path}: meshes[{mesh}].extras.targetNames has {len(names)} names for {n_targets} morph targets")
+        raise GltfError(f"{path}: {where} has {len(names)} names for {n_targets} morph targets")
     return names
 
 
-def read_rig(path, mesh: int | None = None) -> Rig:
-    """Read a blendshape rig from a glTF 2.0 file (``.glb`` or ``.gltf``).
+def _node_matrix(node) -> np.ndarray:
+    """The node's local 4x4 transform (glTF 2.0 §3.5.3: ``matrix``, column-major, or T * R * S)."""
+    if node.matrix is not None and len(node.matrix) == 16:
+        return np.asarray(node.matrix, dtype=np.float64).reshape(4, 4).T
+    M = np.eye(4)
+    if node.scale is not None:
+        M = np.diag([*map(float, node.scale), 1.0])
+    if node.rotation is not None:
+        x, y, z, w = map(float, node.rotation)
+        n = np.sqrt(x * x + y * y + z * z + w * w) or 1.0
+        x, y, z, w = x / n, y / n, z / n, w / n
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        M = np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]) @ M
+    if node.translation is not None:
+        M[:3, 3] = np.asarray(node.translation, dtype=np.float64)
+    return M
 
-    The rig is the first mesh with morph targets (or ``mesh``); all its triangle primitives
-    are merged. Shape names come from ``mesh.extras.targetNames`` (the de-facto convention
-    three.js and Blender use), else ``target_<k>``. glTF is metres, +Y up, so no conversion.
-    ``mesh.extras`` other than ``targetNames`` and ``markerLayout`` become ``Rig.extras``.
 
-    Parameters
-    ----------
-    path : str or Path
-    mesh : int, optional
-        Index into ``meshes``.
+def _world_matrices(gltf) -> dict:
+    """{node index: world 4x4} for every node reachable from a root (a node no node lists as child)."""
+    nodes = gltf.nodes or []
+    children = {c for n in nodes for c in (n.children or []) if isinstance(c, int)}
+    out, stack = {}, [(i, np.eye(4)) for i in range(len(nodes)) if i not in children]
+    while stack:
+        i, parent = stack.pop()
+        if i in out or not 0 <= i < len(nodes):
+            continue  # a cycle or a bad child index: the node is placed once, where first reached
+        out[i] = parent @ _node_matrix(nodes[i])
+        stack.extend((c, out[i]) for c in (nodes[i].children or []) if isinstance(c, int))
+    return out
 
-    Returns
-    -------
-    Rig with neutral (V, 3), faces (F, 3), deltas (K, V, 3) as float64 copies of the file's
-    values (float32 in the file round-trips exactly).
 
-    Raises
-    ------
-    FileNotFoundError
-        ``path`` does not exist.
-    GltfError (a ValueError)
-        Naming the file and the field: truncated GLB, not glTF, a morph target whose vertex
-        count differs from POSITION, a ``targetNames`` count mismatch, indices out of range ...
+def _placement(gltf, path: Path, mesh: int, worlds: dict, node: Optional[int] = None):
+    """How mesh ``mesh`` sits in the scene, on ``node`` (default: the first node in the scene
+    that holds it): (node index or None, 4x4 or None for skinned).
+
+    A mesh on a node without a skin is placed by the node's world matrix (glTF 2.0 §3.5.3);
+    a skinned mesh ignores its node's transform (§3.7.3.1) and is placed by its joints at
+    rest, which :func:`_read_mesh` applies per vertex. A mesh no node uses is left as it is.
     """
-    path = Path(path)
-    gltf = _load(path)
-    mesh = _mesh_index(gltf, path, mesh)
+    if node is None:
+        node = next((i for i, n in enumerate(gltf.nodes or []) if n.mesh == mesh and i in worlds), None)
+    if node is None:
+        return None, np.eye(4)
+    return node, (None if gltf.nodes[node].skin is not None else worlds[node])
+
+
+def _skin_matrices(gltf, path: Path, node: int, worlds: dict) -> np.ndarray:
+    """(J, 4, 4) ``world(joint_j) @ inverseBind_j`` of the node's skin: its joints at rest."""
+    skin = _item(gltf.skins, gltf.nodes[node].skin, path, f"nodes[{node}].skin (skins)")
+    J = len(skin.joints or [])
+    if skin.inverseBindMatrices is None:
+        ibm = np.broadcast_to(np.eye(4), (J, 4, 4))
+    else:
+        ibm = read_accessor(gltf, path, skin.inverseBindMatrices, f"skins[{gltf.nodes[node].skin}].inverseBindMatrices")
+        if ibm.shape != (J, 16):
+            raise GltfError(f"{path}: skins[{gltf.nodes[node].skin}].inverseBindMatrices has {len(ibm)} MAT4, "
+                            f"the skin has {J} joints")
+        ibm = ibm.reshape(J, 4, 4).transpose(0, 2, 1)
+    return np.stack([worlds.get(j, np.eye(4)) @ ibm[k] for k, j in enumerate(skin.joints or [])]) if J else np.eye(4)[None]
+
+
+def _read_mesh(gltf, path: Path, mesh: int, n_targets: int, worlds: dict, node: Optional[int] = None):
+    """(positions (V, 3), faces (F, 3), deltas (K, V, 3), uvs (V, 2) or None) of ``meshes[mesh]``'s
+    triangle primitives, placed in the scene (:func:`_placement`, on ``node``): ``p' = A p + t``
+    and ``d' = A d`` (a delta moves with the linear part only); a skinned mesh by linear blend
+    skinning at rest, ``A = sum_j w_j world(joint_j) inverseBind_j`` per vertex. A mirroring
+    placement (``det A < 0``, e.g. one eye mesh on two nodes, one scaled by -1) reverses the
+    winding (§3.7.4), so the faces keep facing out.
+
+    Quantised attributes (KHR_mesh_quantization: int8/int16 POSITION and targets, normalised or
+    not) are read as numbers; the transform that dequantises them is the node's (or the skin's),
+    which the placement applies.
+    """
     m = gltf.meshes[mesh]
+    node, world = _placement(gltf, path, mesh, worlds, node)
+    skins = _skin_matrices(gltf, path, node, worlds) if node is not None and world is None else None
     positions, faces, deltas, uvs = [], [], [], []
     offset = 0
-    n_targets = _n_targets(gltf, path, mesh)
     for pi, prim in enumerate(m.primitives):
         if prim.mode not in (None, 4):
             continue  # points/lines/strips are not part of a face rig
         what = f"meshes[{mesh}].primitives[{pi}]"
         if prim.attributes.POSITION is None:
             raise GltfError(f"{path}: {what} has no POSITION attribute")
-        pos = read_accessor(gltf, path, prim.attributes.POSITION, f"{what}.attributes.POSITION")
-        if pos.shape[1] != 3 or pos.dtype != np.float64:
-            raise GltfError(f"{path}: {what}.attributes.POSITION must be a float VEC3 accessor, got {pos.shape[1]} {pos.dtype} components")
+        pos_acc = _item(gltf.accessors, prim.attributes.POSITION, path, f"{what}.attributes.POSITION (accessors)")
+        if pos_acc.bufferView is None and _ext(prim, _DRACO):
+            raise GltfError(f"{path}: {what} is Draco-compressed ({_DRACO}), which this reader does not decode; "
+                            "export the avatar without Draco mesh compression")
+        pos = read_accessor(gltf, path, prim.attributes.POSITION, f"{what}.attributes.POSITION").astype(np.float64)
+        if pos.shape[1] != 3:
+            raise GltfError(f"{path}: {what}.attributes.POSITION must be a VEC3 accessor, got {pos.shape[1]} components")
         V = len(pos)
         if prim.indices is not None:
             idx = read_accessor(gltf, path, prim.indices, f"{what}.indices")
@@ -324,32 +452,161 @@ def read_rig(path, mesh: int | None = None) -> Rig:
             if dk.shape != (V, 3):
                 raise GltfError(f"{path}: {what}.targets[{k}].POSITION has {len(dk)} vertices, POSITION has {V}")
             d[k] = dk
+        tri = idx.reshape(-1, 3)
+        if skins is not None:
+            A = _blend_skin(gltf, path, prim, what, skins, V)
+            pos = np.einsum("vij,vj->vi", A[:, :3, :3], pos) + A[:, :3, 3]
+            d = np.einsum("vij,kvj->kvi", A[:, :3, :3], d)
+            flip = np.linalg.det(A[0, :3, :3]) < 0 if V else False
+        else:
+            if world is not None and not np.array_equal(world, np.eye(4)):
+                pos = pos @ world[:3, :3].T + world[:3, 3]
+                d = d @ world[:3, :3].T
+            flip = world is not None and np.linalg.det(world[:3, :3]) < 0
+        if flip:
+            tri = tri[:, ::-1]
         tex = getattr(prim.attributes, "TEXCOORD_0", None)
         uv = read_accessor(gltf, path, tex, f"{what}.attributes.TEXCOORD_0") if tex is not None else None
         if uv is not None and uv.shape != (V, 2):
             raise GltfError(f"{path}: {what}.attributes.TEXCOORD_0 has shape {uv.shape}, expected ({V}, 2)")
-        uvs.append(uv)
+        uvs.append(None if uv is None else uv.astype(np.float64))
         positions.append(pos)
-        faces.append(idx.reshape(-1, 3) + offset)
+        faces.append(tri + offset)
         deltas.append(d)
         offset += V
     if not positions:
         raise GltfError(f"{path}: meshes[{mesh}] has no triangle primitives")
-    names = _target_names(gltf, path, mesh, n_targets)
-    other = {k: v for k, v in _mesh_extras(gltf, mesh).items() if k not in _RESERVED_EXTRAS}
+    return (np.concatenate(positions), np.concatenate(faces), np.concatenate(deltas, axis=1),
+            np.concatenate(uvs) if all(u is not None for u in uvs) else None)
+
+
+def _blend_skin(gltf, path: Path, prim, what: str, skins: np.ndarray, V: int) -> np.ndarray:
+    """(V, 4, 4) per-vertex ``sum_j w_j M_j`` from JOINTS_0/WEIGHTS_0 (one M for all when the
+    joints at rest all agree, as in most exports, where it is the identity)."""
+    if np.allclose(skins, skins[0], atol=1e-9):
+        return np.broadcast_to(skins[0], (V, 4, 4))
+    ja, wa = getattr(prim.attributes, "JOINTS_0", None), getattr(prim.attributes, "WEIGHTS_0", None)
+    if ja is None or wa is None:
+        raise GltfError(f"{path}: {what} is skinned but has no JOINTS_0/WEIGHTS_0")
+    joints = read_accessor(gltf, path, ja, f"{what}.attributes.JOINTS_0")
+    weights = read_accessor(gltf, path, wa, f"{what}.attributes.WEIGHTS_0").astype(np.float64)
+    if joints.shape != (V, 4) or weights.shape != (V, 4) or joints.max(initial=0) >= len(skins):
+        raise GltfError(f"{path}: {what}.attributes.JOINTS_0/WEIGHTS_0 must be ({V}, 4) with joints below {len(skins)}")
+    total = weights.sum(axis=1, keepdims=True)
+    weights = np.where(total > 0, weights / np.where(total > 0, total, 1), 0.25)
+    return np.einsum("vk,vkij->vij", weights, skins[joints])
+
+
+def _mesh_size(gltf, mesh: int) -> int:
+    return sum(gltf.accessors[p.attributes.POSITION].count for p in gltf.meshes[mesh].primitives
+               if p.mode in (None, 4) and p.attributes.POSITION is not None
+               and isinstance(p.attributes.POSITION, int) and 0 <= p.attributes.POSITION < len(gltf.accessors or []))
+
+
+def _target_count(gltf, mesh: int) -> int:
+    return max((len(p.targets or []) for p in gltf.meshes[mesh].primitives), default=0)
+
+
+def _face_meshes(gltf, path: Path, worlds: dict) -> list:
+    """``[(mesh, node or None), ...]`` that make the face rig when no ``mesh`` is given: the mesh
+    with the most morph targets, the largest of those (the head: not a body mesh with a breathing
+    shape of its own, not an eye with the head's names), then every other placed mesh with named targets
+    all of which the head also has (teeth, eyes, lashes of a Ready Player Me or VRoid avatar: one
+    weight moves them together), once per node that holds it (one eye mesh on two nodes is two eyes)."""
+    morphs = [i for i, m in enumerate(gltf.meshes) if any(p.targets for p in m.primitives)]
+    placed = [(n.mesh, i) for i, n in enumerate(gltf.nodes or [])
+              if i in worlds and isinstance(n.mesh, int) and n.mesh in morphs]
+    if not placed:  # meshes no scene node holds: the largest, where it is
+        if not morphs:
+            return [(0, None)]
+        return [(max(morphs, key=lambda i: (_target_count(gltf, i), _mesh_size(gltf, i), -i)), None)]
+    head = max(placed, key=lambda mn: (_target_count(gltf, mn[0]), _mesh_size(gltf, mn[0]), -mn[0], -mn[1]))
+    names = _stored_target_names(gltf, head[0])[0]
+    if not isinstance(names, list):
+        return [head]
+    group = [head]
+    for m, n in placed:
+        other = _stored_target_names(gltf, m)[0]
+        if m != head[0] and isinstance(other, list) and other and len(set(other)) == len(other) and set(other) <= set(names):
+            group.append((m, n))
+    return group
+
+
+def read_rig(path, mesh: int | None = None) -> Rig:
+    """Read a blendshape rig from a glTF 2.0 file (``.glb`` or ``.gltf``).
+
+    The rig is ``meshes[mesh]``, or by default the face: the mesh with the most morph targets
+    (the largest of those) and every other mesh whose named targets all appear in its names (a Ready Player Me avatar's
+    ``Wolf3D_Head`` with ``Wolf3D_Teeth``, ``EyeLeft`` and ``EyeRight``, which share the 67 names),
+    merged, each target of a smaller mesh added to its namesake (zero where it has none). All
+    triangle primitives of a mesh are merged. Shape names come from ``mesh.extras.targetNames``
+    (the de-facto convention three.js and Blender use), else a primitive's ``extras.targetNames``
+    (UniVRM's, so VRM 0.x avatars) or its targets' ``extras.name`` (UniVRM before 0.36), else
+    ``target_<k>``. Meshes are placed
+    as the scene places them (node world matrices; a skinned mesh by its joints at rest), which
+    also dequantises KHR_mesh_quantization attributes. glTF is metres, +Y up, so no unit
+    conversion. ``mesh.extras`` of the (first) mesh other than ``targetNames`` and
+    ``markerLayout`` become ``Rig.extras``; with several meshes ``Rig.extras["meshes"]`` lists
+    each one's ``{"mesh", "node", "name", "vertices": [first, stop)}`` (a mesh on two nodes, such as
+    one eye mesh placed twice, is there twice).
+
+    Parameters
+    ----------
+    path : str or Path
+    mesh : int, optional
+        Index into ``meshes``: that mesh alone.
+
+    Returns
+    -------
+    Rig with neutral (V, 3), faces (F, 3), deltas (K, V, 3) as float64 copies of the file's
+    values (float32 in the file round-trips exactly).
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    GltfError (a ValueError)
+        Naming the file and the field: truncated GLB, not glTF, a compression extension this
+        reader does not decode, a morph target whose vertex count differs from POSITION, a
+        ``targetNames`` count mismatch, indices out of range ...
+    """
+    path = Path(path)
+    gltf = _load(path)
+    worlds = _world_matrices(gltf)
+    if mesh is None:
+        if not gltf.meshes:
+            raise GltfError(f"{path}: meshes: the file has no meshes")
+        group = _face_meshes(gltf, path, worlds)
+    else:
+        group = [(_mesh_index(gltf, path, mesh), None)]
+    head, head_node = group[0]
+    n_targets = _n_targets(gltf, path, head)
+    names = _target_names(gltf, path, head, n_targets)
+    neutral, faces, deltas, uvs = _read_mesh(gltf, path, head, n_targets, worlds, head_node)
+    other = {k: v for k, v in _mesh_extras(gltf, head).items() if k not in _RESERVED_EXTRAS}
+    if len(group) > 1:
+        parts, spans = [(neutral, faces, deltas, uvs)], [(head, head_node, 0, len(neutral))]
+        at = {n: k for k, n in enumerate(names)}
+        V = len(neutral)
+        for i, node in group[1:]:
+            k_i = _n_targets(gltf, path, i)
+            p, f, d, u = _read_mesh(gltf, path, i, k_i, worlds, node)
+            full = np.zeros((n_targets, len(p), 3))
+            full[[at[n] for n in _target_names(gltf, path, i, k_i)]] = d
+            parts.append((p, f + V, full, u))
+            spans.append((i, node, V, V + len(p)))
+            V += len(p)
+        neutral = np.concatenate([q[0] for q in parts])
+        faces = np.concatenate([q[1] for q in parts])
+        deltas = np.concatenate([q[2] for q in parts], axis=1)
+        uvs = np.concatenate([q[3] for q in parts]) if all(q[3] is not None for q in parts) else None
+        other["meshes"] = [{"mesh": int(i), "node": int(n), "name": gltf.meshes[i].name or f"mesh_{i}", "vertices": [a, b]}
+                           for i, n, a, b in spans]
     try:
-        return Rig(
-            neutral=np.concatenate(positions),
-            faces=np.concatenate(faces),
-            deltas=np.concatenate(deltas, axis=1),
-            names=names,
-            uvs=np.concatenate(uvs) if all(u is not None for u in uvs) else None,
-            units="m",
-            name=path.stem,
-            extras=other,
-        )
+        return Rig(neutral=neutral, faces=faces, deltas=deltas, names=names, uvs=uvs, units="m",
+                   name=path.stem, extras=other)
     except ValueError as e:  # NaN positions, duplicate names ...
-        raise GltfError(f"{path}: meshes[{mesh}]: {e}") from None
+        raise GltfError(f"{path}: meshes[{head}]: {e}") from None
 
 
 def read_markers(path, mesh: int | None = None) -> Optional[MarkerLayout]:
@@ -387,7 +644,7 @@ def read_animation(path, animation: int = 0, fps: Optional[float] = None) -> Per
     targets is read (glTF 2.0 §3.11). Its sampler's input gives ``times`` (seconds, as in the
     file); its output holds T*K weights, frame-major, for LINEAR and STEP, or 3*T*K
     (in-tangent, value, out-tangent) for CUBICSPLINE, of which the values are kept. Channel
-    names are the mesh's ``extras.targetNames``.
+    names are the mesh's target names (as :func:`read_rig` reads them).
 
     Parameters
     ----------

@@ -43,6 +43,9 @@ aronamao/Maya-Live-Link-CSV-Import):
   spans about +/-0.61 and tracks ``eyeLookOut - eyeLookIn`` with correlation 0.999, i.e.
   +/-35 degrees (Unreal's older ARKit plugin normalised degrees/180, which would mean an
   impossible +/-110); Diffeomorphic's importer also uses them as radians.
+* The first two header names are matched in any case: a real take from another app version
+  (``MySlate_1_iPhone.csv`` of dwskillman/BlendFiles, 679 rows, 11:54:29:19.804 on) spells the
+  second ``BlendshapeCount``, as do several third-party writers.
 * UTF-8 (a byte-order mark is skipped), LF or CRLF line ends, trailing empty cells (a trailing
   comma) ignored.
 """
@@ -92,6 +95,15 @@ TIMECODE_FORMAT = "HH:MM:SS:FF.sss"
 HEADER_START = ("Timecode", "BlendShapeCount")
 #: ``BlendShapeCount`` of a row the app wrote when it lost the face (no values follow).
 TRACKING_LOST_COUNT = "0"
+
+
+def is_livelink_header(cells) -> bool:
+    """Whether header ``cells`` start ``Timecode,BlendShapeCount`` (any case, cells stripped).
+
+    The one test of "this CSV is Live Link Face", used by the reader and by the format sniffer
+    (:mod:`core.io.performance`).
+    """
+    return [str(c).strip().lower() for c in list(cells)[:2]] == [h.lower() for h in HEADER_START]
 
 _LIVE_SPELLING = {canonical(c): c for c in LIVELINK_CHANNELS}
 _ROTATION_BY_KEY = {c.lower(): c for c in ROTATION_COLUMNS}
@@ -211,7 +223,7 @@ def read_livelink(path, allow_missing: bool = False, timecode_rate=None) -> Perf
     header = [c.strip() for c in numbered[0][1].split(",")]
     while len(header) > 2 and not header[-1]:
         header.pop()  # trailing commas
-    if tuple(header[:2]) != HEADER_START:
+    if not is_livelink_header(header):
         raise ValueError(
             f"{path}: line {hline}: not a Live Link Face CSV header; expected it to start "
             f"'Timecode,BlendShapeCount', got {','.join(header[:3])!r}"

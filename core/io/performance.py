@@ -6,7 +6,7 @@
 format             recognised by                                reader
 =================  ===========================================  ====================================
 Live Link Face     ``.csv`` whose header starts                 :func:`core.io.livelink.read_livelink`
-                   ``Timecode,BlendShapeCount``
+                   ``Timecode,BlendShapeCount`` (any case)
 marker CSV         ``.csv`` whose header starts ``frame,time_s``  :func:`core.io.markers.read_marker_csv`
 TRC                ``.trc``                                     :func:`core.io.markers.read_trc`
 C3D                ``.c3d`` (needs ``ezc3d``)                   :func:`core.io.markers.read_c3d`
@@ -153,7 +153,7 @@ def _read_clocked(path: Path, suffix: str, kw: dict) -> Performance:
     if suffix == ".csv":
         header = _first_header(path)
         cells = [c.strip() for c in header.split(",")]
-        if cells[:2] == ["Timecode", "BlendShapeCount"]:
+        if livelink.is_livelink_header(cells):
             return livelink.read_livelink(path, **kw)
         if [c.lower() for c in cells[:2]] == ["frame", "time_s"]:
             if kw.get("units") is None and markers.declared_units(path) is None and path.name.lower().startswith("animface_"):

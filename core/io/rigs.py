@@ -8,13 +8,13 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from ..model import MarkerLayout, Rig
-from .gltf import read_rig, write_rig
+from .gltf import RIG_SUFFIXES as GLTF_RIG_SUFFIXES, read_rig, write_rig
 from .layout import default_layout_path, read_layout, sidecar_layout_path
 from .objfolder import read_obj_folder
 from .usd import SUFFIXES as USD_SUFFIXES
 from .usd import read_rig as read_usd_rig
 
-RIG_FORMATS = (".glb, .gltf, .usd/.usda/.usdc/.usdz (UsdSkel blend shapes), or a folder of OBJs "
+RIG_FORMATS = (".glb, .gltf, .vrm, .usd/.usda/.usdc/.usdz (UsdSkel blend shapes), or a folder of OBJs "
                "(neutral.obj + one OBJ per shape)")
 
 
@@ -26,7 +26,7 @@ def load_rig(path) -> Rig:
         return read_obj_folder(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such rig file")
-    if path.suffix.lower() in (".glb", ".gltf"):
+    if path.suffix.lower() in GLTF_RIG_SUFFIXES:
         return read_rig(path)
     if path.suffix.lower() in USD_SUFFIXES:
         return read_usd_rig(path)

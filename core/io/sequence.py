@@ -184,7 +184,9 @@ def read_mesh_folder(folder, fps: Optional[float] = None, units: Optional[str] =
 def read_gltf_sequence(path, fps: Optional[float] = None) -> Performance:
     """A glTF/GLB mesh whose morph targets and weight animation carry the frames:
     ``frame_t = base + sum_k w_tk target_k`` at each key of ``animations[0]`` (the values of
-    STEP/LINEAR/CUBICSPLINE keys), with the mesh's triangles as the topology.
+    STEP/LINEAR/CUBICSPLINE keys), with the mesh's triangles as the topology. The mesh is the
+    animated one, or the avatar's whole face (:func:`core.io.gltf.read_rig`) when that mesh is one
+    of its parts and the animation names all the face's shapes.
 
     Raises
     ------
@@ -192,7 +194,12 @@ def read_gltf_sequence(path, fps: Optional[float] = None) -> Performance:
     """
     path = Path(path)
     curves = read_animation(path, fps=fps)
-    rig = read_rig(path, mesh=curves.extras.get("mesh"))
+    # the face (head, eyes, teeth: read_rig's default) when the animated mesh is part of it and the
+    # curves name all its shapes (an avatar animates each of those meshes by the same weights)
+    rig = read_rig(path)
+    parts = [m["mesh"] for m in rig.extras.get("meshes", [])]
+    if curves.extras.get("mesh") not in parts or not set(rig.names) <= set(curves.names):
+        rig = read_rig(path, mesh=curves.extras.get("mesh"))
     W = curves.select(list(rig.names)).data
     return Performance.meshes(rig.evaluate(np.nan_to_num(W)), curves.fps, faces=rig.faces, valid=curves.valid.all(1),
                               times=curves.times, units=rig.units, name=path.stem,
