@@ -226,7 +226,7 @@ class PoissonReconstructor:
         # (components, V) averaging operator of the gauge
         self.average = sp.csr_matrix((1.0 / counts[labels], (labels, np.arange(n_vertices))), shape=(ncomp, n_vertices))
         self._pinned = None
-        self._screened = None
+        self._screened = {}  # dtype -> CholeskyFactor of L + εI
         if self.screening > 0:
             self.eps = self.screening * float(self.L.diagonal().mean())
             self._A = (self.L + self.eps * sp.identity(n_vertices)).tocsr()
@@ -245,26 +245,32 @@ class PoissonReconstructor:
 
     @property
     def screened_factor(self) -> CholeskyFactor:
-        """The Cholesky factorisation of ``L + εI`` (built on first use: the decomposition
-        needs only ``L``, the detail stage the solves)."""
-        if self._screened is None:
-            self._screened = CholeskyFactor(self._A)
-        return self._screened
+        """The float64 Cholesky factorisation of ``L + εI`` (built on first use: the
+        decomposition needs only ``L``, the detail stage the solves)."""
+        return self._screened_factor(np.float64)
 
-    def solve(self, B: np.ndarray, block: int | None = None) -> np.ndarray:
+    def _screened_factor(self, dtype) -> CholeskyFactor:
+        dtype = np.dtype(dtype)
+        if dtype not in self._screened:
+            self._screened[dtype] = CholeskyFactor(self._A, dtype)
+        return self._screened[dtype]
+
+    def solve(self, B: np.ndarray, block: int | None = None, dtype=np.float64) -> np.ndarray:
         r"""Solve for (V, m) right-hand sides at once: ``(L + εI)^{-1} B`` when screened, else
         the zero-mean ``L^+ B`` (``B`` must then be orthogonal to the per-component constants).
 
         One sparse Cholesky factorisation (:class:`~._mesh.CholeskyFactor`), all m columns
-        solved in blocks of ``block`` (default :attr:`~._mesh.CholeskyFactor.BLOCK`). Float64
-        throughout; returns (V, m) float64.
+        solved in blocks of ``block`` (default :attr:`~._mesh.CholeskyFactor.BLOCK`). The
+        screened solve runs in ``dtype`` (float64, or float32 for the float32 detail stage;
+        each precision factorised once, on first use); the plain one always in float64.
+        Returns (V, m) in that precision.
         """
-        B = np.asarray(B, dtype=np.float64)
+        B = np.asarray(B)
         if B.ndim != 2 or B.shape[0] != self.n:
             raise ValueError(f"B: expected ({self.n}, m), got {B.shape}")
         if self.screening == 0:
-            return self.solver.solve(B, None, block)
-        return self.screened_factor.solve(B, block)
+            return self.solver.solve(np.asarray(B, dtype=np.float64), None, block)
+        return self._screened_factor(dtype).solve(B, block)
 
     def displacement(self, coating: np.ndarray, mean=None, prior=None) -> np.ndarray:
         """``L^+ ξ + m`` (or the screened solve with ``prior`` (V, 3)) for (V, 3) or (T, V, 3)

@@ -393,8 +393,8 @@ class DetailTransfer:
             xi = (G @ np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK)).reshape(3, V, t)
             xi += xi_base
             # all frames x coordinates of the chunk as the columns of one (V, 3t) solve
-            B = self._change(Fs, Ft, xi, out=np.empty((V, 3 * t)))
-            _scatter_frames(self.poisson.solve(B), rows, y0, out, idx.start)
+            B = self._change(Fs, Ft, xi, out=np.empty((V, 3 * t), dtype=_WORK))
+            _scatter_frames(self.poisson.solve(B, dtype=_WORK), rows, y0, out, idx.start)
             if progress is not None:
                 progress(idx.stop / n_frames, f"fine details: {idx.stop}/{n_frames} frames")
         return out
