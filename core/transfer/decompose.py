@@ -342,6 +342,29 @@ def _column_blocks(n_rows: int, n_cols: int, budget: int = 1 << 21):
     return [slice(c, min(c + step, n_cols)) for c in range(0, n_cols, step)]
 
 
+def _orthonormal_rows(Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Q, R)`` with ``Y = R^T Q`` for (k, n) ``Y``, k << n: ``Q`` (k, n) orthonormal rows, ``R``
+    (k, k) upper triangular (the QR factorisation of ``Y^T``).
+
+    Cholesky QR twice (CholQR2, Yamamoto et al. 2015): two (k, k) Gram matrices and triangular
+    solves, BLAS-3 over the long axis, orthonormal to rounding while ``cond(Y) < ~1e7`` (the
+    directions of :func:`factor_sequence` have ``cond <= sqrt(1e13)``). LAPACK's Householder QR
+    of the (3V, k) transpose took 0.33 s of the 0.9 s factorisation on the 56K-vertex benchmark
+    (k = 25), this 0.05 s. Falls back to Householder when a Gram matrix is not positive definite.
+    """
+    R = np.eye(len(Y))
+    Q = Y
+    try:
+        for _ in range(2):
+            Rc = np.linalg.cholesky(Q @ Q.T).T  # upper, Q Q^T = Rc^T Rc
+            Q = solve_triangular(Rc, Q, trans="T", lower=False)  # Rc^{-T} Q
+            R = Rc @ R
+        return Q, R
+    except np.linalg.LinAlgError:
+        q, R = np.linalg.qr(Y.T)
+        return q.T, R
+
+
 def factor_sequence(sequence, rtol: float = 1e-6, max_rank: int | None = None, passes: int = 4,
                     base=None) -> FactoredSequence:
     r"""Factor a (T, V, 3) sequence through the span of its frames.
@@ -404,6 +427,7 @@ def factor_sequence(sequence, rtol: float = 1e-6, max_rank: int | None = None, p
     cap = T if max_rank is None else min(T, int(max_rank))
     Q = np.zeros((0, 3 * V))
     C = np.zeros((T, 0))
+    top = None
     for _ in range(passes):
         Gr = G - C @ C.T  # Gram matrix of the residual
         if float(np.trace(Gr)) <= tol2 or len(Q) >= cap:
@@ -412,8 +436,13 @@ def factor_sequence(sequence, rtol: float = 1e-6, max_rank: int | None = None, p
         lam, U = np.maximum(lam[::-1], 0.0), U[:, ::-1]
         tail = np.concatenate([np.cumsum(lam[::-1])[::-1], [0.0]])
         k = next(k for k in range(T + 1) if tail[k] <= tol2)
-        # directions below float64 resolution of the Gram product are noise
-        k = max(1, min(k, int(np.sum(lam > 1e-13 * max(lam[0], 1e-300))), cap - len(Q)))
+        # directions below float64 resolution of the Gram product are noise: relative to the
+        # largest of the first pass (a later pass's own largest can be rounding noise, and its
+        # coefficients, divided by a near-zero R, garbage)
+        top = lam[0] if top is None else top
+        k = min(k, int(np.sum(lam > 1e-13 * max(top, 1e-300))), cap - len(Q))
+        if k == 0:
+            break
         Uk = U[:, :k]
         new = np.empty((k, 3 * V))
         for cols in blocks:
@@ -422,8 +451,7 @@ def factor_sequence(sequence, rtol: float = 1e-6, max_rank: int | None = None, p
         new -= M @ Q  # U_k^T R
         M2 = new @ Q.T
         new -= M2 @ Q  # re-orthogonalised against what we have
-        qn, R = np.linalg.qr(new.T)
-        qn = qn.T
+        qn, R = _orthonormal_rows(new)
         # new = U_k^T X - M Q and new^T = qn^T R, so the coefficients X qn^T come from the
         # Gram matrix without another pass over X: (G U_k - C M^T) R^{-1}
         Cn = solve_triangular(R, (G @ Uk - C @ (M + M2).T).T, trans="T", lower=False).T
