@@ -261,6 +261,14 @@ def test_poisson_block_solve_matches_dense(screening, tiger):
         P.solve(B[:-1])
     # any block size gives the same columns (the blocks only group the triangular solves)
     assert np.abs(P.solve(B, block=5) - ours).max() < 1e-12 * np.abs(ref).max()
+    # the float32 solve of the detail stage: screened in single precision (to ~1e-6 here,
+    # condition ~200), the plain Laplacian always in float64
+    single = P.solve(B, dtype=np.float32)
+    if screening:
+        assert single.dtype == np.float32
+        assert 1e-12 < np.abs(single - ref).max() / np.abs(ref).max() < 1e-5
+    else:
+        assert single.dtype == np.float64 and np.array_equal(single, ours)
 
 
 def test_factor_sequence_truncates_like_the_svd():
@@ -310,6 +318,15 @@ def test_cholesky_factor_matches_dense_solves_in_any_block():
     assert np.abs(ch.solve(np.asfortranarray(B)) - ref).max() < 1e-10 * np.abs(ref).max()
     with pytest.raises(ValueError, match="b"):
         ch.solve(B[:-1])
+    # single precision (the float32 detail stage): float32 out, to float32 rounding times the
+    # condition number, and clearly not the float64 answer bit for bit
+    ch32 = CholeskyFactor(A, np.float32)
+    x32 = ch32.solve(B, 16)
+    assert x32.dtype == np.float32
+    rel = np.abs(x32 - ref).max() / np.abs(ref).max()
+    assert 1e-12 < rel < 1e-5 * np.linalg.cond(A.toarray())
+    with pytest.raises(ValueError, match="dtype"):
+        CholeskyFactor(A, np.float16)
     with pytest.raises(ValueError, match="square"):
         CholeskyFactor(sp.csr_matrix((3, 4)))
     with pytest.raises(ValueError, match="positive definite"):  # singular: SuperLU raised here too

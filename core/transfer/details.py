@@ -38,11 +38,14 @@ How it is computed (the result is eq. 5 exactly; only the order of the work diff
   product ``E [1, a_t]`` with the edge matrices ``E`` of base and basis formed in float64
   (no per-frame gathers, and edges exact to float32 rounding of the *edge*, not of the
   absolute position). Normals, normalisation and the frame rotation are nonlinear and run
-  per frame in float32 (``_WORK``); the Poisson solve runs in float64 (one sparse Cholesky
-  factorisation, :class:`~core.transfer._mesh.CholeskyFactor`). On the 56K-vertex benchmark the
-  float32 result is within 6e-10 m (2e-6 of the largest detail) of the same computation in
-  float64, which costs ~60% more time; the tests check the algorithm in float64 against the
-  per-frame formulas to 1e-9 and the float32 result to its precision.
+  per frame in float32 (``_WORK``), and so does the screened Poisson solve (one sparse
+  Cholesky factorisation in the working precision, :class:`~core.transfer._mesh.CholeskyFactor`;
+  relative error ~1e-6 on the screened operator, whose condition number is ~200; on the
+  56K-vertex benchmark the details moved by at most 3.4e-10 m against the float64 solve, for a
+  third less CPU in the solves). On that benchmark the float32 frames are within 6e-10 m (2e-6
+  of the largest detail) of the same computation in float64, which costs ~60% more time; the
+  tests check the algorithm in float64 against the per-frame formulas to 1e-9 and the float32
+  result to its precision.
 """
 
 from __future__ import annotations
@@ -393,8 +396,8 @@ class DetailTransfer:
             xi = (G @ np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK)).reshape(3, V, t)
             xi += xi_base
             # all frames x coordinates of the chunk as the columns of one (V, 3t) solve
-            B = self._change(Fs, Ft, xi, out=np.empty((V, 3 * t)))
-            _scatter_frames(self.poisson.solve(B), rows, y0, out, idx.start)
+            B = self._change(Fs, Ft, xi, out=np.empty((V, 3 * t), dtype=_WORK))
+            _scatter_frames(self.poisson.solve(B, dtype=_WORK), rows, y0, out, idx.start)
             if progress is not None:
                 progress(idx.stop / n_frames, f"fine details: {idx.stop}/{n_frames} frames")
         return out
