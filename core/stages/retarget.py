@@ -373,7 +373,10 @@ class Stabilize(Stage):
                             min(s.neutral_frame, src.n_frames - 1))
         names = inputs["shapes"]["names"]
         idx = [sm.names.index(n) for n in names]
-        sm = replace(sm, deltas=sm.deltas[:, idx], valid=sm.valid[:, idx], neutral=sm.neutral[idx], names=tuple(names))
+        # frame-major and contiguous: every stage after reads the take as (T, 3M) rows, and the fancy
+        # index leaves the markers outermost in memory (each reshape of a dense take was a 24 MB copy)
+        sm = replace(sm, deltas=np.ascontiguousarray(sm.deltas[:, idx]), valid=np.ascontiguousarray(sm.valid[:, idx]),
+                     neutral=sm.neutral[idx], names=tuple(names))
         return {"source": sm, "names": tuple(names)}
 
 
