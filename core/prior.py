@@ -138,6 +138,7 @@ class PCAPrior:
         ValueError
             Wrong shapes, NaN, fewer than two training shapes, or no variation at all.
         """
+        self.P_ = None  # (quadratic() computes the new basis's below, see _own_basis)
         X = _points(X, "PCAPrior.fit X")
         if basis is None:
             if neutral_markers is not None:
@@ -223,8 +224,22 @@ class PCAPrior:
         q : (K,) float
         c : float
         """
+        if self._own_basis(basis):  # the fitted quadratic (fit computed it for this basis)
+            return self.P_.copy(), self.q_.copy(), self.c_
         R, m = self._factor(basis)
         return R.T @ R, R.T @ m, float(m @ m)
+
+    def _own_basis(self, basis) -> bool:
+        """Whether ``basis`` ((K, M, 3) or (3M, K)) holds the same numbers as ``basis_``: the
+        solvers ask for the quadratic of the prior's own shapes at every solve (a setting change
+        of a dense take: a (h, 3M) x (3M, K) product each time)."""
+        own = getattr(self, "basis_", None)
+        if own is None or getattr(self, "P_", None) is None:
+            return False
+        B = np.asarray(basis)
+        if B.shape == own.shape:
+            return B is own or np.array_equal(B, own)
+        return B.shape == (own[0].size, len(own)) and np.array_equal(B, flatten(own).T)
 
     def coefficients(self, W, basis=None) -> np.ndarray:
         """PCA coefficients ``v = E^T (B w - mean_)`` for weights (K,) or (T, K) -> (h,) or (T, h)."""

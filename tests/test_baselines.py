@@ -31,3 +31,14 @@ def test_prior_pf_with_the_gram_is_bit_identical():
             want = prior_pf(B, S, 0.05, None, valid, **kw)
             got = prior_pf(B, S, 0.05, None, valid, gram=gram, **kw)
             assert np.array_equal(got, want)
+
+
+def test_prior_pf_with_a_gram_of_every_frame_reads_no_frame_of_the_take():
+    """With the gram of a take whose frames all have every marker, prior_pf solves from the gram
+    alone (a dense alpha change makes no pass over the (T, 3M) take): the take's numbers are not
+    read, and the result is the one it computes from the take."""
+    B, S, valid = _case(2, False)
+    gram = data_gram(B, S, valid)
+    want = prior_pf(B, S, 0.05, None, valid, ridge=1e-3)
+    blind = np.full_like(S, np.nan)  # what is not read cannot change the result
+    assert np.array_equal(prior_pf(B, blind, 0.05, None, None, ridge=1e-3, gram=gram), want)

@@ -354,6 +354,23 @@ def test_alpha_change_reuses_the_data_gram_and_gives_a_fresh_pipelines_result(pi
     assert np.array_equal(W, fresh.results(["solve"])["solve"]["weights"])
 
 
+def test_a_spacetime_alpha_change_reuses_the_motion_gram_and_gives_a_fresh_pipelines_result():
+    """The spacetime solver's products with the take (the ``motion_gram`` stage) depend on the take
+    and the rig, not on alpha or the bounds: a change re-solves without them (dense correspondence
+    too), to the numbers a fresh pipeline gives (the disk cache keeps only the rig pair's
+    registration, as in every dense test)."""
+    for extra in ({}, {"correspondence": "dense", "dense_points": 200}):
+        kw = dict(first_frame=0, last_frame=59, method="spacetime", **extra, **FILES)
+        pipe = Pipeline(cache=StageCache(), **kw)
+        pipe.run()
+        before = dict(pipe.runs)
+        pipe.configure(alpha=0.05, upper=0.9)
+        W = pipe.results(["solve"])["solve"]["weights"]
+        assert "motion_gram" not in _ran(pipe, before) and "solve" in _ran(pipe, before)
+        fresh = Pipeline(cache=StageCache(), alpha=0.05, upper=0.9, **kw)
+        np.testing.assert_allclose(W, fresh.results(["solve"])["solve"]["weights"], rtol=0, atol=1e-9)
+
+
 def test_a_spacetime_change_starts_from_the_last_result_and_gives_a_fresh_pipelines_numbers(monkeypatch):
     """The solve stage's warm start (its last result) is a hint: in no key, and the result is the
     one a fresh pipeline computes cold (issue 30 item 3)."""

@@ -119,3 +119,26 @@ def test_errors(random_basis):
         alpha_for_units(-1.0)
     with pytest.raises(ValueError, match="units"):
         alpha_for_units(1.0, "furlong")
+
+
+def test_the_quadratic_of_the_priors_own_basis_is_the_fitted_one_and_a_refit_replaces_it():
+    """quadratic() of the fitted basis (given as (K, M, 3) or as the (3M, K) matrix) returns the
+    fitted P_, q_, c_ (the solvers ask for it at every solve); another basis is computed; a new
+    fit's quadratic is the new basis's."""
+    r = np.random.default_rng(3)
+    X = r.normal(size=(9, 6, 3))
+    p = PCAPrior().fit(X)
+    R, m = p._factor(X)
+    for basis in (X, flatten(X).T.copy()):
+        P, q, c = p.quadratic(basis)
+        np.testing.assert_allclose(P, R.T @ R, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(q, R.T @ m, rtol=1e-12, atol=1e-14)
+        P[0, 0] = 1e9  # a copy: the prior's own is untouched
+    assert p.P_[0, 0] != 1e9
+    Y = X + r.normal(size=X.shape) * 0.1
+    R2, m2 = p._factor(Y)
+    np.testing.assert_allclose(p.quadratic(Y)[0], R2.T @ R2, rtol=1e-12, atol=1e-14)
+    p.fit(Y)
+    R3, _ = p._factor(Y)
+    np.testing.assert_allclose(p.P_, R3.T @ R3, rtol=1e-12, atol=1e-14)
+    assert not np.allclose(p.quadratic(X)[0], p.P_)

@@ -550,3 +550,24 @@ def test_metrics_literal(real):
     assert wr.high == W.max() and 0 <= wr.outside <= 1
     with pytest.raises(ValueError, match="W: expected"):
         velocity_error(B, W[:3], S)
+
+
+def test_the_solver_given_its_data_products_gives_the_same_numbers():
+    """SpacetimeSolver(products=data_products(...)) (what the pipeline's motion_gram stage keeps
+    across setting changes) solves to the numbers it computes without them, bounded and not,
+    with per-marker weights and missing samples; products of another take are refused."""
+    from core.solvers.spacetime import data_products
+
+    r = np.random.default_rng(5)
+    K, M, T = 6, 9, 40
+    B = r.normal(size=(K, M, 3)) * 1e-2
+    S = np.einsum("tk,kmc->tmc", r.uniform(0, 1, (T, K)), B) + r.normal(size=(T, M, 3)) * 1e-4
+    S[7, 2] = np.nan
+    gam = r.uniform(0.5, 2.0, M)
+    for kw in ({}, {"lower": 0.0, "upper": 1.0, "beta": 0.3}):
+        want = SpacetimeSolver(B, S, alpha=0.05, marker_weights=gam, **kw).solve()
+        pr = data_products(B, S, None, gam)
+        got = SpacetimeSolver(B, S, alpha=0.05, marker_weights=gam, products=pr, **kw).solve()
+        assert np.array_equal(got, want)
+    with pytest.raises(ValueError, match="products"):
+        SpacetimeSolver(B, S[:-1], products=pr)

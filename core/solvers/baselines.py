@@ -138,27 +138,33 @@ def prior_pf(B, S, alpha: float = 0.5, prior=None, valid=None, alpha_units: str 
         factorisation per mask pattern and zero pattern).
     gram : dict, optional
         :func:`data_gram` of the same ``B``, ``S`` and ``valid``: its products are used for the
-        frames with every marker instead of being computed again.
+        frames with every marker instead of being computed again; when those are all of ``S``'s
+        frames, ``S`` and ``valid`` are not read at all (no pass over a long dense take).
 
     Returns
     -------
     (T, K) float
     """
-    Bm, Sz, valid = _setup(B, S, valid)
+    if gram is not None and len(gram["frames"]) == len(S):  # every frame has every marker: all in gram
+        Bm = as_basis(B)
+        T, groups = len(S), [(None, gram["frames"])]
+    else:
+        Bm, Sz, valid = _setup(B, S, valid)
+        T, groups = len(Sz), _groups(valid)
     K = Bm.shape[1]
     a = alpha_for_units(alpha, alpha_units)
     if a > 0:
         P, q, _ = prior_quadratic(prior, Bm, K)
     else:
         P, q = np.zeros((K, K)), np.zeros(K)
-    W = np.zeros((len(Sz), K))
+    W = np.zeros((T, K))
     # sigma_max(B)^2 (an SVD) only scales the relative ridge and coupling: not computed without them
     smax2 = (gram["smax2"] if gram is not None else _smax2(Bm)) if ridge > 0 or quadratic is not None else 0.0
     rho = ridge * smax2
     Qs = as_coupling(quadratic, K, smax2, "prior_pf")
-    zero = as_zero_mask(zero, len(Sz), K, "prior_pf")
-    for pat, frames in _groups(valid):
-        if pat.all() and gram is not None and np.array_equal(gram["frames"], frames):
+    zero = as_zero_mask(zero, T, K, "prior_pf")
+    for pat, frames in groups:
+        if pat is None or (pat.all() and gram is not None and np.array_equal(gram["frames"], frames)):
             H0, S0 = gram["H"], gram["rhs"]
         else:
             if pat.all():  # every marker: no copies of the take (with 1,000 dense points, 2 x 24 MB per solve)

@@ -100,7 +100,7 @@ from core.solvers.inputs import (as_basis, as_bounds, as_coupling, as_nonnegativ
                                  as_valid, zero_filled)
 
 __all__ = [
-    "SpacetimeSolver", "solve_spacetime", "RangeSystem", "PoseEdit", "SpacetimeEnergy", "known_matrix", "known_rows",
+    "SpacetimeSolver", "solve_spacetime", "data_products", "DataProducts", "RangeSystem", "PoseEdit", "SpacetimeEnergy", "known_matrix", "known_rows",
 ]
 
 #: relative ridge used by ``ridge="auto"`` when ``B`` is rank deficient (times sigma_max(B)^2)
@@ -685,6 +685,47 @@ class RangeSystem:
 
 
 # -- the solver -------------------------------------------------------------------------------
+class DataProducts(NamedTuple):
+    """What :class:`SpacetimeSolver` makes of ``B``, ``S``, ``valid`` and the marker weights alone
+    (:func:`data_products`): the inputs normalised and their products in weight space."""
+
+    B: np.ndarray       # (3M, K)
+    S3: np.ndarray      # (T, M, 3) as given (NaN kept)
+    S: np.ndarray       # (T, 3M) zero-filled
+    valid: np.ndarray   # (T, M) bool
+    gamma: np.ndarray   # (M,) marker weights
+    A: np.ndarray       # (K, K) B^T B
+    G: np.ndarray       # (K, K) B^T Gamma B
+    SB: np.ndarray      # (T, K) S_t B
+    SGB: np.ndarray     # (T, K) (Gamma S_t) B
+    sig: np.ndarray     # singular values of B
+
+
+def data_products(B, S, valid=None, marker_weights=None) -> DataProducts:
+    """The spacetime problem's data in weight space: everything :class:`SpacetimeSolver` computes
+    from the markers that alpha, beta, the bounds and the other settings do not change.
+
+    The data terms' gradients and right-hand sides need only ``S_t B`` and ``(Gamma S_t) B``
+    (T, K) and ``A``, ``G`` (K x K) on a frame with every marker, so the iterations of a bounded
+    solve never touch the (T, 3M) marker space again (1,000 dense points: 3,000 numbers a frame
+    instead of K); frames with missing markers use it exactly. With 1,000 dense points and 1,000
+    frames these products and the SVD of ``B`` are ~0.1 s, most of a solver's construction: the
+    pipeline makes them once per take and rig (the ``motion_gram`` stage) and passes them as
+    ``SpacetimeSolver(products=...)``."""
+    Bm = as_basis(B)
+    n3, K = Bm.shape
+    M = n3 // 3
+    S3 = as_sequence(S, M)
+    valid = as_valid(valid, S3)
+    Sz = zero_filled(S3, valid)
+    gam = np.ones(M) if marker_weights is None else as_nonnegative(marker_weights, (M,), "marker_weights")
+    g3 = np.repeat(gam, 3)
+    SB = Sz @ Bm
+    SGB = gam[0] * SB if np.ptp(gam) == 0 else (Sz * g3) @ Bm
+    return DataProducts(Bm, S3, Sz, valid, gam, Bm.T @ Bm, Bm.T @ (g3[:, None] * Bm), SB, SGB,
+                        np.linalg.svd(Bm, compute_uv=False))
+
+
 class SpacetimeSolver:
     """Precomputed spacetime retargeting problem (Seol et al. 2012, eq. 2, 4, 5 and §7.1).
 
@@ -748,6 +789,10 @@ class SpacetimeSolver:
     quadratic : (K, K) float, optional (keyword only)
         Relative symmetric PSD ``Q``: ``sigma_max(B)^2 sum_t w_t^T Q w_t`` is added (joins ``C``,
         see the module docstring), e.g. :func:`core.controls.symmetry_matrix`. None: none.
+    products : DataProducts, optional (keyword only)
+        :func:`data_products` of the same ``B``, ``S``, ``valid`` and ``marker_weights``: the
+        products with the take that no other setting changes, made once (the pipeline's
+        ``motion_gram`` stage) instead of per solver (the same numbers). Default: made here.
 
     Attributes
     ----------
@@ -777,14 +822,18 @@ class SpacetimeSolver:
                  boundary="neutral", valid=None, marker_weights=None, frame_weights=None,
                  alpha_units: str = "cm", ridge="auto", names=None, method: str = "auto", *,
                  lower=None, upper=None, l1=0.0, name_target=None, name_weight=0.0, tol: float = KKT_RTOL,
-                 quadratic=None):
-        Bm = as_basis(B)
+                 quadratic=None, products=None):
+        if products is None:
+            products = data_products(B, S, valid, marker_weights)
+        elif not isinstance(products, DataProducts):
+            raise ValueError(f"products: expected the DataProducts of data_products(), got {type(products).__name__}")
+        Bm, S3, self.valid_ = products.B, products.S3, products.valid
         n3, K = Bm.shape
         M = n3 // 3
-        S3 = as_sequence(S, M)
         T = len(S3)
-        self.valid_ = as_valid(valid, S3)
-        self._S = zero_filled(S3, self.valid_)
+        if np.shape(S) != S3.shape or np.size(B) != Bm.size:
+            raise ValueError(f"products: made for B {Bm.shape} and S {S3.shape}, given {np.shape(B)} and {np.shape(S)}")
+        self._S = products.S
         self._holes = not self.valid_.all()
         self.T, self.K, self.M = T, K, M
         self._B = Bm
@@ -793,7 +842,7 @@ class SpacetimeSolver:
         if not np.isfinite(beta) or beta < 0:
             raise ValueError(f"beta must be a finite number >= 0, got {beta}")
         self.beta = beta
-        gam = np.ones(M) if marker_weights is None else as_nonnegative(marker_weights, (M,), "marker_weights")
+        gam = products.gamma
         fw = np.ones(T) if frame_weights is None else as_nonnegative(frame_weights, (T,), "frame_weights")
         self._gamma3 = np.repeat(gam, 3)
         self._bt = beta * fw  # per-frame Sobolev weight beta * f_t
@@ -807,22 +856,16 @@ class SpacetimeSolver:
         self.names = names
         self._known = known_rows(known, T, K, boundary)
 
-        A = Bm.T @ Bm
+        A = products.A
         self._A = A
         if self.alpha_ > 0:
             self.P_, self.q_, self._c = prior_quadratic(prior, Bm, K)
         else:
             self.P_, self.q_, self._c = np.zeros((K, K)), np.zeros(K), 0.0
-        self._G = Bm.T @ (self._gamma3[:, None] * Bm)
-        # the data in weight space, S_t B and (gamma S_t) B (T, K): on a frame with every marker the
-        # data terms' gradients and right-hand sides need only these and A, G (K x K), so the
-        # iterations of a bounded solve never touch the (T, 3M) marker space again (1,000 dense
-        # points: 3,000 numbers a frame instead of K); frames with missing markers use it exactly
-        self._SB = self._S @ Bm
-        self._SGB = gam[0] * self._SB if np.ptp(gam) == 0 else (self._S * self._gamma3) @ Bm
+        self._G, self._SB, self._SGB = products.G, products.SB, products.SGB
         self._full_ = self.valid_.all(1)  # (T,) frames with every marker
 
-        sig = np.linalg.svd(Bm, compute_uv=False)
+        sig = products.sig
         smax2 = float(sig[0] ** 2) if sig.size and sig[0] > 0 else 1.0
         deficient = K > n3 or sig[-1] <= max(n3, K) * np.finfo(float).eps * sig[0]
         if isinstance(ridge, str):

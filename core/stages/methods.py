@@ -423,15 +423,22 @@ def _prior_pf_frames(inputs, s, frames):
     """Prior PF (the weighted data term, the unweighted markers' prior) on a few frames (all of
     them: with the ``gram`` stage's products of the data term, when it ran)."""
 
-    B, S, valid = weighted_markers(inputs)
     gram = inputs.get("gram") if isinstance(frames, slice) and frames == slice(None) else None
+    B, S, valid = _markers(inputs)
+    S, valid = S[frames], valid[frames]  # (weighted_markers, on the frames solved only)
+    w = _marker_weights(inputs)
+    if w is not None:
+        r = np.sqrt(w)[:, None]
+        B = B * r[None]
+        if gram is None or len(gram["frames"]) != len(S):  # else prior_pf reads no frame of S (gram has them all)
+            S = S * r[None]
     prior = _prior(inputs)
     if _marker_weights(inputs) is not None and prior is not None:
         B0 = _markers(inputs)[0]
         P, q, _ = prior_quadratic(prior, flatten(B0).T, len(B0))
         prior = (P, q)
     zero = s.zero if s.zero is None or np.ndim(s.zero) == 1 else np.asarray(s.zero)[frames]
-    return baselines.prior_pf(B, S[frames], s.alpha, prior, valid[frames], ridge=s.ridge, quadratic=s.quadratic, zero=zero,
+    return baselines.prior_pf(B, S, s.alpha, prior, valid, ridge=s.ridge, quadratic=s.quadratic, zero=zero,
                               gram=gram)
 
 
@@ -442,8 +449,15 @@ def _prior_pf(inputs, s):
     return {"weights": _prior_pf_frames(inputs, s, slice(None)), "edit": edit_options(s)}
 
 
+def _products(inputs, S):
+    """The ``motion_gram`` stage's products when it ran on this very take (``S`` the array the
+    solver gets: not a re-sculpted copy of the inputs), else None (the solver makes them)."""
+    pr = (inputs.get("motion_gram") or {}).get("products")
+    return pr if pr is not None and pr.S3 is S else None
+
+
 @solve_method("spacetime", params=("alpha", "beta", "boundary", "ridge", "spacetime_bounds", "lower", "upper", "l1",
-                                   "name_weight"), needs=("prior",), honours=("bounds", "active", "symmetry", "cancel"),
+                                   "name_weight"), needs=("prior", "motion_gram"), honours=("bounds", "active", "symmetry", "cancel"),
               warm=True, label='spacetime — the whole take at once (Seol 2012)')
 def _spacetime(inputs, s, warm=None):
     """Seol 2012 movement matching + PCA prior (+ Sobolev), the whole take at once; by default
@@ -464,7 +478,7 @@ def _spacetime(inputs, s, warm=None):
                              boundary="none" if s.boundary == "none" else "neutral", valid=valid,
                              ridge=s.ridge if s.ridge > 0 else "auto", lower=lo, upper=hi, l1=s.l1, marker_weights=mw,
                              name_target=named, name_weight=s.name_weight if named is not None else 0.0,
-                             quadratic=s.quadratic)
+                             quadratic=s.quadratic, products=_products(inputs, S))
     W = solver.solve(zero=s.zero, warm=warm)  # the bounded solve starts there (same result)
     info = {"path": solver.method_}
     if getattr(solver, "info_", None):

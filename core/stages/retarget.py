@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import difflib
 import functools
+import json
 import os
 import warnings
 from dataclasses import replace
@@ -42,7 +43,7 @@ from ..segment import marker_weights, segment
 from ..shot import file_hash
 from ..solvers.baselines import data_gram
 from ..solvers.local import masks_at
-from ..solvers.spacetime import PoseEdit, SpacetimeSolver
+from ..solvers.spacetime import PoseEdit, SpacetimeSolver, data_products
 from ..stage import Stage, register
 from .methods import AUTO_MOTION_SCALE, METHODS, method_of, named_target, names_carry, weighted_markers
 
@@ -372,7 +373,10 @@ class Stabilize(Stage):
                             min(s.neutral_frame, src.n_frames - 1))
         names = inputs["shapes"]["names"]
         idx = [sm.names.index(n) for n in names]
-        sm = replace(sm, deltas=sm.deltas[:, idx], valid=sm.valid[:, idx], neutral=sm.neutral[idx], names=tuple(names))
+        # frame-major and contiguous: every stage after reads the take as (T, 3M) rows, and the fancy
+        # index leaves the markers outermost in memory (each reshape of a dense take was a 24 MB copy)
+        sm = replace(sm, deltas=np.ascontiguousarray(sm.deltas[:, idx]), valid=np.ascontiguousarray(sm.valid[:, idx]),
+                     neutral=sm.neutral[idx], names=tuple(names))
         return {"source": sm, "names": tuple(names)}
 
 
@@ -579,13 +583,32 @@ class Gram(Stage):
         return data_gram(*weighted_markers(inputs))
 
 
+@register("motion_gram")
+class MotionGram(Stage):
+    """The spacetime energy's data in weight space (:func:`core.solvers.spacetime.data_products`
+    of the markers the solvers fit): like ``gram`` it depends on the take and the rig, not on
+    alpha, beta or the bounds, so a setting change builds its solver without the products with
+    the whole take and the SVD of the rig's marker matrix (1,000 frames x 1,000 dense points:
+    ~0.1 s of every spacetime solve). For the methods that declare it (``needs``)."""
+
+    deps = ("calibrate", "personalize", "shapes")
+
+    def active(self, cfg):
+        return "motion_gram" in method_of(cfg).needs
+
+    def run(self, inputs, s, progress=None):
+        from .methods import _marker_weights, _markers
+
+        return {"products": data_products(*_markers(inputs), _marker_weights(inputs))}
+
+
 @register("solve")
 class Solve(Stage):
     """The retargeting solver and its term weights. Each method is registered in
     :mod:`core.stages.methods` with the settings it reads and the stages it needs."""
 
     deps = ("load", "correspond", "frames", "stabilize", "calibrate", "personalize", "shapes", "segment", "prior",
-            "vocabulary", "gram", "dense_correspondence")
+            "vocabulary", "gram", "motion_gram", "dense_correspondence")
     group, title = "solve", "Solver"
     method = param.Selector(label='Method', default="auto", objects={m.label: n for n, m in METHODS.items()}, doc=(
         "auto: what serves this pair and take best, said in one sentence (the default); lsq: per-frame least squares (unregularised diagnostic); bounded: per-frame with lower<=w<=upper; "
@@ -675,7 +698,7 @@ class Solve(Stage):
     def run(self, inputs, s, progress=None, warm=None):
         m = METHODS[s.method]
         names = list(inputs["shapes"]["rig"].names)
-        ctl = resolve(merge_table(s.controls or {}, default_table(names, s.lower, s.upper)), names)
+        ctl = _controls(json.dumps(s.controls or {}, sort_keys=True), tuple(names), float(s.lower), float(s.upper))
         lo, hi = ctl.bounds()
         sym = None
         if "symmetry" in m.honours and s.symmetry_weight > 0 and len(ctl.symmetry):
@@ -699,6 +722,19 @@ class Solve(Stage):
                   {"min_cutoff": s.filter_min_cutoff, "beta": s.filter_beta})
             W = filter_weights(np.nan_to_num(W), fps, s.weights_filter, **kw)
         return {"weights": W, "method": m.name, "info": info, "edit": out["edit"], "controls": ctl}
+
+
+@functools.lru_cache(maxsize=16)
+def _controls(table_json: str, names: tuple, lower: float, upper: float):
+    """The per-shape controls a solve runs with: the user's table over the rig's defaults, resolved.
+    A pure function of its arguments, remembered: the defaults' symmetry pairs are matched by name
+    each time (10-25 ms), and an alpha change would pay it again for the same table and rig. The
+    arrays are read-only (one object serves every result made with this table)."""
+    ctl = resolve(merge_table(json.loads(table_json), default_table(names, lower, upper)), names)
+    for v in vars(ctl).values():
+        if isinstance(v, np.ndarray):
+            v.setflags(write=False)
+    return ctl
 
 
 def edited_poses(W, names, edits) -> list:
@@ -849,7 +885,7 @@ class Edit(Stage):
 
 @register("synthesize")
 class Synthesize(Stage):
-    """Weights for every shape of the target rig and the target markers.
+    """Weights for every shape of the target rig.
 
     Shapes the solver did not use (``target_shapes``, shapes no marker sees) stay at zero.
     Frames the solver could not determine (no marker sample: tracking loss) are gaps: they are
@@ -864,7 +900,6 @@ class Synthesize(Stage):
 
     def run(self, inputs, s, progress=None):
         cal = inputs["calibrate"]
-        tm = cal["target"]
         Wsub = np.asarray(inputs["edit"]["weights"], dtype=np.float64)
         st = inputs["stabilize"]["source"]
         valid = np.isfinite(Wsub).all(1) & st.valid.any(1)
@@ -872,12 +907,13 @@ class Synthesize(Stage):
         ctl = inputs["solve"]["controls"]
         if (ctl.gain != 1).any() or (ctl.offset != 0).any():  # the per-shape remap, after the solve (clamped)
             Wfill = ctl.remap(Wfill)
-        markers = tm.neutral[None] + (Wfill @ tm.deltas.reshape(len(tm.deltas), -1)).reshape((len(Wfill),) + tm.neutral.shape)
+        # (no target marker positions here: nothing read them, and with dense correspondence their
+        # (T, 3M) product was a third of a setting change; B w_t is evaluate's residual)
         full = np.zeros((len(Wsub), inputs["load"]["target_rig"].n_shapes))
         full[:, cal["shape_index"]] = Wfill
         raw = np.zeros_like(full)
         raw[:, cal["shape_index"]] = np.where(valid[:, None], Wsub, np.nan)
-        return {"target_markers": markers, "weights": full, "raw": raw, "valid": valid}
+        return {"weights": full, "raw": raw, "valid": valid}
 
 
 @register("evaluate")

@@ -40,7 +40,7 @@ class Snapshot(Stage):
             "first_frame": inputs["frames"]["first"], "target_rig": ld["target_rig"],
             "target_names": list(ld["target_rig"].names), "source_rig": ld["source_rig"],
             "source_weights": st.source_weights, "source_markers": st.positions,
-            "target_markers": syn["target_markers"], "marker_names": list(st.names),
+            "marker_names": list(st.names),
             # the points the faces are compared at: the markers, or dense correspondence's face points
             "target_layout": inputs["shapes"]["layout"].select(tm.names),
             "source_layout": (inputs["correspond"]["source_layout"].select(tm.names)
