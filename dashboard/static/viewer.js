@@ -71,7 +71,7 @@ const DRAG_PX = 4; // a pointer that moves less than this between down and up is
 // Streamed drawing keeps up by drawing fewer pixels, as games do: a drawn frame's cost is the time
 // from its animation frame to the next one (the page's main thread waits there for the GPU to
 // draw the canvases: software WebGL reads them back); when the frames a view drew cost more than
-// STREAM_FRAME_MS on average, the next render scale of RENDER_SCALES is used (the view says so),
+// STREAM_FRAME_MS (+3 %) on average, the next render scale of RENDER_SCALES is used (the view says so),
 // and one step back up after SCALE_UP_WINDOWS windows in a row well within it. Every frame drawn
 // is a new frame of the stream, at that resolution. (SwiftShader's draw of the two live meshes is
 // most of a frame here; docs/live.md.)
@@ -83,7 +83,7 @@ const SCALE_UP_WINDOWS = 4;   // windows in a row under 0.6 x STREAM_FRAME_MS be
 // The render scale step after a window of streamed draws: `frameMs` their mean cost, `good` the
 // windows in a row that had headroom. Returns [step, good].
 function nextScaleStep(step, frameMs, good) {
-  if (frameMs > 1.1 * STREAM_FRAME_MS) return [Math.min(step + 1, RENDER_SCALES.length - 1), 0];
+  if (frameMs > 1.03 * STREAM_FRAME_MS) return [Math.min(step + 1, RENDER_SCALES.length - 1), 0];
   if (frameMs < 0.6 * STREAM_FRAME_MS) {
     good += 1;
     if (step > 0 && good >= SCALE_UP_WINDOWS) return [step - 1, 0];
