@@ -5,10 +5,13 @@ the Live tab listening on 127.0.0.1, the S07 take sent to it as Live Link Face p
 both live views (ICT FaceKit source, 14,629 vertices, 53 shapes; Rocketbox target) draw the
 streamed weights. Per-frame time = measured seconds / frames drawn (mean of the two views).
 
-* ours: the viewer as shipped (viewer.js ``blendCpu``: streamed weights blended incrementally
-  over the changed shapes' supports, drawn in the animation frame they are blended in).
+* ours: the page as shipped (each frame sent to the page as the server answers it; viewer.js
+  ``blendCpu``: streamed weights blended incrementally over the changed shapes' supports, drawn
+  in the animation frame they are blended in, at the render scale the view's frame cost calls
+  for: ``frameCost``).
 * ref: the same page and stream with ``window.__faceRetargetFullBlend = true``: every frame
-  re-blended from scratch over the dense deltas (the blend before issue 31's change).
+  re-blended from scratch over the dense deltas (the blend before issue 31's change; the render
+  scale adapts in both).
 
 The two alternate in the same page (ours, ref, ours, ref; WINDOW_S each) so that the machine's
 load (``load1``; 2 cores shared by several agents) weighs on both alike. Extra keys: the JS
@@ -18,7 +21,8 @@ the dense blend from scratch: viewer.js ``benchBlend``), the page's own animatio
 per second (``page_fps``: what the browser could draw at all; each frame waits on SwiftShader,
 whose drawing of the two meshes is most of a frame, see ``tests/artifacts/live_tab.json``), and
 the weight messages each view received per second from the server (``messages_per_s``: a view
-cannot draw more new frames than that).
+cannot draw more new frames than that), and ``scales``: the share of ours' drawn frames at each
+render scale (1, 0.75, 0.5; every one a new frame of the stream).
 
 Run: ``python benchmarks/bench_live_page.py`` (needs /usr/bin/chromium and ``npm ci``).
 """
@@ -89,7 +93,12 @@ def _window(page, full: bool) -> dict:
     elapsed = time.monotonic() - t0
     live = [s for k, s in stats.items() if k.startswith("live ")]
     draws = sum(s.get("streamDraws", 0) for s in live)
-    return {"elapsed": elapsed, "draws": draws / len(live), "page_frames": frames,
+    scales = {}
+    for s in live:
+        for k, n in s.items():
+            if k.startswith("draws@"):
+                scales[k[6:]] = scales.get(k[6:], 0) + n
+    return {"elapsed": elapsed, "draws": draws / len(live), "page_frames": frames, "scales": scales,
             "messages": sum(s.get("streamed", 0) for s in live) / len(live),
             "blend_ms": sum(s.get("blendMs", 0) for s in live) / max(draws / len(live), 1)}
 
@@ -154,9 +163,14 @@ def main():
     ref_blend = sum(b["ref"] for b in blends.values())
     page_fps = sum(r["page_frames"] for r in runs[False]) / sum(r["elapsed"] for r in runs[False])
     msgs = sum(r["messages"] for r in runs[False]) / sum(r["elapsed"] for r in runs[False])
+    drawn = {}
+    for r in runs[False]:
+        for k, n in r["scales"].items():
+            drawn[k] = drawn.get(k, 0) + n
+    scales = "/".join(f"{k}:{n / max(sum(drawn.values()), 1):.2f}" for k, n in sorted(drawn.items(), reverse=True) if n)
     print(f"BENCH live_page_fps ours_s={ours:.4f} ref_s={ref:.4f} ratio={ref / ours:.2f} fps={1 / ours:.1f} "
           f"ref_fps={1 / ref:.1f} blend_ms={blend:.2f} ref_blend_ms={ref_blend:.2f} page_fps={page_fps:.1f} "
-          f"messages_per_s={msgs:.1f} "
+          f"messages_per_s={msgs:.1f} scales={scales or 'none'} "
           f"windows={ROUNDS}x{WINDOW_S:.0f}s load1={os.getloadavg()[0]:.1f} views=ict_facekit+rocketbox stream=60Hz "
           f"ref=full-dense-blend-every-frame", flush=True)
 

@@ -3,9 +3,13 @@ source and target rigs; the incoming rate, dropped and bad packets; Record, whos
 the shot's take (so the offline methods can refine them afterwards).
 
 The view holds no numerics: :class:`core.live.LiveRetargeter` is built from the page's
-pipeline, :func:`core.live.listen` runs in a thread, and a periodic callback of the page pushes
-the latest frame's weights to the two viewers (``MeshViewer.stream_weights``: a message of a few
-hundred bytes per update, the K float32 as one base64 string) and the counts to the status line.
+pipeline and :func:`core.live.listen` runs in a thread. Each frame it answers is sent to the two
+viewers as it comes (``MeshViewer.stream_weights``: a message of a few hundred bytes, the K
+float32 as one base64 string), on the page's event loop: the listener thread schedules one send
+(``Document.add_next_tick_callback``, Bokeh's thread-safe entry) unless one is pending, and the
+send takes the latest frame. A 16 ms timer polling for new frames sent only 25-39 of the 60 a
+second (its ticks drift against the stream's, and a late tick skips a frame), so the page had no
+new frame to draw at a third of its animation frames. A periodic callback updates the counts.
 """
 
 from __future__ import annotations
@@ -25,8 +29,8 @@ from core.live import LiveRetargeter, LiveSession, listen, parse_address
 from dashboard.viewer import MeshViewer
 
 VIEW_HEIGHT = 400
-#: how often the page draws the latest frame (ms): 60 Hz, the app's rate
-PUSH_MS = 16
+#: how often the status line's counts are refreshed (ms); frames are sent as they come
+STATUS_MS = 250
 
 
 class LiveView(pn.viewable.Viewer):
@@ -60,6 +64,8 @@ class LiveView(pn.viewable.Viewer):
         self._latest = None
         self._shown = None
         self._callback = None
+        self._doc = None         # the page's document: frames are sent on its event loop
+        self._scheduled = False  # a send of the latest frame is pending on that loop
         self._rate = (time.monotonic(), 0, 0.0)
         self.bound = None
         self.push_ms = 0.0
@@ -105,11 +111,12 @@ class LiveView(pn.viewable.Viewer):
         ready.wait(10)
         if failed:
             raise ValueError(f"cannot listen on {host}:{port}: {failed[0]}")
-        if pn.state.curdoc is not None and self._callback is None:
+        self._doc = pn.state.curdoc
+        if self._doc is not None and self._callback is None:
             # background: not counted as the app being busy (pn.state.add_periodic_callback's
             # callbacks set state.busy on and off at every call: the template's busy indicator
-            # changed twice per push, 120 model updates a second to the page); no log line per call
-            self._callback = PeriodicCallback(callback=self.push, period=PUSH_MS, background=True, log=False)
+            # changed twice per call, 120 model updates a second to the page); no log line per call
+            self._callback = PeriodicCallback(callback=self.push, period=STATUS_MS, background=True, log=False)
             self._callback.start()
         self.w_record.disabled = False
         self._rate = (time.monotonic(), 0, 0.0)
@@ -138,7 +145,21 @@ class LiveView(pn.viewable.Viewer):
             self.stop()
 
     def _on_frame(self, frame, latency):
-        self._latest = frame  # the listener thread; the page draws it at its own pace (push)
+        """The listener thread: keep the frame, and have the page's loop send the latest one
+        (one pending send at most: frames that come faster than the loop sends are skipped)."""
+        self._latest = frame
+        doc = self._doc
+        if doc is None or self._scheduled:
+            return
+        self._scheduled = True
+        try:
+            doc.add_next_tick_callback(self._send_latest)
+        except Exception:  # noqa: BLE001 - the page's session is gone; stop() follows
+            self._scheduled = False
+
+    def _send_latest(self) -> None:
+        self._scheduled = False  # before reading the frame: one that comes meanwhile schedules again
+        self.draw_latest()
 
     def _viewers(self, source_rig, source_layout, target_rig, target_layout) -> None:
         zeros = lambda rig: np.zeros((1, rig.n_shapes), np.float32)  # noqa: E731
@@ -151,8 +172,8 @@ class LiveView(pn.viewable.Viewer):
         self.source_box[:] = [self.source_viewer]
         self.target_box[:] = [self.target_viewer]
 
-    def push(self) -> None:
-        """Draw the latest frame (if new) and, twice a second, the counts."""
+    def draw_latest(self) -> None:
+        """Send the latest frame to the two viewers, if it is new."""
         f = self._latest
         if f is not None and f is not self._shown and self.target_viewer is not None:
             self._shown = f
@@ -163,6 +184,10 @@ class LiveView(pn.viewable.Viewer):
                     self.source_viewer.stream_weights(np.clip(self.rt.source_weights(f.values), -1.0, 2.0))
             self.push_ms = 1e3 * (time.perf_counter() - t)
             self.pushes += 1
+
+    def push(self) -> None:
+        """Draw the latest frame (if new) and, twice a second, the counts."""
+        self.draw_latest()
         t0, n0, rate = self._rate
         now = time.monotonic()
         if self.session is not None and now - t0 >= 0.5:

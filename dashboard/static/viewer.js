@@ -57,6 +57,7 @@ if (!STATS.reset) {
       // the streamed path's profile (drawStreamed, blendCpu, the message handler)
       s.streamed = 0; s.messageMs = 0; s.streamDraws = 0; s.streamDrawMs = 0;
       s.blendMs = 0; s.fullBlends = 0; s.incrementalBlends = 0; s.blendShapes = 0; s.deferredShapes = 0;
+      for (const k of Object.keys(s)) if (k.startsWith("draws@")) s[k] = 0; // streamed draws per render scale
       s.t0 = performance.now();
     }
   };
@@ -67,6 +68,31 @@ const REBLEND_EVERY = 60; // incremental JS blends between two blends from scrat
 const DEFER_TOL = 1e-4;         // streamed blend: deferred changes move a coordinate < this x size
 const DEFER_TOL_NORMAL = 1e-3;  // ... and a normal's coordinate < this (normals are unit vectors)
 const DRAG_PX = 4; // a pointer that moves less than this between down and up is a click
+// Streamed drawing keeps up by drawing fewer pixels, as games do: a drawn frame's cost is the time
+// from its animation frame to the next one (the page's main thread waits there for the GPU to
+// draw the canvases: software WebGL reads them back); when the frames a view drew cost more than
+// STREAM_FRAME_MS (+3 %) on average, the next render scale of RENDER_SCALES is used (the view says so),
+// and one step back up after SCALE_UP_WINDOWS windows in a row well within it. Every frame drawn
+// is a new frame of the stream, at that resolution. (SwiftShader's draw of the two live meshes is
+// most of a frame here; docs/live.md.)
+const STREAM_FRAME_MS = 1000 / 30;
+const RENDER_SCALES = [1, 0.75, 0.5];
+const SCALE_WINDOW = 15;      // streamed draws per decision
+const SCALE_UP_WINDOWS = 4;   // windows in a row under 0.6 x STREAM_FRAME_MS before scaling back up
+
+// The render scale step after a window of streamed draws: `frameMs` their mean cost, `good` the
+// windows in a row that had headroom. Returns [step, good].
+function nextScaleStep(step, frameMs, good) {
+  if (frameMs > 1.03 * STREAM_FRAME_MS) return [Math.min(step + 1, RENDER_SCALES.length - 1), 0];
+  if (frameMs < 0.6 * STREAM_FRAME_MS) {
+    good += 1;
+    if (step > 0 && good >= SCALE_UP_WINDOWS) return [step - 1, 0];
+    return [step, good];
+  }
+  return [step, 0];
+}
+REGISTRY.nextScaleStep = nextScaleStep; // the streamed drawing's resolution rule (tested alone)
+REGISTRY.renderScales = RENDER_SCALES;
 
 // ---------------------------------------------------------------------------------------
 // A playback clock shared by the viewers of one sync group (or private to one viewer).
@@ -442,7 +468,10 @@ class Viewer {
     this.el.replaceChildren(this.root);
     this.renderer = new THREE.WebGLRenderer({ canvas: this.canvas, antialias: false, alpha: false,
                                               powerPreference: "high-performance" });
-    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    this.pixelRatio = Math.min(window.devicePixelRatio || 1, 2);
+    this.renderer.setPixelRatio(this.pixelRatio);
+    this.scaleStep = 0;  // RENDER_SCALES[scaleStep]: streamed drawing's resolution
+    this.scaleWin = null; // the current window of streamed draws {t0, draws, messages, good}
     this.resizeObserver = new ResizeObserver(() => this.resize());
     this.resizeObserver.observe(this.root);
     this.visible = true;
@@ -1136,7 +1165,7 @@ class Viewer {
     this.updateMarkers(cur, frame);
     this.updateHighlight();
     const T = this.nFrames;
-    this.overlay.textContent = `${this.model.label || ""}  frame ${frame} / ${T - 1}` +
+    this.overlay.textContent = `${this.model.label || ""}  frame ${frame} / ${T - 1}` + this.scaleNote() +
       (this.override ? "  (probe)" : (this.model.weights && this.model.weights.length ? "  (weights from Python)" : "")) +
       (!this.override && this.isGap(frame) ? "  — no tracking data at this frame (filled in)" : "") +
       (this.stats.geometryError ? `  — the mesh could not be loaded (${this.stats.geometryError}); reload the page` : "") +
@@ -1270,6 +1299,13 @@ class Viewer {
     if (this.model.playing) { this.reporting = true; try { this.model.playing = false; } finally { this.reporting = false; } }
   }
 
+  // Back from streamed weights to the model's weights or track: full resolution again.
+  endStream() {
+    this.streamed = null;
+    this.scaleWin = null;
+    this.setScaleStep(0);
+  }
+
   // Streamed weights (K numbers) kept in one buffer per view, drawn at the next animation frame.
   receiveStreamed(weights) {
     const t = performance.now();
@@ -1279,21 +1315,58 @@ class Viewer {
     st.streamed = (st.streamed || 0) + 1;
     st.messageMs = (st.messageMs || 0) + performance.now() - t;
     if (!this.visible) { this.streamHidden = true; return; }
-    if (!this.streamPending) this.streamPending = requestAnimationFrame(() => this.drawStreamed());
+    if (!this.streamPending) this.streamPending = requestAnimationFrame((t) => this.drawStreamed(t));
   }
 
   // -- rendering ---------------------------------------------------------------------------
   // The latest streamed weights, blended and drawn in this animation frame (one draw).
-  drawStreamed() {
+  drawStreamed(frameTime) {
     this.streamPending = null;
     if (this.disposed) return;
     const t = performance.now();
+    if (frameTime !== undefined) requestAnimationFrame((next) => this.frameCost(next - frameTime));
     this.applyFrame(this.clock.frame);
     if (this.pendingRender !== null) { cancelAnimationFrame(this.pendingRender); this.pendingRender = null; }
     this.renderNow();
+    // hand the draw to the GPU now, not at the end of the animation frame: SwiftShader draws this
+    // view while the next view blends
+    this.renderer.getContext().flush();
     const st = this.stats;
     st.streamDraws = (st.streamDraws || 0) + 1;
+    const key = `draws@${RENDER_SCALES[this.scaleStep]}`;
+    st[key] = (st[key] || 0) + 1;
     st.streamDrawMs = (st.streamDrawMs || 0) + performance.now() - t;
+  }
+
+  // A streamed draw's frame cost `ms` into the window; at its end, pick the render scale
+  // (nextScaleStep) and start the next window.
+  frameCost(ms) {
+    if (this.disposed || !this.streamed) return;
+    const win = this.scaleWin || (this.scaleWin = { draws: 0, ms: 0, good: 0 });
+    win.draws += 1;
+    win.ms += ms;
+    if (win.draws < SCALE_WINDOW) return;
+    this.frameMs = win.ms / win.draws;
+    // window.__faceRetargetRenderScale = one of RENDER_SCALES pins it (comparisons in one page)
+    const pin = RENDER_SCALES.indexOf(window.__faceRetargetRenderScale);
+    const [step, good] = pin >= 0 ? [pin, 0] : nextScaleStep(this.scaleStep, this.frameMs, win.good);
+    this.setScaleStep(step);
+    this.scaleWin = { draws: 0, ms: 0, good };
+  }
+
+  setScaleStep(step) {
+    if (step === this.scaleStep) return;
+    this.scaleStep = step;
+    this.stats.scaleChanges = (this.stats.scaleChanges || 0) + 1;
+    this.renderer.setPixelRatio(this.pixelRatio * RENDER_SCALES[step]);
+    if (this.width) this.renderer.setSize(this.width, this.height, false);
+  }
+
+  // What the overlay says about the streamed drawing's resolution ("" at full resolution).
+  scaleNote() {
+    if (!this.scaleStep) return "";
+    return `  · drawn at ${Math.round(100 * RENDER_SCALES[this.scaleStep])}% resolution to keep up with the stream ` +
+      `(its frames took ${Math.round(this.frameMs)} ms)`;
   }
 
   // Shown on the page or not (a tab not selected, scrolled away): streamed weights and playback
@@ -1308,7 +1381,7 @@ class Viewer {
     }
     if (on && this.streamHidden && !this.disposed) {
       this.streamHidden = false;
-      if (!this.streamPending) this.streamPending = requestAnimationFrame(() => this.drawStreamed());
+      if (!this.streamPending) this.streamPending = requestAnimationFrame((t) => this.drawStreamed(t));
     }
   }
 
@@ -1474,7 +1547,7 @@ class Viewer {
     m.on("playing", () => { if (!this.reporting) this.clock.play(m.playing); });
     m.on("fps", () => this.clock.setFps(m.fps));
     m.on("loop", () => { this.clock.loop = m.loop; });
-    m.on("weights", () => { this.streamed = null; this.applyFrame(this.clock.frame); this.requestRender(); });
+    m.on("weights", () => { this.endStream(); this.applyFrame(this.clock.frame); this.requestRender(); });
     // weights streamed as messages (a live stream: MeshViewer.stream_weights: K float32,
     // little-endian, base64), shown at once, decoded into buffers kept per view (no typed-array
     // allocation per message); blended and drawn at most once per
@@ -1541,6 +1614,9 @@ class Viewer {
         return { positions: Array.from(P), normals: Array.from(Nn) };
       },
       visible: () => this.visible,
+      // the streamed drawing's render scale now (adaptScale) and the canvas's drawing buffer size
+      renderScale: () => ({ scale: RENDER_SCALES[this.scaleStep], width: this.canvas.width, height: this.canvas.height,
+                            frameMs: this.frameMs || null, changes: this.stats.scaleChanges || 0 }),
       // the JS blend of a sequence of streamed weights (lists of K), ms per blend, the best of
       // `reps` runs: ours (incremental, deferring invisible changes) and ref
       // (window.__faceRetargetFullBlend: from scratch); blend "cpu" only. The view is
@@ -1570,7 +1646,7 @@ class Viewer {
       // weights (K) as a streamed message brings them (MeshViewer.stream_weights), drawn now;
       // null: back to the track
       stream: (w) => {
-        if (w === null) { this.streamed = null; this.applyFrame(this.clock.frame); this.renderNow(); return null; }
+        if (w === null) { this.endStream(); this.applyFrame(this.clock.frame); this.renderNow(); return null; }
         this.receiveStreamed(w);
         if (this.streamPending) { cancelAnimationFrame(this.streamPending); this.drawStreamed(); }
         return { full: this.stats.fullBlends || 0, incremental: this.stats.incrementalBlends || 0 };

@@ -53,7 +53,8 @@ def profile(s: dict) -> dict:
             "message_ms": round(s.get("messageMs", 0) / max(s.get("streamed", 0), 1), 3),
             "full_blends": s.get("fullBlends", 0), "incremental_blends": s.get("incrementalBlends", 0),
             "shapes_per_incremental_blend": round(s.get("blendShapes", 0) / max(s.get("incrementalBlends", 0), 1), 1),
-            "deferred_per_incremental_blend": round(s.get("deferredShapes", 0) / max(s.get("incrementalBlends", 0), 1), 1)}
+            "deferred_per_incremental_blend": round(s.get("deferredShapes", 0) / max(s.get("incrementalBlends", 0), 1), 1),
+            "draws_per_render_scale": {k[6:]: n for k, n in s.items() if k.startswith("draws@") and n}}
 
 
 def page_text(page) -> str:
@@ -124,6 +125,8 @@ def test_live_tab_draws_the_stream_and_records_a_take(page, server, artifacts):
         "server": re.findall(r"page update [0-9.]+ ms, \d+/s", text), "load1": os.getloadavg()[0]}, indent=1))
     for label, s in live.items():
         assert s.get("streamed", 0) > 60 and s["renders"] > 10, (label, s)
+        # every streamed draw is counted at the render scale it was drawn at (viewer.js frameCost)
+        assert sum(n for k, n in s.items() if k.startswith("draws@")) == s["streamDraws"], (label, s)
     m = re.search(r"(\d+) frames/s", text)
     assert m and int(m.group(1)) >= 40, text  # the stream's rate as the page counts it (60 sent)
     assert re.search(r"iPhone: \d+ answered, 0 dropped", text), text

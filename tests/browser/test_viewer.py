@@ -359,6 +359,52 @@ def test_streamed_weights_blend_incrementally_without_drift(shared, demo):
 
 
 @pytest.mark.browser
+def test_streamed_drawing_drops_its_render_scale_when_frames_are_slow_and_says_so(shared, demo):
+    """Streamed drawing's adaptive resolution (viewer.js nextScaleStep / frameCost): a window of
+    15 drawn frames costing more than 1.03 x 33.3 ms on average drops the render scale one step
+    (1 -> 0.75 -> 0.5, no lower), the drawing buffer shrinks with it and the overlay says so;
+    four windows in a row under 0.6 x 33.3 ms take one step back up (three do not); the end of
+    the stream restores full resolution. Frame costs are fed in directly (no wall clock)."""
+    page = shared
+    rule = "([s, ms, g]) => window.__faceRetarget.nextScaleStep(s, ms, g)"
+    assert page.evaluate("() => window.__faceRetarget.renderScales") == [1, 0.75, 0.5]
+    assert page.evaluate(rule, [0, 40, 0]) == [1, 0]
+    assert page.evaluate(rule, [1, 40, 2]) == [2, 0]
+    assert page.evaluate(rule, [2, 60, 0]) == [2, 0]       # the lowest scale stays
+    assert page.evaluate(rule, [0, 34, 0]) == [0, 0]       # one vsync late now and then: no drop
+    assert page.evaluate(rule, [0, 35, 0]) == [1, 0]       # under 30 frames a second: drop
+    assert page.evaluate(rule, [2, 15, 2]) == [2, 3]       # headroom counted ...
+    assert page.evaluate(rule, [2, 15, 3]) == [1, 0]       # ... a step up at the fourth window
+    assert page.evaluate(rule, [1, 25, 3]) == [1, 0]       # a window in between resets the count
+    assert page.evaluate(rule, [0, 10, 9]) == [0, 10]      # full scale is the top
+    rig, track, _ = demo.load()["source"]
+    full = js(page, SRC, "v.renderScale()")
+    assert full["scale"] == 1
+    try:
+        js(page, SRC, "v.stream(arg)", track[50].astype(np.float32).tolist())
+        feed = "(Array.from({length: arg[0]}, () => v.self.frameCost(arg[1])), v.self.applyFrame(v.frame), v.renderScale())"
+        slow = js(page, SRC, feed, [15, 50])
+        assert slow["scale"] == 0.75 and slow["frameMs"] == 50, slow
+        assert slow["width"] == round(0.75 * full["width"]) and slow["height"] == round(0.75 * full["height"]), (slow, full)
+        assert "drawn at 75% resolution" in canvas(page, SRC).locator("xpath=..").inner_text()
+        assert js(page, SRC, feed, [15, 45])["scale"] == 0.5
+        assert js(page, SRC, feed, [15, 45])["scale"] == 0.5
+        assert js(page, SRC, feed, [45, 12])["scale"] == 0.5    # three good windows
+        back = js(page, SRC, feed, [15, 12])
+        assert back["scale"] == 0.75, back
+        # the stream's frames are drawn at the lower scale, and show the face
+        img = js(page, SRC, "(v.stream(arg), (({width, height}) => [width, height])(v.pixels()))",
+                 track[60].astype(np.float32).tolist())
+        assert img == [back["width"], back["height"]]
+        assert foreground(shot(page, SRC)).mean() > 0.05
+    finally:
+        js(page, SRC, "v.stream(null)")
+    end = js(page, SRC, "v.renderScale()")
+    assert end["scale"] == 1 and (end["width"], end["height"]) == (full["width"], full["height"]), end
+    assert "resolution" not in canvas(page, SRC).locator("xpath=..").inner_text()
+
+
+@pytest.mark.browser
 def test_hidden_view_keeps_time_but_draws_nothing_until_shown(shared, demo):
     """A view hidden while its group plays (another tab, display: none) keeps the group's frame
     and draws nothing; shown again, it draws the group's current frame at once."""
