@@ -21,31 +21,20 @@ pair *sure* when it is each side's best match (mutual) and ``a_jk >= min_affinit
 :func:`pseudo_names` turns the pairs into the per-shape "namesake" curves the name pull of the
 spacetime solver takes (``name_target``, NaN = no namesake), each with its confidence.
 :func:`shape_map` is the other design: each source shape fitted by the target's shapes within the
-<<<<<<< HEAD
 bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖² + l1 ‖s_j‖² Σ_k x_k``
 (the batched exact box QP of :func:`core.solvers.baselines.range_pf`, with the L1 term its unit-box
 solver :func:`core.solvers.boxqp.solve_box_sequence` on the normal equations), a whole-take mapping ``W = clip(W_source Mᵀ, lower, upper)``
 (:func:`mapped_weights`). The L1 term (``lower ≥ 0``, so ``Σ_k x_k = ‖x‖₁``) keeps each source
 shape to the few target shapes that carry it (:data:`SPARSE_L1`: about 4 of 175 on the sample) instead
 of rebuilding the source's own sculpt out of many — compared over dense correspondence, the whole
-face rather than 41 markers, it is what worked best without names (docs/evaluation.md, "Dense shape
-matching").
-:func:`restyled_motion` is the third, what ``auto`` uses without shared names: the source's motion
-re-sculpted in the character's style, each sure pair's source shape moved part of the way
-towards its match, ``s'_j = (1 − β) s_j + β g t_k`` — then an ordinary geometric solve fits it (the
-actor's jaw drop then asks for the character's jaw drop, not for a chin pulled back by other shapes).
-=======
-bounds, ``M[:, j] = argmin_{lower ≤ x ≤ upper} ‖Tᵀx − s_j‖² + ridge σ_max(T)² ‖x‖²`` (the batched
-exact box QP of :func:`core.solvers.baselines.range_pf`), a whole-take mapping
-``W = clip(W_source Mᵀ, lower, upper)``.
+face rather than 41 markers, it is what ``auto`` maps a source rig's curves through when no name is
+shared (:func:`aligned_shape_map`; docs/evaluation.md, "Dense shape matching").
 :func:`restyled_motion` is the third: the source's motion re-sculpted in the character's style, each
 sure pair's source shape moved part of the way towards its match, ``s'_j = (1 − β) s_j + β g t_k`` —
 then an ordinary geometric solve fits it (the actor's jaw drop then asks for the character's jaw
-drop, not for a chin pulled back by other shapes). ``auto`` uses it without shared names only where
-the take's curves cannot refit the motion map (:func:`core.motion_alignment.matched_alignment`,
-which pairs shapes by relative distance instead and measured better; on top of it the re-sculpt
-measured worse).
->>>>>>> q-procrustes
+drop, not for a chin pulled back by other shapes). ``auto`` no longer uses it (on top of the
+take-fitted motion map, :func:`core.motion_alignment.matched_alignment`, it measured worse); kept to
+measure against.
 
 What was measured with them (issue 29, cases B and C): docs/evaluation.md, "Shape matching".
 
