@@ -53,6 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
 
 from .motion_alignment import apply_alignment, covariance_alignment
 from .solvers.baselines import range_pf
@@ -65,6 +66,14 @@ RESTYLE = 0.5
 #: the L1 weight of the sparse :func:`shape_map` (relative to each source shape's squared size):
 #: the best of 0, 0.1 … 4 on the sample over 2,000 dense points (docs/evaluation.md)
 SPARSE_L1 = 0.3
+#: :func:`jaw_rescaled_map`: a source shape is a jaw shape when the chin (the lowest
+#: :data:`JAW_CHIN` of the points by height) moves on average at least :data:`JAW_MIN_CHIN` of the
+#: shape's largest motion (on the sample: ICT's four jaw shapes 0.51–0.60, every other ≤ 0.25)
+JAW_CHIN, JAW_MIN_CHIN = 0.1, 0.3
+#: a jaw shape turning by at least this many degrees is mapped by its angle, else by its translation
+JAW_MIN_DEGREES = 3.0
+#: the points a rigid motion is fitted on: those moving more than this fraction of the largest motion
+RIGID_MOVING = 0.3
 
 
 def _deltas(x, name: str) -> np.ndarray:
@@ -315,3 +324,71 @@ def restyled_motion(match: ShapeMatch, source, target, source_weights, beta: flo
     j, k, g = match.source[sure], match.target[sure], match.gain[sure]
     change = beta * (g[:, None, None] * t[k] - s[j])  # (P, M, 3)
     return np.einsum("tp,pmc->tmc", W[:, j], change)
+
+
+def rigid_motion(neutral, delta, moving: float = RIGID_MOVING) -> tuple:
+    """``(rotation vector (3,) radians, translation (3,))`` of the rigid motion closest (least
+    squares, Kabsch: scipy's ``Rotation.align_vectors``) to the displacement ``delta`` (M, 3) of the
+    points ``neutral`` (M, 3), fitted on the points moving more than ``moving`` of its largest motion;
+    the translation is that of those points' centroid. Zero for a shape that moves nothing."""
+    P, d = np.asarray(neutral, dtype=np.float64), np.asarray(delta, dtype=np.float64)
+    m = np.linalg.norm(d, axis=1)
+    if not m.max() > 0:
+        return np.zeros(3), np.zeros(3)
+    sel = m > moving * m.max()
+    X, Y = P[sel], P[sel] + d[sel]
+    if sel.sum() < 3:
+        return np.zeros(3), Y.mean(0) - X.mean(0)
+    rot, _ = Rotation.align_vectors(Y - Y.mean(0), X - X.mean(0))
+    return rot.as_rotvec(), Y.mean(0) - X.mean(0)
+
+
+def jaw_shapes(neutral, source, chin: float = JAW_CHIN, min_chin: float = JAW_MIN_CHIN) -> np.ndarray:
+    """(J,) bool: the source shapes that move the chin — the lowest ``chin`` of the points by height
+    (``y``, the rigs' up axis) moving on average at least ``min_chin`` of the shape's largest motion."""
+    P, s = np.asarray(neutral, dtype=np.float64), _deltas(source, "source")
+    low = P[:, 1] <= np.quantile(P[:, 1], chin)
+    m = np.linalg.norm(s, axis=2)  # (J, M)
+    top = m.max(1)
+    return (top > 0) & (m[:, low].mean(1) >= min_chin * np.where(top > 0, top, 1.0))
+
+
+def jaw_rescaled_map(shape_map_, source_neutral, source, target_neutral, target, lower=0.0, upper=1.0) -> tuple:
+    """The jaw mapped as a bone (issue 29, docs/evaluation.md "design S"): ``(M', scales (J,))``.
+
+    A (K, J) :func:`shape_map` fits each source shape's *displacement*; a jaw that turns about
+    another pivot (ICT's ``jawOpen`` moves the chin back as much as down, Rocketbox's almost straight
+    down) is then rebuilt at the wrong amount (on the sample the map's jaw turns 12° where the actor's
+    turns 8°). For each :func:`jaw_shapes` source shape ``j`` with a non-zero column, the rigid motions
+    of the source shape and of the map's combination ``Σ_k M_kj t_k`` are fitted
+    (:func:`rigid_motion`), and the column is scaled so the combination turns the jaw by the actor's
+    angle (when the source shape turns by :data:`JAW_MIN_DEGREES` or more), else slides it by the
+    actor's translation times the faces' size ratio (RMS radius of the points): the least-squares
+    scale ``a·b / b·b``, the column then clipped to the bounds. The other columns are unchanged;
+    ``scales`` is 1 for them (and for a jaw shape whose scale came out ≤ 0).
+
+    Parameters
+    ----------
+    shape_map_ : (K, J) float
+    source_neutral : (M, 3), source : (J, M, 3) float — the source rig at the M points (not aligned).
+    target_neutral : (M, 3), target : (K, M, 3) float — the target's at the same points.
+    lower, upper : float or (K,) float
+    """
+    M = np.array(shape_map_, dtype=np.float64)
+    s, t = _deltas(source, "source"), _deltas(target, "target")
+    if M.shape != (len(t), len(s)):
+        raise ValueError(f"shape_map_: expected ({len(t)}, {len(s)}), got {M.shape}")
+    Ps, Pt = np.asarray(source_neutral, dtype=np.float64), np.asarray(target_neutral, dtype=np.float64)
+    ratio = np.sqrt(((Pt - Pt.mean(0)) ** 2).sum(1).mean() / ((Ps - Ps.mean(0)) ** 2).sum(1).mean())
+    scales = np.ones(len(s))
+    for j in np.flatnonzero(jaw_shapes(Ps, s)):
+        if not M[:, j].any():
+            continue
+        rs, ts = rigid_motion(Ps, s[j])
+        rc, tc = rigid_motion(Pt, np.einsum("k,kmc->mc", M[:, j], t))
+        a, b = (rs, rc) if np.degrees(np.linalg.norm(rs)) >= JAW_MIN_DEGREES else (ratio * ts, tc)
+        g = float(a @ b / (b @ b)) if b @ b > 0 else 0.0
+        if g > 0:
+            scales[j] = g
+            M[:, j] = np.clip(M[:, j] * g, lower, upper)
+    return M, scales

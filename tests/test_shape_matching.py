@@ -8,7 +8,7 @@ import pytest
 from scipy.optimize import lsq_linear
 from scipy.spatial.transform import Rotation
 
-from core.shape_matching import (SPARSE_L1, mapped_weights, match_shapes, motion_affinity, pseudo_names, restyled_motion,
+from core.shape_matching import (SPARSE_L1, jaw_rescaled_map, jaw_shapes, rigid_motion, shape_map, mapped_weights, match_shapes, motion_affinity, pseudo_names, restyled_motion,
                                  shape_map)
 from core.solvers.baselines import range_pf
 from core.stages.methods import restyled_inputs
@@ -287,3 +287,54 @@ def test_auto_without_names_maps_shapes_and_beats_plain_geometry(hidden_rocketbo
     W1[:, np.asarray(inputs["shapes"]["shape_index"])] = W1s
     err1 = float(np.nanmean(vertex_errors(rig.deltas, W1, Wt, face, ok)[0]))
     assert err < 0.9 * err0 and err < err1, (err, err0, err1)
+
+
+def _jaw_face(seed=0):
+    """Points of a face (x across, y up, z forward, metres): a jaw below y = 0 and the rest above."""
+    rng = np.random.default_rng(seed)
+    P = np.column_stack([rng.uniform(-0.06, 0.06, 600), rng.uniform(-0.08, 0.08, 600), rng.uniform(0.0, 0.04, 600)])
+    return P, P[:, 1] < 0
+
+
+def _turn(P, jaw, pivot, degrees):
+    d = np.zeros_like(P)
+    R = Rotation.from_rotvec([np.radians(degrees), 0, 0])
+    d[jaw] = R.apply(P[jaw] - pivot) + pivot - P[jaw]
+    return d
+
+
+def test_rigid_motion_recovers_rotation_and_translation():
+    P, jaw = _jaw_face()
+    rv, _ = rigid_motion(P, _turn(P, jaw, np.array([0, 0.02, -0.08]), 9.0))
+    assert np.degrees(rv) == pytest.approx([9.0, 0, 0], abs=1e-6)
+    d = np.where(jaw[:, None], [0, 0, 0.006], 0.0)
+    rv, tr = rigid_motion(P, d)
+    assert np.linalg.norm(rv) < 1e-9 and tr == pytest.approx([0, 0, 0.006])
+    assert np.all(rigid_motion(P, np.zeros_like(P))[0] == 0)
+
+
+def test_jaw_mapped_by_its_angle_where_the_displacement_fit_misjudges_it():
+    """The actor's jaw turns 8° about a pivot above and behind the chin (the chin moves back as much
+    as down); the character's turns 15° per unit about a pivot level with the chin (straight down).
+    The sparse displacement map takes the jaw at another amount (it fits the chin's path, not the
+    turn); the rescaled one turns it by the actor's 8° (weight 8/15). A brow shape is not a jaw shape
+    and its column is unchanged; a jaw slide is mapped by its translation times the faces' size
+    ratio. (The whole column is scaled: a shape the map added to make up the chin's path would be
+    scaled with it — on the sample the jaw's column is one shape.)"""
+    P, jaw = _jaw_face()
+    brow = np.where((P[:, 1] > 0.04)[:, None], [0, 0.004, 0], 0.0)
+    src = np.stack([_turn(P, jaw, np.array([0, 0.05, -0.05]), 8.0), brow, np.where(jaw[:, None], [0, 0, 0.006], 0.0)])
+    Pt = 0.8 * P  # a smaller character: the same points, 0.8 the size
+    tgt = np.stack([_turn(Pt, jaw, np.array([0, -0.04, -0.09]), 15.0), 0.5 * brow, np.where(jaw[:, None], [0, 0, 0.008], 0.0)])
+    assert list(jaw_shapes(P, src)) == [True, False, True]
+    M0 = shape_map(src, tgt, ridge=0.0, l1=SPARSE_L1)
+    M, scales = jaw_rescaled_map(M0, P, src, Pt, tgt)
+    assert abs(M0[0, 0] - 8 / 15) > 0.05  # the displacement fit misjudges the jaw ...
+    assert M[0, 0] == pytest.approx(8 / 15, abs=0.02)  # ... the angle does not
+    assert np.array_equal(M[:, 1], M0[:, 1]) and scales[1] == 1.0
+    assert M[2, 2] == pytest.approx(0.8 * 0.006 / 0.008, abs=0.02)  # the slide: 6 mm × 0.8 on an 8 mm shape
+    truth = np.array([8 / 15, 0, 0.6])
+    w = np.array([[1.0, 0.0, 1.0]])
+    assert np.abs(mapped_weights(M, w)[0] - truth).sum() < np.abs(mapped_weights(M0, w)[0] - truth).sum()
+    with pytest.raises(ValueError, match="shape_map_"):
+        jaw_rescaled_map(M0[:, :2], P, src, Pt, tgt)
