@@ -234,7 +234,7 @@ class LiveRetargeter:
                     self.shape_map_ = self.G_ @ np.asarray(info["shape_map"], dtype=np.float64).T  # (61, K): M (G x)
                     self.choice = ("auto, live: each packet's curves mapped shape by shape, each source shape carried by "
                                    f"the few target shapes that rebuild it over {info['dense_points']} face points (dense "
-                                   f"correspondence), within the bounds, no per-frame solve — {why}")
+                                   f"correspondence), the jaw's turned by the actor's angle, within the bounds, no per-frame solve — {why}")
             if "name_weight" in chosen:
                 # each shape pulled towards its namesake channel, c sigma^2 ||w_N - G_N x||^2
                 # (auto's name prior, per frame), the other shapes held at zero as auto holds them

@@ -27,7 +27,8 @@ from ..motion_alignment import apply_alignment
 from ..examples import learn_from_poses, poses_from_items, suggest_poses
 from ..names import NameMap, recognise
 from ..prior import prior_quadratic
-from ..shape_matching import SPARSE_L1, aligned_shape_map, mapped_weights, match_shapes, restyled_motion
+from ..shape_matching import (SPARSE_L1, aligned_shape_map, jaw_rescaled_map, mapped_weights, match_shapes,
+                              restyled_motion)
 from ..solvers import baselines
 from ..solvers.geometric import GeometricSolver
 from ..solvers.local import blend_weights, local_precompute, local_spacetime, reconstruct_markers, smooth_weights
@@ -171,8 +172,9 @@ def weighted_markers(inputs):
 #:   (registration cached per rig pair) compares the two rigs' shapes over the face's first
 #:   :data:`AUTO_DENSE_POINTS` points and each source shape is carried by the few target shapes that
 #:   rebuild it (the sparse shape map, :func:`core.shape_matching.aligned_shape_map`): the curves are
-#:   mapped through it, no per-frame solve (names hidden 0.465 -> 0.355 mm, non-ARKit shapes 0.519 ->
-#:   0.466; docs/evaluation.md "Dense shape matching");
+#:   mapped through it, no per-frame solve, the jaw's columns scaled to the actor's jaw angle (names hidden
+#:   0.465 -> 0.355 -> 0.314 mm, non-ARKit shapes 0.519 -> 0.466 -> 0.420; docs/evaluation.md "Dense shape
+#:   matching", "design S");
 #: * otherwise (a capture, example poses, no dense correspondence, or a negative lower bound) the
 #:   per-frame bounded solve (a pull through the vocabularies' approximate combinations did not beat
 #:   geometry alone: 0.556 at best; re-sculpting the source's motion towards the shapes it matches,
@@ -255,7 +257,8 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
         n_points = min(AUTO_DENSE_POINTS, len(inputs["dense_correspondence"]["weights"]))
         return _shape_mapped, AUTO_UNNAMED, (
             f"auto: the take's curves mapped shape by shape, each source shape carried by the few target shapes that "
-            f"rebuild it over {n_points} face points (dense correspondence), within the bounds — {why}")
+            f"rebuild it over {n_points} face points (dense correspondence), the jaw's turned by the actor's angle, "
+            f"within the bounds — {why}")
     return _bounded, AUTO_UNNAMED, (f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, "
                                     f"by geometry alone — {why}")
 
@@ -284,14 +287,19 @@ def dense_shape_map(inputs, lower=0.0, upper=1.0) -> np.ndarray:
     """(K_solver, J) :func:`core.shape_matching.aligned_shape_map` of the source rig's shapes and the
     solver's at the first :data:`AUTO_DENSE_POINTS` points of the rig pair's dense correspondence
     (the ``dense_correspondence`` stage), the target's warped into the actor's proportions by the
-    calibrate stage's warp (Seol 2012 §3.2, fitted at the markers; none when calibration is off)."""
+    calibrate stage's warp (Seol 2012 §3.2, fitted at the markers; none when calibration is off),
+    then the jaw mapped as a bone (:func:`core.shape_matching.jaw_rescaled_map`: the columns of the
+    source shapes that move the chin scaled so the character's jaw turns by the actor's angle; names
+    hidden 0.355 -> 0.314 mm, non-ARKit shapes 0.466 -> 0.420, docs/evaluation.md "design S")."""
     dc, ld = inputs["dense_correspondence"], inputs["load"]
     names = list(dc["source_layout"].names[:AUTO_DENSE_POINTS])
-    Ds = dc["source_layout"].select(names).points(ld["source_rig"].deltas)
+    source_points = dc["source_layout"].select(names)
+    Ds, Ns = source_points.points(ld["source_rig"].deltas), source_points.points(ld["source_rig"].neutral)
     n, d = dc["target_layout"].select(names).on_rig(inputs["shapes"]["rig"])
     warp = inputs["calibrate"]["target"].warp
-    T = d if warp is None else warp(n[None] + d) - warp(n)[None]
-    return aligned_shape_map(Ds, T, lower, upper, l1=SPARSE_L1)
+    T, Nt = (d, n) if warp is None else (warp(n[None] + d) - warp(n)[None], warp(n))
+    M = aligned_shape_map(Ds, T, lower, upper, l1=SPARSE_L1)
+    return jaw_rescaled_map(M, Ns, Ds, Nt, T, lower, upper)[0]
 
 
 def _shape_mapped(inputs, s):
