@@ -71,7 +71,7 @@ from .retarget import drive_rig, source_markers
 from .solvers.baselines import RangePFPrecompute
 from .names import NameMap
 from .motion_alignment import apply_alignment
-from .stages.methods import _shape_mapped, auto_choice, method_of
+from .stages.methods import _shape_mapped, auto_choice, method_of, shape_map_phrase
 from .stages.retarget import auto_maps_shapes
 
 __all__ = ["LiveRetargeter", "LiveStream", "LiveSession", "LiveFrame", "OscOut", "LiveLinkOut", "listen",
@@ -232,9 +232,8 @@ class LiveRetargeter:
                 info = pipeline.results(["solve"])["solve"]["info"]
                 if info.get("shape_map") is not None:
                     self.shape_map_ = self.G_ @ np.asarray(info["shape_map"], dtype=np.float64).T  # (61, K): M (G x)
-                    self.choice = ("auto, live: each packet's curves mapped shape by shape, each source shape carried by "
-                                   f"the few target shapes that rebuild it over {info['dense_points']} face points (dense "
-                                   f"correspondence), the jaw's turned by the actor's angle, within the bounds, no per-frame solve — {why}")
+                    self.choice = (f"auto, live: each packet's curves {shape_map_phrase(info['dense_points'])}, "
+                                   f"no per-frame solve — {why}")
             if "name_weight" in chosen:
                 # each shape pulled towards its namesake channel, c sigma^2 ||w_N - G_N x||^2
                 # (auto's name prior, per frame), the other shapes held at zero as auto holds them

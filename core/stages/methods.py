@@ -149,15 +149,18 @@ def _marker_weights(inputs):
     return inputs["shapes"].get("weights")
 
 
-def weighted_markers(inputs):
+def weighted_markers(inputs, frames=slice(None), take: bool = True):
     """``_markers`` with each point's rows scaled by the square root of its weight: the weighted
-    least-squares data term ``Σ_m w_m ||B_m x - s_m||²`` for the solvers that take plain rows."""
+    least-squares data term ``Σ_m w_m ||B_m x - s_m||²`` for the solvers that take plain rows.
+    ``frames``: the take's frames to return; ``take=False``: the take's rows are left unscaled, for
+    a solver that reads none of them (prior_pf on a ``gram`` of every frame: spares a copy)."""
     B, S, valid = _markers(inputs)
+    S, valid = S[frames], valid[frames]
     w = _marker_weights(inputs)
     if w is None:
         return B, S, valid
     r = np.sqrt(w)[:, None]
-    return B * r[None], S * r[None], valid
+    return B * r[None], (S * r[None] if take else S), valid
 
 
 #: what ``auto`` runs (measured on the sample, S07 -> Rocketbox: scripts/quality_cases.py,
@@ -228,6 +231,13 @@ def _alignment_phrase(inputs) -> str:
     return "the actor's range of motion matched to the character's"
 
 
+def shape_map_phrase(n_points: int) -> str:
+    """What auto's shape map (:func:`_shape_mapped`) does, in words: one text for auto's sentence and
+    for live's, which maps each packet through the same map (``core.live``)."""
+    return (f"mapped shape by shape, each source shape carried by the few target shapes that rebuild it over "
+            f"{n_points} face points (dense correspondence), the jaw's turned by the actor's angle, within the bounds")
+
+
 def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
     """``(method function, settings, sentence)``: what ``auto`` runs on these inputs and why.
     ``zero``: the shapes the controls hold at zero already ((K,) bool or None); ``posed``: example
@@ -255,10 +265,7 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
     restyle = src.kind == "curves" and inputs["load"]["source_rig"] is not None and not posed
     if restyle and inputs.get("dense_correspondence") is not None:
         n_points = min(AUTO_DENSE_POINTS, len(inputs["dense_correspondence"]["weights"]))
-        return _shape_mapped, AUTO_UNNAMED, (
-            f"auto: the take's curves mapped shape by shape, each source shape carried by the few target shapes that "
-            f"rebuild it over {n_points} face points (dense correspondence), the jaw's turned by the actor's angle, "
-            f"within the bounds — {why}")
+        return _shape_mapped, AUTO_UNNAMED, f"auto: the take's curves {shape_map_phrase(n_points)} — {why}"
     return _bounded, AUTO_UNNAMED, (f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, "
                                     f"by geometry alone — {why}")
 
@@ -432,14 +439,9 @@ def _prior_pf_frames(inputs, s, frames):
     them: with the ``gram`` stage's products of the data term, when it ran)."""
 
     gram = inputs.get("gram") if isinstance(frames, slice) and frames == slice(None) else None
-    B, S, valid = _markers(inputs)
-    S, valid = S[frames], valid[frames]  # (weighted_markers, on the frames solved only)
-    w = _marker_weights(inputs)
-    if w is not None:
-        r = np.sqrt(w)[:, None]
-        B = B * r[None]
-        if gram is None or len(gram["frames"]) != len(S):  # else prior_pf reads no frame of S (gram has them all)
-            S = S * r[None]
+    n_frames = len(_markers(inputs)[1][frames])
+    # with a gram of every frame prior_pf reads no frame of the take
+    B, S, valid = weighted_markers(inputs, frames, take=gram is None or len(gram["frames"]) != n_frames)
     prior = _prior(inputs)
     if _marker_weights(inputs) is not None and prior is not None:
         B0 = _markers(inputs)[0]
