@@ -440,7 +440,7 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         Qs.append(Qg)
         for i in range(b0, b1):
             Qi = Qg[i - b0]
-            QWv = dgemm(1.0, Qi, Wv)  # (numpy's matmul of a C- by an F-ordered array: 1.7x slower)
+            QWv = dgemm(1.0, Qi, Wv)  # (numpy's matmul of this C- by an F-ordered array: 54 us, dgemm 32)
             QW = QWv[:, :K]
             np.multiply(QW, Psi[i], out=rhs_i[:, :K])
             np.subtract(Pg[i - b0], rhs_i[:, :K], out=rhs_i[:, :K])
