@@ -17,6 +17,7 @@ import scipy.linalg
 import scipy.optimize
 
 from core.prior import PCAPrior
+from core.solvers import spacetime
 from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry, solve_bounded
 from core.solvers.reference import bounded_spacetime_reference, kronecker_system, spacetime_reference
 from core.solvers.spacetime import SpacetimeSolver, _capacitance_solve, _Tridiagonals
@@ -222,10 +223,14 @@ def test_kkt_violation_per_entry_cases():
 
 
 # -- the exact inner solve --------------------------------------------------------------------
+@pytest.mark.parametrize("chunk", [7, 256])
 @pytest.mark.parametrize("block", [1, 3, 16, 64])
-def test_capacitance_solve_matches_dense(block):
+def test_capacitance_solve_matches_dense(block, chunk, monkeypatch):
     """The quasiseparable block Cholesky of E^T H^-1 E against the dense matrix, with a split
-    (known frame), a direction whose ratios underflow (prior-dominated) and padding."""
+    (known frame), a direction whose ratios underflow (prior-dominated) and padding; its blocks'
+    arrays made a few blocks at a time (``chunk`` entries: several chunks, a last one short) or
+    all at once."""
+    monkeypatch.setattr(spacetime, "_CAPACITANCE_CHUNK", chunk)
     rng = np.random.default_rng(block)
     K, n = 5, 70
     mu = rng.uniform(0, 1, K)

@@ -371,6 +371,32 @@ def test_a_spacetime_alpha_change_reuses_the_motion_gram_and_gives_a_fresh_pipel
         np.testing.assert_allclose(W, fresh.results(["solve"])["solve"]["weights"], rtol=0, atol=1e-9)
 
 
+def test_spacetime_end_frames_from_the_motion_gram_are_the_direct_prior_pf():
+    """boundary = perframe: the end frames' prior_pf at every alpha is made from the motion_gram
+    stage's products (B^T Gamma B, (Gamma S_t) B, the largest eigenvalue of B^T Gamma B for the
+    relative ridge), not from the weighted marker rows and their SVD: the same ends, with marker
+    weights (dense correspondence) and without."""
+    from core.stage import SettingsView
+    from core.stages import methods
+
+    for extra in ({}, {"correspondence": "dense", "dense_points": 200}):
+        pipe = Pipeline(cache=StageCache(), first_frame=0, last_frame=59, method="spacetime", boundary="perframe",
+                        **extra, **FILES)
+        inputs = pipe.results(list(pipe.solve.reads(pipe.config())))
+        assert (methods._marker_weights(inputs) is not None) == bool(extra)
+        T = len(methods._markers(inputs)[1])
+        assert methods._frames_gram(inputs, [0, T - 1]) is not None
+        # (the default ridge and more: without one, B^T Gamma B + alpha P of 165 shapes seen by 41
+        # markers is singular to working precision (condition 1e19) and any two ways of rounding it
+        # give other ends)
+        for ridge in (1e-3, 1e-2):
+            s = SettingsView("solve", {"alpha": 0.1, "ridge": ridge, "quadratic": None, "zero": None})
+            ends = methods._prior_pf_frames(inputs, s, [0, T - 1])
+            direct = methods._prior_pf_frames({k: v for k, v in inputs.items() if k != "motion_gram"}, s, [0, T - 1])
+            assert np.abs(direct).max() > 1e-3  # the ends move: the comparison is not of zeros
+            np.testing.assert_allclose(ends, direct, rtol=0, atol=1e-10 * np.abs(direct).max())
+
+
 def test_a_spacetime_change_starts_from_the_last_result_and_gives_a_fresh_pipelines_numbers(monkeypatch):
     """The solve stage's warm start (its last result) is a hint: in no key, and the result is the
     one a fresh pipeline computes cold (issue 30 item 3)."""

@@ -328,6 +328,8 @@ def _block_is_cheaper(fixed: np.ndarray, p: int) -> bool:
 
 #: entries per block of the capacitance solve (see :func:`_capacitance_solve`)
 CAPACITANCE_BLOCK = 32
+#: entries whose blocks' arrays are made at once (see :func:`_capacitance_solve`)
+_CAPACITANCE_CHUNK = 256
 #: ratio products below exp(-36) (< eps / 2) are taken as exp(-36) inside a block (see below)
 _LOG_TINY = -36.0
 #: largest block: its log products span at most 36 (block - 1) <= 2 * 700 (no overflow)
@@ -376,79 +378,93 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     bs = int(max(1, min(block, p, _MAX_BLOCK)))
     nb = -(-p // bs)
     P = nb * bs
-    # ratio products from each entry to the next (1 within a frame)
+    # ratio products from each entry to the next (1 within a frame): row ``sidx[e]`` of ``seg``
+    # (its last row is ones)
     frames = np.unique(rows)
-    step = np.ones((P, K))
+    seg = np.ones((len(frames), K))
+    sidx = np.full(P, len(frames) - 1)
     if len(frames) > 1:
-        seg = np.multiply.reduceat(tri.ratio_t, frames, axis=0)[:-1]  # (F - 1, K): frames[i] -> frames[i+1]
+        seg[:-1] = np.multiply.reduceat(tri.ratio_t, frames, axis=0)[:-1]  # frames[i] -> frames[i+1]
         nxt = np.flatnonzero(rows[1:] > rows[:-1])
-        step[nxt] = seg[np.searchsorted(frames, rows[nxt])]
-    Ue = np.zeros((P, K))
-    np.take(U, shapes, axis=0, out=Ue[:p])
-    Qg = np.zeros((P, K))
-    np.multiply(Ue[:p], tri.inv_diag_t[rows], out=Qg[:p])
-    Ue, Qg, step = Ue.reshape(nb, bs, K), Qg.reshape(nb, bs, K), step.reshape(nb, bs, K)
-    Phi = step[:, -1].copy()  # (nb, K): last entry of block i -> first of i + 1
-    lp = np.zeros((nb, bs, K))  # block-local log products from the block's first entry
-    with np.errstate(divide="ignore"):
-        np.log(step[:, :-1], out=lp[:, 1:])
-    np.maximum(lp[:, 1:], _LOG_TINY, out=lp[:, 1:])
-    np.cumsum(lp[:, 1:], axis=1, out=lp[:, 1:])
-    # diagonal blocks: C_ii[x, y] = sum_k U_xk Qg_yk e^(l_y - l_x) for x <= y (upper triangle kept);
-    # l centred per block and direction: e^(l - mid) stays within e^(+-36 (block - 1) / 2), no overflow
-    mid = 0.5 * lp[:, -1:]
-    E1 = np.exp(lp - mid)
-    Pg = Ue / E1  # U e^(mid - l)
-    # the strict lower triangle (x > y) is e^(l_y - l_x) >= 1 and may overflow to inf/NaN in long
-    # blocks of frames far apart; it is discarded (mirrored from the upper one) right below
-    with np.errstate(over="ignore", invalid="ignore"):
-        Cd = np.matmul(Pg, np.transpose(Qg * E1, (0, 2, 1)))
-    iu = np.tril_indices(bs, -1)
-    Cd[:, iu[0], iu[1]] = Cd[:, iu[1], iu[0]]
-    em = np.exp(mid)
-    Pg *= em  # carried to the block's last entry: U e^(l_last - l), l_last = 2 mid
-    E1 *= em  # e^l: carried from the block's first entry
-    Qg *= E1
-    Psi = E1[:, -1]  # (nb, K) first -> last entry of each block
+        sidx[nxt] = np.searchsorted(frames, rows[nxt])
+    Phi = seg[sidx[bs - 1::bs]]  # (nb, K): last entry of block i -> first of i + 1
     c = np.zeros(P)
     c[:p] = rhs
     c = c.reshape(nb, bs)
-    if P > p:  # padding entries: decoupled identity rows
-        k = np.arange(bs - (P - p), bs)
-        Cd[-1, k, k] = 1.0
-    a = Psi * Phi
+    # the blocks' own arrays are made CHUNK blocks at a time, inside the recursion: (P, K) arrays of
+    # the whole system made in one pass each were 45 % of the solve (4,300 entries x 165 shapes: a
+    # dozen passes over 5.7 MB each); a chunk's stay in cache
+    chunk = max(1, _CAPACITANCE_CHUNK // bs)
+    Psi = np.empty((nb, K))
+    Qs = []  # Qg of each chunk: the back substitution reads them
     # [W | v]: the recursion's state, propagated in one product; Fortran order, so that BLAS adds
     # each block's N N^T to it in place
     Wv = np.zeros((K, K + 1), order="F")
     Np = np.empty((bs, K + 1), order="F")
     Ls, Ns = [], []
     rhs_i = np.empty((bs, K + 1), order="F")
-    for i in range(nb):
-        Qi = Qg[i]
-        QWv = Qi @ Wv
-        QW = QWv[:, :K]
-        np.multiply(QW, Psi[i], out=rhs_i[:, :K])
-        np.subtract(Pg[i], rhs_i[:, :K], out=rhs_i[:, :K])
-        np.subtract(c[i], QWv[:, K], out=rhs_i[:, K])
-        Lii, info = dpotrf(Cd[i] - QW @ Qi.T, lower=1, clean=1)
-        if info != 0:
-            raise np.linalg.LinAlgError("capacitance system not positive definite")
-        sol, _ = dtrtrs(Lii, rhs_i, lower=1)  # [N_i^T | y_i]
-        Ls.append(Lii)
-        Ns.append(sol)
-        if i < nb - 1:
-            # W <- Phi (Psi W Psi + N N^T) Phi = a W a + (N Phi)(N Phi)^T, v <- a v + Phi N y
-            Wv *= a[i][:, None]
-            Wv[:, :K] *= a[i]
-            np.multiply(sol[:, :K], Phi[i], out=Np[:, :K])
-            Np[:, K] = sol[:, K]
-            Wv = dgemm(1.0, Np[:, :K], Np, beta=1.0, c=Wv, trans_a=1, overwrite_c=1)
+    iu = np.tril_indices(bs, -1)
+    for b0 in range(0, nb, chunk):
+        b1 = min(nb, b0 + chunk)
+        e0, e1 = b0 * bs, min(b1 * bs, p)
+        nc = b1 - b0
+        Ue = np.zeros((nc * bs, K))
+        np.take(U, shapes[e0:e1], axis=0, out=Ue[:e1 - e0])
+        Qg = np.zeros((nc * bs, K))
+        np.multiply(Ue[:e1 - e0], tri.inv_diag_t[rows[e0:e1]], out=Qg[:e1 - e0])
+        Ue, Qg = Ue.reshape(nc, bs, K), Qg.reshape(nc, bs, K)
+        lp = np.zeros((nc, bs, K))  # block-local log products from the block's first entry
+        step = seg[sidx[b0 * bs:b1 * bs].reshape(nc, bs)[:, :-1]]  # (nc, bs - 1, K)
+        with np.errstate(divide="ignore"):
+            np.log(step, out=lp[:, 1:])
+        np.maximum(lp[:, 1:], _LOG_TINY, out=lp[:, 1:])
+        np.cumsum(lp[:, 1:], axis=1, out=lp[:, 1:])
+        # diagonal blocks: C_ii[x, y] = sum_k U_xk Qg_yk e^(l_y - l_x) for x <= y (upper triangle kept);
+        # l centred per block and direction: e^(l - mid) stays within e^(+-36 (block - 1) / 2), no overflow
+        mid = 0.5 * lp[:, -1:]
+        E1 = np.exp(lp - mid)
+        Pg = Ue / E1  # U e^(mid - l)
+        # the strict lower triangle (x > y) is e^(l_y - l_x) >= 1 and may overflow to inf/NaN in long
+        # blocks of frames far apart; it is discarded (mirrored from the upper one) right below
+        with np.errstate(over="ignore", invalid="ignore"):
+            Cd = np.matmul(Pg, np.transpose(Qg * E1, (0, 2, 1)))
+        Cd[:, iu[0], iu[1]] = Cd[:, iu[1], iu[0]]
+        em = np.exp(mid)
+        Pg *= em  # carried to the block's last entry: U e^(l_last - l), l_last = 2 mid
+        E1 *= em  # e^l: carried from the block's first entry
+        Qg *= E1
+        Psi[b0:b1] = E1[:, -1]  # first -> last entry of each block
+        if b1 == nb and P > p:  # padding entries: decoupled identity rows
+            k = np.arange(bs - (P - p), bs)
+            Cd[-1, k, k] = 1.0
+        Qs.append(Qg)
+        for i in range(b0, b1):
+            Qi = Qg[i - b0]
+            QWv = dgemm(1.0, Qi, Wv)  # (numpy's matmul of this C- by an F-ordered array: 54 us, dgemm 32)
+            QW = QWv[:, :K]
+            np.multiply(QW, Psi[i], out=rhs_i[:, :K])
+            np.subtract(Pg[i - b0], rhs_i[:, :K], out=rhs_i[:, :K])
+            np.subtract(c[i], QWv[:, K], out=rhs_i[:, K])
+            Lii, info = dpotrf(Cd[i - b0] - QW @ Qi.T, lower=1, clean=1)
+            if info != 0:
+                raise np.linalg.LinAlgError("capacitance system not positive definite")
+            sol, _ = dtrtrs(Lii, rhs_i, lower=1)  # [N_i^T | y_i]
+            Ls.append(Lii)
+            Ns.append(sol)
+            if i < nb - 1:
+                # W <- Phi (Psi W Psi + N N^T) Phi = a W a + (N Phi)(N Phi)^T, v <- a v + Phi N y
+                a = Psi[i] * Phi[i]
+                Wv *= a[:, None]
+                Wv[:, :K] *= a
+                np.multiply(sol[:, :K], Phi[i], out=Np[:, :K])
+                Np[:, K] = sol[:, K]
+                Wv = dgemm(1.0, Np[:, :K], Np, beta=1.0, c=Wv, trans_a=1, overwrite_c=1)
     lam = np.empty((nb, bs))
     z = np.zeros(K)
     for i in range(nb - 1, -1, -1):
         lam[i] = dtrtrs(Ls[i], Ns[i][:, K] - Ns[i][:, :K] @ z, lower=1, trans=1)[0]
         if i:
-            z = (z * Psi[i] + Qg[i].T @ lam[i]) * Phi[i - 1]
+            z = (z * Psi[i] + Qs[i // chunk][i % chunk].T @ lam[i]) * Phi[i - 1]
     if not np.isfinite(lam).all():
         raise np.linalg.LinAlgError("capacitance solve not finite")
     if order is None:
@@ -489,7 +505,7 @@ class RangeSystem:
         self._values = None
         self.scale = solver.scale_
         self.curvature = 2.0 * (2.0 * np.diag(solver._A) + np.diag(solver._C))
-        self._Z0 = None
+        self._Z0 = self._X0 = None
         if path == "fast":
             self._setup_fast()
 
@@ -589,19 +605,23 @@ class RangeSystem:
         rows, ks = np.nonzero(fx[uidx])  # constrained entries on the unknown frames
         if len(rows) and _block_is_cheaper(fx, len(rows)):
             return self._solve_block(fx, self.values if val is None else val, linear)
+        X0 = None  # Z in weight coordinates (n_u, K): read at the constrained entries
         if linear is None and self._Z0 is not None:
-            Z = self._Z0
+            Z, X0 = self._Z0, self._X0
         else:
             rz = self._rz if linear is None else self._rz + (np.asarray(linear)[uidx] @ U).T
             if len(rows):
                 tri.factor()
             Z = tri.solve(rz, overwrite=_consume and linear is None)
             if linear is None and not _consume:
-                self._Z0 = Z
+                # every active-set step of a run without L1 starts from this Z: kept, with its
+                # weights (one (n, K) x (K, K) product instead of a gather of Z's columns per step)
+                self._Z0, self._X0 = Z, Z.T @ U.T
+                X0 = self._X0
         lam = None
         if len(rows):
             tri.factor()
-            x0 = np.einsum("ja,aj->a", Z[:, rows], U[ks])
+            x0 = X0[rows, ks] if X0 is not None else np.einsum("ja,aj->a", Z[:, rows], U[ks])
             vf = (self.values if val is None else val)[uidx[rows], ks]
             try:  # np.nonzero's entries come sorted by frame, as the recursion wants them
                 lam = _capacitance_solve(tri, U, rows, ks, x0 - vf, presorted=True)
