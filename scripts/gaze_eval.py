@@ -13,12 +13,15 @@ mapped as a bone). Every design changes only how that map ``M`` is fitted (docs/
 2. ``dir``    a target shape whose motion, over the points where the source shape moves most (more
               than 0.3 of its largest motion), has a cosine below ``c`` with the source shape's is
               left out the same way;
-3. ``eyes``   the eyeballs as rigid parts: the closed mesh components a sphere fits, one each side
-              of the mid-plane, on each rig; each source shape's turn of its eye sphere about the
-              sphere's centre (Kabsch) asks the target's eyeball on that side to turn by ``g`` times
-              that angle about the same axis — the target eyeball's vertices (warped by the calibrate
-              stage, as the dense points) appended to the map's points with weight ``w``, the
-              source's "displacement" there ``g r_j × (p − c)``.
+3. ``eyes``   the eyeballs as rigid parts (:mod:`core.eyes`): on each rig the closed part a sphere fits,
+              one each side of the mid-plane; each source shape's turn of its eye part about the
+              sphere's centre (Kabsch) asks the target's eyeball on that side to turn about the same
+              axis — the target eyeball's vertices (warped by the calibrate stage, as the dense points)
+              appended to the map's points with weight ``w``, the source's "displacement" there
+              ``g r_j × (p − c)``: ``g`` the same angle times a constant, or the *range gain* (the
+              target eyeball's largest turn over the source eye part's), ``r_j`` optionally counted by
+              its *rigid share* (how much of the part's motion the turn explains). Auto's
+              (:func:`core.eyes.gaze_rows`): the range gain × the rigid share, ``w = 1``.
 
 It also prints the share of the error on the target's eyeball vertices. ::
 
@@ -34,9 +37,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -44,46 +44,11 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 import quality_cases as qc  # noqa: E402
 import sculpt_eval as se  # noqa: E402
+from core.eyes import eye_parts, gaze_rows, part_turns, sphere_fit  # noqa: E402
 from core.pipeline import Pipeline  # noqa: E402
 from core.shape_matching import SPARSE_L1, jaw_rescaled_map, mapped_weights, shape_map  # noqa: E402
 
 OUT = 1e3  # the L1 scale that leaves a target shape out of a column
-
-
-def components(rig) -> np.ndarray:
-    """(V,) the connected component of each vertex (the triangles' edges)."""
-    F, V = np.asarray(rig.faces), len(rig.neutral)
-    A = sp.coo_matrix((np.ones(F.size), (F.ravel(), np.roll(F, 1, 1).ravel())), (V, V))
-    return connected_components(A, directed=False)[1]
-
-
-def sphere_fit(P) -> tuple:
-    """(centre (3,), radius, RMS radial residual) of the least-squares sphere through the points."""
-    A = np.c_[2 * P, np.ones(len(P))]
-    x = np.linalg.lstsq(A, (P ** 2).sum(1), rcond=None)[0]
-    c = x[:3]
-    r = np.linalg.norm(P - c, axis=1)
-    return c, float(np.sqrt(x[3] + c @ c)), float(r.std())
-
-
-def eye_spheres(rig, size) -> dict:
-    """``{+1: vertex mask, -1: vertex mask}``: per side of x = 0, the component (not the largest)
-    that some shape moves and a sphere fits within 3 % of its radius, 0.05–0.5 × the face's size;
-    the largest such on each side. Empty when a side has none."""
-    lab = components(rig)
-    main = np.bincount(lab).argmax()
-    moved = np.linalg.norm(rig.deltas, axis=2).max(0) > 1e-5
-    found = {}
-    for c in np.unique(lab):
-        sel = lab == c
-        if c == main or sel.sum() < 20 or not moved[sel].any():
-            continue
-        centre, radius, resid = sphere_fit(rig.neutral[sel])
-        if resid < 0.03 * radius and 0.05 * size < radius < 0.5 * size:
-            side = int(np.sign(centre[0]))
-            if side and (side not in found or sel.sum() > found[side].sum()):
-                found[side] = sel
-    return found
 
 
 def side_fraction(P, d, mid, band):
@@ -116,17 +81,15 @@ def main(argv=None) -> int:
                 print(f"{c} {label:52s} mean_mm={se.score(case, z, mapped_weights(M, Ws)):.4f}", flush=True)
 
             M0 = fit()
-            show("base (auto today: the map, the jaw as a bone)", M0)
+            show("base (auto before design E: the map, the jaw as a bone)", M0)
             # where the error is: the target's eyeball vertices
             pipe = Pipeline(cache=case["cache"], **case["settings"])
             res = pipe.results(["load", "calibrate"])
-            src, tgt = res["load"]["source_rig"], res["load"]["target_rig"]
+            src = res["load"]["source_rig"]
             size = float(np.sqrt(((Ps - Ps.mean(0)) ** 2).sum(1).mean()))
-            eyes_s = eye_spheres(src, size)
-            eyes_t = eye_spheres(case["rig"], float(np.sqrt(((Pt - Pt.mean(0)) ** 2).sum(1).mean())))
             eyeball = np.zeros(len(case["rig"].neutral), bool)
-            for m in eyes_t.values():
-                eyeball |= m
+            for v in eye_parts(case["rig"]).values():
+                eyeball[v] = True
             on_eye = eyeball[case["face"]]
             full = np.zeros((len(Ws), case["rig"].n_shapes))
             full[:, z["idx"]] = mapped_weights(M0, Ws)
@@ -158,31 +121,44 @@ def main(argv=None) -> int:
                     cos = b @ a / np.maximum(np.linalg.norm(b, axis=1) * np.linalg.norm(a), 1e-30)
                     sc[j, cos < cmin] = OUT
                 show(f"2 direction: cosine < {cmin} where the source moves out", fit(sc))
-            # 3. the eyeballs turned by the actor's eye sphere's angle times g
-            if set(eyes_s) != {-1, 1} or set(eyes_t) != {-1, 1}:
-                print(f"{c}   no eye sphere each side on both rigs: design 3 skipped", flush=True)
+            # 3. the eyeballs turned about the actor's axes (core.eyes; auto's rows: range gain × rigid share, w 1)
+            tgt_solver = case["rig"].subset([case["rig"].names[k] for k in z["idx"]])  # the original names, same shapes
+            eyes_s, eyes_t = eye_parts(src), eye_parts(tgt_solver)
+            if not eyes_s or not eyes_t:
+                print(f"{c}   no eye part each side on both rigs: design 3 skipped", flush=True)
                 continue
             warp = res["calibrate"]["target"].warp
-            rot = {}
-            for side, sel in eyes_s.items():
-                P = src.neutral[sel]
-                centre = sphere_fit(P)[0]
-                rot[side] = np.array([Rotation.align_vectors(P + d - centre, P - centre)[0].as_rotvec()
-                                      if np.abs(d).max() > 0 else np.zeros(3) for d in src.deltas[:, sel]])
-                for j in np.argsort(-np.linalg.norm(rot[side], axis=1))[:4]:
-                    print(f"{c}   source eye {side:+d}: {z['source_names'][j]} turns "
-                          f"{np.round(np.degrees(rot[side][j]), 1)} deg", flush=True)
-            tparts = []
-            for side, sel in eyes_t.items():
-                Q = case["rig"].neutral[sel]
-                dq = np.asarray(case["rig"].deltas[z["idx"]][:, sel], dtype=np.float64)
-                Qw = warp(Q) if warp is not None else Q
-                Tq = (warp(Q[None] + dq) - Qw[None]) if warp is not None else dq
-                tparts.append((side, Qw, sphere_fit(Qw)[0], Tq))
-            for g, w in ((1, 1.2), (1, 0.5), (2, 0.5), (3, 0.5), (4, 0.5), (5, 0.5), (6, 0.5), (4, 0.3), (4, 0.7), (7.5, 0.3)):
-                Se = np.concatenate([g * w * np.cross(rot[side][:, None, :], (Qw - cen)[None]) for side, Qw, cen, _ in tparts], 1)
-                Te = np.concatenate([w * Tq for *_, Tq in tparts], 1)
-                show(f"3 eyes: g {g}, w {w}", fit(extra=(Se, Te)))
+            turns, parts = {}, []
+            for side in (1, -1):
+                r, share = part_turns(src.neutral[eyes_s[side]], src.deltas[:, eyes_s[side]])
+                q, _ = part_turns(tgt_solver.neutral[eyes_t[side]], tgt_solver.deltas[:, eyes_t[side]])
+                turns[side] = (r, share, np.linalg.norm(q, axis=1).max() / np.linalg.norm(r, axis=1).max())
+                for j in np.argsort(-np.linalg.norm(r, axis=1))[:4]:
+                    print(f"{c}   source eye {side:+d}: {z['source_names'][j]} turns {np.round(np.degrees(r[j]), 1)} deg, "
+                          f"rigid share {share[j]:.2f}", flush=True)
+                print(f"{c}   eye {side:+d}: the rigs' largest turns {np.degrees(np.linalg.norm(q, axis=1).max()):.1f} / "
+                      f"{np.degrees(np.linalg.norm(r, axis=1).max()):.1f} deg: range gain {turns[side][2]:.2f}", flush=True)
+                Q = tgt_solver.neutral[eyes_t[side]]
+                dq = np.asarray(tgt_solver.deltas[:, eyes_t[side]], dtype=np.float64)
+                Qw, Tq = (warp(Q), warp(Q[None] + dq) - warp(Q)[None]) if warp is not None else (Q, dq)
+                parts.append((side, Qw, sphere_fit(Qw)[0], Tq))
+
+            def rows(gain, w, shared):
+                Se = np.concatenate([w * (turns[side][2] if gain == "range" else gain) * np.cross(
+                    (turns[side][0] * (turns[side][1][:, None] if shared else 1.0))[:, None, :], (Qw - cen)[None])
+                    for side, Qw, cen, _ in parts], 1)
+                return Se, np.concatenate([w * Tq for *_, Tq in parts], 1)
+
+            for g, w in ((1, 1.0), (1, 0.5), (2, 0.5), (3, 0.5), (4, 0.5), (5, 0.5), (6, 0.5), (4, 0.3), (4, 0.7)):
+                show(f"3 eyes: the same angle × {g}, w {w}", fit(extra=rows(g, w, False)))
+            for w in (0.1, 0.3, 0.5):
+                show(f"3 eyes: range gain, w {w}", fit(extra=rows("range", w, False)))
+            for w in (0.3, 0.5, 1.0, 2.0):
+                show(f"3 eyes: range gain × rigid share, w {w}{' (auto)' if w == 1 else ''}", fit(extra=rows("range", w, True)))
+            for w in (0.5, 1.0):
+                show(f"3 eyes: the same angle × 4 × rigid share, w {w}", fit(extra=rows(4, w, True)))
+            auto_rows = gaze_rows(src, tgt_solver, warp)
+            show("3 eyes: core.eyes.gaze_rows (what auto adds)", fit(extra=auto_rows))
     return 0
 
 
