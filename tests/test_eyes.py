@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from core.eyes import eye_parts, gaze_rows, mesh_parts, part_turns, sphere_fit
+from core.eyes import eye_parts, gaze_mapped, gaze_rows, mesh_parts, part_turns, sphere_fit
 from core.model import Rig
 from core.shape_matching import aligned_shape_map
 
@@ -119,6 +119,9 @@ def test_gaze_rows_none_without_eyes_and_extra_checked():
     src, tgt, sheet = _gaze_rigs()
     flat = Rig(tgt.neutral[sheet], np.zeros((0, 3), int), tgt.deltas[:, sheet], tgt.names)
     assert gaze_rows(src, flat) is None
+    barely = Rig(src.neutral, src.faces, 0.05 * src.deltas, src.names)  # its gaze turns the eyes 0.2°
+    assert gaze_rows(barely, tgt) is None and gaze_rows(src, tgt) is not None
+    assert not gaze_mapped(barely, tgt) and not gaze_mapped(src, flat) and gaze_mapped(src, tgt)
     with pytest.raises(ValueError, match="extra"):
         aligned_shape_map(src.deltas[:, sheet], tgt.deltas[:, sheet], extra=(np.zeros((2, 5, 3)), np.zeros((2, 5, 3))))
 

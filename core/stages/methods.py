@@ -21,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..eyes import eye_parts, gaze_rows
+from ..eyes import gaze_mapped, gaze_rows
 from ..gaps import fill_gaps
 from ..model import flatten
 from ..motion_alignment import apply_alignment
@@ -268,7 +268,7 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
     restyle = src.kind == "curves" and inputs["load"]["source_rig"] is not None and not posed
     if restyle and inputs.get("dense_correspondence") is not None:
         n_points = min(AUTO_DENSE_POINTS, len(inputs["dense_correspondence"]["weights"]))
-        eyes = bool(eye_parts(inputs["load"]["source_rig"])) and bool(eye_parts(rig))
+        eyes = gaze_mapped(inputs["load"]["source_rig"], rig)
         return _shape_mapped, AUTO_UNNAMED, f"auto: the take's curves {shape_map_phrase(n_points, eyes)} — {why}"
     return _bounded, AUTO_UNNAMED, (f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, "
                                     f"by geometry alone — {why}")
@@ -340,7 +340,7 @@ def _shape_mapped(inputs, s):
     top = M.argmax(0)
     matches = {src.names[j]: rig.names[top[j]] for j in range(src.n_shapes) if M[top[j], j] > 0.05}
     # the map itself: the live retargeter maps each packet through it (core.live), from the cached result
-    eyes = bool(free.any()) and bool(eye_parts(src)) and bool(eye_parts(sub["shapes"]["rig"]))
+    eyes = bool(free.any()) and gaze_mapped(src, sub["shapes"]["rig"])
     return {"weights": W, "info": {"shape_matches": matches, "shape_map": M, "gaze": eyes, "dense_points": min(AUTO_DENSE_POINTS, len(
         inputs["dense_correspondence"]["weights"]))}, "edit": edit_options(s, alpha=0.01, lower=lo, upper=hi)}
 
