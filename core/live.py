@@ -232,7 +232,7 @@ class LiveRetargeter:
                 info = pipeline.results(["solve"])["solve"]["info"]
                 if info.get("shape_map") is not None:
                     self.shape_map_ = self.G_ @ np.asarray(info["shape_map"], dtype=np.float64).T  # (61, K): M (G x)
-                    self.choice = (f"auto, live: each packet's curves {shape_map_phrase(info['dense_points'])}, "
+                    self.choice = (f"auto, live: each packet's curves {shape_map_phrase(info['dense_points'], info.get('gaze', False))}, "
                                    f"no per-frame solve — {why}")
             if "name_weight" in chosen:
                 # each shape pulled towards its namesake channel, c sigma^2 ||w_N - G_N x||^2

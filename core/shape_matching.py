@@ -279,7 +279,7 @@ def mapped_weights(shape_map_, source_weights, lower=0.0, upper=1.0) -> np.ndarr
     return np.clip(W @ M.T, lower, upper)
 
 
-def aligned_shape_map(source, target, lower=0.0, upper=1.0, l1: float = SPARSE_L1) -> np.ndarray:
+def aligned_shape_map(source, target, lower=0.0, upper=1.0, l1: float = SPARSE_L1, extra=None) -> np.ndarray:
     """(K, J) the sparse :func:`shape_map` (``ridge = 0``, L1 ``l1``) of the source shapes mapped into
     the target's motion space point by point (:func:`core.motion_alignment.covariance_alignment`
     of the two sets of shapes): what ``auto`` maps a source rig's curves through when no name is
@@ -292,9 +292,18 @@ def aligned_shape_map(source, target, lower=0.0, upper=1.0, l1: float = SPARSE_L
         the target's calibrated into the actor's proportions).
     lower, upper : float or (K,) float, ``lower >= 0``
     l1 : float > 0
+    extra : ``(source (J, E, 3), target (K, E, 3))``, optional
+        More points, already in the target's motion space, appended after the alignment (the
+        eyeballs' turn: :func:`core.eyes.gaze_rows`).
     """
     s, t = _deltas(source, "source"), _deltas(target, "target")
-    return shape_map(apply_alignment(covariance_alignment(s, t), s), t, lower, upper, ridge=0.0, l1=l1)
+    s = apply_alignment(covariance_alignment(s, t), s)
+    if extra is not None:
+        es, et = _deltas(extra[0], "extra source"), _deltas(extra[1], "extra target")
+        if es.shape[:2] != (len(s), et.shape[1]) or len(et) != len(t):
+            raise ValueError(f"extra: expected ({len(s)}, E, 3) and ({len(t)}, E, 3) rows, got {es.shape} and {et.shape}")
+        s, t = np.concatenate([s, es], 1), np.concatenate([t, et], 1)
+    return shape_map(s, t, lower, upper, ridge=0.0, l1=l1)
 
 
 def restyled_motion(match: ShapeMatch, source, target, source_weights, beta: float = RESTYLE) -> np.ndarray:

@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 import scipy.linalg
 
+from ..eyes import gaze_mapped, gaze_rows
 from ..gaps import fill_gaps
 from ..model import flatten
 from ..motion_alignment import apply_alignment
@@ -232,11 +233,13 @@ def _alignment_phrase(inputs) -> str:
     return "the actor's range of motion matched to the character's"
 
 
-def shape_map_phrase(n_points: int) -> str:
+def shape_map_phrase(n_points: int, eyes: bool = False) -> str:
     """What auto's shape map (:func:`_shape_mapped`) does, in words: one text for auto's sentence and
-    for live's, which maps each packet through the same map (``core.live``)."""
+    for live's, which maps each packet through the same map (``core.live``); ``eyes``: the eyeballs
+    are in the fit (:func:`core.eyes.gaze_rows`)."""
+    gaze = ", the eyeballs turned about the actor's gaze axes in the character's range" if eyes else ""
     return (f"mapped shape by shape, each source shape carried by the few target shapes that rebuild it over "
-            f"{n_points} face points (dense correspondence), the jaw's turned by the actor's angle, within the bounds")
+            f"{n_points} face points (dense correspondence), the jaw's turned by the actor's angle{gaze}, within the bounds")
 
 
 def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
@@ -266,7 +269,8 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
     restyle = src.kind == "curves" and inputs["load"]["source_rig"] is not None and not posed
     if restyle and inputs.get("dense_correspondence") is not None:
         n_points = min(AUTO_DENSE_POINTS, len(inputs["dense_correspondence"]["weights"]))
-        return _shape_mapped, AUTO_UNNAMED, f"auto: the take's curves {shape_map_phrase(n_points)} — {why}"
+        eyes = gaze_mapped(inputs["load"]["source_rig"], rig)
+        return _shape_mapped, AUTO_UNNAMED, f"auto: the take's curves {shape_map_phrase(n_points, eyes)} — {why}"
     return _bounded, AUTO_UNNAMED, (f"auto: frame by frame within the bounds on {where}, {_alignment_phrase(inputs)}, "
                                     f"by geometry alone — {why}")
 
@@ -298,7 +302,9 @@ def dense_shape_map(inputs, lower=0.0, upper=1.0) -> np.ndarray:
     calibrate stage's warp (Seol 2012 §3.2, fitted at the markers; none when calibration is off),
     then the jaw mapped as a bone (:func:`core.shape_matching.jaw_rescaled_map`: the columns of the
     source shapes that move the chin scaled so the character's jaw turns by the actor's angle; names
-    hidden 0.355 -> 0.314 mm, non-ARKit shapes 0.466 -> 0.420, docs/evaluation.md "design S")."""
+    hidden 0.355 -> 0.314 mm, non-ARKit shapes 0.466 -> 0.420, docs/evaluation.md "design S"), with
+    the eyeballs in the fit when both rigs have them (:func:`core.eyes.gaze_rows`: the target's
+    turned about the actor's axis, in the target's range; design E)."""
     dc, ld = inputs["dense_correspondence"], inputs["load"]
     names = list(dc["source_layout"].names[:AUTO_DENSE_POINTS])
     source_points = dc["source_layout"].select(names)
@@ -306,7 +312,7 @@ def dense_shape_map(inputs, lower=0.0, upper=1.0) -> np.ndarray:
     n, d = dc["target_layout"].select(names).on_rig(inputs["shapes"]["rig"])
     warp = inputs["calibrate"]["target"].warp
     T, Nt = (d, n) if warp is None else (warp(n[None] + d) - warp(n)[None], warp(n))
-    M = aligned_shape_map(Ds, T, lower, upper, l1=SPARSE_L1)
+    M = aligned_shape_map(Ds, T, lower, upper, l1=SPARSE_L1, extra=gaze_rows(ld["source_rig"], inputs["shapes"]["rig"], warp))
     return jaw_rescaled_map(M, Ns, Ds, Nt, T, lower, upper)[0]
 
 
@@ -335,7 +341,8 @@ def _shape_mapped(inputs, s):
     top = M.argmax(0)
     matches = {src.names[j]: rig.names[top[j]] for j in range(src.n_shapes) if M[top[j], j] > 0.05}
     # the map itself: the live retargeter maps each packet through it (core.live), from the cached result
-    return {"weights": W, "info": {"shape_matches": matches, "shape_map": M, "dense_points": min(AUTO_DENSE_POINTS, len(
+    eyes = bool(free.any()) and gaze_mapped(src, sub["shapes"]["rig"])
+    return {"weights": W, "info": {"shape_matches": matches, "shape_map": M, "gaze": eyes, "dense_points": min(AUTO_DENSE_POINTS, len(
         inputs["dense_correspondence"]["weights"]))}, "edit": edit_options(s, alpha=0.01, lower=lo, upper=hi)}
 
 
