@@ -331,3 +331,18 @@ def test_cholesky_factor_matches_dense_solves_in_any_block():
         CholeskyFactor(sp.csr_matrix((3, 4)))
     with pytest.raises(ValueError, match="positive definite"):  # singular: SuperLU raised here too
         CholeskyFactor(sp.csr_matrix(np.array([[1.0, 1, 0], [1, 1, 0], [0, 0, 1]])))
+
+
+def test_taubin_on_two_cores_is_bit_identical_to_one(tiger, monkeypatch):
+    """The column blocks of the filter run on the cores the process may use (the compiled CSR
+    product releases the GIL); the blocks are independent, so the floats are the same."""
+    from core.transfer import decompose
+
+    filt = TaubinFilter(tiger.faces, tiger.n_vertices, 40)
+    x = np.random.default_rng(3).standard_normal((tiger.n_vertices, 3 * 26))  # several blocks
+    monkeypatch.setattr(decompose, "_cores", lambda: 1)
+    one = filt.apply(x)
+    monkeypatch.setattr(decompose, "_cores", lambda: 2)
+    two = filt.apply(x)
+    np.testing.assert_array_equal(one, two)
+    assert np.abs(one - x).max() > 1e-3 * np.abs(x).max()  # it did smooth
