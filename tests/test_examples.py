@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy.linalg import lstsq
 
-from core.examples import (learn_from_poses, linear_correction, pose_space_correction, poses_from_items,
-                           suggest_poses)
+from core.examples import (choose_by_loo, keyed, learn_from_poses, linear_correction, pose_space_correction,
+                           poses_from_items, source_correction, suggest_poses)
 from core.geometry import farthest_points
 from datapaths import PERFORMANCES, RIGS
 
@@ -162,6 +162,74 @@ def test_poses_from_items():
         poses_from_items([{"frame": 10, "weights": {}}], names, 10)
     with pytest.raises(ValueError, match="twice"):
         poses_from_items([{"frame": 1, "weights": {}}, {"frame": 1, "weights": {}}], names, 10)
+
+
+# -- choose_by_loo: the correction leave-one-out over the poses picks -----------------------------
+
+def test_source_correction_is_the_primal_ridge_regression():
+    """The n x n (dual) form equals the primal ridge of the residuals on the features, solved by
+    SciPy's least squares on the stacked system [F_p; sqrt(lambda s^2) I] B = [R; 0]."""
+    X, Fe, truth, poses = _case(n=5)
+    fr = np.array(sorted(poses))
+    R = np.stack([poses[f] for f in fr]) - X[fr]
+    A = Fe[fr]
+    lam = 0.3 * np.trace(A @ A.T) / len(fr)
+    B = lstsq(np.vstack([A, np.sqrt(lam) * np.eye(A.shape[1])]), np.vstack([R, np.zeros((A.shape[1], R.shape[1]))]))[0]
+    np.testing.assert_allclose(source_correction(X, Fe, poses, 0.3), X + Fe @ B, atol=1e-10)
+    np.testing.assert_allclose(source_correction(X, Fe, {}, 0.3), X)
+
+
+def test_keyed_holds_each_pose_at_its_frame_and_only_near_it():
+    X, Fe, truth, poses = _case(n=3)
+    W = keyed(X, poses, half=3)
+    for f, p in poses.items():
+        np.testing.assert_allclose(W[f], np.clip(p, 0, 1))
+    far = np.ones(len(X), bool)
+    for f in poses:
+        far[max(0, f - 3):f + 4] = False
+    np.testing.assert_array_equal(W[far], np.clip(X[far], 0, 1))
+
+
+def test_loo_keeps_a_good_solution_against_poses_that_disagree_and_corrects_a_wrong_one():
+    """Two poses that the features cannot explain (noise about a good X): the one-standard-error
+    rule keeps X (each pose keyed at its frame), where the interpolating corrections spread the
+    noise over the take. Twelve poses of a truth that is another linear map of the features: a
+    correction is chosen and the held-out error drops well below X's."""
+    T, K, F = 300, 6, 4
+    Fe = RNG.uniform(0, 1, (T, F))
+    A = RNG.uniform(0, 0.3, (F, K))
+    good = np.clip(Fe @ A, 0, 1)
+    frames = suggest_poses(Fe, 2)
+    noisy = {int(f): np.clip(good[f] + RNG.normal(0, 0.25, K), 0, 1) for f in frames}
+    W, label, loo = choose_by_loo(good, Fe, noisy)
+    assert label == "none" and set(loo) >= {"none", "linear + pose-space correction"}
+    far = np.ones(T, bool)
+    for f in frames:
+        far[max(0, f - 3):f + 4] = False
+    for f in frames:
+        np.testing.assert_allclose(W[f], noisy[f])
+    np.testing.assert_array_equal(W[far], good[far])
+    assert np.abs(learn_from_poses(good, Fe, noisy)[far] - good[far]).mean() > 0.02  # what "none" spared
+
+    truth = np.clip(Fe @ (A + RNG.normal(0, 0.15, (F, K))), 0, 1)
+    frames = suggest_poses(Fe, 12)
+    W, label, loo = choose_by_loo(good, Fe, {int(f): truth[f] for f in frames})
+    held = np.ones(T, bool)
+    held[frames] = False
+    assert label != "none" and loo[label] < loo["none"]
+    assert np.abs(W - truth)[held].mean() < 0.3 * np.abs(good - truth)[held].mean()
+    np.testing.assert_allclose(W[frames], truth[frames])
+
+
+def test_one_pose_or_none():
+    X, Fe, truth, poses = _case(n=1)
+    W, label, loo = choose_by_loo(X, Fe, {})
+    assert label == "none" and loo == {}
+    np.testing.assert_array_equal(W, np.clip(X, 0, 1))
+    W, label, loo = choose_by_loo(X, Fe, poses)
+    f = next(iter(poses))
+    assert label == "linear + pose-space correction" and loo == {}
+    np.testing.assert_allclose(W[f], poses[f])
 
 
 # -- the real case: S07 onto Rocketbox, names hidden (the hidden_rocketbox fixture: conftest) ------
