@@ -351,13 +351,16 @@ def choose_by_loo(X, features, poses: Mapping, gram=None, lower=0.0, upper=1.0) 
         label = "linear + pose-space correction"
         return keyed(cands[label](poses), poses, lower, upper), label, {}
     G = np.eye(X.shape[1]) if gram is None else np.asarray(gram, dtype=np.float64)
-    errs = {}
-    for label, fit in cands.items():
-        e = []
-        for h, f in enumerate(frames):
-            d = fit({int(g): P[i] for i, g in enumerate(frames) if i != h})[f] - P[h]
-            e.append(float(d @ G @ d))
-        errs[label] = np.asarray(e)
+    F = _filled(features, len(X))
+    errs = {label: np.zeros(len(frames)) for label in cands}
+    for h in range(len(frames)):
+        # every candidate's prediction at a frame depends only on that frame and the posed ones:
+        # fit on those rows alone (the held-out frame last), not the whole take
+        rows = np.r_[np.delete(frames, h), frames[h]]
+        rest = {i: P[j] for i, j in enumerate(np.delete(np.arange(len(frames)), h))}
+        for label, fit in _candidates(X[rows], F[rows], lower, upper).items():
+            d = fit(rest)[-1] - P[h]
+            errs[label][h] = float(d @ G @ d)
     best = min(errs, key=lambda k: errs[k].mean())
     se = errs[best].std(ddof=1) / np.sqrt(len(frames))
     label = next(k for k in errs if errs[k].mean() <= errs[best].mean() + se)

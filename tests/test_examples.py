@@ -221,6 +221,25 @@ def test_loo_keeps_a_good_solution_against_poses_that_disagree_and_corrects_a_wr
     np.testing.assert_allclose(W[frames], truth[frames])
 
 
+def test_loo_errors_match_refitting_on_the_whole_take():
+    """choose_by_loo fits each fold on the posed rows and the held-out one only; the reference
+    refits every candidate on the whole take and reads the held-out frame."""
+    from core.examples import _candidates
+
+    X, Fe, truth, poses = _case(T=120, n=5)
+    G = RNG.normal(size=(X.shape[1], X.shape[1]))
+    G = G @ G.T
+    _, _, loo = choose_by_loo(X, Fe, poses, gram=G)
+    fr = sorted(poses)
+    for label in loo:
+        e = []
+        for h in fr:
+            W = _candidates(X, Fe, 0.0, 1.0)[label]({f: poses[f] for f in fr if f != h})
+            d = W[h] - poses[h]
+            e.append(d @ G @ d)
+        assert loo[label] == pytest.approx(np.mean(e), rel=1e-8, abs=1e-14), label
+
+
 def test_one_pose_or_none():
     X, Fe, truth, poses = _case(n=1)
     W, label, loo = choose_by_loo(X, Fe, {})
