@@ -286,6 +286,102 @@ def learn_from_poses(X, features, poses: Mapping, design: str = "linear+rbf", ri
     return np.clip(W, lower, upper)
 
 
+#: the ridges (relative to the posed source features' mean square) of :func:`source_correction`
+#: that :func:`choose_by_loo` tries; the largest is "no correction" to 1e-4
+SOURCE_RIDGES = (1e-3, 1e-2, 0.1, 1.0, 10.0, 100.0, 1e4)
+#: half-width (frames) of the ease that keys each pose at its own frame (:func:`keyed`)
+KEY_HALF = 3
+
+
+def source_correction(X, features, poses: Mapping, ridge: float) -> np.ndarray:
+    """The solution corrected by a ridge regression of the residuals on the source's features:
+    ``W = X + F F_pᵀ (F_p F_pᵀ + ridge s² I)⁻¹ (P - X_p)``, ``s²`` the posed features' mean square
+    (so ``ridge`` is relative: 1e-3 nearly interpolates the poses, 1e4 leaves ``X``). Where
+    :func:`linear_correction` maps the solution's own combinations, this maps what the *source*
+    does (the map's input), so it adds shapes the solution never used; the regularisation pulls
+    it towards ``X``. Unbounded."""
+    X = _solution(X)
+    if not ridge > 0:
+        raise ValueError(f"ridge: expected > 0, got {ridge}")
+    frames, P = _poses(X, poses)
+    if not len(frames):
+        return X.copy()
+    F = _filled(features, len(X))
+    A = F[frames]
+    s2 = max(float(np.trace(A @ A.T)) / len(frames), 1e-300)
+    return X + (F @ A.T) @ np.linalg.solve(A @ A.T + ridge * s2 * np.eye(len(frames)), P - X[frames])
+
+
+def _candidates(X, features, lower, upper) -> dict:
+    """``{label: poses -> (T, K) weights}``, ordered from the most regularised (``X`` itself) to
+    the least: the source correction at decreasing ridge, then :func:`learn_from_poses`."""
+    out = {"none": lambda poses: np.clip(X, lower, upper)}
+    for r in SOURCE_RIDGES[::-1]:
+        out[f"source-regressed correction, ridge {r:g}"] = (
+            lambda r: lambda poses: np.clip(source_correction(X, features, poses, r), lower, upper))(r)
+    out["linear + pose-space correction"] = lambda poses: learn_from_poses(X, features, poses, lower=lower, upper=upper)
+    return out
+
+
+def choose_by_loo(X, features, poses: Mapping, gram=None, lower=0.0, upper=1.0) -> tuple:
+    """``(W (T, K), label, loo)``: the correction of ``X`` towards the poses that predicts held-out
+    poses best, by leave-one-out over the poses themselves with the one-standard-error rule.
+
+    Candidates (:func:`_candidates`, most regularised first): ``X`` unchanged, the
+    :func:`source_correction` at each ridge of :data:`SOURCE_RIDGES` (largest first), and
+    :func:`learn_from_poses`. Each predicts every pose from the others; its error is
+    ``dᵀ gram d`` (``d`` the predicted minus the posed weights; ``gram = D Dᵀ`` of the rig's
+    deltas makes it the squared vertex error, identity when None). The pick is the most
+    regularised candidate whose mean error is within one standard error of the smallest
+    (Hastie, Tibshirani & Friedman, *Elements of Statistical Learning* §7.10): with 2 poses one
+    pose is all the evidence, so a correction must beat leaving ``X`` clearly to be used. Then
+    each pose is keyed at its own frame (:func:`keyed`). Written here because the choice is
+    over these designs, not one estimator's hyper-parameter (sklearn's CV needs an estimator).
+
+    With no pose: ``(X clipped, "none", {})``; with one: nothing to hold out, the
+    :func:`learn_from_poses` correction (the single pose's evidence, as before).
+    ``loo``: ``{label: mean held-out error}``.
+    """
+    X = _solution(X)
+    frames, P = _poses(X, poses)
+    cands = _candidates(X, features, lower, upper)
+    if not len(frames):
+        return np.clip(X, lower, upper), "none", {}
+    if len(frames) == 1:
+        label = "linear + pose-space correction"
+        return keyed(cands[label](poses), poses, lower, upper), label, {}
+    G = np.eye(X.shape[1]) if gram is None else np.asarray(gram, dtype=np.float64)
+    F = _filled(features, len(X))
+    errs = {label: np.zeros(len(frames)) for label in cands}
+    for h in range(len(frames)):
+        # every candidate's prediction at a frame depends only on that frame and the posed ones:
+        # fit on those rows alone (the held-out frame last), not the whole take
+        rows = np.r_[np.delete(frames, h), frames[h]]
+        rest = {i: P[j] for i, j in enumerate(np.delete(np.arange(len(frames)), h))}
+        for label, fit in _candidates(X[rows], F[rows], lower, upper).items():
+            d = fit(rest)[-1] - P[h]
+            errs[label][h] = float(d @ G @ d)
+    best = min(errs, key=lambda k: errs[k].mean())
+    se = errs[best].std(ddof=1) / np.sqrt(len(frames))
+    label = next(k for k in errs if errs[k].mean() <= errs[best].mean() + se)
+    return keyed(cands[label](poses), poses, lower, upper), label, {k: float(v.mean()) for k, v in errs.items()}
+
+
+def keyed(W, poses: Mapping, lower=0.0, upper=1.0, half: int = KEY_HALF) -> np.ndarray:
+    """``W`` with each pose set exactly at its own frame and eased in and out over ``half``
+    frames each side (a raised cosine of the pose's residual), clipped to the bounds; the posed
+    frames themselves hold the pose (clipped)."""
+    W = _solution(W).copy()
+    frames, P = _poses(W, poses)
+    T = len(W)
+    R = P - W[frames]
+    for f, r in zip(frames, R):
+        t = np.arange(max(0, f - half), min(T, f + half + 1))
+        W[t] += (0.5 * (1 + np.cos(np.pi * (t - f) / (half + 1))))[:, None] * r
+    W[frames] = P
+    return np.clip(W, lower, upper)
+
+
 def poses_from_items(items, names: Sequence[str], n_frames: int) -> dict:
     """``{frame: (K,) weights}`` from the example-poses file's items
     ``[{"frame": F, "weights": {"<shape>": w, ...}}, ...]`` (shapes a pose does not list are 0).

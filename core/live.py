@@ -198,7 +198,8 @@ class LiveRetargeter:
         D = sm.deltas[:, idx]  # (1 + C, M, 3)
         D = D[1:] - D[:1]
         # the calibrate stage's motion map, per marker (linear: folded into A once)
-        posed = method_of(cfg).chooses and bool(cfg.solve.example_poses)
+        # under example poses auto solves on the covariance map unless its base is the shape map
+        posed = method_of(cfg).chooses and bool(cfg.solve.example_poses) and not maps
         self.motion_map_, self.alignment_ = live_alignment(cal, posed)
         if self.motion_map_ is not None:
             D = apply_alignment(self.motion_map_, D)

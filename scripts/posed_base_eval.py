@@ -11,7 +11,10 @@ is auto's shape map (its 0-pose result) instead, corrected by
   output, ``W = X + W_s W_sPᵀ (W_sP W_sPᵀ + r s² I)⁻¹ (P − X_P)`` (``s²`` the posed curves' mean
   square: ``r`` relative), i.e. the map itself corrected towards the poses, regularised towards
   auto's; ``r`` fixed, or chosen by leave-one-out over the poses (each pose predicted from the
-  others, error in the character's face: ``dᵀ (D Dᵀ) d``; grid 1e-3 … 1e4).
+  others, error in the character's face: ``dᵀ (D Dᵀ) d``; grid 1e-3 … 1e4);
+* ``choose_by_loo`` (what ``auto`` runs since, :func:`core.examples.choose_by_loo`): none, src-linear at
+  each ridge, or ``learn_from_poses``, by leave-one-out over the poses with the one-standard-error rule,
+  each pose keyed at its own frame. (*auto today* is then that same rule, through the pipeline.)
 
 ::
 
@@ -33,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 import quality_cases as qc  # noqa: E402
-from core.examples import learn_from_poses  # noqa: E402
+from core.examples import choose_by_loo, learn_from_poses  # noqa: E402
 from core.pipeline import Pipeline  # noqa: E402
 from core.stages.methods import example_poses, pose_features  # noqa: E402
 
@@ -101,6 +104,8 @@ def main(argv=None) -> int:
                     row.append(f"map+src-linear r{ridge:g} {score(case, idx, np.clip(src_linear(X, F, poses, ridge), 0, 1)):.4f}")
                 r = loo_ridge(X, F, poses, G)
                 row.append(f"map+src-linear LOO (r {r:g}) {score(case, idx, np.clip(src_linear(X, F, poses, r), 0, 1)):.4f}")
+                W, label, _ = choose_by_loo(X, F, poses, gram=G)
+                row.append(f"map+LOO one-SE choice ({label}) {score(case, idx, W):.4f}")
                 print(f"{c} {n} poses: " + "; ".join(row), flush=True)
     return 0
 

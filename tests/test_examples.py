@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy.linalg import lstsq
 
-from core.examples import (learn_from_poses, linear_correction, pose_space_correction, poses_from_items,
-                           suggest_poses)
+from core.examples import (choose_by_loo, keyed, learn_from_poses, linear_correction, pose_space_correction,
+                           poses_from_items, source_correction, suggest_poses)
 from core.geometry import farthest_points
 from datapaths import PERFORMANCES, RIGS
 
@@ -164,6 +164,93 @@ def test_poses_from_items():
         poses_from_items([{"frame": 1, "weights": {}}, {"frame": 1, "weights": {}}], names, 10)
 
 
+# -- choose_by_loo: the correction leave-one-out over the poses picks -----------------------------
+
+def test_source_correction_is_the_primal_ridge_regression():
+    """The n x n (dual) form equals the primal ridge of the residuals on the features, solved by
+    SciPy's least squares on the stacked system [F_p; sqrt(lambda s^2) I] B = [R; 0]."""
+    X, Fe, truth, poses = _case(n=5)
+    fr = np.array(sorted(poses))
+    R = np.stack([poses[f] for f in fr]) - X[fr]
+    A = Fe[fr]
+    lam = 0.3 * np.trace(A @ A.T) / len(fr)
+    B = lstsq(np.vstack([A, np.sqrt(lam) * np.eye(A.shape[1])]), np.vstack([R, np.zeros((A.shape[1], R.shape[1]))]))[0]
+    np.testing.assert_allclose(source_correction(X, Fe, poses, 0.3), X + Fe @ B, atol=1e-10)
+    np.testing.assert_allclose(source_correction(X, Fe, {}, 0.3), X)
+
+
+def test_keyed_holds_each_pose_at_its_frame_and_only_near_it():
+    X, Fe, truth, poses = _case(n=3)
+    W = keyed(X, poses, half=3)
+    for f, p in poses.items():
+        np.testing.assert_allclose(W[f], np.clip(p, 0, 1))
+    far = np.ones(len(X), bool)
+    for f in poses:
+        far[max(0, f - 3):f + 4] = False
+    np.testing.assert_array_equal(W[far], np.clip(X[far], 0, 1))
+
+
+def test_loo_keeps_a_good_solution_against_poses_that_disagree_and_corrects_a_wrong_one():
+    """Two poses that the features cannot explain (noise about a good X): the one-standard-error
+    rule keeps X (each pose keyed at its frame), where the interpolating corrections spread the
+    noise over the take. Twelve poses of a truth that is another linear map of the features: a
+    correction is chosen and the held-out error drops well below X's."""
+    T, K, F = 300, 6, 4
+    Fe = RNG.uniform(0, 1, (T, F))
+    A = RNG.uniform(0, 0.3, (F, K))
+    good = np.clip(Fe @ A, 0, 1)
+    frames = suggest_poses(Fe, 2)
+    noisy = {int(f): np.clip(good[f] + RNG.normal(0, 0.25, K), 0, 1) for f in frames}
+    W, label, loo = choose_by_loo(good, Fe, noisy)
+    assert label == "none" and set(loo) >= {"none", "linear + pose-space correction"}
+    far = np.ones(T, bool)
+    for f in frames:
+        far[max(0, f - 3):f + 4] = False
+    for f in frames:
+        np.testing.assert_allclose(W[f], noisy[f])
+    np.testing.assert_array_equal(W[far], good[far])
+    assert np.abs(learn_from_poses(good, Fe, noisy)[far] - good[far]).mean() > 0.02  # what "none" spared
+
+    truth = np.clip(Fe @ (A + RNG.normal(0, 0.15, (F, K))), 0, 1)
+    frames = suggest_poses(Fe, 12)
+    W, label, loo = choose_by_loo(good, Fe, {int(f): truth[f] for f in frames})
+    held = np.ones(T, bool)
+    held[frames] = False
+    assert label != "none" and loo[label] < loo["none"]
+    assert np.abs(W - truth)[held].mean() < 0.3 * np.abs(good - truth)[held].mean()
+    np.testing.assert_allclose(W[frames], truth[frames])
+
+
+def test_loo_errors_match_refitting_on_the_whole_take():
+    """choose_by_loo fits each fold on the posed rows and the held-out one only; the reference
+    refits every candidate on the whole take and reads the held-out frame."""
+    from core.examples import _candidates
+
+    X, Fe, truth, poses = _case(T=120, n=5)
+    G = RNG.normal(size=(X.shape[1], X.shape[1]))
+    G = G @ G.T
+    _, _, loo = choose_by_loo(X, Fe, poses, gram=G)
+    fr = sorted(poses)
+    for label in loo:
+        e = []
+        for h in fr:
+            W = _candidates(X, Fe, 0.0, 1.0)[label]({f: poses[f] for f in fr if f != h})
+            d = W[h] - poses[h]
+            e.append(d @ G @ d)
+        assert loo[label] == pytest.approx(np.mean(e), rel=1e-8, abs=1e-14), label
+
+
+def test_one_pose_or_none():
+    X, Fe, truth, poses = _case(n=1)
+    W, label, loo = choose_by_loo(X, Fe, {})
+    assert label == "none" and loo == {}
+    np.testing.assert_array_equal(W, np.clip(X, 0, 1))
+    W, label, loo = choose_by_loo(X, Fe, poses)
+    f = next(iter(poses))
+    assert label == "linear + pose-space correction" and loo == {}
+    np.testing.assert_allclose(W[f], poses[f])
+
+
 # -- the real case: S07 onto Rocketbox, names hidden (the hidden_rocketbox fixture: conftest) ------
 
 def test_hidden_rig_keeps_the_shapes(hidden_rocketbox, rocketbox, tmp_path):
@@ -248,3 +335,47 @@ def test_cli_suggests_poses_and_auto_learns_from_them(tmp_path, capsys):
     capsys.readouterr()
     assert main(["retarget", *common, "--example-poses", str(poses), "--quiet"]) != 0
     assert "poses.json: expected a list of" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_s07_hidden_names_auto_poses_never_worse_than_none(hidden_rocketbox):
+    """auto on the whole S07 take, every Rocketbox shape renamed, with 0, 2 and 8 true poses at the
+    suggested frames (scripts/quality_cases.py --poses, case C): the poses start from auto's shape
+    map, 2 poses are no worse than none (measured 0.254 -> 0.252 mm), 8 meet issue 29's target with
+    room (0.111 mm, target 0.25), the result stays in [0, 1] and each pose is kept at its own frame."""
+    from core.geometry import face_vertices
+    from core.io.gltf import read_rig
+    from core.pipeline import Pipeline, StageCache
+    from core.metrics import vertex_errors
+    from core.report import ground_truth
+    from core.stages.methods import pose_features
+
+    files = dict(source=str(PERFORMANCES / "livelinkface_take_s07.csv"), source_rig=str(RIGS / "ict_facekit.glb"))
+    cache = StageCache()
+    base = Pipeline(cache=cache, target_rig=str(RIGS / "rocketbox_female_adult_02.glb"), **files).results(["load", "frames"])
+    rig, first = base["load"]["target_rig"], base["frames"]["first"]
+    Wt = ground_truth(base["load"], base["frames"])["weights"]
+    face = np.flatnonzero(face_vertices(rig.deltas))
+    ok = np.isfinite(Wt).all(1)
+    names = read_rig(hidden_rocketbox).names
+    errs, sentences = {}, {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pipe = Pipeline(cache=cache, target_rig=str(hidden_rocketbox), **files)
+        frames = suggest_poses(pose_features(pipe.results(["stabilize"])), 8)
+        for n in (0, 2, 8):
+            items = [{"frame": int(first + f), "weights": {names[k]: float(v) for k, v in enumerate(np.nan_to_num(Wt[f])) if v > 1e-4}}
+                     for f in frames[:n]]
+            pipe.configure(example_poses=items)
+            res = pipe.results(["solve", "synthesize"])
+            W = np.asarray(res["synthesize"]["weights"])
+            assert W.min() >= 0 and W.max() <= 1
+            errs[n] = float(np.nanmean(vertex_errors(rig.deltas, W, Wt, face, ok)[0]))  # mm
+            sentences[n] = res["solve"]["info"]["auto"]
+            for it in items:  # each pose kept at its own frame (the hidden rig's shapes are in the same order)
+                posed = np.zeros(rig.n_shapes)
+                posed[[names.index(k) for k in it["weights"]]] = list(it["weights"].values())
+                np.testing.assert_allclose(W[it["frame"] - first], np.clip(posed, 0, 1), atol=1e-9)
+    assert "mapped shape by shape" in sentences[2] and "example poses" in sentences[2], sentences[2]
+    assert errs[2] <= errs[0] + 1e-3 and errs[0] < 0.27, errs
+    assert errs[8] < 0.13 and errs[8] < 0.6 * errs[0], errs

@@ -26,7 +26,7 @@ from ..eyes import gaze_mapped, gaze_rows
 from ..gaps import fill_gaps
 from ..model import flatten
 from ..motion_alignment import apply_alignment
-from ..examples import learn_from_poses, poses_from_items, suggest_poses
+from ..examples import choose_by_loo, learn_from_poses, poses_from_items, suggest_poses
 from ..names import NameMap, recognise
 from ..prior import prior_quadratic
 from ..shape_matching import (SPARSE_L1, aligned_shape_map, jaw_rescaled_map, mapped_weights, match_shapes,
@@ -245,8 +245,9 @@ def shape_map_phrase(n_points: int, eyes: bool = False) -> str:
 def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
     """``(method function, settings, sentence)``: what ``auto`` runs on these inputs and why.
     ``zero``: the shapes the controls hold at zero already ((K,) bool or None); ``posed``: example
-    poses will be learned from (without shared names they carry the meaning: the per-frame solve is
-    their base; the shape map as their base measured worse up to 8 poses, docs/evaluation.md)."""
+    poses will be learned from: when the shape map does not apply, their base is the per-frame solve
+    on the covariance map (measured better than the matched one under poses, docs/evaluation.md);
+    the shape map, where it applies, is their base as it is without poses (*The posed path*)."""
     src, rig = inputs["load"]["source"], inputs["shapes"]["rig"]
     named = _exact_names(inputs) if src.kind == "curves" else np.zeros(rig.n_shapes, bool)
     n = int(named.sum())
@@ -266,7 +267,7 @@ def auto_choice(inputs, zero=None, posed: bool = False) -> tuple:
            f"the target's shapes are not the take's ARKit names ({', '.join(recognised.vocabularies[:3])}: "
            "the vocabularies' combinations are approximate)" if recognised.recognised else
            "the target's shapes share no names with the take's curves")
-    restyle = src.kind == "curves" and inputs["load"]["source_rig"] is not None and not posed
+    restyle = src.kind == "curves" and inputs["load"]["source_rig"] is not None
     if restyle and inputs.get("dense_correspondence") is not None:
         n_points = min(AUTO_DENSE_POINTS, len(inputs["dense_correspondence"]["weights"]))
         eyes = gaze_mapped(inputs["load"]["source_rig"], rig)
@@ -395,16 +396,34 @@ def example_poses(inputs, items) -> dict:
               label="auto — the best this pair and take allow (says what it chose)")
 def _auto(inputs, s, warm=None):
     """The default: looks at the pair and the take and runs what serves best (:func:`auto_choice`),
-    then learns from the example poses, if any, a correspondence for the whole take
-    (:func:`core.examples.learn_from_poses`: a linear map of the solution plus a pose-space RBF of
-    what it leaves, regularised towards the solution where no pose speaks). Says what it chose
-    and why (``info["auto"]``)."""
+    then corrects it towards the example poses, if any, for the whole take. On the shape map: the
+    correction that predicts held-out poses best by leave-one-out over the poses, the most
+    regularised within one standard error (:func:`core.examples.choose_by_loo`: none, a correction
+    regressed on the source's features, or a linear map plus a pose-space RBF), each pose keyed at
+    its own frame; on the per-frame solve, :func:`core.examples.learn_from_poses`.
+    Says what it chose and why (``info["auto"]``)."""
     poses = example_poses(inputs, s.example_poses) if s.example_poses else {}
-    if poses:
-        inputs = covariance_inputs(inputs)
     run, chosen, sentence = auto_choice(inputs, s.zero, posed=bool(poses))
+    if poses and run is not _shape_mapped:
+        inputs = covariance_inputs(inputs)
+        run, chosen, sentence = auto_choice(inputs, s.zero, posed=True)
     out = run(inputs, s.with_values(**chosen), **({"warm": warm} if run is _spacetime else {}))
-    if poses:
+    if poses and run is _shape_mapped:
+        # the map is strong (C 0.254 mm alone): a correction must beat it on held-out poses
+        rig = inputs["shapes"]["rig"]
+        D = np.asarray(rig.deltas, dtype=np.float64).reshape(rig.n_shapes, -1)
+        lo = np.broadcast_to(np.asarray(s.lower, float), (rig.n_shapes,))
+        hi = np.broadcast_to(np.asarray(s.upper, float), (rig.n_shapes,))
+        out["weights"], label, loo = choose_by_loo(np.asarray(out["weights"]), pose_features(inputs), poses,
+                                                   gram=D @ D.T, lower=lo, upper=hi)
+        many = "s" if len(poses) > 1 else ""
+        how = ("leave-one-out kept the map, no correction predicting the held-out poses clearly better"
+               if label == "none" else f"the {label}" + (", chosen by leave-one-out over the poses" if loo else ""))
+        sentence += f"; then learned from {len(poses)} example pose{many} ({how}), each keyed at its own frame"
+        out.setdefault("info", {})["pose_choice"] = {"design": label, "loo": loo}
+    elif poses:
+        # the per-frame solve is geometry alone (C 0.57 mm): the poses' linear + RBF correction, which
+        # measured better there than the leave-one-out choice (2 poses C 0.362 against 0.468)
         out["weights"] = learn_from_poses(np.asarray(out["weights"]), pose_features(inputs), poses,
                                           lower=s.lower, upper=s.upper)
         sentence += f"; then learned from {len(poses)} example pose{'s' if len(poses) > 1 else ''}"

@@ -307,13 +307,11 @@ def _names_carry_the_take(source, source_kind, target_rig, target_shapes, stamps
 
 def auto_maps_shapes(cfg) -> bool:
     """Whether ``auto`` will map a source rig's curves through the rigs' shape map over their dense
-    correspondence (:func:`core.stages.methods.auto_choice`): a chooser method, a source rig, no
-    example pose, and a target whose shapes do not carry the take by name. Decided from the files
+    correspondence (:func:`core.stages.methods.auto_choice`; with example poses too, as their base): a
+    chooser method, a source rig, and a target whose shapes do not carry the take by name. Decided from the files
     before anything runs, so the rig pair's registration (tens of seconds the first time) is paid
     only when that map is made: never for the sample's ARKit-named pair."""
     if not (method_of(cfg).chooses and cfg.source_face.source_rig and cfg.take.source and cfg.target_face.target_rig):
-        return False
-    if cfg.solve.example_poses:
         return False
     t, f = cfg.take, cfg.target_face
     return not _names_carry_the_take(t.source, t.source_kind, f.target_rig, cfg.shapes.target_shapes,
