@@ -223,14 +223,17 @@ def test_kkt_violation_per_entry_cases():
 
 
 # -- the exact inner solve --------------------------------------------------------------------
+@pytest.mark.parametrize("rescale", [1e-60, 0.5, 1e-120])
 @pytest.mark.parametrize("chunk", [7, 256])
 @pytest.mark.parametrize("block", [1, 3, 16, 64])
-def test_capacitance_solve_matches_dense(block, chunk, monkeypatch):
+def test_capacitance_solve_matches_dense(block, chunk, rescale, monkeypatch):
     """The quasiseparable block Cholesky of E^T H^-1 E against the dense matrix, with a split
     (known frame), a direction whose ratios underflow (prior-dominated) and padding; its blocks'
     arrays made a few blocks at a time (``chunk`` entries: several chunks, a last one short) or
-    all at once."""
+    all at once; the state's lazy scale folded into it at the default threshold, almost every
+    block (0.5) or rarely (1e-120: the split, the underflowing direction)."""
     monkeypatch.setattr(spacetime, "_CAPACITANCE_CHUNK", chunk)
+    monkeypatch.setattr(spacetime, "_STATE_RESCALE", rescale)
     rng = np.random.default_rng(block)
     K, n = 5, 70
     mu = rng.uniform(0, 1, K)
