@@ -341,7 +341,7 @@ _MAX_BLOCK = 39
 _STATE_RESCALE = 1e-60
 
 
-# Two compiled kernels for the capacitance recursion's elementwise work (numba): in numpy they
+# Compiled kernels for the capacitance recursion's elementwise work (numba): in numpy they
 # were ~20 passes over (32, K) arrays per block (the log / cumsum / exp of the ratio products, the
 # state's diagonal scaling), more time than the block's BLAS products themselves.
 @numba.njit(cache=True, nogil=True)
@@ -385,13 +385,26 @@ def _capacitance_blocks(U, shapes, rows, inv_diag, seg, sidx, e0, p, Pc, Qc, Pg,
 
 
 @numba.njit(cache=True, nogil=True)
-def _capacitance_advance(g, a, phi, Wv, sol, Np, thr):  # pragma: no cover
-    """The state's scale ``g <- g a`` (``a = Psi_i Phi_i``); the rows and columns of ``W'`` (and
-    ``v'``) of directions whose ``g`` fell below ``thr`` absorb it (``g = 1`` there); then
-    ``Np = [N_i^T Phi_i / g | y_i]``, the rank update ``W' += Np^T Np`` leaves to BLAS."""
+def _capacitance_rhs(X, g, psi, Pgi, ci, rhs):  # pragma: no cover
+    """``rhs = [P_i - Q_i W Psi_i | c_i - Q_i v]`` from ``X = (Q_i g) [W' | v']`` (``W = g W' g``)."""
+    bs, K = Pgi.shape
+    for k in range(K):
+        f = g[k] * psi[k]
+        for r in range(bs):
+            rhs[r, k] = Pgi[r, k] - X[r, k] * f
+    for r in range(bs):
+        rhs[r, K] = ci[r] - X[r, K]
+
+
+@numba.njit(cache=True, nogil=True)
+def _capacitance_advance(g, psi, phi, Wv, sol, Np, thr, Qn, Qsc):  # pragma: no cover
+    """The state's scale ``g <- g Psi_i Phi_i``; the rows and columns of ``W'`` (and ``v'``) of
+    directions whose ``g`` fell below ``thr`` absorb it (``g = 1`` there); then
+    ``Np = [N_i^T Phi_i / g | y_i]``, the rank update ``W' += Np^T Np`` left to BLAS, and
+    ``Qsc = Q_(i+1) g`` (``Qn``: the next block's ``Q``) for its product with ``[W' | v']``."""
     K, bs = g.shape[0], sol.shape[0]
     for k in range(K):
-        gk = g[k] * a[k]
+        gk = g[k] * psi[k] * phi[k]
         if gk < thr:
             for j in range(K + 1):
                 Wv[k, j] *= gk
@@ -405,6 +418,9 @@ def _capacitance_advance(g, a, phi, Wv, sol, Np, thr):  # pragma: no cover
             Np[r, k] = sol[r, k] * f
     for r in range(bs):
         Np[r, K] = sol[r, K]
+    for r in range(bs):
+        for k in range(K):
+            Qsc[r, k] = Qn[r, k] * g[k]
 
 
 def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shapes: np.ndarray,
@@ -478,7 +494,7 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     Wv = np.zeros((K, K + 1), order="F")
     g = np.ones(K)
     Np = np.empty((bs, K + 1), order="F")
-    Ls, Ns = [], []  # L_ii^-1 and [N_i^T | y_i]
+    Ls, Ns = [], []  # L_ii^-T and [N_i^T | y_i]
     rhs_i = np.empty((bs, K + 1), order="F")
     U = np.ascontiguousarray(U, dtype=float)
     inv_diag = np.ascontiguousarray(tri.inv_diag_t)
@@ -490,41 +506,40 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         nc = b1 - b0
         Pg, Qg = np.empty((nc, bs, K)), np.empty((nc, bs, K))
         _capacitance_blocks(U, shapes_c, rows_c, inv_diag, seg, sidx, b0 * bs, p, Pc[:nc], Qc[:nc], Pg, Qg, Psi[b0:b1])
-        # diagonal blocks, transposed: Cd[y, x] = C_ii[x, y] for x <= y (the lower triangle, all that
-        # dpotrf reads); the upper one is e^(l_y - l_x) >= 1 and may overflow in long blocks of frames
-        # far apart: never read
+        # diagonal blocks, transposed: Cd[y, x] = C_ii[x, y] for x <= y, so that Cd[i].T (Fortran order)
+        # holds C_ii's upper triangle, all that dpotrf(lower=0) reads; the other one is e^(l_y - l_x) >= 1
+        # and may overflow in long blocks of frames far apart: never read
         with np.errstate(over="ignore", invalid="ignore"):
             Cd = np.matmul(Qc[:nc], np.transpose(Pc[:nc], (0, 2, 1)))
         if b1 == nb and P > p:  # padding entries: decoupled identity rows
             k = np.arange(bs - (P - p), bs)
             Cd[-1, k, k] = 1.0
         Qs.append(Qg)
+        Qsc = Qg[0] * g  # Q_i [W | v] = (Q_i g) [W' g | v']; the chunk's next blocks' made by _capacitance_advance
         for i in range(b0, b1):
-            Qi = Qg[i - b0] * g  # Q_i [W | v] = (Q_i g) [W' g | v']
-            X = dgemm(1.0, Qi, Wv)  # (numpy's matmul of this C- by an F-ordered array: 54 us, dgemm 32)
-            np.multiply(X[:, :K], g * Psi[i], out=rhs_i[:, :K])
-            np.subtract(Pg[i - b0], rhs_i[:, :K], out=rhs_i[:, :K])
-            np.subtract(c[i], X[:, K], out=rhs_i[:, K])
-            with np.errstate(over="ignore", invalid="ignore"):
-                Cii = Cd[i - b0] - X[:, :K] @ Qi.T
-            Lii, info = dpotrf(Cii, lower=1, clean=1)
+            X = dgemm(1.0, Qsc, Wv)  # (numpy's matmul of this C- by an F-ordered array: 54 us, dgemm 32)
+            _capacitance_rhs(X, g, Psi[i], Pg[i - b0], c[i], rhs_i)
+            # C_ii - Q_i W Q_i^T in place: its transpose (Fortran order, no copy) has the valid upper
+            # triangle, all that dpotrf(lower=0) reads: R^T R = C_ii, R = L_ii^T
+            Cii = dgemm(-1.0, X[:, :K], Qsc.T, beta=1.0, c=Cd[i - b0].T, overwrite_c=1)
+            R, info = dpotrf(Cii, lower=0, clean=1, overwrite_a=1)
             if info != 0:
                 raise np.linalg.LinAlgError("capacitance system not positive definite")
             # the block's inverse factor (32 x 32) and one product: dtrtrs of the 32 x (K + 1) right-hand
             # sides took 25-30 us a block (small-matrix dtrsm), dtrtri + dgemm ~10
-            Lin, info = dtrtri(Lii, lower=1, overwrite_c=1)
+            Rin, info = dtrtri(R, lower=0, overwrite_c=1)
             if info != 0:
                 raise np.linalg.LinAlgError("capacitance system not positive definite")
-            Ls.append(Lin)
-            Ns.append(dgemm(1.0, Lin, rhs_i))  # [N_i^T | y_i]
+            Ls.append(Rin)  # L_ii^-1 = Rin^T
+            Ns.append(dgemm(1.0, Rin, rhs_i, trans_a=1))  # [N_i^T | y_i]
             if i < nb - 1:
                 # W <- Phi (Psi W Psi + N N^T) Phi = a W a + (N Phi)(N Phi)^T, v <- a v + Phi N y
-                _capacitance_advance(g, Psi[i] * Phi[i], Phi[i], Wv, Ns[-1], Np, _STATE_RESCALE)
+                _capacitance_advance(g, Psi[i], Phi[i], Wv, Ns[-1], Np, _STATE_RESCALE, Qg[min(i + 1, b1 - 1) - b0], Qsc)
                 Wv = dgemm(1.0, Np[:, :K], Np, beta=1.0, c=Wv, trans_a=1, overwrite_c=1)
     lam = np.empty((nb, bs))
     z = np.zeros(K)
     for i in range(nb - 1, -1, -1):
-        lam[i] = (Ns[i][:, K] - Ns[i][:, :K] @ z) @ Ls[i]  # L_ii^-T (y_i - N_i^T z)
+        lam[i] = Ls[i] @ (Ns[i][:, K] - Ns[i][:, :K] @ z)  # L_ii^-T (y_i - N_i^T z)
         if i:
             z = (z * Psi[i] + Qs[i // chunk][i % chunk].T @ lam[i]) * Phi[i - 1]
     if not np.isfinite(lam).all():
