@@ -576,3 +576,10 @@ def test_a_hint_that_does_not_settle_leaves_the_cold_run_as_it_was():
     W, iw = solve_bounded(*args, max_iter=1, warm=np.ones((s.T, s.K)))
     assert iw.pop("warm") is False
     assert np.array_equal(W, cold) and iw == ic
+
+
+def test_warm_kernels_fill_numba_cache():
+    """What the dashboard runs at start-up when the cache is cold: after it, the capacitance
+    kernels and the KKT check load from numba's cache (no compile in a request)."""
+    spacetime.warm_kernels()
+    assert spacetime.kernels_cached()

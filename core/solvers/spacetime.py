@@ -327,6 +327,27 @@ def _block_is_cheaper(fixed: np.ndarray, p: int) -> bool:
     return sweep < capacitance
 
 
+def warm_kernels() -> None:
+    """Compile the capacitance recursion's kernels and the KKT check (the first call after an
+    install or a change of these files: a few seconds of CPU, numba's cache next to the modules)
+    or load them, with a 4-entry system. :func:`dashboard.serve.serve` runs it next to the box QP's
+    ``warm`` when :func:`kernels_cached` says the cache is cold, so no request pays the compile."""
+    tri = _Tridiagonals(np.ones(2), np.ones(2), np.full(3, 2.0), -np.ones(2), "warm-up").factor()
+    _capacitance_solve(tri, np.eye(2), np.array([0, 0, 1, 2]), np.array([0, 1, 1, 0]), np.ones(4), block=2)
+    kkt_violation_per_entry(np.zeros((1, 2)), np.ones((1, 2)), 0.0, 1.0, 0.0, 1.0)
+
+
+def kernels_cached() -> bool:
+    """Whether numba's on-disk cache holds :func:`warm_kernels`' kernels for these sources."""
+    from core.solvers import bounded_spacetime
+
+    try:  # numba has no public query (as core.solvers.boxqp.kernel_cached)
+        return all(bool(k._cache._cache_file._load_index()) for k in
+                   (_capacitance_blocks, _capacitance_rhs, _capacitance_advance, bounded_spacetime._kkt_entries))
+    except Exception:  # noqa: BLE001 -- a private API: anything unexpected means "not known to be cached"
+        return False
+
+
 #: entries per block of the capacitance solve (see :func:`_capacitance_solve`)
 CAPACITANCE_BLOCK = 32
 #: entries whose blocks' arrays are made at once (see :func:`_capacitance_solve`)
