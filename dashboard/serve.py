@@ -9,7 +9,7 @@ import sys
 import uuid
 from typing import Optional
 
-from core.solvers import boxqp
+from core.solvers import boxqp, spacetime
 
 
 def serve(port: int = 5006, address: str = "localhost", show: bool = False, allow_websocket_origin=None,
@@ -51,10 +51,12 @@ def serve(port: int = 5006, address: str = "localhost", show: bool = False, allo
         server = rv.configure(data_dir, max_upload_mb)
         print(f"review store: {server.data_dir}", flush=True)
         warm.configure(warm_pages, busy_idle_s=warm_wait)
-    if not boxqp.kernel_cached():
-        # the per-frame box QP kernel is compiled once after an install (~6 s of CPU, numba's cache):
-        # in a process of its own, so that neither this server's GIL nor a request waits for it
-        subprocess.Popen([sys.executable, "-c", "from core.solvers.boxqp import warm; warm()"],
+    if not (boxqp.kernel_cached() and spacetime.kernels_cached()):
+        # the per-frame box QP kernel and the spacetime solver's are compiled once after an install
+        # (~6 s and a few s of CPU, numba's cache): in a process of their own, so that neither this
+        # server's GIL nor a request waits for them
+        subprocess.Popen([sys.executable, "-c", "from core.solvers.boxqp import warm; warm(); "
+                          "from core.solvers.spacetime import warm_kernels; warm_kernels()"],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     origins = [f"{address}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"] + list(allow_websocket_origin or [])
     # the server's loop runs here, on the main thread, until interrupted: with pn.serve(threaded=True)

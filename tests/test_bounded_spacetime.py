@@ -222,15 +222,56 @@ def test_kkt_violation_per_entry_cases():
     np.testing.assert_allclose(v[0], [2.0, 0.0, 1.0])
 
 
+def _kkt_entry_reference(w, g, lo, hi, l1, scale):
+    """One entry's violation, straight from the module docstring's conditions."""
+    if np.isnan(g):
+        return np.inf
+    slope_lo, slope_hi = (l1 if lo >= 0 else -l1), (l1 if hi > 0 else -l1)
+    if w == lo:
+        v = max(-(g + slope_lo), 0.0)
+    elif w == hi:
+        v = max(g + slope_hi, 0.0)
+    elif w == 0 and l1 > 0 and lo < 0 < hi:
+        v = max(abs(g) - l1, 0.0)
+    else:
+        v = abs(g + l1 * np.sign(w))
+    return max(v, scale * max(lo - w, w - hi, 0.0))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_kkt_violation_per_entry_matches_reference(seed):
+    """The compiled per-entry conditions against the plain statement: entries on either bound,
+    at zero, free, outside the bounds, NaN gradients; infinite bounds, pinned shapes, with and without L1."""
+    rng = np.random.default_rng(seed)
+    n, K = 40, 9
+    lo = rng.choice([-np.inf, -1.0, 0.0, 0.5], K)
+    hi = np.maximum(lo, rng.choice([np.inf, 1.0, 0.0, 2.0], K))
+    l1 = rng.choice([0.0, 0.3], K) if seed % 2 else np.zeros(K)
+    W = rng.normal(size=(n, K))
+    pick = rng.random((n, K))
+    W = np.where(pick < 0.2, lo, np.where(pick < 0.4, hi, np.where(pick < 0.5, 0.0, W)))
+    W = np.where(np.isfinite(W), W, 0.3)
+    g = rng.normal(size=(n, K))
+    failed = rng.random((n, K)) < 0.03  # a failed solve: NaN weights and gradients
+    g[failed] = W[failed] = np.nan
+    g[rng.random((n, K)) < 0.03] = np.nan
+    v = kkt_violation_per_entry(W, g, lo, hi, l1, scale=3.0)
+    ref = np.array([[_kkt_entry_reference(W[t, k], g[t, k], lo[k], hi[k], l1[k], 3.0) for k in range(K)] for t in range(n)])
+    np.testing.assert_array_equal(v, ref)
+
+
 # -- the exact inner solve --------------------------------------------------------------------
+@pytest.mark.parametrize("rescale", [1e-60, 0.5, 1e-120])
 @pytest.mark.parametrize("chunk", [7, 256])
 @pytest.mark.parametrize("block", [1, 3, 16, 64])
-def test_capacitance_solve_matches_dense(block, chunk, monkeypatch):
+def test_capacitance_solve_matches_dense(block, chunk, rescale, monkeypatch):
     """The quasiseparable block Cholesky of E^T H^-1 E against the dense matrix, with a split
     (known frame), a direction whose ratios underflow (prior-dominated) and padding; its blocks'
     arrays made a few blocks at a time (``chunk`` entries: several chunks, a last one short) or
-    all at once."""
+    all at once; the state's lazy scale folded into it at the default threshold, almost every
+    block (0.5) or rarely (1e-120: the split, the underflowing direction)."""
     monkeypatch.setattr(spacetime, "_CAPACITANCE_CHUNK", chunk)
+    monkeypatch.setattr(spacetime, "_STATE_RESCALE", rescale)
     rng = np.random.default_rng(block)
     K, n = 5, 70
     mu = rng.uniform(0, 1, K)
@@ -535,3 +576,10 @@ def test_a_hint_that_does_not_settle_leaves_the_cold_run_as_it_was():
     W, iw = solve_bounded(*args, max_iter=1, warm=np.ones((s.T, s.K)))
     assert iw.pop("warm") is False
     assert np.array_equal(W, cold) and iw == ic
+
+
+def test_warm_kernels_fill_numba_cache():
+    """What the dashboard runs at start-up when the cache is cold: after it, the capacitance
+    kernels and the KKT check load from numba's cache (no compile in a request)."""
+    spacetime.warm_kernels()
+    assert spacetime.kernels_cached()

@@ -116,6 +116,7 @@ from __future__ import annotations
 import functools
 import warnings
 
+import numba
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
@@ -125,11 +126,6 @@ __all__ = ["solve_bounded", "kkt_violation_per_entry", "KKT_RTOL"]
 #: conditions (see :meth:`core.solvers.spacetime.SpacetimeSolver.kkt_residual`) must be at most
 #: ``KKT_RTOL * ||B^T B||_2 * max(1, max |W|)``
 KKT_RTOL = 1e-9
-
-
-def _slopes(lower, upper, l1):
-    """``h'(lower+)`` and ``h'(upper-)`` of ``h = l1 |w|``: the L1 slopes just inside each bound."""
-    return np.where(lower >= 0, l1, -l1), np.where(upper > 0, l1, -l1)
 
 
 def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
@@ -152,29 +148,43 @@ def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
     """
     W = np.asarray(W, dtype=np.float64)
     g = np.asarray(g, dtype=np.float64)
-    shape = W.shape
-    lo, hi, lam = (np.asarray(a, dtype=np.float64) for a in (lower, upper, l1))
-    at_lo = W == lo
-    at_hi = (W == hi) & ~at_lo
-    if (lam > 0).any():
-        slo, shi = _slopes(lo, hi, lam)
-        v = np.abs(g + lam * np.sign(W))  # free: |g + l1 sign(w)|
-        at_0 = (W == 0) & ((lam > 0) & (lo < 0) & (hi > 0))
-        if at_0.any():
-            v[at_0] = np.maximum(np.abs(g[at_0]) - np.broadcast_to(lam, shape)[at_0], 0.0)
-    else:
-        slo = shi = np.zeros(1)
-        v = np.abs(g)
-    if at_lo.any():
-        v[at_lo] = np.maximum(-(g[at_lo] + np.broadcast_to(slo, shape)[at_lo]), 0.0)
-    if at_hi.any():
-        v[at_hi] = np.maximum(g[at_hi] + np.broadcast_to(shi, shape)[at_hi], 0.0)
-    d = np.maximum(lo - W, W - hi)  # > 0 outside the bounds
-    out = d > 0
-    if out.any():
-        v[out] = np.maximum(v[out], scale * d[out])
-    v[np.isnan(v)] = np.inf  # NaN (a failed solve) never passes
-    return v
+    if W.ndim != 2:
+        raise ValueError("kkt_violation_per_entry: W must be (n, K)")
+    K = W.shape[1]
+    lo, hi, lam = (np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), (K,))) for a in (lower, upper, l1))
+    return _kkt_entries(W, np.broadcast_to(g, W.shape), lo, hi, lam, float(scale), bool((lam > 0).any()), np.empty(W.shape))
+
+
+# compiled: the same conditions in numpy were ~15 masked passes over the (n, K) arrays, 3 ms per
+# active-set step of a 1,000 x 165 take (10 % of a setting change), one pass here
+@numba.njit(cache=True, nogil=True)
+def _kkt_entries(W, g, lo, hi, lam, scale, use_l1, out):  # pragma: no cover
+    """:func:`kkt_violation_per_entry` entry by entry (NaN anywhere -> inf)."""
+    n, K = W.shape
+    for t in range(n):
+        for k in range(K):
+            w, gk, lk, hk, mk = W[t, k], g[t, k], lo[k], hi[k], lam[k]
+            if use_l1:
+                slo = mk if lk >= 0 else -mk  # h'(lower+), h'(upper-) of h = l1 |w|: the L1 slopes just inside each bound
+                shi = mk if hk > 0 else -mk
+                v = abs(gk + mk * np.sign(w))  # free: |g + l1 sign(w)|
+                if w == 0 and mk > 0 and lk < 0 and hk > 0:  # at the kink inside the bounds
+                    v = abs(gk) - mk
+                    v = v if v > 0 or v != v else 0.0
+            else:
+                slo = shi = 0.0
+                v = abs(gk)
+            if w == lk:
+                v = -(gk + slo)
+                v = v if v > 0 or v != v else 0.0
+            elif w == hk:
+                v = gk + shi
+                v = v if v > 0 or v != v else 0.0
+            d = max(lk - w, w - hk)  # > 0 outside the bounds
+            if d > 0 and v == v and scale * d > v:
+                v = scale * d
+            out[t, k] = np.inf if v != v else v  # NaN (a failed solve) never passes
+    return out
 
 
 def _prox_state(y, c, lo, hi, lam):

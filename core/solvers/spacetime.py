@@ -89,10 +89,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Callable, NamedTuple, Optional, Sequence
 
+import numba
 import numpy as np
 import scipy.linalg
 from scipy.linalg.blas import dgemm
-from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs, dtrtrs
+from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs, dtrtri
 
 from core.prior import PCAPrior, alpha_for_units, prior_quadratic
 from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry, solve_bounded
@@ -326,14 +327,121 @@ def _block_is_cheaper(fixed: np.ndarray, p: int) -> bool:
     return sweep < capacitance
 
 
+def warm_kernels() -> None:
+    """Compile the capacitance recursion's kernels and the KKT check (the first call after an
+    install or a change of these files: a few seconds of CPU, numba's cache next to the modules)
+    or load them, with a 4-entry system. :func:`dashboard.serve.serve` runs it next to the box QP's
+    ``warm`` when :func:`kernels_cached` says the cache is cold, so no request pays the compile."""
+    tri = _Tridiagonals(np.ones(2), np.ones(2), np.full(3, 2.0), -np.ones(2), "warm-up").factor()
+    _capacitance_solve(tri, np.eye(2), np.array([0, 0, 1, 2]), np.array([0, 1, 1, 0]), np.ones(4), block=2)
+    kkt_violation_per_entry(np.zeros((1, 2)), np.ones((1, 2)), 0.0, 1.0, 0.0, 1.0)
+
+
+def kernels_cached() -> bool:
+    """Whether numba's on-disk cache holds :func:`warm_kernels`' kernels for these sources."""
+    from core.solvers import bounded_spacetime
+
+    try:  # numba has no public query (as core.solvers.boxqp.kernel_cached)
+        return all(bool(k._cache._cache_file._load_index()) for k in
+                   (_capacitance_blocks, _capacitance_rhs, _capacitance_advance, bounded_spacetime._kkt_entries))
+    except Exception:  # noqa: BLE001 -- a private API: anything unexpected means "not known to be cached"
+        return False
+
+
 #: entries per block of the capacitance solve (see :func:`_capacitance_solve`)
 CAPACITANCE_BLOCK = 32
 #: entries whose blocks' arrays are made at once (see :func:`_capacitance_solve`)
 _CAPACITANCE_CHUNK = 256
 #: ratio products below exp(-36) (< eps / 2) are taken as exp(-36) inside a block (see below)
 _LOG_TINY = -36.0
-#: largest block: its log products span at most 36 (block - 1) <= 2 * 700 (no overflow)
+_RATIO_TINY = float(np.exp(_LOG_TINY))
+#: largest block: its products from the middle entry span at most 36 (block // 2) <= 700 (no overflow)
 _MAX_BLOCK = 39
+#: the recursion's state is kept as ``W = diag(g) W' diag(g)``; a direction's ``g`` below this is
+#: folded into ``W'`` (its ``1 / g^2`` <= 1e120 scales the rank updates: no overflow)
+_STATE_RESCALE = 1e-60
+
+
+# Compiled kernels for the capacitance recursion's elementwise work (numba): in numpy they
+# were ~20 passes over (32, K) arrays per block (the log / cumsum / exp of the ratio products, the
+# state's diagonal scaling), more time than the block's BLAS products themselves.
+@numba.njit(cache=True, nogil=True)
+def _capacitance_blocks(U, shapes, rows, inv_diag, seg, sidx, e0, p, Pc, Qc, Pg, Qg, Psi):  # pragma: no cover
+    """Blocks ``j`` of entries ``e0 + j bs ..`` (``bs = Pc.shape[1]``): with ``E[y] = e^(l_y - l_m)``
+    (``l`` the ratio products' logs from the block's first entry, ``m = bs // 2`` its middle
+    entry; each ratio floored at exp(-36)): ``Pc = U / E``, ``Qc = U diag(T^-1) E`` (the diagonal
+    block is ``Pc Qc^T`` above its diagonal), ``Pg = Pc E[last]`` (carried to the block's last
+    entry), ``Qg = Qc / E[0]`` (from its first), ``Psi = E[last] / E[0]``; entries ``>= p`` zero."""
+    K = U.shape[1]
+    nc, bs = Pc.shape[0], Pc.shape[1]
+    m = bs // 2
+    E = np.empty((bs, K))
+    for j in range(nc):
+        base = e0 + j * bs
+        E[m, :] = 1.0
+        for y in range(m + 1, bs):
+            s = sidx[base + y - 1]
+            for k in range(K):
+                E[y, k] = E[y - 1, k] * max(seg[s, k], _RATIO_TINY)
+        for y in range(m - 1, -1, -1):
+            s = sidx[base + y]
+            for k in range(K):
+                E[y, k] = E[y + 1, k] / max(seg[s, k], _RATIO_TINY)
+        for y in range(bs):
+            e = base + y
+            if e < p:
+                u, t = shapes[e], rows[e]
+                for k in range(K):
+                    pc = U[u, k] / E[y, k]
+                    qc = U[u, k] * inv_diag[t, k] * E[y, k]
+                    Pc[j, y, k] = pc
+                    Qc[j, y, k] = qc
+                    Pg[j, y, k] = pc * E[bs - 1, k]
+                    Qg[j, y, k] = qc / E[0, k]
+            else:
+                for k in range(K):
+                    Pc[j, y, k] = Qc[j, y, k] = Pg[j, y, k] = Qg[j, y, k] = 0.0
+        for k in range(K):
+            Psi[j, k] = E[bs - 1, k] / E[0, k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _capacitance_rhs(X, g, psi, Pgi, ci, rhs):  # pragma: no cover
+    """``rhs = [P_i - Q_i W Psi_i | c_i - Q_i v]`` from ``X = (Q_i g) [W' | v']`` (``W = g W' g``)."""
+    bs, K = Pgi.shape
+    for k in range(K):
+        f = g[k] * psi[k]
+        for r in range(bs):
+            rhs[r, k] = Pgi[r, k] - X[r, k] * f
+    for r in range(bs):
+        rhs[r, K] = ci[r] - X[r, K]
+
+
+@numba.njit(cache=True, nogil=True)
+def _capacitance_advance(g, psi, phi, Wv, sol, Np, thr, Qn, Qsc):  # pragma: no cover
+    """The state's scale ``g <- g Psi_i Phi_i``; the rows and columns of ``W'`` (and ``v'``) of
+    directions whose ``g`` fell below ``thr`` absorb it (``g = 1`` there); then
+    ``Np = [N_i^T Phi_i / g | y_i]``, the rank update ``W' += Np^T Np`` left to BLAS, and
+    ``Qsc = Q_(i+1) g`` (``Qn``: the next block's ``Q``) for its product with ``[W' | v']``."""
+    K, bs = g.shape[0], sol.shape[0]
+    for k in range(K):
+        gk = g[k] * psi[k] * phi[k]
+        if gk < thr:
+            for j in range(K + 1):
+                Wv[k, j] *= gk
+            for j in range(K):
+                Wv[j, k] *= gk
+            gk = 1.0
+        g[k] = gk
+    for k in range(K):
+        f = phi[k] / g[k]
+        for r in range(bs):
+            Np[r, k] = sol[r, k] * f
+    for r in range(bs):
+        Np[r, K] = sol[r, K]
+    for r in range(bs):
+        for k in range(K):
+            Qsc[r, k] = Qn[r, k] * g[k]
 
 
 def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shapes: np.ndarray,
@@ -357,9 +465,13 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     block's last (from its first) entry, ``Psi_i`` the transition across block ``i`` and
     ``Phi_i`` from block ``i`` to ``i + 1``: products of ratios <= 1, no division across blocks,
     no overflow. The dense diagonal blocks are one batched product ``(U e^-l) (Q e^l)^T`` with
-    ``l`` the block-local log ratio products (centred), each ratio floored at ``exp(-36)``
-    (< eps / 2) so that blocks of up to 39 entries cannot overflow; the floor changes an
-    entry by less than rounding.
+    ``l`` the block-local log ratio products centred on the block's middle entry (formed as
+    products and quotients of the ratios, :func:`_capacitance_blocks`), each ratio floored at
+    ``exp(-36)`` (< eps / 2) so that blocks of up to 39 entries cannot overflow; the floor changes
+    an entry by less than rounding. The state is kept as ``W = diag(g) W' diag(g)`` (and
+    ``v = g v'``): each block multiplies ``g`` by ``Psi_i Phi_i`` instead of scaling the K x K
+    state, and a direction's ``g`` is folded into ``W'`` once it falls below 1e-60
+    (:func:`_capacitance_advance`). Each ``L_ii`` is inverted (32 x 32) and applied by one product.
     Cost ``O(p (block + K) K)`` time and ``O(p (block + K))`` memory instead of the dense
     ``O(p^3)``.
 
@@ -394,75 +506,61 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     # the blocks' own arrays are made CHUNK blocks at a time, inside the recursion: (P, K) arrays of
     # the whole system made in one pass each were 45 % of the solve (4,300 entries x 165 shapes: a
     # dozen passes over 5.7 MB each); a chunk's stay in cache
-    chunk = max(1, _CAPACITANCE_CHUNK // bs)
+    chunk = max(1, min(nb, _CAPACITANCE_CHUNK // bs))
     Psi = np.empty((nb, K))
     Qs = []  # Qg of each chunk: the back substitution reads them
-    # [W | v]: the recursion's state, propagated in one product; Fortran order, so that BLAS adds
-    # each block's N N^T to it in place
+    # [W' | v']: the recursion's state W = g W' g, v = g v' (the diagonal scaling by Psi Phi of every
+    # block applied to g, folded into W' only where g gets small), propagated in one product;
+    # Fortran order, so that BLAS adds each block's N N^T to it in place
     Wv = np.zeros((K, K + 1), order="F")
+    g = np.ones(K)
     Np = np.empty((bs, K + 1), order="F")
-    Ls, Ns = [], []
+    Ls, Ns = [], []  # L_ii^-T and [N_i^T | y_i]
     rhs_i = np.empty((bs, K + 1), order="F")
-    iu = np.tril_indices(bs, -1)
+    U = np.ascontiguousarray(U, dtype=float)
+    inv_diag = np.ascontiguousarray(tri.inv_diag_t)
+    rows_c, shapes_c = np.ascontiguousarray(rows, dtype=np.int64), np.ascontiguousarray(shapes, dtype=np.int64)
+    sidx = sidx.astype(np.int64)
+    Pc, Qc = np.empty((chunk, bs, K)), np.empty((chunk, bs, K))
     for b0 in range(0, nb, chunk):
         b1 = min(nb, b0 + chunk)
-        e0, e1 = b0 * bs, min(b1 * bs, p)
         nc = b1 - b0
-        Ue = np.zeros((nc * bs, K))
-        np.take(U, shapes[e0:e1], axis=0, out=Ue[:e1 - e0])
-        Qg = np.zeros((nc * bs, K))
-        np.multiply(Ue[:e1 - e0], tri.inv_diag_t[rows[e0:e1]], out=Qg[:e1 - e0])
-        Ue, Qg = Ue.reshape(nc, bs, K), Qg.reshape(nc, bs, K)
-        lp = np.zeros((nc, bs, K))  # block-local log products from the block's first entry
-        step = seg[sidx[b0 * bs:b1 * bs].reshape(nc, bs)[:, :-1]]  # (nc, bs - 1, K)
-        with np.errstate(divide="ignore"):
-            np.log(step, out=lp[:, 1:])
-        np.maximum(lp[:, 1:], _LOG_TINY, out=lp[:, 1:])
-        np.cumsum(lp[:, 1:], axis=1, out=lp[:, 1:])
-        # diagonal blocks: C_ii[x, y] = sum_k U_xk Qg_yk e^(l_y - l_x) for x <= y (upper triangle kept);
-        # l centred per block and direction: e^(l - mid) stays within e^(+-36 (block - 1) / 2), no overflow
-        mid = 0.5 * lp[:, -1:]
-        E1 = np.exp(lp - mid)
-        Pg = Ue / E1  # U e^(mid - l)
-        # the strict lower triangle (x > y) is e^(l_y - l_x) >= 1 and may overflow to inf/NaN in long
-        # blocks of frames far apart; it is discarded (mirrored from the upper one) right below
+        Pg, Qg = np.empty((nc, bs, K)), np.empty((nc, bs, K))
+        _capacitance_blocks(U, shapes_c, rows_c, inv_diag, seg, sidx, b0 * bs, p, Pc[:nc], Qc[:nc], Pg, Qg, Psi[b0:b1])
+        # diagonal blocks, transposed: Cd[y, x] = C_ii[x, y] for x <= y, so that Cd[i].T (Fortran order)
+        # holds C_ii's upper triangle, all that dpotrf(lower=0) reads; the other one is e^(l_y - l_x) >= 1
+        # and may overflow in long blocks of frames far apart: never read
         with np.errstate(over="ignore", invalid="ignore"):
-            Cd = np.matmul(Pg, np.transpose(Qg * E1, (0, 2, 1)))
-        Cd[:, iu[0], iu[1]] = Cd[:, iu[1], iu[0]]
-        em = np.exp(mid)
-        Pg *= em  # carried to the block's last entry: U e^(l_last - l), l_last = 2 mid
-        E1 *= em  # e^l: carried from the block's first entry
-        Qg *= E1
-        Psi[b0:b1] = E1[:, -1]  # first -> last entry of each block
+            Cd = np.matmul(Qc[:nc], np.transpose(Pc[:nc], (0, 2, 1)))
         if b1 == nb and P > p:  # padding entries: decoupled identity rows
             k = np.arange(bs - (P - p), bs)
             Cd[-1, k, k] = 1.0
         Qs.append(Qg)
+        Qsc = Qg[0] * g  # Q_i [W | v] = (Q_i g) [W' g | v']; the chunk's next blocks' made by _capacitance_advance
         for i in range(b0, b1):
-            Qi = Qg[i - b0]
-            QWv = dgemm(1.0, Qi, Wv)  # (numpy's matmul of this C- by an F-ordered array: 54 us, dgemm 32)
-            QW = QWv[:, :K]
-            np.multiply(QW, Psi[i], out=rhs_i[:, :K])
-            np.subtract(Pg[i - b0], rhs_i[:, :K], out=rhs_i[:, :K])
-            np.subtract(c[i], QWv[:, K], out=rhs_i[:, K])
-            Lii, info = dpotrf(Cd[i - b0] - QW @ Qi.T, lower=1, clean=1)
+            X = dgemm(1.0, Qsc, Wv)  # (numpy's matmul of this C- by an F-ordered array: 54 us, dgemm 32)
+            _capacitance_rhs(X, g, Psi[i], Pg[i - b0], c[i], rhs_i)
+            # C_ii - Q_i W Q_i^T in place: its transpose (Fortran order, no copy) has the valid upper
+            # triangle, all that dpotrf(lower=0) reads: R^T R = C_ii, R = L_ii^T
+            Cii = dgemm(-1.0, X[:, :K], Qsc.T, beta=1.0, c=Cd[i - b0].T, overwrite_c=1)
+            R, info = dpotrf(Cii, lower=0, clean=1, overwrite_a=1)
             if info != 0:
                 raise np.linalg.LinAlgError("capacitance system not positive definite")
-            sol, _ = dtrtrs(Lii, rhs_i, lower=1)  # [N_i^T | y_i]
-            Ls.append(Lii)
-            Ns.append(sol)
+            # the block's inverse factor (32 x 32) and one product: dtrtrs of the 32 x (K + 1) right-hand
+            # sides took 25-30 us a block (small-matrix dtrsm), dtrtri + dgemm ~10
+            Rin, info = dtrtri(R, lower=0, overwrite_c=1)
+            if info != 0:
+                raise np.linalg.LinAlgError("capacitance system not positive definite")
+            Ls.append(Rin)  # L_ii^-1 = Rin^T
+            Ns.append(dgemm(1.0, Rin, rhs_i, trans_a=1))  # [N_i^T | y_i]
             if i < nb - 1:
                 # W <- Phi (Psi W Psi + N N^T) Phi = a W a + (N Phi)(N Phi)^T, v <- a v + Phi N y
-                a = Psi[i] * Phi[i]
-                Wv *= a[:, None]
-                Wv[:, :K] *= a
-                np.multiply(sol[:, :K], Phi[i], out=Np[:, :K])
-                Np[:, K] = sol[:, K]
+                _capacitance_advance(g, Psi[i], Phi[i], Wv, Ns[-1], Np, _STATE_RESCALE, Qg[min(i + 1, b1 - 1) - b0], Qsc)
                 Wv = dgemm(1.0, Np[:, :K], Np, beta=1.0, c=Wv, trans_a=1, overwrite_c=1)
     lam = np.empty((nb, bs))
     z = np.zeros(K)
     for i in range(nb - 1, -1, -1):
-        lam[i] = dtrtrs(Ls[i], Ns[i][:, K] - Ns[i][:, :K] @ z, lower=1, trans=1)[0]
+        lam[i] = Ls[i] @ (Ns[i][:, K] - Ns[i][:, :K] @ z)  # L_ii^-T (y_i - N_i^T z)
         if i:
             z = (z * Psi[i] + Qs[i // chunk][i % chunk].T @ lam[i]) * Phi[i - 1]
     if not np.isfinite(lam).all():
