@@ -181,11 +181,15 @@ def linear_correction(X, poses: Mapping, ridge: float = RIDGE) -> np.ndarray:
     if not ridge > 0:
         raise ValueError(f"ridge: expected > 0 (the pull of the correction towards the identity), got {ridge}")
     frames, P = _poses(X, poses)
-    if not len(frames):
-        return X.copy()
-    Xp = X[frames]
-    c = np.linalg.solve(Xp @ Xp.T + ridge * np.eye(len(frames)), P - Xp)
-    return X + (X @ Xp.T) @ c
+    return _pushed_through(X, X, frames, P, ridge) if len(frames) else X.copy()
+
+
+def _pushed_through(X, F, frames, P, ridge: float) -> np.ndarray:
+    """``X + F F_pᵀ (F_p F_pᵀ + ridge I)⁻¹ (P − X_p)``: the ridge regression of the posed residuals
+    on the features ``F`` (T, n) in its poses × poses form (the push-through identity), shared by
+    :func:`linear_correction` (``F = X``) and :func:`source_correction` (the source's features)."""
+    A = F[frames]
+    return X + (F @ A.T) @ np.linalg.solve(A @ A.T + ridge * np.eye(len(frames)), P - X[frames])
 
 
 def _rbf(F: np.ndarray, frames: np.ndarray, R: np.ndarray, width=None) -> np.ndarray:
@@ -307,9 +311,8 @@ def source_correction(X, features, poses: Mapping, ridge: float) -> np.ndarray:
     if not len(frames):
         return X.copy()
     F = _filled(features, len(X))
-    A = F[frames]
-    s2 = max(float(np.trace(A @ A.T)) / len(frames), 1e-300)
-    return X + (F @ A.T) @ np.linalg.solve(A @ A.T + ridge * s2 * np.eye(len(frames)), P - X[frames])
+    s2 = max(float((F[frames] ** 2).sum()) / len(frames), 1e-300)
+    return _pushed_through(X, F, frames, P, ridge * s2)
 
 
 def _candidates(X, features, lower, upper) -> dict:
