@@ -56,12 +56,19 @@ class LogSlider(pn.widgets.CompositeWidget):
         return float(f"{10.0 ** position:.3g}")
 
     def _moved(self, event):
-        if not self._syncing:
-            self._syncing = True
-            try:
-                self.value = self.weight(event.new)
-            finally:
-                self._syncing = False
+        if self._syncing:
+            return
+        self._syncing = True
+        try:
+            self.value = self.weight(event.new)
+            if self.value != self.weight(event.new):
+                # a watcher set the value back meanwhile (a shared shot refusing the change: the
+                # page returns to the shot's value); the guard kept _set from moving the handle,
+                # so it follows here — else the page shows the refused value until the next
+                # change arrives (found by the review load test: a page kept its refused α)
+                self._slider.value = self.position(self.value)
+        finally:
+            self._syncing = False
 
     def _set(self, event):
         if not self._syncing:

@@ -60,3 +60,27 @@ def test_alpha_is_on_a_log_scale(pipe):
     slider.value = slider.end - 10 * slider.step if slider is not w else 0.5
     assert 0 < pipe.solve.alpha < 1
     pipe.solve.alpha = 0.01
+
+
+def test_alpha_handle_follows_a_change_set_back_while_it_moved(pipe):
+    """A shared shot that refuses a page's α sets the setting back inside the handle's own change
+    (dashboard.review.Mirror._send on a Conflict); the handle must return with it, not keep showing
+    the refused value (the review load test caught a page left on its refused α)."""
+    pipe.configure(method="spacetime", alpha=0.01)
+    w, slider = _alpha_slider(pipe)
+    assert slider is not w  # the sidebar's α is a LogSlider (its handle is over log10 α)
+    refused = []
+
+    def refuse(event):  # what the Mirror does on a Conflict: the shot's value again
+        if event.new != 0.01:
+            refused.append(event.new)
+            pipe.solve.alpha = 0.01
+
+    watcher = pipe.solve.param.watch(refuse, "alpha")
+    try:
+        slider.value = slider.value + 4 * slider.step
+    finally:
+        pipe.solve.param.unwatch(watcher)
+    assert refused and refused[0] > 0.01  # the move did reach the setting, and was set back
+    assert pipe.solve.alpha == 0.01 and w.value == 0.01
+    assert slider.value == pytest.approx(w.position(0.01))  # the handle is back at the shot's value
