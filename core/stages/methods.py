@@ -296,8 +296,8 @@ def restyled_inputs(inputs) -> tuple:
     return {**inputs, "calibrate": {**cal, "source": replace(st, deltas=st.deltas + add)}}, match
 
 
-def dense_shape_map(inputs, lower=0.0, upper=1.0) -> np.ndarray:
-    """(K_solver, J) :func:`core.shape_matching.aligned_shape_map` of the source rig's shapes and the
+def dense_shape_map(inputs, lower=0.0, upper=1.0) -> tuple:
+    """``(M, eyes)``: ``M`` (K_solver, J) the :func:`core.shape_matching.aligned_shape_map` of the source rig's shapes and the
     solver's at the first :data:`AUTO_DENSE_POINTS` points of the rig pair's dense correspondence
     (the ``dense_correspondence`` stage), the target's warped into the actor's proportions by the
     calibrate stage's warp (Seol 2012 §3.2, fitted at the markers; none when calibration is off),
@@ -305,7 +305,7 @@ def dense_shape_map(inputs, lower=0.0, upper=1.0) -> np.ndarray:
     source shapes that move the chin scaled so the character's jaw turns by the actor's angle; names
     hidden 0.355 -> 0.314 mm, non-ARKit shapes 0.466 -> 0.420, docs/evaluation.md "design S"), with
     the eyeballs in the fit when both rigs have them (:func:`core.eyes.gaze_rows`: the target's
-    turned about the actor's axis, in the target's range; design E)."""
+    turned about the actor's axis, in the target's range; design E); ``eyes``: whether they were."""
     dc, ld = inputs["dense_correspondence"], inputs["load"]
     names = list(dc["source_layout"].names[:AUTO_DENSE_POINTS])
     source_points = dc["source_layout"].select(names)
@@ -313,8 +313,9 @@ def dense_shape_map(inputs, lower=0.0, upper=1.0) -> np.ndarray:
     n, d = dc["target_layout"].select(names).on_rig(inputs["shapes"]["rig"])
     warp = inputs["calibrate"]["target"].warp
     T, Nt = (d, n) if warp is None else (warp(n[None] + d) - warp(n)[None], warp(n))
-    M = aligned_shape_map(Ds, T, lower, upper, l1=SPARSE_L1, extra=gaze_rows(ld["source_rig"], inputs["shapes"]["rig"], warp))
-    return jaw_rescaled_map(M, Ns, Ds, Nt, T, lower, upper)[0]
+    eyes = gaze_rows(ld["source_rig"], inputs["shapes"]["rig"], warp)
+    M = aligned_shape_map(Ds, T, lower, upper, l1=SPARSE_L1, extra=eyes)
+    return jaw_rescaled_map(M, Ns, Ds, Nt, T, lower, upper)[0], eyes is not None
 
 
 def _shape_mapped(inputs, s):
@@ -331,9 +332,10 @@ def _shape_mapped(inputs, s):
     lo_k, hi_k = np.broadcast_to(np.asarray(lo, float), (K,)), np.broadcast_to(np.asarray(hi, float), (K,))
     free = keep & (hi_k > lo_k)
     M = np.zeros((K, src.n_shapes))
+    eyes = False  # the eyeballs in the map (info["gaze"]: auto's and live's sentences)
     if free.any():
         sub = {**inputs, "shapes": {**inputs["shapes"], "rig": rig.subset([rig.names[k] for k in np.flatnonzero(free)])}}
-        M[free] = dense_shape_map(sub, lo_k[free], hi_k[free])
+        M[free], eyes = dense_shape_map(sub, lo_k[free], hi_k[free])
     Ws = np.nan_to_num(np.asarray(inputs["calibrate"]["source"].source_weights, dtype=np.float64))
     W = mapped_weights(M, Ws, lo_k, hi_k)
     W[:, ~free] = np.clip(0.0, lo_k, hi_k)[~free]
@@ -342,7 +344,6 @@ def _shape_mapped(inputs, s):
     top = M.argmax(0)
     matches = {src.names[j]: rig.names[top[j]] for j in range(src.n_shapes) if M[top[j], j] > 0.05}
     # the map itself: the live retargeter maps each packet through it (core.live), from the cached result
-    eyes = bool(free.any()) and gaze_mapped(src, sub["shapes"]["rig"])
     return {"weights": W, "info": {"shape_matches": matches, "shape_map": M, "gaze": eyes, "dense_points": min(AUTO_DENSE_POINTS, len(
         inputs["dense_correspondence"]["weights"]))}, "edit": edit_options(s, alpha=0.01, lower=lo, upper=hi)}
 
