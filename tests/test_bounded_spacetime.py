@@ -262,15 +262,15 @@ def test_kkt_violation_per_entry_matches_reference(seed):
 
 # -- the exact inner solve --------------------------------------------------------------------
 @pytest.mark.parametrize("rescale", [1e-60, 0.5, 1e-120])
-@pytest.mark.parametrize("chunk", [7, 256])
+@pytest.mark.parametrize("halves", ["one", "serial", "threads"])
 @pytest.mark.parametrize("block", [1, 3, 16, 64])
-def test_capacitance_solve_matches_dense(block, chunk, rescale, monkeypatch):
+def test_capacitance_solve_matches_dense(block, halves, rescale, monkeypatch):
     """The quasiseparable block Cholesky of E^T H^-1 E against the dense matrix, with a split
-    (known frame), a direction whose ratios underflow (prior-dominated) and padding; its blocks'
-    arrays made a few blocks at a time (``chunk`` entries: several chunks, a last one short) or
-    all at once; the state's lazy scale folded into it at the default threshold, almost every
-    block (0.5) or rarely (1e-120: the split, the underflowing direction)."""
-    monkeypatch.setattr(spacetime, "_CAPACITANCE_CHUNK", chunk)
+    (known frame), a direction whose ratios underflow (prior-dominated) and padding; as one
+    recursion or as two halves (the later one in reversed order) joined by their K x K
+    interface, one after the other or in two threads; the state's lazy scale folded into it at
+    the default threshold, almost every block (0.5) or rarely (1e-120: the split, the
+    underflowing direction)."""
     monkeypatch.setattr(spacetime, "_STATE_RESCALE", rescale)
     rng = np.random.default_rng(block)
     K, n = 5, 70
@@ -291,7 +291,8 @@ def test_capacitance_solve_matches_dense(block, chunk, rescale, monkeypatch):
     C = np.einsum("aj,bj,jab->ab", U[ks], U[ks], np.array([g[np.ix_(rows, rows)] for g in G]))
     c = rng.normal(size=len(rows))
     perm = rng.permutation(len(rows))
-    lam = _capacitance_solve(tri, U, rows[perm], ks[perm], c[perm], block=block)
+    kw = dict(split=False) if halves == "one" else dict(split=True, threads=halves == "threads")
+    lam = _capacitance_solve(tri, U, rows[perm], ks[perm], c[perm], block=block, **kw)
     ref = np.linalg.solve(C, c)
     assert np.abs(lam - ref[perm]).max() <= 1e-10 * np.abs(ref).max()
 
