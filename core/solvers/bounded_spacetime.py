@@ -187,18 +187,69 @@ def _kkt_entries(W, g, lo, hi, lam, scale, use_l1, out):  # pragma: no cover
     return out
 
 
-def _prox_state(y, c, lo, hi, lam):
-    """Next state from the proximal point ``p = clip(soft(y, lam / c), lo, hi)``:
-    (fixed (n, K) bool, values (n, K), sign (n, K) of the free entries)."""
-    if not lam.any():  # no L1: soft(y, 0) = y (+ 0.0 turns -0.0 into 0.0, as sign(y) |y| does)
-        p = np.clip(y + 0.0, lo, hi)
-        fixed = (p == lo) | (p == hi)
-        return fixed, np.where(fixed, p, 0.0), np.where(fixed, 0.0, np.sign(p))
-    t = lam / c
-    p = np.clip(np.sign(y) * np.maximum(np.abs(y) - t, 0.0), lo, hi)
-    fixed = (p == lo) | (p == hi) | ((lam > 0) & (p == 0))
-    sign = np.where(fixed, 0.0, np.sign(p))
-    return fixed, np.where(fixed, p, 0.0), sign
+def _prox_state(X, c, lo, hi, lam, known, g=None, old=None):
+    """Next state from the proximal point ``p = clip(soft(y, lam / c), lo, hi)`` of
+    ``y = X - nan_to_num(g) / c`` (``X`` without ``g``), ``y = 0`` on the ``known`` entries:
+    (fixed (n, K) bool -- never a known entry --, values (n, K), sign (n, K) of the free entries),
+    and with ``old`` (a state) the number of entries whose state differs from it. ``c``, ``lo``,
+    ``hi``, ``lam``: (K,) per shape."""
+    n, K = X.shape
+    fixed, values, sign = np.empty((n, K), bool), np.empty((n, K)), np.empty((n, K))
+    if old is None:
+        old, count = (fixed, values, sign), False
+    else:
+        count = True
+    changes = _prox_entries(X, X if g is None else g, g is not None, c, lo, hi, lam, bool(lam.any()), known,
+                            fixed, values, sign, count, *old)
+    return (fixed, values, sign), changes
+
+
+# compiled: in numpy the next state was ~15 passes over the (n, K) arrays (the gradient step,
+# nan_to_num, clip, the masks, where, the comparison with the previous state), ~2.5 ms per
+# active-set step of a 1,000 x 165 take; one pass here, the same numbers bit for bit (numpy's
+# clip, maximum and sign written out, -0.0 and NaN included)
+@numba.njit(cache=True, nogil=True)
+def _prox_entries(X, g, use_g, c, lo, hi, lam, use_l1, known, fixed, values, sign, count, f0, v0, s0):  # pragma: no cover
+    n, K = X.shape
+    big = np.finfo(np.float64).max
+    changes = 0
+    for t in range(n):
+        for k in range(K):
+            if known[t, k]:
+                y = 0.0
+            else:
+                y = X[t, k]
+                if use_g:
+                    gk = g[t, k]
+                    if gk != gk:
+                        gk = 0.0
+                    elif gk > big:
+                        gk = big
+                    elif gk < -big:
+                        gk = -big
+                    y = y - gk / c[k]
+            lk, hk = lo[k], hi[k]
+            if use_l1:
+                a = abs(y) - lam[k] / c[k]
+                if not (a >= 0.0 or a != a):  # np.maximum(a, 0)
+                    a = 0.0
+                sy = 1.0 if y > 0 else (-1.0 if y < 0 else (0.0 if y == 0 else y))
+                x = sy * a
+            else:
+                x = y + 0.0
+            if x == x:  # np.clip: NaN stays NaN
+                x = x if x > lk else lk
+                x = x if x < hk else hk
+            f = x == lk or x == hk or (use_l1 and lam[k] > 0 and x == 0)
+            v = x if f else 0.0
+            s = 0.0 if f else (1.0 if x > 0 else (-1.0 if x < 0 else (0.0 if x == 0 else x)))
+            f = f and not known[t, k]
+            if count and (f != f0[t, k] or v != v0[t, k] or s != s0[t, k]):
+                changes += 1
+            fixed[t, k] = f
+            values[t, k] = v
+            sign[t, k] = s
+    return changes
 
 
 def solve_bounded(system, lower, upper, l1, tol: float = KKT_RTOL, max_iter: int = 30,
@@ -290,9 +341,11 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
     def small(X, r):
         return r <= tol * system.scale * max(1.0, float(np.abs(X).max()))
 
-    def state_of(y):
-        fixed, values, sign = _prox_state(np.where(known, 0.0, y), c, lo, hi, lam)
-        return fixed & ~known, values, sign
+    per_shape = [np.ascontiguousarray(a[0]) for a in (c, lo, hi, lam)]
+
+    def state_of(X, g=None, old=None):
+        """(the state of the proximal point of X - g / c, changes from ``old``)"""
+        return _prox_state(X, *per_shape, known, g, old)
 
     def pdas(state):
         """Active-set steps from a state; returns (done, X, g)."""
@@ -311,8 +364,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
             r = residual(X, g)
             if small(X, r):
                 return True, X, g
-            nf, nv, ns = state_of(X - np.nan_to_num(g) / c)
-            changes = int(np.count_nonzero((nf != fixed) | (nv != values) | (ns != sign)))
+            (nf, nv, ns), changes = state_of(X, g, (fixed, values, sign))
             if changes == 0:
                 return True, X, g  # the state's own KKT point (to rounding): nothing left to change
             # progress is the number of state changes halving (the KKT residual of PDAS iterates jumps
@@ -330,7 +382,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
         # an active-set run from the state of a previous solution (a neighbouring setting): the
         # minimiser is unique, so where this run ends (on an exact KKT point) the cold start ends too
         cold = dict(info)
-        done, X1, g1 = pdas(state_of(warm))
+        done, X1, g1 = pdas(state_of(warm)[0])
         if done:
             info["warm"] = True
             return _finish(system, X1, lo, hi, lam, known, info, tol, True)
@@ -339,7 +391,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
     # start: the unbounded minimiser (no L1), soft-thresholded and clipped
     X, g = system.solve()
     info["iterations"] += 1
-    state = state_of(X)
+    state = state_of(X)[0]
     if not (state[0].any() or (use_l1 and (state[2] != 0).any())) and small(X, residual(X, g)):
         done = True  # no bound or L1 zero is active: the unbounded solution is the answer
     else:
