@@ -626,3 +626,28 @@ def test_prox_state_matches_numpy_bit_for_bit(l1):
             assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
         want = np.count_nonzero((ref[0] != old[0]) | (ref[1] != old[1]) | (ref[2] != old[2]))
         assert changes == want > 0
+
+
+def test_state_key_equal_exactly_for_equal_states():
+    """The active-set state's hash: equal for equal states (also from copies and other layouts),
+    different after any one change: a fixed entry released, a value's sign or last bit, a sign."""
+    from core.solvers.bounded_spacetime import _state_key
+
+    rng = np.random.default_rng(5)
+    n, K = 40, 9
+    fixed = rng.random((n, K)) < 0.4
+    values = np.where(fixed, rng.choice([0.0, 1.0, 0.3], (n, K)), 0.0)
+    sign = np.where(fixed, 0.0, rng.choice([1.0, -1.0, 0.0, np.nan], (n, K)))
+    key = _state_key(fixed, values, sign)
+    assert key == _state_key(fixed.copy(), values.copy(), np.asfortranarray(sign))
+    t, k = np.argwhere(fixed & (values == 1.0))[0]
+    changed = []
+    f2 = fixed.copy(); f2[t, k] = False; changed.append((f2, values, sign))
+    v2 = values.copy(); v2[t, k] = -1.0; changed.append((fixed, v2, sign))
+    v3 = values.copy(); v3[t, k] = np.nextafter(1.0, 2.0); changed.append((fixed, v3, sign))
+    t, k = np.argwhere(~fixed & (sign == 1.0))[0]
+    s2 = sign.copy(); s2[t, k] = -1.0; changed.append((fixed, values, s2))
+    s3 = sign.copy(); s3[t, k] = np.nan; changed.append((fixed, values, s3))
+    s4 = sign.copy(); s4[[0, 1]] = s4[[1, 0]]; changed.append((fixed, values, s4))  # same entries, other places
+    keys = [_state_key(*c) for c in changed]
+    assert key not in keys and len(set(keys)) == len(keys)

@@ -210,42 +210,42 @@ def _prox_state(X, c, lo, hi, lam, known, g=None, old=None):
 # clip, maximum and sign written out, -0.0 and NaN included)
 @numba.njit(cache=True, nogil=True)
 def _prox_entries(X, g, use_g, c, lo, hi, lam, use_l1, known, fixed, values, sign, count, f0, v0, s0):  # pragma: no cover
+    # every choice is a select on a bitwise-combined condition: numba compiles a plain ``a if x > 0
+    # else b`` to a branch, mispredicted on these data (5x slower)
     n, K = X.shape
     big = np.finfo(np.float64).max
     changes = 0
     for t in range(n):
         for k in range(K):
-            if known[t, k]:
-                y = 0.0
-            else:
-                y = X[t, k]
-                if use_g:
-                    gk = g[t, k]
-                    if gk != gk:
-                        gk = 0.0
-                    elif gk > big:
-                        gk = big
-                    elif gk < -big:
-                        gk = -big
-                    y = y - gk / c[k]
+            y = X[t, k]
+            if use_g:
+                gk = g[t, k]
+                gk = gk if (gk <= big) | (gk != gk) else big  # np.nan_to_num
+                gk = gk if (gk >= -big) | (gk != gk) else -big
+                gk = gk if (gk == gk) | False else 0.0
+                y = y - gk / c[k]
+            kn = known[t, k]
+            y = y if (not kn) | False else 0.0
             lk, hk = lo[k], hi[k]
             if use_l1:
                 a = abs(y) - lam[k] / c[k]
-                if not (a >= 0.0 or a != a):  # np.maximum(a, 0)
-                    a = 0.0
-                sy = 1.0 if y > 0 else (-1.0 if y < 0 else (0.0 if y == 0 else y))
+                a = a if (a >= 0.0) | (a != a) else 0.0  # np.maximum(a, 0)
+                sy = (y > 0) * 1.0 - (y < 0) * 1.0  # np.sign (NaN: NaN)
+                sy = sy if (y == y) | False else y
                 x = sy * a
             else:
                 x = y + 0.0
-            if x == x:  # np.clip: NaN stays NaN
-                x = x if x > lk else lk
-                x = x if x < hk else hk
-            f = x == lk or x == hk or (use_l1 and lam[k] > 0 and x == 0)
-            v = x if f else 0.0
-            s = 0.0 if f else (1.0 if x > 0 else (-1.0 if x < 0 else (0.0 if x == 0 else x)))
-            f = f and not known[t, k]
-            if count and (f != f0[t, k] or v != v0[t, k] or s != s0[t, k]):
-                changes += 1
+            # np.clip: NaN stays NaN
+            x = x if (x > lk) | (x != x) else lk
+            x = x if (x < hk) | (x != x) else hk
+            f = (x == lk) | (x == hk) | (use_l1 & (lam[k] > 0) & (x == 0))
+            v = x if f | False else 0.0
+            sx = (x > 0) * 1.0 - (x < 0) * 1.0
+            sx = sx if (x == x) | False else x
+            s = sx if (not f) | False else 0.0
+            f = f & (not kn)
+            if count:
+                changes += (f != f0[t, k]) | (v != v0[t, k]) | (s != s0[t, k])
             fixed[t, k] = f
             values[t, k] = v
             sign[t, k] = s
@@ -312,11 +312,33 @@ def _blas_controller():
 
 
 def _state_key(fixed, values, sign) -> int:
-    """A hash of an active-set state that is equal exactly when the states are: the fixed mask
-    packed to bits, the values on it (``values`` is 0 elsewhere), the signs as small integers
-    (NaN apart) -- a tenth of the bytes of the three (n, K) arrays."""
-    s8 = np.where(np.isnan(sign), 2, sign).astype(np.int8)
-    return hash((np.packbits(fixed).tobytes(), values[fixed].tobytes(), s8.tobytes()))
+    """A 64-bit hash of an active-set state (the fixed mask, the values on it -- ``values`` is 0
+    elsewhere --, the signs), for the cycle check: equal states have equal keys; two different
+    states share one with probability ~2^-64 (a false "cycle" ends the run early, and ADMM goes on
+    from there). One compiled pass: the bytes of the three (n, K) arrays hashed by Python were
+    ~1 ms a step on a 1,000 x 165 take."""
+    return int(_state_hash(np.ascontiguousarray(fixed), np.ascontiguousarray(values, dtype=np.float64).view(np.uint64),
+                           np.ascontiguousarray(sign, dtype=np.float64)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _state_hash(fixed, bits, sign):  # pragma: no cover
+    """A polynomial hash mod 2^64 of the entries' codes (sign 0 / 1 / -1 / NaN, fixed or not)
+    and, when fixed, their values' bits; finished by splitmix64's finaliser."""
+    n, K = fixed.shape
+    h = np.uint64(14695981039346656037)
+    prime = np.uint64(0x100000001B3)
+    for t in range(n):
+        for k in range(K):
+            s = sign[t, k]
+            f = fixed[t, k]
+            code = 1 + (s > 0) * 1 + (s < 0) * 2 + (s != s) * 3 + f * 4
+            h = h * prime + np.uint64(code)
+            if f:
+                h = h * prime + bits[t, k]
+    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return h ^ (h >> np.uint64(31))
 
 
 def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=None):

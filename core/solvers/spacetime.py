@@ -336,11 +336,12 @@ def warm_kernels() -> None:
     tri = _Tridiagonals(np.ones(2), np.ones(2), np.full(3, 2.0), -np.ones(2), "warm-up").factor()
     _capacitance_solve(tri, np.eye(2), np.array([0, 0, 1, 2]), np.array([0, 1, 1, 0]), np.ones(4), block=2)
     kkt_violation_per_entry(np.zeros((1, 2)), np.ones((1, 2)), 0.0, 1.0, 0.0, 1.0)
-    from core.solvers.bounded_spacetime import _prox_state
+    from core.solvers.bounded_spacetime import _prox_state, _state_key
 
     one = np.ones(2)
-    _prox_state(np.zeros((1, 2)), one, 0 * one, one, 0 * one, np.zeros((1, 2), bool), np.ones((1, 2)),
-                (np.zeros((1, 2), bool), np.zeros((1, 2)), np.zeros((1, 2))))
+    state, _ = _prox_state(np.zeros((1, 2)), one, 0 * one, one, 0 * one, np.zeros((1, 2), bool), np.ones((1, 2)),
+                           (np.zeros((1, 2), bool), np.zeros((1, 2)), np.zeros((1, 2))))
+    _state_key(*state)
 
 
 def kernels_cached() -> bool:
@@ -350,7 +351,7 @@ def kernels_cached() -> bool:
     try:  # numba has no public query (as core.solvers.boxqp.kernel_cached)
         return all(bool(k._cache._cache_file._load_index()) for k in
                    (_capacitance_part, _capacitance_back, _segment_products, bounded_spacetime._kkt_entries,
-                    bounded_spacetime._prox_entries))
+                    bounded_spacetime._prox_entries, bounded_spacetime._state_hash))
     except Exception:  # noqa: BLE001 -- a private API: anything unexpected means "not known to be cached"
         return False
 
