@@ -651,3 +651,74 @@ def test_state_key_equal_exactly_for_equal_states():
     s4 = sign.copy(); s4[[0, 1]] = s4[[1, 0]]; changed.append((fixed, values, s4))  # same entries, other places
     keys = [_state_key(*c) for c in changed]
     assert key not in keys and len(set(keys)) == len(keys)
+
+
+def test_threads_or_not_the_same_numbers(rocketbox_problem, monkeypatch):
+    """The capacitance solve's two halves, the tridiagonal solves' two groups of directions and
+    the weights' two halves of frames run in a second thread only when a core is free: a bounded
+    solve of the sample (1,000 frames x 51 shapes, thousands of constraints: the capacitance
+    systems are split) gives the same bits and the same active-set steps either way."""
+    B, S, valid, names = rocketbox_problem
+    S = S[:1000]
+    out = []
+    calls = []
+    orig = spacetime._capacitance_solve
+
+    def spy(tri, U, rows, *a, **kw):
+        calls.append(len(rows) >= 4 * U.shape[1] and len(rows) >= 4 * spacetime.CAPACITANCE_BLOCK)
+        return orig(tri, U, rows, *a, **kw)
+
+    monkeypatch.setattr(spacetime, "_capacitance_solve", spy)
+    for cores in (1, 2):
+        monkeypatch.setattr(spacetime, "_free_cores", lambda: cores)
+        s = SpacetimeSolver(B, S, alpha=0.01, ridge=1e-3, lower=0.0, upper=1.0)
+        out.append((s.solve(), dict(s.info_)))
+    assert any(calls)  # split systems were solved
+    (W1, i1), (W2, i2) = out
+    assert np.array_equal(W1, W2) and i1 == i2
+
+
+@pytest.mark.parametrize("case", ["within_frame", "known_frame_at_split", "underflow", "tiny_second_half"])
+def test_capacitance_halves_at_awkward_splits(case):
+    """Two halves against the dense capacitance matrix where the cut is awkward: inside a frame's
+    entries (no transition across it), on a known frame (zero coupling: the halves are
+    independent), across a gap where a direction's ratios underflow, and with a second half of a
+    single entry (all padding but one)."""
+    rng = np.random.default_rng(11)
+    K, n = 6, 40
+    mu = rng.uniform(0.2, 1, K)
+    nu = 1.0 - mu
+    if case == "underflow":
+        mu[0], nu[0] = 1e-12, 1.0  # prior-dominated: ratios ~1e-12 per frame
+    dL = np.full(n, 2.0)
+    dL[[0, -1]] = 1.0
+    eL = -np.ones(n - 1)
+    rows = np.repeat(np.arange(n), K)
+    ks = np.tile(np.arange(K), n)
+    keep = rng.random(len(rows)) < (1.0 if case == "known_frame_at_split" else 0.8)  # whole frames: blocks of K
+    rows, ks = rows[keep], ks[keep]
+    p = len(rows)
+    block = {"within_frame": 5, "known_frame_at_split": K, "underflow": 3, "tiny_second_half": 4}[case]
+    if case == "tiny_second_half":
+        rows, ks = rows[: 2 * block * 3 + 1], ks[: 2 * block * 3 + 1]  # 7 blocks, the last one entry
+        p = len(rows)
+    nb = -(-p // block)
+    s = (nb // 2) * block
+    if case == "within_frame":
+        assert rows[s - 1] == rows[s]
+    if case == "known_frame_at_split":
+        assert rows[s - 1] < rows[s]
+        eL[rows[s - 1]] = 0.0  # theta = 0 between the halves' frames
+    tri = _Tridiagonals(mu, nu, dL, eL, "test").factor()
+    U = np.linalg.qr(rng.normal(size=(K, K)))[0] * rng.uniform(0.5, 2.0, K)
+    G = [np.linalg.inv(np.diag(mu[j] * dL + nu[j]) + np.diag(mu[j] * eL, 1) + np.diag(mu[j] * eL, -1)) for j in range(K)]
+    C = np.einsum("aj,bj,jab->ab", U[ks], U[ks], np.array([g[np.ix_(rows, rows)] for g in G]))
+    c = rng.normal(size=p)
+    ref = np.linalg.solve(C, c)
+    one = _capacitance_solve(tri, U, rows, ks, c, block=block, presorted=True, split=False)
+    for threads in (False, True):
+        lam = _capacitance_solve(tri, U, rows, ks, c, block=block, presorted=True, split=True, threads=threads)
+        assert np.abs(lam - ref).max() <= 1e-10 * np.abs(ref).max()
+        assert np.abs(lam - one).max() <= 1e-12 * np.abs(one).max()
+    assert np.array_equal(lam, _capacitance_solve(tri, U, rows, ks, c, block=block, presorted=True, split=True,
+                                                  threads=False))

@@ -295,8 +295,18 @@ class _Tridiagonals:
             df, ef = self._f
             if df.size == 1:
                 return Z / df[0]
-            x, info = dpttrs(df, ef, np.ascontiguousarray(Z).ravel(), overwrite_b=1 if overwrite else 0)
-            return x.reshape(K, n)
+            z = (np.ascontiguousarray(Z, dtype=np.float64) if overwrite else np.array(Z, dtype=np.float64)).reshape(-1)
+
+            def run(a, b):
+                x, _ = dpttrs(df[a:b], ef[a:b - 1], z[a:b], overwrite_b=1)
+                if not np.shares_memory(x, z):
+                    z[a:b] = x
+
+            # directions 0 .. K/2 - 1 and the rest, in two threads when a core is free (zero coupling
+            # between them: the numbers of one call)
+            h = (K // 2) * n
+            _both(lambda: run(0, h), lambda: run(h, K * n)) if h else run(0, K * n)
+            return z.reshape(K, n)
         out = Z if overwrite else np.array(Z)
         for j in range(K):
             d = self.mu[j] * self.dL + self.nu[j]
@@ -657,13 +667,7 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         Phi2[-1] = 1.0  # part 2's state at its own last entry (the first of part 2 in time)
         args1 = (rows[:s], shapes[:s], rhs[:s], s, sidx[:s], seg, Phi[:nb1], True)
         args2 = (rows2, shapes2, rhs[s:][::-1], m2, sidx2, seg2, Phi2, True)
-        pool = _capacitance_pool() if (threads if threads is not None else _free_cores() >= 2) else None
-        if pool is not None:
-            fut = pool.submit(part, *args2)
-            f1 = part(*args1)
-            f2 = fut.result()
-        else:
-            f1, f2 = part(*args1), part(*args2)
+        f1, f2 = _both(lambda: part(*args1), lambda: part(*args2), threads)
         check(f1, f2)
         # the interface in S-scaled coordinates: A_k = S W_k S = (S g) W_k' (S g), S v_k = (S g) v_k'
         D = inv_diag[rows[s]]
@@ -678,12 +682,7 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         ct = scipy.linalg.solve(M, h1 * f1["v"] - A1 @ r2, overwrite_a=True, check_finite=False)  # S c
         cc = ct / S
         a = S * (r2 - A2 @ ct)  # D (v2 - W2 D c)
-        if pool is not None:
-            fut = pool.submit(back, f2, D * cc)
-            lam1 = back(f1, Phi[nb1 - 1] * a)
-            lam2 = fut.result()
-        else:
-            lam1, lam2 = back(f1, Phi[nb1 - 1] * a), back(f2, D * cc)
+        lam1, lam2 = _both(lambda: back(f1, Phi[nb1 - 1] * a), lambda: back(f2, D * cc), threads)
         lam = np.concatenate([lam1.ravel(), lam2.ravel()[:m2][::-1]])
     if not np.isfinite(lam).all():
         raise np.linalg.LinAlgError("capacitance solve not finite")
@@ -702,8 +701,18 @@ _SPLIT_ENTRIES_PER_SHAPE = 4
 
 @functools.lru_cache(maxsize=1)
 def _capacitance_pool():
-    """One worker thread for the capacitance solve's second half (made on first use)."""
+    """One worker thread for :func:`_both` (made on first use)."""
     return concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="capacitance")
+
+
+def _both(f1, f2, threads: Optional[bool] = None):
+    """``(f1(), f2())``, ``f2`` in the worker thread when a second core is free (numba's nogil
+    kernels, BLAS and LAPACK run without the GIL; ``threads`` forces it either way): the same
+    work, so the numbers never depend on which."""
+    if threads if threads is not None else _free_cores() >= 2:
+        fut = _capacitance_pool().submit(f2)
+        return f1(), fut.result()
+    return f1(), f2()
 
 
 def _free_cores() -> int:
@@ -877,7 +886,10 @@ class RangeSystem:
             s.method_ = "fast"
         X = np.empty((n, K))
         if self._contiguous and len(uidx):
-            np.matmul(Z.T, U.T, out=X[uidx[0]:uidx[-1] + 1])
+            # the frames' weights in two halves of frames (two threads when a core is free); always
+            # two, so that the numbers never depend on the machine's load
+            Xu, m = X[uidx[0]:uidx[-1] + 1], len(uidx) // 2
+            _both(lambda: np.matmul(Z[:, :m].T, U.T, out=Xu[:m]), lambda: np.matmul(Z[:, m:].T, U.T, out=Xu[m:]))
         elif len(uidx):
             X[uidx] = Z.T @ U.T
         # constraints hold exactly (they already do to rounding)
