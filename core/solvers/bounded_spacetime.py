@@ -194,6 +194,9 @@ def _prox_state(X, c, lo, hi, lam, known, g=None, old=None):
     and with ``old`` (a state) the number of entries whose state differs from it. ``c``, ``lo``,
     ``hi``, ``lam``: (K,) per shape."""
     n, K = X.shape
+    # numba compiles read-only arrays (a cached hint) as another signature: copies instead
+    X, g = (a if a is None or a.flags.writeable and a.flags.c_contiguous else np.array(a, dtype=np.float64)
+            for a in (X, g))
     fixed, values, sign = np.empty((n, K), bool), np.empty((n, K)), np.empty((n, K))
     if old is None:
         old, count = (fixed, values, sign), False
@@ -363,7 +366,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
     def small(X, r):
         return r <= tol * system.scale * max(1.0, float(np.abs(X).max()))
 
-    per_shape = [np.ascontiguousarray(a[0]) for a in (c, lo, hi, lam)]
+    per_shape = [np.array(a[0]) for a in (c, lo, hi, lam)]  # writable copies: one compiled signature
 
     def state_of(X, g=None, old=None):
         """(the state of the proximal point of X - g / c, changes from ``old``)"""

@@ -86,6 +86,8 @@ from __future__ import annotations
 import concurrent.futures
 import difflib
 import functools
+import os
+import time
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -715,10 +717,43 @@ def _both(f1, f2, threads: Optional[bool] = None):
     return f1(), f2()
 
 
-def _free_cores() -> int:
-    from core.transfer.decompose import _cores  # the policy of Xu's threaded stages
+#: what :func:`_free_cores` saw last: (monotonic time, the machine's busy CPU seconds, this
+#: process's CPU seconds, its answer)
+_CPU_SEEN = [0.0, 0.0, 0.0, 1]
 
-    return _cores()
+
+def _free_cores() -> int:
+    """The cores this process may use that other processes leave free, from the machine's and this
+    process's CPU time since the previous look (``/proc/stat``, at most every 0.2 s; the first look
+    and other systems: :func:`core.transfer.decompose._cores`, the 1-minute load average less one).
+
+    The load average alone does not do here: a change's solve is a fraction of a second, and this
+    process's own two threads lift the load average to ~2 -- the policy then saw no free core on
+    an otherwise idle machine and switched the threads off every other minute."""
+    now = time.monotonic()
+    seen = _CPU_SEEN
+    if seen[0] and now - seen[0] < 0.2:
+        return seen[3]
+    try:
+        with open("/proc/stat", "rb") as f:
+            v = [int(x) for x in f.readline().split()[1:9]]
+        busy = (sum(v) - v[3] - v[4]) / os.sysconf("SC_CLK_TCK")  # all but idle and iowait
+        n = len(os.sched_getaffinity(0))
+    except (OSError, ValueError, AttributeError):
+        from core.transfer.decompose import _cores
+
+        return _cores()
+    t = os.times()
+    own = t.user + t.system
+    if seen[0]:
+        others = max(0.0, (busy - seen[1]) - (own - seen[2])) / (now - seen[0])  # cores other processes used
+        free = max(1, min(n, int(n - others + 0.5)))
+    else:
+        from core.transfer.decompose import _cores
+
+        free = _cores()
+    seen[:] = [now, busy, own, free]
+    return free
 
 
 class RangeSystem:
