@@ -624,6 +624,9 @@ def test_prox_state_matches_numpy_bit_for_bit(l1):
         state, changes = _prox_state(y, c, lo, hi, lam, known, gg, old)
         for a, b in zip(state, ref):
             assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+        spare = tuple(np.full_like(a, 7) for a in ref)  # written into, whatever it held
+        again, _ = _prox_state(y, c, lo, hi, lam, known, gg, None, spare)
+        assert all(a is b and a.tobytes() == r.tobytes() for a, b, r in zip(again, spare, ref))
         want = np.count_nonzero((ref[0] != old[0]) | (ref[1] != old[1]) | (ref[2] != old[2]))
         assert changes == want > 0
 

@@ -363,7 +363,7 @@ def kernels_cached() -> bool:
     try:  # numba has no public query (as core.solvers.boxqp.kernel_cached)
         return all(bool(k._cache._cache_file._load_index()) for k in
                    (_capacitance_part, _capacitance_back, _segment_products, bounded_spacetime._kkt_entries,
-                    bounded_spacetime._prox_entries, bounded_spacetime._state_hash))
+                    bounded_spacetime._prox_entries, bounded_spacetime._state_changes, bounded_spacetime._state_hash))
     except Exception:  # noqa: BLE001 -- a private API: anything unexpected means "not known to be cached"
         return False
 
