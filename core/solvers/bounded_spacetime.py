@@ -128,7 +128,7 @@ __all__ = ["solve_bounded", "kkt_violation_per_entry", "KKT_RTOL"]
 KKT_RTOL = 1e-9
 
 
-def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
+def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float, out=None) -> np.ndarray:
     """Per-entry violation of the optimality conditions (absolute, in gradient units).
 
     Parameters
@@ -141,6 +141,8 @@ def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
         Bounds (``-inf``/``inf`` for none) and L1 weights (absolute).
     scale : float
         ``||B^T B||_2``: a weight at distance ``d`` outside its bounds violates by ``scale d``.
+    out : (n, K) float, optional
+        Where to write the result (C-contiguous).
 
     Returns
     -------
@@ -152,7 +154,8 @@ def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
         raise ValueError("kkt_violation_per_entry: W must be (n, K)")
     K = W.shape[1]
     lo, hi, lam = (np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), (K,))) for a in (lower, upper, l1))
-    return _kkt_entries(W, np.broadcast_to(g, W.shape), lo, hi, lam, float(scale), bool((lam > 0).any()), np.empty(W.shape))
+    return _kkt_entries(W, np.broadcast_to(g, W.shape), lo, hi, lam, float(scale), bool((lam > 0).any()),
+                        np.empty(W.shape) if out is None else out)
 
 
 # compiled: the same conditions in numpy were ~15 masked passes over the (n, K) arrays, 3 ms per
@@ -360,11 +363,13 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
     free = ~known
     anyfree = bool(free.any())
 
+    kkt_out = np.empty((n, K))  # one buffer for every step's per-entry residual (no page faults)
+
     def residual(X, g):
         if not anyfree:
             return 0.0
-        v = kkt_violation_per_entry(X, g, lo[0], hi[0], lam[0], system.scale)
-        return float(v[free].max())
+        v = kkt_violation_per_entry(X, g, lo[0], hi[0], lam[0], system.scale, kkt_out)
+        return float(np.max(v, where=free, initial=0.0))  # v >= 0 (a boolean gather: 3x the time)
 
     def small(X, r):
         return r <= tol * system.scale * max(1.0, float(np.abs(X).max()))
