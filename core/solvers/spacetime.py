@@ -96,7 +96,7 @@ from typing import Callable, NamedTuple, Optional, Sequence
 import numba
 import numpy as np
 import scipy.linalg
-from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs
+from scipy.linalg.lapack import dgesv, dpotrf, dpotrs, dptsv, dpttrf, dpttrs
 
 from core.prior import PCAPrior, alpha_for_units, prior_quadratic
 from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry, solve_bounded
@@ -681,7 +681,10 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
         M = A1 @ A2
         M *= -1.0
         M.flat[::K + 1] += 1.0
-        ct = scipy.linalg.solve(M, h1 * f1["v"] - A1 @ r2, overwrite_a=True, check_finite=False)  # S c
+        # LAPACK's dgesv itself: scipy.linalg.solve adds a condition estimate, 0.5 ms against 0.15
+        _, _, ct, info = dgesv(M, h1 * f1["v"] - A1 @ r2, overwrite_a=1, overwrite_b=1)  # S c
+        if info != 0:
+            raise np.linalg.LinAlgError("capacitance interface singular")
         cc = ct / S
         a = S * (r2 - A2 @ ct)  # D (v2 - W2 D c)
         lam1, lam2 = _both(lambda: back(f1, Phi[nb1 - 1] * a), lambda: back(f2, D * cc), threads)
