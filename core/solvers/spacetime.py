@@ -307,7 +307,10 @@ class _Tridiagonals:
             # directions 0 .. K/2 - 1 and the rest, in two threads when a core is free (zero coupling
             # between them: the numbers of one call)
             h = (K // 2) * n
-            _both(lambda: run(0, h), lambda: run(h, K * n)) if h else run(0, K * n)
+            if h:
+                _both(lambda: run(0, h), lambda: run(h, K * n), None if K * n >= _THREAD_ENTRIES else False)
+            else:
+                run(0, K * n)
             return z.reshape(K, n)
         out = Z if overwrite else np.array(Z)
         for j in range(K):
@@ -710,6 +713,11 @@ def _capacitance_pool():
     return concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="capacitance")
 
 
+#: (K, n) arrays from which the tridiagonal solves and the weights' product use the worker thread
+#: (a hand-over costs ~50 us: a 1,000 x 165 solve is ~1 ms, a 50-frame one ~20 us)
+_THREAD_ENTRIES = 50_000
+
+
 def _both(f1, f2, threads: Optional[bool] = None):
     """``(f1(), f2())``, ``f2`` in the worker thread when a second core is free (numba's nogil
     kernels, BLAS and LAPACK run without the GIL; ``threads`` forces it either way): the same
@@ -927,7 +935,8 @@ class RangeSystem:
             # the frames' weights in two halves of frames (two threads when a core is free); always
             # two, so that the numbers never depend on the machine's load
             Xu, m = X[uidx[0]:uidx[-1] + 1], len(uidx) // 2
-            _both(lambda: np.matmul(Z[:, :m].T, U.T, out=Xu[:m]), lambda: np.matmul(Z[:, m:].T, U.T, out=Xu[m:]))
+            _both(lambda: np.matmul(Z[:, :m].T, U.T, out=Xu[:m]), lambda: np.matmul(Z[:, m:].T, U.T, out=Xu[m:]),
+                  None if Z.size >= _THREAD_ENTRIES else False)
         elif len(uidx):
             X[uidx] = Z.T @ U.T
         # constraints hold exactly (they already do to rounding)
