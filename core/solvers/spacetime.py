@@ -1499,8 +1499,10 @@ class SpacetimeSolver:
         sl = slice(lo, lo + len(X))
         Rb = X @ self._A - self._SB[sl]  # R_t B = (B w_t - s_t)^T B on a frame with every marker
         Re = Rb[1:] - Rb[:-1]
-        pos = self._bt[sl, None] * (X @ self._G - self._SGB[sl])
         holes, pairs = self._holes_in(sl)
+        bt = self._bt[sl]
+        # without the position term (beta = 0, the default) its product and passes are zeros: skipped
+        pos = bt[:, None] * (X @ self._G - self._SGB[sl]) if len(holes) or bt.any() else 0.0
         if len(holes) or len(pairs):  # frames with missing markers: their terms in marker space
             Bm, S, V = self._B, self._S[sl], self.valid_[sl]
             if len(holes):
