@@ -603,7 +603,7 @@ def test_prox_state_matches_numpy_bit_for_bit(l1):
     """The compiled next state (one pass) against the numpy rule on awkward values: exact zeros of
     both signs, points on the bounds, NaN and infinite gradients, known entries, shapes without L1;
     the values bytes equal (the state's hash reads them) and the change count against a state."""
-    from core.solvers.bounded_spacetime import _prox_state
+    from core.solvers.bounded_spacetime import _prox_state, _state_key
 
     rng = np.random.default_rng(3)
     n, K = 60, 7
@@ -621,11 +621,12 @@ def test_prox_state_matches_numpy_bit_for_bit(l1):
         with np.errstate(over="ignore"):  # nan_to_num's largest float over c < 1
             ref = _prox_state_reference(y if gg is None else y - np.nan_to_num(gg) / c, c, lo, hi, lam, known)
         old = _prox_state_reference(rng.normal(0, 0.5, (n, K)), c, lo, hi, lam, known)
-        state, changes = _prox_state(y, c, lo, hi, lam, known, gg, old)
+        state, changes, key = _prox_state(y, c, lo, hi, lam, known, gg, old)
         for a, b in zip(state, ref):
             assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+        assert key == _state_key(*ref)
         spare = tuple(np.full_like(a, 7) for a in ref)  # written into, whatever it held
-        again, _ = _prox_state(y, c, lo, hi, lam, known, gg, None, spare)
+        again, _, _ = _prox_state(y, c, lo, hi, lam, known, gg, None, spare)
         assert all(a is b and a.tobytes() == r.tobytes() for a, b, r in zip(again, spare, ref))
         want = np.count_nonzero((ref[0] != old[0]) | (ref[1] != old[1]) | (ref[2] != old[2]))
         assert changes == want > 0

@@ -202,10 +202,31 @@ def _prox_state(X, c, lo, hi, lam, known, g=None, old=None, out=None):
     X, g = (a if a is None or a.flags.writeable and a.flags.c_contiguous else np.array(a, dtype=np.float64)
             for a in (X, g))
     fixed, values, sign = out if out is not None else (np.empty((n, K), bool), np.empty((n, K)), np.empty((n, K)))
-    _prox_entries(X, X if g is None else g, g is not None, c, lo, hi, lam, bool(lam.any()), known, fixed, values, sign)
-    # the count in a pass of its own: fused into the one above it cost 5x as much
-    changes = _state_changes(fixed, values, sign, *old) if old is not None else 0
-    return (fixed, values, sign), changes
+    G, use_l1, bits = X if g is None else g, bool(lam.any()), values.view(np.uint64)
+
+    def rows(a, b):
+        _prox_entries(X[a:b], G[a:b], g is not None, c, lo, hi, lam, use_l1, known[a:b], fixed[a:b], values[a:b],
+                      sign[a:b])
+        # the count in a pass of its own: fused into the one above it cost 5x as much
+        ch = _state_changes(*(s[a:b] for s in (fixed, values, sign) + tuple(old))) if old is not None else 0
+        return ch, _state_hash(fixed[a:b], bits[a:b], sign[a:b])
+
+    (c1, h1), (c2, h2) = _by_halves(rows, n, n * K)
+    return (fixed, values, sign), c1 + c2, _hash_pair(h1, h2)
+
+
+def _by_halves(f, n, size):
+    """``f(0, n // 2)`` and ``f(n // 2, n)``, the second in the spacetime solver's worker thread
+    when a core is free and ``size`` entries make the hand-over worth it (the same work either
+    way: the same numbers)."""
+    from core.solvers.spacetime import _THREAD_ENTRIES, _both  # (that module imports this one)
+
+    m = n // 2
+    return _both(lambda: f(0, m), lambda: f(m, n), None if size >= _THREAD_ENTRIES else False)
+
+
+def _hash_pair(h1, h2) -> int:
+    return hash((int(h1), int(h2)))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -326,8 +347,12 @@ def _state_key(fixed, values, sign) -> int:
     states share one with probability ~2^-64 (a false "cycle" ends the run early, and ADMM goes on
     from there). One compiled pass: the bytes of the three (n, K) arrays hashed by Python were
     ~1 ms a step on a 1,000 x 165 take."""
-    return int(_state_hash(np.ascontiguousarray(fixed), np.ascontiguousarray(values, dtype=np.float64).view(np.uint64),
-                           np.ascontiguousarray(sign, dtype=np.float64)))
+    fixed = np.ascontiguousarray(fixed)
+    bits = np.ascontiguousarray(values, dtype=np.float64).view(np.uint64)
+    sign = np.ascontiguousarray(sign, dtype=np.float64)
+    # by halves of rows, as :func:`_prox_state` makes the key of the states it returns
+    h1, h2 = _by_halves(lambda a, b: _state_hash(fixed[a:b], bits[a:b], sign[a:b]), len(fixed), fixed.size)
+    return _hash_pair(h1, h2)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -386,8 +411,8 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
         seen, fewest, stall = set(), np.inf, 0
         X = g = None
         spare = None  # the arrays of a state of this run no longer needed (never the caller's)
+        key = _state_key(fixed, values, sign)
         for _ in range(max_iter):
-            key = _state_key(fixed, values, sign)
             if key in seen or info["iterations"] >= max_solves:
                 break  # a cycle: PDAS is not monotone
             seen.add(key)
@@ -398,7 +423,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
             r = residual(X, g)
             if small(X, r):
                 return True, X, g
-            (nf, nv, ns), changes = state_of(X, g, (fixed, values, sign), spare)
+            (nf, nv, ns), changes, key = state_of(X, g, (fixed, values, sign), spare)
             if changes == 0:
                 return True, X, g  # the state's own KKT point (to rounding): nothing left to change
             # progress is the number of state changes halving (the KKT residual of PDAS iterates jumps

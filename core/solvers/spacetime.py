@@ -354,8 +354,8 @@ def warm_kernels() -> None:
     from core.solvers.bounded_spacetime import _prox_state, _state_key
 
     one = np.ones(2)
-    state, _ = _prox_state(np.zeros((1, 2)), one, 0 * one, one, 0 * one, np.zeros((1, 2), bool), np.ones((1, 2)),
-                           (np.zeros((1, 2), bool), np.zeros((1, 2)), np.zeros((1, 2))))
+    state, _, _ = _prox_state(np.zeros((1, 2)), one, 0 * one, one, 0 * one, np.zeros((1, 2), bool), np.ones((1, 2)),
+                              (np.zeros((1, 2), bool), np.zeros((1, 2)), np.zeros((1, 2))))
     _state_key(*state)
 
 
