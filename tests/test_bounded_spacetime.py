@@ -9,6 +9,7 @@ exactly, the KKT residual is below the stated tolerance, the unbounded limit is
 one-unknown case.
 """
 
+import os
 import warnings
 
 import numpy as np
@@ -726,3 +727,19 @@ def test_capacitance_halves_at_awkward_splits(case):
         assert np.abs(lam - one).max() <= 1e-12 * np.abs(one).max()
     assert np.array_equal(lam, _capacitance_solve(tri, U, rows, ks, c, block=block, presorted=True, split=True,
                                                   threads=False))
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_worker_thread_survives_a_fork():
+    """A forked child inherits the worker thread's executor but not the thread: it gets a new one
+    (else its first hand-over would wait forever)."""
+    assert spacetime._both(lambda: 1, lambda: 2, threads=True) == (1, 2)
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover -- the child
+        import signal
+
+        signal.alarm(30)  # a hang kills the child (SIGALRM), failing the test instead of blocking it
+        code = 0 if spacetime._both(lambda: 1, lambda: 2, threads=True) == (1, 2) else 1
+        os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0

@@ -713,6 +713,10 @@ def _capacitance_pool():
     return concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="capacitance")
 
 
+if hasattr(os, "register_at_fork"):  # a forked child has the executor but not its thread: a new one
+    os.register_at_fork(after_in_child=_capacitance_pool.cache_clear)
+
+
 #: (K, n) arrays from which the tridiagonal solves and the weights' product use the worker thread
 #: (a hand-over costs ~50 us: a 1,000 x 165 solve is ~1 ms, a 50-frame one ~20 us)
 _THREAD_ENTRIES = 50_000
