@@ -59,3 +59,35 @@ def test_marker_error_is_the_norm_bit_for_bit():
         want = _marker_error_by_norm(B * 1e-3, W, S, valid)
         for g, w in zip(got, want):
             assert np.array_equal(g, w, equal_nan=True)
+
+
+def _evaluations_agree(ev, ref, rtol):
+    assert ev.keys() == ref.keys()
+    for k in ref:
+        got, want = np.asarray(ev[k], dtype=np.float64), np.asarray(ref[k], dtype=np.float64)
+        assert np.array_equal(np.isnan(got), np.isnan(want)), k
+        np.testing.assert_allclose(got, want, rtol=rtol, atol=0, err_msg=k)
+
+
+def test_errors_from_the_take_products_are_the_residuals():
+    """evaluate with the take's products (the errors summed in weight space, expanded as
+    w^T G w - 2 w^T (S B)_t + ||s_t||^2) gives the residual's numbers to rounding: frames left out
+    (non-finite weights, frame_valid False) in the middle and at the ends, every frame left out,
+    and a product that cannot apply (a missing sample) is None."""
+    from core.evaluate import evaluate
+    from core.metrics import error_products
+
+    r = np.random.default_rng(3)
+    T, K, M = 40, 6, 9
+    B, S = r.normal(size=(K, M, 3)), r.normal(size=(T, M, 3))
+    W = r.normal(size=(T, K)) + 0.3
+    W[7] = np.nan
+    P = error_products(B, S)
+    assert P is not None
+    for fv in (None, np.arange(T) % 5 != 2, np.arange(T) > 0, np.zeros(T, dtype=bool)):
+        ref = evaluate(B, W, S, frame_valid=fv)
+        ev = evaluate(B, W, S, frame_valid=fv, products=P)
+        assert (ev["n_valid_frames"] > 0) == (fv is None or fv.any())
+        _evaluations_agree(ev, ref, 1e-11)
+    S[4, 2] = np.nan
+    assert error_products(B, S) is None
