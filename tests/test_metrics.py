@@ -91,3 +91,26 @@ def test_errors_from_the_take_products_are_the_residuals():
         _evaluations_agree(ev, ref, 1e-11)
     S[4, 2] = np.nan
     assert error_products(B, S) is None
+
+
+def test_a_low_rank_take_is_factorised_to_rounding_and_scored_through_its_factors():
+    """A take of rank 12 (a source rig's shapes driven by curves, as dense correspondence's face
+    points are) gets factors S = A V with r = 12 and ||S - A V|| at rounding, and the errors
+    through them are the residual's; a full-rank take and a small one get none (the plain W^T S)."""
+    from core.evaluate import evaluate
+    from core.metrics import error_products
+
+    r = np.random.default_rng(5)
+    T, K, M = 600, 8, 600
+    B = r.normal(size=(K, M, 3))
+    S = (r.normal(size=(T, 12)) @ r.normal(size=(12, 3 * M))).reshape(T, M, 3)
+    W = r.normal(size=(T, K))
+    W[1:] = 0.9 * W[:-1] + 0.1 * W[1:]
+    P = error_products(B, S)
+    A, V = P.low_rank
+    assert A.shape == (T, 12) and V.shape == (12, 3 * M)
+    assert np.linalg.norm(A @ V - S.reshape(T, -1)) <= 1e-14 * np.linalg.norm(S)
+    fv = np.arange(T) % 7 != 3
+    _evaluations_agree(evaluate(B, W, S, frame_valid=fv, products=P), evaluate(B, W, S, frame_valid=fv), 1e-10)
+    assert error_products(B, r.normal(size=(T, M, 3))).low_rank is None
+    assert error_products(B[:, :50], S[:100, :50]).low_rank is None

@@ -430,13 +430,13 @@ def test_evaluate_from_the_error_products_is_the_residuals_and_survives_an_alpha
     """The ``evaluate`` stage sums the errors in weight space from the take's products (the
     ``error_products`` stage: made once per take and rig, not re-run by an alpha change): the
     numbers of :func:`core.evaluate.evaluate` from the (T, 3M) residual to 1e-10 relative, on the
-    sample with dense correspondence and on its markers (whose products the stage skips: 3M <=
+    sample with dense correspondence (its take's low-rank factors used) and on its markers (whose products the stage skips: 3M <=
     2K; scored here through them all the same), and a change in place gives a fresh pipeline's."""
     from core.evaluate import evaluate
     from core.metrics import error_products
 
     for extra in ({"correspondence": "dense", "dense_points": 200}, {}):
-        kw = dict(first_frame=0, last_frame=119, method="spacetime", **extra, **FILES)
+        kw = dict(first_frame=0, last_frame=399, method="spacetime", **extra, **FILES)
         pipe = Pipeline(cache=StageCache(), **kw)
         pipe.run()
         before = dict(pipe.runs)
@@ -444,7 +444,10 @@ def test_evaluate_from_the_error_products_is_the_residuals_and_survives_an_alpha
         res = pipe.results(["calibrate", "personalize", "edit", "synthesize", "evaluate", "error_products"])
         assert "error_products" not in _ran(pipe, before) and "evaluate" in _ran(pipe, before)
         st, B = res["calibrate"]["source"], res["personalize"]["deltas"]
-        assert (res["error_products"]["products"] is not None) == bool(extra)
+        products = res["error_products"]["products"]
+        assert (products is not None) == bool(extra)
+        # the face points: the source rig's shapes driven by the take's curves, scored through S = A V
+        assert not extra or products.low_rank is not None and products.low_rank[0].shape[1] < 60
         args = (B, res["edit"]["weights"], st.deltas, st.valid)
         ref = evaluate(*args, frame_valid=res["synthesize"]["valid"])
         assert ref["marker_rms_mm"] > 0.1 and np.nanmax(ref["velocity_error_mm2"]) > 0  # not a comparison of zeros
