@@ -185,39 +185,46 @@ class ErrorProducts(NamedTuple):
     low_rank: tuple = None
 
 
-#: columns of the random sketch that looks for a low-rank take (:func:`_low_rank`)
-_SKETCH = 192
-#: a factorisation ``S = A V`` is kept when ``||S - A V||_F <= _LOW_RANK_TOL ||S||_F`` (rounding)
-_LOW_RANK_TOL = 1e-14
+#: columns of the random sketches that look for a low-rank take, tried in turn (:func:`_low_rank`)
+_SKETCHES = (64, 192)
+#: singular values below this fraction of the largest are rounding (dropped from the factors)
+_LOW_RANK_DROP = 1e-14
+#: the factors are kept when ``||S - A V||_F <= _LOW_RANK_TOL ||S||_F`` (checked on every entry)
+_LOW_RANK_TOL = 1e-13
 #: takes of fewer entries are not factorised (their ``W^T S`` is well below a millisecond)
 _LOW_RANK_MIN_SIZE = 100_000
 
 
 def _low_rank(S: np.ndarray):
-    """``(A (T, r), V (r, n))`` with ``S = A V`` to rounding (``||S - A V||_F <= 1e-14
+    """``(A (T, r), V (r, n))`` with ``S = A V`` to rounding (``||S - A V||_F <= 1e-13
     ||S||_F``, checked), or None when the take is small (:data:`_LOW_RANK_MIN_SIZE` entries), its
-    numerical rank is not below the sketch (:data:`_SKETCH`) or the factors would not make
-    ``W^T S`` cheaper (``r (T + 3M) >= T 3M / 2``). A take of the face points
-    of dense correspondence is a source rig's shapes driven by the take's curves: its rank is at
-    most the source's shape count (51 on the sample's 3,000 coordinates), and ``(W^T A) V`` costs
+    numerical rank is not below the largest sketch (:data:`_SKETCHES`) or the factors would not
+    make ``W^T S`` cheaper (``r (T + 3M) >= T 3M / 2``). A take of the face points of dense
+    correspondence is a source rig's shapes driven by the take's curves: its rank is at most the
+    source's shape count (51 on the sample's 3,000 coordinates), and ``(W^T A) V`` costs
     ``K r (T + 3M)`` flops instead of ``K T 3M`` (14 -> ~2 ms a change on the sample).
 
-    A randomised range finder (Halko, Martinsson & Tropp 2011, alg. 4.1; seeded, so the same
-    take gives the same factors): ``Q = orth(S Omega)``, then the SVD of ``Q^T S`` truncated
-    where its singular values fall below ``1e-14 sigma_1``, and the residual checked on every
-    entry of ``S`` (~0.15 s once per take and rig, single-threaded)."""
+    A randomised range finder (Halko, Martinsson & Tropp 2011, alg. 4.1 and 5.1; seeded, so the
+    same take gives the same factors): ``Q = orth(S Omega)``, the SVD of ``Q^T S`` (through the QR
+    of its transpose) truncated below ``1e-14 sigma_1``, a larger sketch when the first one is
+    full, and the residual checked (~50 ms once per take and rig on the sample, single-threaded;
+    ~0.17 s when no sketch finds a low rank)."""
     T, n = S.shape
-    k = min(T, n, _SKETCH)
     if T * n < _LOW_RANK_MIN_SIZE:
         return None
-    Q, _ = np.linalg.qr(S @ np.random.default_rng(0).standard_normal((n, k)))
-    U, sv, V = np.linalg.svd(Q.T @ S, full_matrices=False)
-    if not sv.size or sv[0] == 0:
+    for k in _SKETCHES:
+        k = min(k, T, n)
+        Q, _ = np.linalg.qr(S @ np.random.default_rng(0).standard_normal((n, k)))
+        Q2, R2 = np.linalg.qr((Q.T @ S).T)  # Q^T S = R2^T Q2^T: its SVD from the k x k R2^T
+        U, sv, Vt = np.linalg.svd(R2.T)
+        if not sv.size or sv[0] == 0:
+            return None
+        r = int(np.count_nonzero(sv > _LOW_RANK_DROP * sv[0]))
+        if r < k or k == min(T, n):
+            break
+    if r * (T + n) >= T * n // 2:  # the rank is higher than the sketches, or no gain
         return None
-    r = int(np.count_nonzero(sv > _LOW_RANK_TOL * sv[0]))
-    if r >= k and k < min(T, n) or r * (T + n) >= T * n // 2:  # the rank may be higher / no gain
-        return None
-    A, V = Q @ (U[:, :r] * sv[:r]), np.ascontiguousarray(V[:r])
+    A, V = Q @ (U[:, :r] * sv[:r]), np.ascontiguousarray((Q2 @ Vt[:r].T).T)
     if np.linalg.norm(S - A @ V) > _LOW_RANK_TOL * np.linalg.norm(S):
         return None
     return A, V
@@ -261,7 +268,7 @@ def squared_errors(P: ErrorProducts, W, used=None) -> tuple:
     ~1e-13; a difference rounded below zero is 0). The one product with the take that
     remains, ``W^T S`` (T x K x 3M flops, the residual's own), is what the per-marker error
     needs (the page's heat map): through the take's factors ``S = A V`` when it has them
-    (``low_rank``, exact to rounding: ``||S - A V||_F <= 1e-14 ||S||_F``)."""
+    (``low_rank``, exact to rounding: ``||S - A V||_F <= 1e-13 ||S||_F``)."""
     W = np.asarray(W, dtype=np.float64)
     T = len(W)
     used = np.ones(T, dtype=bool) if used is None else np.asarray(used, dtype=bool)
