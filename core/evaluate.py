@@ -57,6 +57,9 @@ def evaluate(B, W, S, valid=None, step: int = 1, predicted=None, frame_valid=Non
     mask &= fv[:, None]
     Wz = np.where(fv[:, None], W, 0.0)  # excluded frames carry no sample: their value is never read
     if products is not None and predicted is None:
+        if products.S.shape != (T, 3 * M) or products.G.shape[0] != W.shape[1]:
+            raise ValueError(f"products: made for S {products.S.shape} and {products.G.shape[0]} shapes, given "
+                             f"S ({T}, {3 * M}) and W {W.shape}")
         frame, marker, per = squared_errors(products, Wz, fv)
         n = M * int(fv.sum())
         per_frame = np.sqrt(frame / M) * _MM

@@ -3,6 +3,7 @@ numbers of the two functions called apart (missing samples and a prediction incl
 velocity error matches its definition on a hand-sized case."""
 
 import numpy as np
+import pytest
 
 from core.metrics import marker_and_velocity_error, marker_error_mm, velocity_error
 
@@ -89,6 +90,8 @@ def test_errors_from_the_take_products_are_the_residuals():
         ev = evaluate(B, W, S, frame_valid=fv, products=P)
         assert (ev["n_valid_frames"] > 0) == (fv is None or fv.any())
         _evaluations_agree(ev, ref, 1e-11)
+    with pytest.raises(ValueError, match="products: made for S"):
+        evaluate(B, W[:-1], S[:-1], products=P)
     S[4, 2] = np.nan
     assert error_products(B, S) is None
 
