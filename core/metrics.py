@@ -16,7 +16,7 @@ import numpy as np
 from core.solvers.inputs import as_basis, as_sequence, as_valid, zero_filled
 
 __all__ = ["velocity_error", "marker_error_mm", "marker_and_velocity_error", "vertex_errors", "weight_range", "VelocityError",
-           "MarkerError", "WeightRange"]
+           "MarkerError", "WeightRange", "ErrorProducts", "error_products", "squared_errors"]
 
 _MM = 1e3
 
@@ -162,6 +162,130 @@ def marker_and_velocity_error(B, W, S, valid=None, predicted=None) -> tuple:
     (T, 3M) for M = 1,000 points, is most of either's time)."""
     X, valid = _residual(B, W, S, valid, predicted)
     return _marker_error(X, valid), _velocity_error(X, valid)
+
+
+class ErrorProducts(NamedTuple):
+    """What the marker and velocity errors of any weights need of one take and rig, when every
+    sample is present (:func:`error_products`; units: metres).
+
+    B : (3M, K) the target marker deltas; S : (T, 3M) the source marker deltas (read, not copied);
+    G : (K, K) ``B^T B``; SB : (T, K) ``S B``; s2 : (T,) ``||s_t||^2``; ds2 : (T,)
+    ``||s_t - s_(t-1)||^2`` (0 at t = 0); p2 : (3M,) ``sum_t S_tr^2`` over the rows of ``B``;
+    low_rank : ``(A (T, r), V (r, 3M))`` with ``S = A V`` to rounding when the take has a low
+    numerical rank (:func:`_low_rank`), else None.
+    """
+
+    B: np.ndarray
+    S: np.ndarray
+    G: np.ndarray
+    SB: np.ndarray
+    s2: np.ndarray
+    ds2: np.ndarray
+    p2: np.ndarray
+    low_rank: tuple = None
+
+
+#: columns of the random sketches that look for a low-rank take, tried in turn (:func:`_low_rank`)
+_SKETCHES = (64, 192)
+#: singular values below this fraction of the largest are rounding (dropped from the factors)
+_LOW_RANK_DROP = 1e-14
+#: the factors are kept when ``||S - A V||_F <= _LOW_RANK_TOL ||S||_F`` (checked on every entry)
+_LOW_RANK_TOL = 1e-13
+#: takes of fewer entries are not factorised (their ``W^T S`` is well below a millisecond)
+_LOW_RANK_MIN_SIZE = 100_000
+
+
+def _low_rank(S: np.ndarray):
+    """``(A (T, r), V (r, n))`` with ``S = A V`` to rounding (``||S - A V||_F <= 1e-13
+    ||S||_F``, checked), or None when the take is small (:data:`_LOW_RANK_MIN_SIZE` entries), its
+    numerical rank is not below the largest sketch (:data:`_SKETCHES`) or the factors would not
+    make ``W^T S`` cheaper (``r (T + 3M) >= T 3M / 2``). A take of the face points of dense
+    correspondence is a source rig's shapes driven by the take's curves: its rank is at most the
+    source's shape count (51 on the sample's 3,000 coordinates), and ``(W^T A) V`` costs
+    ``K r (T + 3M)`` flops instead of ``K T 3M`` (14 -> ~2 ms a change on the sample).
+
+    A randomised range finder (Halko, Martinsson & Tropp 2011, alg. 4.1 and 5.1; seeded, so the
+    same take gives the same factors): ``Q = orth(S Omega)``, the SVD of ``Q^T S`` (through the QR
+    of its transpose) truncated below ``1e-14 sigma_1``, a larger sketch when the first one is
+    full, and the residual checked (~50 ms once per take and rig on the sample, single-threaded;
+    ~0.17 s when no sketch finds a low rank)."""
+    T, n = S.shape
+    if T * n < _LOW_RANK_MIN_SIZE:
+        return None
+    for k in _SKETCHES:
+        k = min(k, T, n)
+        Q, _ = np.linalg.qr(S @ np.random.default_rng(0).standard_normal((n, k)))
+        Q2, R2 = np.linalg.qr((Q.T @ S).T)  # Q^T S = R2^T Q2^T: its SVD from the k x k R2^T
+        U, sv, Vt = np.linalg.svd(R2.T)
+        if not sv.size or sv[0] == 0:
+            return None
+        r = int(np.count_nonzero(sv > _LOW_RANK_DROP * sv[0]))
+        if r < k or k == min(T, n):
+            break
+    if r * (T + n) >= T * n // 2:  # the rank is higher than the sketches, or no gain
+        return None
+    A, V = Q @ (U[:, :r] * sv[:r]), np.ascontiguousarray((Q2 @ Vt[:r].T).T)
+    if np.linalg.norm(S - A @ V) > _LOW_RANK_TOL * np.linalg.norm(S):
+        return None
+    return A, V
+
+
+def error_products(B, S, valid=None):
+    """:class:`ErrorProducts` of target marker deltas ``B`` (K, M, 3) or (3M, K) and source deltas
+    ``S`` (T, M, 3), or None when a sample is missing (``valid`` (T, M), default where ``S`` is
+    finite, not all True: the masked errors need every frame's own Gram matrix, and
+    :func:`squared_errors` does not apply). They depend on the take and the rig only: the
+    pipeline makes them once (the ``error_products`` stage) and every setting change scores its
+    weights with :func:`squared_errors` in weight space instead of forming the (T, 3M) residual
+    (with 1,000 dense points, 3M = 3,000: ~45-70 ms of every change before)."""
+    Bm = as_basis(B)
+    S3 = as_sequence(S, Bm.shape[0] // 3)
+    if not as_valid(valid, S3).all():
+        return None
+    Sz = S3.reshape(len(S3), -1)
+    dS = np.diff(Sz, axis=0)
+    ds2 = np.zeros(len(Sz))
+    ds2[1:] = np.einsum("ij,ij->i", dS, dS)
+    return ErrorProducts(Bm, Sz, Bm.T @ Bm, Sz @ Bm, np.einsum("ij,ij->i", Sz, Sz), ds2, np.einsum("ij,ij->j", Sz, Sz),
+                         _low_rank(Sz))
+
+
+def squared_errors(P: ErrorProducts, W, used=None) -> tuple:
+    """The summed squared marker and velocity errors of weights ``W`` (T, K) from the take's
+    :class:`ErrorProducts` (metres², no (T, 3M) residual), over the frames ``used`` (T,) bool
+    (default every frame; the weights of the others are never read):
+
+    * ``frame`` (T,): ``||B w_t - s_t||^2 = w_t^T G w_t - 2 w_t^T (S B)_t + ||s_t||^2`` (NaN
+      where not used);
+    * ``marker`` (M,): ``sum_t ||B_m w_t - s_tm||^2`` over the used frames, per row
+      ``b_r^T (W^T W) b_r - 2 b_r^T (W^T S)_r + sum_t S_tr^2``, summed over x, y, z;
+    * ``velocity`` (T,): Seol 2012 eq. 2 per frame, ``||B dw_t - ds_t||^2`` with
+      ``dw_t = w_t - w_(t-1)`` (0 at t = 0 and where frame t or t - 1 is not used).
+
+    The same numbers as the residual's (:func:`marker_and_velocity_error`) to rounding: the
+    expansion cancels ``||s_t||^2`` against the fitted part, so a term loses
+    ``eps (||s|| / ||r||)^2`` relative (on the sample, errors ~1 mm against motions ~10 mm:
+    ~1e-13; a difference rounded below zero is 0). The one product with the take that
+    remains, ``W^T S`` (T x K x 3M flops, the residual's own), is what the per-marker error
+    needs (the page's heat map): through the take's factors ``S = A V`` when it has them
+    (``low_rank``, exact to rounding: ``||S - A V||_F <= 1e-13 ||S||_F``)."""
+    W = np.asarray(W, dtype=np.float64)
+    T = len(W)
+    used = np.ones(T, dtype=bool) if used is None else np.asarray(used, dtype=bool)
+    Wz = np.where(used[:, None], W, 0.0) if not used.all() else W
+    frame = np.einsum("ij,ij->i", Wz @ P.G, Wz) - 2 * np.einsum("ij,ij->i", Wz, P.SB) + P.s2
+    np.maximum(frame, 0.0, out=frame)
+    frame[~used] = np.nan
+    s2 = P.p2 if used.all() else P.p2 - np.einsum("ij,ij->j", P.S[~used], P.S[~used])
+    WS = Wz.T @ P.S if P.low_rank is None else (Wz.T @ P.low_rank[0]) @ P.low_rank[1]  # (K, 3M)
+    rows = np.einsum("ij,ij->i", P.B @ (Wz.T @ Wz), P.B) - 2 * np.einsum("ij,ji->i", P.B, WS) + s2
+    marker = np.maximum(rows.reshape(-1, 3).sum(1), 0.0)
+    velocity = np.zeros(T)
+    if T > 1:
+        dW, dC = np.diff(Wz, axis=0), np.diff(P.SB, axis=0)
+        v = np.einsum("ij,ij->i", dW @ P.G, dW) - 2 * np.einsum("ij,ij->i", dW, dC) + P.ds2[1:]
+        velocity[1:] = np.where(used[1:] & used[:-1], np.maximum(v, 0.0), 0.0)
+    return frame, marker, velocity
 
 
 def weight_range(W) -> WeightRange:

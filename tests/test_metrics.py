@@ -3,6 +3,7 @@ numbers of the two functions called apart (missing samples and a prediction incl
 velocity error matches its definition on a hand-sized case."""
 
 import numpy as np
+import pytest
 
 from core.metrics import marker_and_velocity_error, marker_error_mm, velocity_error
 
@@ -59,3 +60,62 @@ def test_marker_error_is_the_norm_bit_for_bit():
         want = _marker_error_by_norm(B * 1e-3, W, S, valid)
         for g, w in zip(got, want):
             assert np.array_equal(g, w, equal_nan=True)
+
+
+def _evaluations_agree(ev, ref, rtol):
+    assert ev.keys() == ref.keys()
+    for k in ref:
+        got, want = np.asarray(ev[k], dtype=np.float64), np.asarray(ref[k], dtype=np.float64)
+        assert np.array_equal(np.isnan(got), np.isnan(want)), k
+        np.testing.assert_allclose(got, want, rtol=rtol, atol=0, err_msg=k)
+
+
+def test_errors_from_the_take_products_are_the_residuals():
+    """evaluate with the take's products (the errors summed in weight space, expanded as
+    w^T G w - 2 w^T (S B)_t + ||s_t||^2) gives the residual's numbers to rounding: frames left out
+    (non-finite weights, frame_valid False) in the middle and at the ends, every frame left out,
+    and a product that cannot apply (a missing sample) is None."""
+    from core.evaluate import evaluate
+    from core.metrics import error_products
+
+    r = np.random.default_rng(3)
+    T, K, M = 40, 6, 9
+    B, S = r.normal(size=(K, M, 3)), r.normal(size=(T, M, 3))
+    W = r.normal(size=(T, K)) + 0.3
+    W[7] = np.nan
+    P = error_products(B, S)
+    assert P is not None
+    for fv in (None, np.arange(T) % 5 != 2, np.arange(T) > 0, np.zeros(T, dtype=bool)):
+        ref = evaluate(B, W, S, frame_valid=fv)
+        ev = evaluate(B, W, S, frame_valid=fv, products=P)
+        assert (ev["n_valid_frames"] > 0) == (fv is None or fv.any())
+        _evaluations_agree(ev, ref, 1e-11)
+    with pytest.raises(ValueError, match="products: made for S"):
+        evaluate(B, W[:-1], S[:-1], products=P)
+    S[4, 2] = np.nan
+    assert error_products(B, S) is None
+
+
+def test_a_low_rank_take_is_factorised_to_rounding_and_scored_through_its_factors():
+    """A take of rank 12 (a source rig's shapes driven by curves, as dense correspondence's face
+    points are) gets factors S = A V with r = 12 and ||S - A V|| at rounding, and the errors
+    through them are the residual's; a full-rank take and a small one get none (the plain W^T S)."""
+    from core.evaluate import evaluate
+    from core.metrics import error_products
+
+    r = np.random.default_rng(5)
+    T, K, M = 600, 8, 600
+    B = r.normal(size=(K, M, 3))
+    S = (r.normal(size=(T, 12)) @ r.normal(size=(12, 3 * M))).reshape(T, M, 3)
+    W = r.normal(size=(T, K))
+    W[1:] = 0.9 * W[:-1] + 0.1 * W[1:]
+    P = error_products(B, S)
+    A, V = P.low_rank
+    assert A.shape == (T, 12) and V.shape == (12, 3 * M)
+    assert np.linalg.norm(A @ V - S.reshape(T, -1)) <= 1e-13 * np.linalg.norm(S)
+    fv = np.arange(T) % 7 != 3
+    _evaluations_agree(evaluate(B, W, S, frame_valid=fv, products=P), evaluate(B, W, S, frame_valid=fv), 1e-10)
+    S100 = r.normal(size=(T, 100)) @ r.normal(size=(100, 3 * M))  # above the first sketch: the second finds it
+    assert error_products(B, S100.reshape(T, M, 3)).low_rank[0].shape == (T, 100)
+    assert error_products(B, r.normal(size=(T, M, 3))).low_rank is None
+    assert error_products(B[:, :50], S[:100, :50]).low_rank is None

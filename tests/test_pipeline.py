@@ -424,3 +424,40 @@ def test_a_spacetime_change_starts_from_the_last_result_and_gives_a_fresh_pipeli
     assert np.abs(got["weights"] - want["weights"]).max() <= 1e-9
     g, w = got["info"]["bounded"], want["info"]["bounded"]
     assert (g["active"], g["converged"]) == (w["active"], w["converged"]) and abs(g["kkt"] - w["kkt"]) <= 1e-12
+
+
+def test_evaluate_from_the_error_products_is_the_residuals_and_survives_an_alpha_change():
+    """The ``evaluate`` stage sums the errors in weight space from the take's products (the
+    ``error_products`` stage: made once per take and rig, not re-run by an alpha change): the
+    numbers of :func:`core.evaluate.evaluate` from the (T, 3M) residual to 1e-10 relative, on the
+    sample with dense correspondence (its take's low-rank factors used) and on its markers (whose products the stage skips: 3M <=
+    2K; scored here through them all the same), and a change in place gives a fresh pipeline's."""
+    from core.evaluate import evaluate
+    from core.metrics import error_products
+
+    for extra in ({"correspondence": "dense", "dense_points": 200}, {}):
+        kw = dict(first_frame=0, last_frame=399, method="spacetime", **extra, **FILES)
+        pipe = Pipeline(cache=StageCache(), **kw)
+        pipe.run()
+        before = dict(pipe.runs)
+        pipe.configure(alpha=0.05)
+        res = pipe.results(["calibrate", "personalize", "edit", "synthesize", "evaluate", "error_products"])
+        assert "error_products" not in _ran(pipe, before) and "evaluate" in _ran(pipe, before)
+        st, B = res["calibrate"]["source"], res["personalize"]["deltas"]
+        products = res["error_products"]["products"]
+        assert (products is not None) == bool(extra)
+        # the face points: the source rig's shapes driven by the take's curves, scored through S = A V
+        assert not extra or products.low_rank is not None and products.low_rank[0].shape[1] < 60
+        args = (B, res["edit"]["weights"], st.deltas, st.valid)
+        ref = evaluate(*args, frame_valid=res["synthesize"]["valid"])
+        assert ref["marker_rms_mm"] > 0.1 and np.nanmax(ref["velocity_error_mm2"]) > 0  # not a comparison of zeros
+        for ev in (res["evaluate"], evaluate(*args, frame_valid=res["synthesize"]["valid"],
+                                             products=error_products(B, st.deltas, st.valid))):
+            assert ev.keys() == ref.keys()
+            for k in ref:
+                np.testing.assert_allclose(np.asarray(ev[k], float), np.asarray(ref[k], float), rtol=1e-10, atol=0,
+                                           err_msg=k)
+        fresh = Pipeline(cache=StageCache(), alpha=0.05, **kw).results(["evaluate"])["evaluate"]
+        for k in ref:
+            np.testing.assert_allclose(np.asarray(fresh[k], float), np.asarray(res["evaluate"][k], float), rtol=1e-10,
+                                       atol=0, err_msg=k)
