@@ -18,7 +18,7 @@ import scipy.linalg
 import scipy.optimize
 
 from core.prior import PCAPrior
-from core.solvers import spacetime
+from core.solvers import bounded_spacetime, spacetime
 from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry, solve_bounded
 from core.solvers.reference import bounded_spacetime_reference, kronecker_system, spacetime_reference
 from core.solvers.spacetime import SpacetimeSolver, _capacitance_solve, _Tridiagonals
@@ -675,7 +675,7 @@ def test_threads_or_not_the_same_numbers(rocketbox_problem, monkeypatch):
 
     monkeypatch.setattr(spacetime, "_capacitance_solve", spy)
     for cores in (1, 2):
-        monkeypatch.setattr(spacetime, "_free_cores", lambda: cores)
+        monkeypatch.setattr(bounded_spacetime, "_free_cores", lambda: cores)
         s = SpacetimeSolver(B, S, alpha=0.01, ridge=1e-3, lower=0.0, upper=1.0)
         out.append((s.solve(), dict(s.info_)))
     assert any(calls)  # split systems were solved
@@ -733,13 +733,13 @@ def test_capacitance_halves_at_awkward_splits(case):
 def test_worker_thread_survives_a_fork():
     """A forked child inherits the worker thread's executor but not the thread: it gets a new one
     (else its first hand-over would wait forever)."""
-    assert spacetime._both(lambda: 1, lambda: 2, threads=True) == (1, 2)
+    assert bounded_spacetime._both(lambda: 1, lambda: 2, threads=True) == (1, 2)
     pid = os.fork()
     if pid == 0:  # pragma: no cover -- the child
         import signal
 
         signal.alarm(30)  # a hang kills the child (SIGALRM), failing the test instead of blocking it
-        code = 0 if spacetime._both(lambda: 1, lambda: 2, threads=True) == (1, 2) else 1
+        code = 0 if bounded_spacetime._both(lambda: 1, lambda: 2, threads=True) == (1, 2) else 1
         os._exit(code)
     _, status = os.waitpid(pid, 0)
     assert os.waitstatus_to_exitcode(status) == 0

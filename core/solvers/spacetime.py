@@ -83,11 +83,7 @@ rig's size either; the absolute values are ``ridge_``, ``l1_``, ``name_weight_``
 
 from __future__ import annotations
 
-import concurrent.futures
 import difflib
-import functools
-import os
-import time
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -99,7 +95,8 @@ import scipy.linalg
 from scipy.linalg.lapack import dgesv, dpotrf, dpotrs, dptsv, dpttrf, dpttrs
 
 from core.prior import PCAPrior, alpha_for_units, prior_quadratic
-from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry, solve_bounded
+from core.solvers.bounded_spacetime import (KKT_RTOL, _THREAD_ENTRIES, _both, kkt_violation_per_entry,
+                                             solve_bounded)
 from core.solvers.inputs import (as_basis, as_bounds, as_coupling, as_nonnegative, as_per_shape, as_sequence,
                                  as_valid, zero_filled)
 
@@ -716,70 +713,6 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
 #: saves ~p / 2 blocks of ``4 block K^2`` flops, the interface costs ~``3 K^3`` (a K x K product and
 #: LU), plus the threads' hand-over
 _SPLIT_ENTRIES_PER_SHAPE = 4
-
-
-@functools.lru_cache(maxsize=1)
-def _capacitance_pool():
-    """One worker thread for :func:`_both` (made on first use)."""
-    return concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="capacitance")
-
-
-if hasattr(os, "register_at_fork"):  # a forked child has the executor but not its thread: a new one
-    os.register_at_fork(after_in_child=_capacitance_pool.cache_clear)
-
-
-#: (K, n) arrays from which the tridiagonal solves and the weights' product use the worker thread
-#: (a hand-over costs ~50 us: a 1,000 x 165 solve is ~1 ms, a 50-frame one ~20 us)
-_THREAD_ENTRIES = 50_000
-
-
-def _both(f1, f2, threads: Optional[bool] = None):
-    """``(f1(), f2())``, ``f2`` in the worker thread when a second core is free (numba's nogil
-    kernels, BLAS and LAPACK run without the GIL; ``threads`` forces it either way): the same
-    work, so the numbers never depend on which."""
-    if threads if threads is not None else _free_cores() >= 2:
-        fut = _capacitance_pool().submit(f2)
-        return f1(), fut.result()
-    return f1(), f2()
-
-
-#: what :func:`_free_cores` saw last: (monotonic time, the machine's busy CPU seconds, this
-#: process's CPU seconds, its answer)
-_CPU_SEEN = [0.0, 0.0, 0.0, 1]
-
-
-def _free_cores() -> int:
-    """The cores this process may use that other processes leave free, from the machine's and this
-    process's CPU time since the previous look (``/proc/stat``, at most every 0.2 s; the first look
-    and other systems: :func:`core.transfer.decompose._cores`, the 1-minute load average less one).
-
-    The load average alone does not do here: a change's solve is a fraction of a second, and this
-    process's own two threads lift the load average to ~2 -- the policy then saw no free core on
-    an otherwise idle machine and switched the threads off every other minute."""
-    now = time.monotonic()
-    seen = _CPU_SEEN
-    if seen[0] and now - seen[0] < 0.2:
-        return seen[3]
-    try:
-        with open("/proc/stat", "rb") as f:
-            v = [int(x) for x in f.readline().split()[1:9]]
-        busy = (sum(v) - v[3] - v[4]) / os.sysconf("SC_CLK_TCK")  # all but idle and iowait
-        n = len(os.sched_getaffinity(0))
-    except (OSError, ValueError, AttributeError):
-        from core.transfer.decompose import _cores
-
-        return _cores()
-    t = os.times()
-    own = t.user + t.system
-    if seen[0]:
-        others = max(0.0, (busy - seen[1]) - (own - seen[2])) / (now - seen[0])  # cores other processes used
-        free = max(1, min(n, int(n - others + 0.5)))
-    else:
-        from core.transfer.decompose import _cores
-
-        free = _cores()
-    seen[:] = [now, busy, own, free]
-    return free
 
 
 class RangeSystem:
