@@ -747,6 +747,7 @@ class RangeSystem:
         self.scale = solver.scale_
         self.curvature = 2.0 * (2.0 * np.diag(solver._A) + np.diag(solver._C))
         self._Z0 = self._X0 = None
+        self._work = None  # the capacitance steps' work arrays (made on first use)
         if path == "fast":
             self._setup_fast()
 
@@ -870,11 +871,19 @@ class RangeSystem:
                 return self._solve_block(fx, self.values if val is None else val, linear)
             first = np.r_[True, rows[1:] != rows[:-1]]
             dr = rows[first]  # frames with constrained entries
-            Ld = np.zeros((len(dr), K))
+            # three (n_u, K) work arrays kept for every step of this range (fresh ones each step were
+            # ~1 ms of page faults and allocator work a step at 1,000 x 165, more with two threads)
+            if self._work is None:
+                self._work = (np.empty((len(uidx), K)), np.empty((len(uidx), K)), np.empty((K, len(uidx))))
+            Lw, Pw, Vu = self._work
+            Ld = Lw[:len(dr)]
+            Ld.fill(0.0)
             Ld[np.cumsum(first) - 1, ks] = lam
-            Vu = np.zeros((K, len(uidx)))
-            Vu[:, dr] = (Ld @ U).T  # U^T E lam, nonzero only on those frames
-            Z = Z - tri.solve(Vu, overwrite=True)
+            LU = np.matmul(Ld, U, out=Pw[:len(dr)])
+            Vu.fill(0.0)
+            Vu[:, dr] = LU.T  # U^T E lam, nonzero only on those frames
+            Y = tri.solve(Vu, overwrite=True)  # in place
+            Z = np.subtract(Z, Y, out=Y)  # Z itself is kept for the next step
             s.method_ = "fast+capacitance"
         else:
             s.method_ = "fast"
