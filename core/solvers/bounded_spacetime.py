@@ -263,9 +263,11 @@ def _prox_state(X, c, lo, hi, lam, known, g=None, old=None, out=None):
     """Next state from the proximal point ``p = clip(soft(y, lam / c), lo, hi)`` of
     ``y = X - nan_to_num(g) / c`` (``X`` without ``g``), ``y = 0`` on the ``known`` entries:
     (fixed (n, K) bool -- never a known entry --, values (n, K), sign (n, K) of the free entries),
-    and with ``old`` (a state) the number of entries whose state differs from it. ``c``, ``lo``,
-    ``hi``, ``lam``: (K,) per shape. ``out``: three arrays to write the state into (a state no
-    longer needed: fresh (n, K) arrays cost their page faults, ~0.6 ms a step at 1,000 x 165)."""
+    the number of entries whose state differs from ``old`` (a state; 0 without), and the new
+    state's :func:`_state_key`. ``c``, ``lo``, ``hi``, ``lam``: (K,) per shape. ``out``: three
+    arrays to write the state into (a state no longer needed: fresh (n, K) arrays cost their page
+    faults, ~0.6 ms a step at 1,000 x 165). Made by halves of frames, the second in the worker
+    thread when a core is free."""
     n, K = X.shape
     # numba compiles read-only arrays (a cached hint) as another signature: copies instead
     X, g = (a if a is None or a.flags.writeable and a.flags.c_contiguous else np.array(a, dtype=np.float64)
@@ -468,7 +470,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
     per_shape = [np.array(a[0]) for a in (c, lo, hi, lam)]  # writable copies: one compiled signature
 
     def state_of(X, g=None, old=None, out=None):
-        """(the state of the proximal point of X - g / c, changes from ``old``)"""
+        """(the state of the proximal point of X - g / c, changes from ``old``, its key)"""
         return _prox_state(X, *per_shape, known, g, old, out)
 
     def pdas(state):
