@@ -705,10 +705,12 @@ def test_capacitance_halves_at_awkward_splits(case):
     p = len(rows)
     block = {"within_frame": 5, "known_frame_at_split": K, "underflow": 3, "tiny_second_half": 4}[case]
     if case == "tiny_second_half":
-        rows, ks = rows[: 2 * block * 3 + 1], ks[: 2 * block * 3 + 1]  # 7 blocks, the last one entry
+        rows, ks = rows[: 2 * block + 1], ks[: 2 * block + 1]  # 3 blocks, the last one entry: part 2
         p = len(rows)
     nb = -(-p // block)
-    s = (nb // 2) * block
+    s = ((nb + 1) // 2) * block  # where _capacitance_solve cuts
+    if case == "tiny_second_half":
+        assert p - s == 1
     if case == "within_frame":
         assert rows[s - 1] == rows[s]
     if case == "known_frame_at_split":

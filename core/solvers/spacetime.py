@@ -635,7 +635,9 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     inv_diag = tri.inv_diag_t
     if split is None:  # by the system's size only: the arithmetic never depends on the machine's load
         split = nb >= 4 and p >= _SPLIT_ENTRIES_PER_SHAPE * K
-    nb1 = nb // 2 if split and nb >= 2 else nb
+    # part 1 (this thread) takes the odd block: part 2 (the worker, which starts a little later)
+    # also advances past its last block
+    nb1 = (nb + 1) // 2 if split and nb >= 2 else nb
     s = nb1 * bs  # part 1: entries 0 .. s - 1 (whole blocks, s < p when split)
 
     def part(rows_, shapes_, c_, p_, sidx_, seg_, Phi_, final):
