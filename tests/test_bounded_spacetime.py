@@ -9,6 +9,7 @@ exactly, the KKT residual is below the stated tolerance, the unbounded limit is
 one-unknown case.
 """
 
+import os
 import warnings
 
 import numpy as np
@@ -17,7 +18,7 @@ import scipy.linalg
 import scipy.optimize
 
 from core.prior import PCAPrior
-from core.solvers import spacetime
+from core.solvers import bounded_spacetime, spacetime
 from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry, solve_bounded
 from core.solvers.reference import bounded_spacetime_reference, kronecker_system, spacetime_reference
 from core.solvers.spacetime import SpacetimeSolver, _capacitance_solve, _Tridiagonals
@@ -262,15 +263,15 @@ def test_kkt_violation_per_entry_matches_reference(seed):
 
 # -- the exact inner solve --------------------------------------------------------------------
 @pytest.mark.parametrize("rescale", [1e-60, 0.5, 1e-120])
-@pytest.mark.parametrize("chunk", [7, 256])
+@pytest.mark.parametrize("halves", ["one", "serial", "threads"])
 @pytest.mark.parametrize("block", [1, 3, 16, 64])
-def test_capacitance_solve_matches_dense(block, chunk, rescale, monkeypatch):
+def test_capacitance_solve_matches_dense(block, halves, rescale, monkeypatch):
     """The quasiseparable block Cholesky of E^T H^-1 E against the dense matrix, with a split
-    (known frame), a direction whose ratios underflow (prior-dominated) and padding; its blocks'
-    arrays made a few blocks at a time (``chunk`` entries: several chunks, a last one short) or
-    all at once; the state's lazy scale folded into it at the default threshold, almost every
-    block (0.5) or rarely (1e-120: the split, the underflowing direction)."""
-    monkeypatch.setattr(spacetime, "_CAPACITANCE_CHUNK", chunk)
+    (known frame), a direction whose ratios underflow (prior-dominated) and padding; as one
+    recursion or as two halves (the later one in reversed order) joined by their K x K
+    interface, one after the other or in two threads; the state's lazy scale folded into it at
+    the default threshold, almost every block (0.5) or rarely (1e-120: the split, the
+    underflowing direction)."""
     monkeypatch.setattr(spacetime, "_STATE_RESCALE", rescale)
     rng = np.random.default_rng(block)
     K, n = 5, 70
@@ -291,7 +292,8 @@ def test_capacitance_solve_matches_dense(block, chunk, rescale, monkeypatch):
     C = np.einsum("aj,bj,jab->ab", U[ks], U[ks], np.array([g[np.ix_(rows, rows)] for g in G]))
     c = rng.normal(size=len(rows))
     perm = rng.permutation(len(rows))
-    lam = _capacitance_solve(tri, U, rows[perm], ks[perm], c[perm], block=block)
+    kw = dict(split=False) if halves == "one" else dict(split=True, threads=halves == "threads")
+    lam = _capacitance_solve(tri, U, rows[perm], ks[perm], c[perm], block=block, **kw)
     ref = np.linalg.solve(C, c)
     assert np.abs(lam - ref[perm]).max() <= 1e-10 * np.abs(ref).max()
 
@@ -583,3 +585,163 @@ def test_warm_kernels_fill_numba_cache():
     kernels and the KKT check load from numba's cache (no compile in a request)."""
     spacetime.warm_kernels()
     assert spacetime.kernels_cached()
+
+
+def _prox_state_reference(y, c, lo, hi, lam, known):
+    """The active-set rule in numpy, as it was written before it was compiled."""
+    y = np.where(known, 0.0, y)
+    if not lam.any():
+        p = np.clip(y + 0.0, lo, hi)
+        fixed = (p == lo) | (p == hi)
+        return fixed & ~known, np.where(fixed, p, 0.0), np.where(fixed, 0.0, np.sign(p))
+    p = np.clip(np.sign(y) * np.maximum(np.abs(y) - lam / c, 0.0), lo, hi)
+    fixed = (p == lo) | (p == hi) | ((lam > 0) & (p == 0))
+    return fixed & ~known, np.where(fixed, p, 0.0), np.where(fixed, 0.0, np.sign(p))
+
+
+@pytest.mark.parametrize("l1", [False, True])
+def test_prox_state_matches_numpy_bit_for_bit(l1):
+    """The compiled next state (one pass) against the numpy rule on awkward values: exact zeros of
+    both signs, points on the bounds, NaN and infinite gradients, known entries, shapes without L1;
+    the values bytes equal (the state's hash reads them) and the change count against a state."""
+    from core.solvers.bounded_spacetime import _prox_state, _state_key
+
+    rng = np.random.default_rng(3)
+    n, K = 60, 7
+    lo = np.array([0.0, -0.2, -np.inf, 0.0, -1.0, 0.1, 0.0])
+    hi = np.array([1.0, 1.0, np.inf, 0.5, 0.0, 0.9, 1.0])
+    lam = np.where(rng.random(K) < 0.7, rng.uniform(0, 0.3, K), 0.0) if l1 else np.zeros(K)
+    c = rng.uniform(0.5, 2.0, K)
+    X = rng.choice([0.0, -0.0, 1.0, 0.5, -0.2, 0.1], (n, K)) + np.where(rng.random((n, K)) < 0.5, rng.normal(0, 0.3, (n, K)), 0.0)
+    g = rng.choice([0.0, -0.0, 0.3, -0.3], (n, K)) * np.where(rng.random((n, K)) < 0.5, 1.0, rng.normal(0, 1, (n, K)))
+    g[rng.random((n, K)) < 0.05] = np.nan
+    g[rng.random((n, K)) < 0.03] = np.inf
+    g[rng.random((n, K)) < 0.03] = -np.inf
+    known = rng.random((n, K)) < 0.1
+    for y, gg in ((X, None), (X, g)):
+        with np.errstate(over="ignore"):  # nan_to_num's largest float over c < 1
+            ref = _prox_state_reference(y if gg is None else y - np.nan_to_num(gg) / c, c, lo, hi, lam, known)
+        old = _prox_state_reference(rng.normal(0, 0.5, (n, K)), c, lo, hi, lam, known)
+        state, changes, key = _prox_state(y, c, lo, hi, lam, known, gg, old)
+        for a, b in zip(state, ref):
+            assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+        assert key == _state_key(*ref)
+        spare = tuple(np.full_like(a, 7) for a in ref)  # written into, whatever it held
+        again, _, _ = _prox_state(y, c, lo, hi, lam, known, gg, None, spare)
+        assert all(a is b and a.tobytes() == r.tobytes() for a, b, r in zip(again, spare, ref))
+        want = np.count_nonzero((ref[0] != old[0]) | (ref[1] != old[1]) | (ref[2] != old[2]))
+        assert changes == want > 0
+
+
+def test_state_key_equal_exactly_for_equal_states():
+    """The active-set state's hash: equal for equal states (also from copies and other layouts),
+    different after any one change: a fixed entry released, a value's sign or last bit, a sign."""
+    from core.solvers.bounded_spacetime import _state_key
+
+    rng = np.random.default_rng(5)
+    n, K = 40, 9
+    fixed = rng.random((n, K)) < 0.4
+    values = np.where(fixed, rng.choice([0.0, 1.0, 0.3], (n, K)), 0.0)
+    sign = np.where(fixed, 0.0, rng.choice([1.0, -1.0, 0.0, np.nan], (n, K)))
+    key = _state_key(fixed, values, sign)
+    assert key == _state_key(fixed.copy(), values.copy(), np.asfortranarray(sign))
+    t, k = np.argwhere(fixed & (values == 1.0))[0]
+    changed = []
+    f2 = fixed.copy(); f2[t, k] = False; changed.append((f2, values, sign))
+    v2 = values.copy(); v2[t, k] = -1.0; changed.append((fixed, v2, sign))
+    v3 = values.copy(); v3[t, k] = np.nextafter(1.0, 2.0); changed.append((fixed, v3, sign))
+    t, k = np.argwhere(~fixed & (sign == 1.0))[0]
+    s2 = sign.copy(); s2[t, k] = -1.0; changed.append((fixed, values, s2))
+    s3 = sign.copy(); s3[t, k] = np.nan; changed.append((fixed, values, s3))
+    s4 = sign.copy(); s4[[0, 1]] = s4[[1, 0]]; changed.append((fixed, values, s4))  # same entries, other places
+    keys = [_state_key(*c) for c in changed]
+    assert key not in keys and len(set(keys)) == len(keys)
+
+
+def test_threads_or_not_the_same_numbers(rocketbox_problem, monkeypatch):
+    """The capacitance solve's two halves, the tridiagonal solves' two groups of directions and
+    the weights' two halves of frames run in a second thread only when a core is free: a bounded
+    solve of the sample (1,000 frames x 51 shapes, thousands of constraints: the capacitance
+    systems are split) gives the same bits and the same active-set steps either way."""
+    B, S, valid, names = rocketbox_problem
+    S = S[:1000]
+    out = []
+    calls = []
+    orig = spacetime._capacitance_solve
+
+    def spy(tri, U, rows, *a, **kw):
+        calls.append(len(rows) >= 4 * U.shape[1] and len(rows) >= 4 * spacetime.CAPACITANCE_BLOCK)
+        return orig(tri, U, rows, *a, **kw)
+
+    monkeypatch.setattr(spacetime, "_capacitance_solve", spy)
+    for cores in (1, 2):
+        monkeypatch.setattr(bounded_spacetime, "_free_cores", lambda: cores)
+        s = SpacetimeSolver(B, S, alpha=0.01, ridge=1e-3, lower=0.0, upper=1.0)
+        out.append((s.solve(), dict(s.info_)))
+    assert any(calls)  # split systems were solved
+    (W1, i1), (W2, i2) = out
+    assert np.array_equal(W1, W2) and i1 == i2
+
+
+@pytest.mark.parametrize("case", ["within_frame", "known_frame_at_split", "underflow", "tiny_second_half"])
+def test_capacitance_halves_at_awkward_splits(case):
+    """Two halves against the dense capacitance matrix where the cut is awkward: inside a frame's
+    entries (no transition across it), on a known frame (zero coupling: the halves are
+    independent), across a gap where a direction's ratios underflow, and with a second half of a
+    single entry (all padding but one)."""
+    rng = np.random.default_rng(11)
+    K, n = 6, 40
+    mu = rng.uniform(0.2, 1, K)
+    nu = 1.0 - mu
+    if case == "underflow":
+        mu[0], nu[0] = 1e-12, 1.0  # prior-dominated: ratios ~1e-12 per frame
+    dL = np.full(n, 2.0)
+    dL[[0, -1]] = 1.0
+    eL = -np.ones(n - 1)
+    rows = np.repeat(np.arange(n), K)
+    ks = np.tile(np.arange(K), n)
+    keep = rng.random(len(rows)) < (1.0 if case == "known_frame_at_split" else 0.8)  # whole frames: blocks of K
+    rows, ks = rows[keep], ks[keep]
+    p = len(rows)
+    block = {"within_frame": 5, "known_frame_at_split": K, "underflow": 3, "tiny_second_half": 4}[case]
+    if case == "tiny_second_half":
+        rows, ks = rows[: 2 * block + 1], ks[: 2 * block + 1]  # 3 blocks, the last one entry: part 2
+        p = len(rows)
+    nb = -(-p // block)
+    s = ((nb + 1) // 2) * block  # where _capacitance_solve cuts
+    if case == "tiny_second_half":
+        assert p - s == 1
+    if case == "within_frame":
+        assert rows[s - 1] == rows[s]
+    if case == "known_frame_at_split":
+        assert rows[s - 1] < rows[s]
+        eL[rows[s - 1]] = 0.0  # theta = 0 between the halves' frames
+    tri = _Tridiagonals(mu, nu, dL, eL, "test").factor()
+    U = np.linalg.qr(rng.normal(size=(K, K)))[0] * rng.uniform(0.5, 2.0, K)
+    G = [np.linalg.inv(np.diag(mu[j] * dL + nu[j]) + np.diag(mu[j] * eL, 1) + np.diag(mu[j] * eL, -1)) for j in range(K)]
+    C = np.einsum("aj,bj,jab->ab", U[ks], U[ks], np.array([g[np.ix_(rows, rows)] for g in G]))
+    c = rng.normal(size=p)
+    ref = np.linalg.solve(C, c)
+    one = _capacitance_solve(tri, U, rows, ks, c, block=block, presorted=True, split=False)
+    for threads in (False, True):
+        lam = _capacitance_solve(tri, U, rows, ks, c, block=block, presorted=True, split=True, threads=threads)
+        assert np.abs(lam - ref).max() <= 1e-10 * np.abs(ref).max()
+        assert np.abs(lam - one).max() <= 1e-12 * np.abs(one).max()
+    assert np.array_equal(lam, _capacitance_solve(tri, U, rows, ks, c, block=block, presorted=True, split=True,
+                                                  threads=False))
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_worker_thread_survives_a_fork():
+    """A forked child inherits the worker thread's executor but not the thread: it gets a new one
+    (else its first hand-over would wait forever)."""
+    assert bounded_spacetime._both(lambda: 1, lambda: 2, threads=True) == (1, 2)
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover -- the child
+        import signal
+
+        signal.alarm(30)  # a hang kills the child (SIGALRM), failing the test instead of blocking it
+        code = 0 if bounded_spacetime._both(lambda: 1, lambda: 2, threads=True) == (1, 2) else 1
+        os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0

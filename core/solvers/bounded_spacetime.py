@@ -113,8 +113,12 @@ References
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
+import os
+import time
 import warnings
+from typing import Optional
 
 import numba
 import numpy as np
@@ -128,7 +132,7 @@ __all__ = ["solve_bounded", "kkt_violation_per_entry", "KKT_RTOL"]
 KKT_RTOL = 1e-9
 
 
-def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
+def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float, out=None) -> np.ndarray:
     """Per-entry violation of the optimality conditions (absolute, in gradient units).
 
     Parameters
@@ -141,6 +145,8 @@ def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
         Bounds (``-inf``/``inf`` for none) and L1 weights (absolute).
     scale : float
         ``||B^T B||_2``: a weight at distance ``d`` outside its bounds violates by ``scale d``.
+    out : (n, K) float, optional
+        Where to write the result (C-contiguous).
 
     Returns
     -------
@@ -152,7 +158,8 @@ def kkt_violation_per_entry(W, g, lower, upper, l1, scale: float) -> np.ndarray:
         raise ValueError("kkt_violation_per_entry: W must be (n, K)")
     K = W.shape[1]
     lo, hi, lam = (np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), (K,))) for a in (lower, upper, l1))
-    return _kkt_entries(W, np.broadcast_to(g, W.shape), lo, hi, lam, float(scale), bool((lam > 0).any()), np.empty(W.shape))
+    return _kkt_entries(W, np.broadcast_to(g, W.shape), lo, hi, lam, float(scale), bool((lam > 0).any()),
+                        np.empty(W.shape) if out is None else out)
 
 
 # compiled: the same conditions in numpy were ~15 masked passes over the (n, K) arrays, 3 ms per
@@ -187,18 +194,160 @@ def _kkt_entries(W, g, lo, hi, lam, scale, use_l1, out):  # pragma: no cover
     return out
 
 
-def _prox_state(y, c, lo, hi, lam):
-    """Next state from the proximal point ``p = clip(soft(y, lam / c), lo, hi)``:
-    (fixed (n, K) bool, values (n, K), sign (n, K) of the free entries)."""
-    if not lam.any():  # no L1: soft(y, 0) = y (+ 0.0 turns -0.0 into 0.0, as sign(y) |y| does)
-        p = np.clip(y + 0.0, lo, hi)
-        fixed = (p == lo) | (p == hi)
-        return fixed, np.where(fixed, p, 0.0), np.where(fixed, 0.0, np.sign(p))
-    t = lam / c
-    p = np.clip(np.sign(y) * np.maximum(np.abs(y) - t, 0.0), lo, hi)
-    fixed = (p == lo) | (p == hi) | ((lam > 0) & (p == 0))
-    sign = np.where(fixed, 0.0, np.sign(p))
-    return fixed, np.where(fixed, p, 0.0), sign
+# -- the solvers' second thread (used by core.solvers.spacetime too: this module is the one both import)
+#: (K, n) arrays from which the tridiagonal solves and the weights' product use the worker thread
+#: (a hand-over costs ~50 us: a 1,000 x 165 solve is ~1 ms, a 50-frame one ~20 us)
+_THREAD_ENTRIES = 50_000
+
+
+def _both(f1, f2, threads: Optional[bool] = None):
+    """``(f1(), f2())``, ``f2`` in the worker thread when a second core is free (numba's nogil
+    kernels, BLAS and LAPACK run without the GIL; ``threads`` forces it either way): the same
+    work, so the numbers never depend on which."""
+    if threads if threads is not None else _free_cores() >= 2:
+        fut = _worker_pool().submit(f2)
+        return f1(), fut.result()
+    return f1(), f2()
+
+
+#: what :func:`_free_cores` saw last: (monotonic time, the machine's busy CPU seconds, this
+#: process's CPU seconds, its answer)
+_CPU_SEEN = [0.0, 0.0, 0.0, 1]
+
+
+def _free_cores() -> int:
+    """The cores this process may use that other processes leave free, from the machine's and this
+    process's CPU time since the previous look (``/proc/stat``, at most every 0.2 s; the first look
+    and other systems: :func:`core.transfer.decompose._cores`, the 1-minute load average less one).
+
+    The load average alone does not do here: a change's solve is a fraction of a second, and this
+    process's own two threads lift the load average to ~2 -- the policy then saw no free core on
+    an otherwise idle machine and switched the threads off every other minute."""
+    now = time.monotonic()
+    seen = _CPU_SEEN
+    if seen[0] and now - seen[0] < 0.2:
+        return seen[3]
+    try:
+        with open("/proc/stat", "rb") as f:
+            v = [int(x) for x in f.readline().split()[1:9]]
+        busy = (sum(v) - v[3] - v[4]) / os.sysconf("SC_CLK_TCK")  # all but idle and iowait
+        n = len(os.sched_getaffinity(0))
+    except (OSError, ValueError, AttributeError):
+        from core.transfer.decompose import _cores
+
+        return _cores()
+    t = os.times()
+    own = t.user + t.system
+    if seen[0]:
+        others = max(0.0, (busy - seen[1]) - (own - seen[2])) / (now - seen[0])  # cores other processes used
+        free = max(1, min(n, int(n - others + 0.5)))
+    else:
+        from core.transfer.decompose import _cores
+
+        free = _cores()
+    seen[:] = [now, busy, own, free]
+    return free
+
+
+@functools.lru_cache(maxsize=1)
+def _worker_pool():
+    """One worker thread for :func:`_both` (made on first use)."""
+    return concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="spacetime")
+
+
+if hasattr(os, "register_at_fork"):  # a forked child has the executor but not its thread: a new one
+    os.register_at_fork(after_in_child=_worker_pool.cache_clear)
+
+
+def _prox_state(X, c, lo, hi, lam, known, g=None, old=None, out=None):
+    """Next state from the proximal point ``p = clip(soft(y, lam / c), lo, hi)`` of
+    ``y = X - nan_to_num(g) / c`` (``X`` without ``g``), ``y = 0`` on the ``known`` entries:
+    (fixed (n, K) bool -- never a known entry --, values (n, K), sign (n, K) of the free entries),
+    the number of entries whose state differs from ``old`` (a state; 0 without), and the new
+    state's :func:`_state_key`. ``c``, ``lo``, ``hi``, ``lam``: (K,) per shape. ``out``: three
+    arrays to write the state into (a state no longer needed: fresh (n, K) arrays cost their page
+    faults, ~0.6 ms a step at 1,000 x 165). Made by halves of frames, the second in the worker
+    thread when a core is free."""
+    n, K = X.shape
+    # numba compiles read-only arrays (a cached hint) as another signature: copies instead
+    X, g = (a if a is None or a.flags.writeable and a.flags.c_contiguous else np.array(a, dtype=np.float64)
+            for a in (X, g))
+    fixed, values, sign = out if out is not None else (np.empty((n, K), bool), np.empty((n, K)), np.empty((n, K)))
+    G, use_l1, bits = X if g is None else g, bool(lam.any()), values.view(np.uint64)
+
+    def rows(a, b):
+        _prox_entries(X[a:b], G[a:b], g is not None, c, lo, hi, lam, use_l1, known[a:b], fixed[a:b], values[a:b],
+                      sign[a:b])
+        # the count in a pass of its own: fused into the one above it cost 5x as much
+        ch = _state_changes(*(s[a:b] for s in (fixed, values, sign) + tuple(old))) if old is not None else 0
+        return ch, _state_hash(fixed[a:b], bits[a:b], sign[a:b])
+
+    (c1, h1), (c2, h2) = _by_halves(rows, n, n * K)
+    return (fixed, values, sign), c1 + c2, _hash_pair(h1, h2)
+
+
+def _by_halves(f, n, size):
+    """``f(0, n // 2)`` and ``f(n // 2, n)``, the second in the worker thread when a core is free and ``size`` entries make the hand-over worth it (the same work either
+    way: the same numbers)."""
+    m = n // 2
+    return _both(lambda: f(0, m), lambda: f(m, n), None if size >= _THREAD_ENTRIES else False)
+
+
+def _hash_pair(h1, h2) -> int:
+    return hash((int(h1), int(h2)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _state_changes(f, v, s, f0, v0, s0):  # pragma: no cover
+    """Entries whose state (fixed, value, sign) differs between two states (NaN != NaN)."""
+    a, b, d, a0, b0, d0 = f.ravel(), v.ravel(), s.ravel(), f0.ravel(), v0.ravel(), s0.ravel()
+    changes = 0
+    for i in range(a.size):
+        changes += np.int64((a[i] != a0[i]) | (b[i] != b0[i]) | (d[i] != d0[i]))
+    return changes
+
+
+# compiled: in numpy the next state was ~15 passes over the (n, K) arrays (the gradient step,
+# nan_to_num, clip, the masks, where, the comparison with the previous state), ~2.5 ms per
+# active-set step of a 1,000 x 165 take; one pass here, the same numbers bit for bit (numpy's
+# clip, maximum and sign written out, -0.0 and NaN included)
+@numba.njit(cache=True, nogil=True)
+def _prox_entries(X, g, use_g, c, lo, hi, lam, use_l1, known, fixed, values, sign):  # pragma: no cover
+    # every choice is a select on a bitwise-combined condition: numba compiles a plain ``a if x > 0
+    # else b`` to a branch, mispredicted on these data (5x slower)
+    n, K = X.shape
+    big = np.finfo(np.float64).max
+    for t in range(n):
+        for k in range(K):
+            y = X[t, k]
+            if use_g:
+                gk = g[t, k]
+                gk = gk if (gk <= big) | (gk != gk) else big  # np.nan_to_num
+                gk = gk if (gk >= -big) | (gk != gk) else -big
+                gk = gk if (gk == gk) | False else 0.0
+                y = y - gk / c[k]
+            kn = known[t, k]
+            y = y if (not kn) | False else 0.0
+            lk, hk = lo[k], hi[k]
+            if use_l1:
+                a = abs(y) - lam[k] / c[k]
+                a = a if (a >= 0.0) | (a != a) else 0.0  # np.maximum(a, 0)
+                sy = (y > 0) * 1.0 - (y < 0) * 1.0  # np.sign (NaN: NaN)
+                sy = sy if (y == y) | False else y
+                x = sy * a
+            else:
+                x = y + 0.0
+            # np.clip: NaN stays NaN
+            x = x if (x > lk) | (x != x) else lk
+            x = x if (x < hk) | (x != x) else hk
+            f = (x == lk) | (x == hk) | (use_l1 & (lam[k] > 0) & (x == 0))
+            v = x if f | False else 0.0
+            sx = (x > 0) * 1.0 - (x < 0) * 1.0
+            sx = sx if (x == x) | False else x
+            s = sx if (not f) | False else 0.0
+            fixed[t, k] = f & (not kn)
+            values[t, k] = v
+            sign[t, k] = s
 
 
 def solve_bounded(system, lower, upper, l1, tol: float = KKT_RTOL, max_iter: int = 30,
@@ -261,11 +410,37 @@ def _blas_controller():
 
 
 def _state_key(fixed, values, sign) -> int:
-    """A hash of an active-set state that is equal exactly when the states are: the fixed mask
-    packed to bits, the values on it (``values`` is 0 elsewhere), the signs as small integers
-    (NaN apart) -- a tenth of the bytes of the three (n, K) arrays."""
-    s8 = np.where(np.isnan(sign), 2, sign).astype(np.int8)
-    return hash((np.packbits(fixed).tobytes(), values[fixed].tobytes(), s8.tobytes()))
+    """A 64-bit hash of an active-set state (the fixed mask, the values on it -- ``values`` is 0
+    elsewhere --, the signs), for the cycle check: equal states have equal keys; two different
+    states share one with probability ~2^-64 (a false "cycle" ends the run early, and ADMM goes on
+    from there). One compiled pass: the bytes of the three (n, K) arrays hashed by Python were
+    ~1 ms a step on a 1,000 x 165 take."""
+    fixed = np.ascontiguousarray(fixed)
+    bits = np.ascontiguousarray(values, dtype=np.float64).view(np.uint64)
+    sign = np.ascontiguousarray(sign, dtype=np.float64)
+    # by halves of rows, as :func:`_prox_state` makes the key of the states it returns
+    h1, h2 = _by_halves(lambda a, b: _state_hash(fixed[a:b], bits[a:b], sign[a:b]), len(fixed), fixed.size)
+    return _hash_pair(h1, h2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _state_hash(fixed, bits, sign):  # pragma: no cover
+    """A polynomial hash mod 2^64 of the entries' codes (sign 0 / 1 / -1 / NaN, fixed or not)
+    and, when fixed, their values' bits; finished by splitmix64's finaliser."""
+    n, K = fixed.shape
+    h = np.uint64(14695981039346656037)
+    prime = np.uint64(0x100000001B3)
+    for t in range(n):
+        for k in range(K):
+            s = sign[t, k]
+            f = fixed[t, k]
+            code = 1 + (s > 0) * 1 + (s < 0) * 2 + (s != s) * 3 + f * 4
+            h = h * prime + np.uint64(code)
+            if f:
+                h = h * prime + bits[t, k]
+    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return h ^ (h >> np.uint64(31))
 
 
 def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=None):
@@ -281,26 +456,31 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
     free = ~known
     anyfree = bool(free.any())
 
+    kkt_out = np.empty((n, K))  # one buffer for every step's per-entry residual (no page faults)
+
     def residual(X, g):
         if not anyfree:
             return 0.0
-        v = kkt_violation_per_entry(X, g, lo[0], hi[0], lam[0], system.scale)
-        return float(v[free].max())
+        v = kkt_violation_per_entry(X, g, lo[0], hi[0], lam[0], system.scale, kkt_out)
+        return float(np.max(v, where=free, initial=0.0))  # v >= 0 (a boolean gather: 3x the time)
 
     def small(X, r):
         return r <= tol * system.scale * max(1.0, float(np.abs(X).max()))
 
-    def state_of(y):
-        fixed, values, sign = _prox_state(np.where(known, 0.0, y), c, lo, hi, lam)
-        return fixed & ~known, values, sign
+    per_shape = [np.array(a[0]) for a in (c, lo, hi, lam)]  # writable copies: one compiled signature
+
+    def state_of(X, g=None, old=None, out=None):
+        """(the state of the proximal point of X - g / c, changes from ``old``, its key)"""
+        return _prox_state(X, *per_shape, known, g, old, out)
 
     def pdas(state):
         """Active-set steps from a state; returns (done, X, g)."""
         fixed, values, sign = state
         seen, fewest, stall = set(), np.inf, 0
         X = g = None
+        spare = None  # the arrays of a state of this run no longer needed (never the caller's)
+        key = _state_key(fixed, values, sign)
         for _ in range(max_iter):
-            key = _state_key(fixed, values, sign)
             if key in seen or info["iterations"] >= max_solves:
                 break  # a cycle: PDAS is not monotone
             seen.add(key)
@@ -311,8 +491,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
             r = residual(X, g)
             if small(X, r):
                 return True, X, g
-            nf, nv, ns = state_of(X - np.nan_to_num(g) / c)
-            changes = int(np.count_nonzero((nf != fixed) | (nv != values) | (ns != sign)))
+            (nf, nv, ns), changes, key = state_of(X, g, (fixed, values, sign), spare)
             if changes == 0:
                 return True, X, g  # the state's own KKT point (to rounding): nothing left to change
             # progress is the number of state changes halving (the KKT residual of PDAS iterates jumps
@@ -323,6 +502,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
                 stall += 1
                 if stall >= 3:
                     break
+            spare = (fixed, values, sign) if spare is not None or fixed is not state[0] else None
             fixed, values, sign = nf, nv, ns
         return False, X, g
 
@@ -330,7 +510,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
         # an active-set run from the state of a previous solution (a neighbouring setting): the
         # minimiser is unique, so where this run ends (on an exact KKT point) the cold start ends too
         cold = dict(info)
-        done, X1, g1 = pdas(state_of(warm))
+        done, X1, g1 = pdas(state_of(warm)[0])
         if done:
             info["warm"] = True
             return _finish(system, X1, lo, hi, lam, known, info, tol, True)
@@ -339,7 +519,7 @@ def _solve_bounded(system, lower, upper, l1, tol, max_iter, max_solves, warm=Non
     # start: the unbounded minimiser (no L1), soft-thresholded and clipped
     X, g = system.solve()
     info["iterations"] += 1
-    state = state_of(X)
+    state = state_of(X)[0]
     if not (state[0].any() or (use_l1 and (state[2] != 0).any())) and small(X, residual(X, g)):
         done = True  # no bound or L1 zero is active: the unbounded solution is the answer
     else:

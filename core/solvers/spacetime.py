@@ -92,11 +92,11 @@ from typing import Callable, NamedTuple, Optional, Sequence
 import numba
 import numpy as np
 import scipy.linalg
-from scipy.linalg.blas import dgemm
-from scipy.linalg.lapack import dpotrf, dpotrs, dptsv, dpttrf, dpttrs, dtrtri
+from scipy.linalg.lapack import dgesv, dpotrf, dpotrs, dptsv, dpttrf, dpttrs
 
 from core.prior import PCAPrior, alpha_for_units, prior_quadratic
-from core.solvers.bounded_spacetime import KKT_RTOL, kkt_violation_per_entry, solve_bounded
+from core.solvers.bounded_spacetime import (KKT_RTOL, _THREAD_ENTRIES, _both, kkt_violation_per_entry,
+                                             solve_bounded)
 from core.solvers.inputs import (as_basis, as_bounds, as_coupling, as_nonnegative, as_per_shape, as_sequence,
                                  as_valid, zero_filled)
 
@@ -294,8 +294,21 @@ class _Tridiagonals:
             df, ef = self._f
             if df.size == 1:
                 return Z / df[0]
-            x, info = dpttrs(df, ef, np.ascontiguousarray(Z).ravel(), overwrite_b=1 if overwrite else 0)
-            return x.reshape(K, n)
+            z = (np.ascontiguousarray(Z, dtype=np.float64) if overwrite else np.array(Z, dtype=np.float64)).reshape(-1)
+
+            def run(a, b):
+                x, _ = dpttrs(df[a:b], ef[a:b - 1], z[a:b], overwrite_b=1)
+                if not np.shares_memory(x, z):
+                    z[a:b] = x
+
+            # directions 0 .. K/2 - 1 and the rest, in two threads when a core is free (zero coupling
+            # between them: the numbers of one call)
+            h = (K // 2) * n
+            if h:
+                _both(lambda: run(0, h), lambda: run(h, K * n), None if K * n >= _THREAD_ENTRIES else False)
+            else:
+                run(0, K * n)
+            return z.reshape(K, n)
         out = Z if overwrite else np.array(Z)
         for j in range(K):
             d = self.mu[j] * self.dL + self.nu[j]
@@ -335,6 +348,12 @@ def warm_kernels() -> None:
     tri = _Tridiagonals(np.ones(2), np.ones(2), np.full(3, 2.0), -np.ones(2), "warm-up").factor()
     _capacitance_solve(tri, np.eye(2), np.array([0, 0, 1, 2]), np.array([0, 1, 1, 0]), np.ones(4), block=2)
     kkt_violation_per_entry(np.zeros((1, 2)), np.ones((1, 2)), 0.0, 1.0, 0.0, 1.0)
+    from core.solvers.bounded_spacetime import _prox_state, _state_key
+
+    one = np.ones(2)
+    state, _, _ = _prox_state(np.zeros((1, 2)), one, 0 * one, one, 0 * one, np.zeros((1, 2), bool), np.ones((1, 2)),
+                              (np.zeros((1, 2), bool), np.zeros((1, 2)), np.zeros((1, 2))))
+    _state_key(*state)
 
 
 def kernels_cached() -> bool:
@@ -343,15 +362,14 @@ def kernels_cached() -> bool:
 
     try:  # numba has no public query (as core.solvers.boxqp.kernel_cached)
         return all(bool(k._cache._cache_file._load_index()) for k in
-                   (_capacitance_blocks, _capacitance_rhs, _capacitance_advance, bounded_spacetime._kkt_entries))
+                   (_capacitance_part, _capacitance_back, _segment_products, bounded_spacetime._kkt_entries,
+                    bounded_spacetime._prox_entries, bounded_spacetime._state_changes, bounded_spacetime._state_hash))
     except Exception:  # noqa: BLE001 -- a private API: anything unexpected means "not known to be cached"
         return False
 
 
 #: entries per block of the capacitance solve (see :func:`_capacitance_solve`)
 CAPACITANCE_BLOCK = 32
-#: entries whose blocks' arrays are made at once (see :func:`_capacitance_solve`)
-_CAPACITANCE_CHUNK = 256
 #: ratio products below exp(-36) (< eps / 2) are taken as exp(-36) inside a block (see below)
 _LOG_TINY = -36.0
 _RATIO_TINY = float(np.exp(_LOG_TINY))
@@ -362,90 +380,185 @@ _MAX_BLOCK = 39
 _STATE_RESCALE = 1e-60
 
 
-# Compiled kernels for the capacitance recursion's elementwise work (numba): in numpy they
-# were ~20 passes over (32, K) arrays per block (the log / cumsum / exp of the ratio products, the
-# state's diagonal scaling), more time than the block's BLAS products themselves.
+# Compiled kernels of the capacitance recursion (numba, nogil): a part's whole forward recursion and
+# its back substitution run in one call each. In Python the recursion was ~8 calls a block (BLAS
+# through scipy's wrappers, which hold the GIL, and small kernels), so two threads could not overlap;
+# here numba's own BLAS calls (np.dot) run without it, and the 32 x 32 Cholesky factor and its
+# inverse are written out (a few microseconds; LAPACK's wrappers would need the GIL back).
 @numba.njit(cache=True, nogil=True)
-def _capacitance_blocks(U, shapes, rows, inv_diag, seg, sidx, e0, p, Pc, Qc, Pg, Qg, Psi):  # pragma: no cover
-    """Blocks ``j`` of entries ``e0 + j bs ..`` (``bs = Pc.shape[1]``): with ``E[y] = e^(l_y - l_m)``
-    (``l`` the ratio products' logs from the block's first entry, ``m = bs // 2`` its middle
-    entry; each ratio floored at exp(-36)): ``Pc = U / E``, ``Qc = U diag(T^-1) E`` (the diagonal
-    block is ``Pc Qc^T`` above its diagonal), ``Pg = Pc E[last]`` (carried to the block's last
-    entry), ``Qg = Qc / E[0]`` (from its first), ``Psi = E[last] / E[0]``; entries ``>= p`` zero."""
+def _capacitance_part(U, shapes, rows, inv_diag, seg, segi, sidx, c, p, Phi, final, thr,
+                      W, v, g, Psi, Qg, Li, Nw, Ny):  # pragma: no cover
+    """The forward recursion over the ``nb = len(Qg)`` blocks of ``bs = Qg.shape[1]`` entries
+    ``0 .. nb bs - 1`` of one part (entries ``>= p``: padding, decoupled identity rows).
+    ``seg``: the ratio products floored at exp(-36), ``segi`` their reciprocals (made once per
+    solve, so that a block has multiplications only: its ~13,000 divisions were ~30 % of its
+    scalar work).
+
+    Block arrays (``E[y] = e^(l_y - l_m)``, ``l`` the ratio products' logs from the block's first
+    entry, ``m = bs // 2`` its middle one; each ratio floored at exp(-36)): ``Pc = U / E``,
+    ``Qc = U diag(T^-1) E`` (the diagonal block is ``Pc Qc^T`` above its diagonal), ``Pg = Pc E[last]``
+    (carried to the block's last entry), ``Qg = Qc / E[0]`` (from its first), ``Psi = E[last] / E[0]``.
+    The state ``W = diag(g) W' diag(g)``, ``v = g v'`` comes in and goes out in ``W``, ``v``, ``g``
+    (``W'``, ``v'``); block ``i``'s ``L_ii^-1``, ``N_i^T`` and ``y_i`` go to ``Li``, ``Nw``, ``Ny``.
+    The state advances past every block but the last, and past the last one too when ``final``
+    (with ``Phi[nb - 1]``: the state at the next part's first entry). Returns 0, or ``i + 1`` when
+    block ``i``'s pivot is not positive (numerically not positive definite)."""
     K = U.shape[1]
-    nc, bs = Pc.shape[0], Pc.shape[1]
+    nb, bs = Qg.shape[0], Qg.shape[1]
     m = bs // 2
     E = np.empty((bs, K))
-    for j in range(nc):
-        base = e0 + j * bs
+    Ei = np.empty((bs, K))  # 1 / E
+    A2 = np.empty((bs, 2 * K))  # [Qc | -Q W]
+    B2 = np.empty((bs, 2 * K))  # [Pc | Q g]
+    Qsc = np.empty((bs, K))
+    X = np.empty((bs, K))
+    Xv = np.empty(bs)
+    Cd = np.empty((bs, bs))
+    L = np.zeros((bs, bs))
+    rhs = np.empty((bs, K))
+    ry = np.empty(bs)
+    Np = np.empty((bs, K))
+    Wt = np.empty((K, K))
+    fk = np.empty(K)
+    for i in range(nb):
+        base = i * bs
         E[m, :] = 1.0
+        Ei[m, :] = 1.0
         for y in range(m + 1, bs):
             s = sidx[base + y - 1]
             for k in range(K):
-                E[y, k] = E[y - 1, k] * max(seg[s, k], _RATIO_TINY)
+                E[y, k] = E[y - 1, k] * seg[s, k]
+                Ei[y, k] = Ei[y - 1, k] * segi[s, k]
         for y in range(m - 1, -1, -1):
             s = sidx[base + y]
             for k in range(K):
-                E[y, k] = E[y + 1, k] / max(seg[s, k], _RATIO_TINY)
+                E[y, k] = E[y + 1, k] * segi[s, k]
+                Ei[y, k] = Ei[y + 1, k] * seg[s, k]
+        for k in range(K):
+            Psi[i, k] = E[bs - 1, k] * Ei[0, k]
         for y in range(bs):
             e = base + y
             if e < p:
                 u, t = shapes[e], rows[e]
                 for k in range(K):
-                    pc = U[u, k] / E[y, k]
+                    pc = U[u, k] * Ei[y, k]
                     qc = U[u, k] * inv_diag[t, k] * E[y, k]
-                    Pc[j, y, k] = pc
-                    Qc[j, y, k] = qc
-                    Pg[j, y, k] = pc * E[bs - 1, k]
-                    Qg[j, y, k] = qc / E[0, k]
+                    qg = qc * Ei[0, k]
+                    A2[y, k] = qc
+                    B2[y, k] = pc
+                    rhs[y, k] = pc * E[bs - 1, k]  # Pg, minus Q W Psi below
+                    Qg[i, y, k] = qg
+                    Qsc[y, k] = qg * g[k]
             else:
                 for k in range(K):
-                    Pc[j, y, k] = Qc[j, y, k] = Pg[j, y, k] = Qg[j, y, k] = 0.0
-        for k in range(K):
-            Psi[j, k] = E[bs - 1, k] / E[0, k]
+                    A2[y, k] = B2[y, k] = rhs[y, k] = Qg[i, y, k] = Qsc[y, k] = 0.0
+        # Q_i [W | v] = (Q_i g) [W' g | v']
+        np.dot(Qsc, W, X)
+        np.dot(Qsc, v, Xv)
+        for y in range(bs):
+            for k in range(K):
+                A2[y, K + k] = -X[y, k]
+                B2[y, K + k] = Qsc[y, k]
+        # Cd[y, x] = C_ii[x, y] - (Q W Q^T)[x, y]: valid for x <= y (the other triangle holds
+        # e^(l_y - l_x) >= 1 products, which may overflow in long blocks of frames far apart: never read)
+        np.dot(A2, B2.T, Cd)
+        for y in range(bs):
+            if base + y >= p:
+                for x in range(y):
+                    Cd[y, x] = 0.0
+                Cd[y, y] = 1.0
+        for y in range(bs):
+            for k in range(K):
+                rhs[y, k] -= X[y, k] * g[k] * Psi[i, k]
+            ry[y] = c[base + y] - Xv[y]
+        # L L^T = Cd's lower triangle (Cholesky, column by column), then L^-1 into Li[i]
+        for j in range(bs):
+            d = Cd[j, j]
+            for q in range(j):
+                d -= L[j, q] * L[j, q]
+            if not d > 0.0:
+                return i + 1
+            d = np.sqrt(d)
+            L[j, j] = d
+            for r in range(j + 1, bs):
+                s2 = Cd[r, j]
+                for q in range(j):
+                    s2 -= L[r, q] * L[j, q]
+                L[r, j] = s2 / d
+        Lin = Li[i]
+        for j in range(bs):
+            Lin[j, j] = 1.0 / L[j, j]
+            for r in range(j + 1, bs):
+                s2 = 0.0
+                for q in range(j, r):
+                    s2 -= L[r, q] * Lin[q, j]
+                Lin[r, j] = s2 / L[r, r]
+            for r in range(j):
+                Lin[r, j] = 0.0
+        # [N_i^T | y_i] = L_ii^-1 [P_i - Q_i W Psi_i | c_i - Q_i v]
+        np.dot(Lin, rhs, Nw[i])
+        np.dot(Lin, ry, Ny[i])
+        if i < nb - 1 or final:
+            # W <- Phi (Psi W Psi + N N^T) Phi = a W a + (N Phi)(N Phi)^T, v <- a v + Phi N y; the scale
+            # a = Psi Phi goes to g, folded into W' (and v') for directions whose g fell below thr
+            for k in range(K):
+                gk = g[k] * Psi[i, k] * Phi[i, k]
+                if gk < thr:
+                    for j in range(K):
+                        W[k, j] *= gk
+                    for j in range(K):
+                        W[j, k] *= gk
+                    v[k] *= gk
+                    gk = 1.0
+                g[k] = gk
+            for k in range(K):
+                fk[k] = Phi[i, k] / g[k]
+            for y in range(bs):
+                for k in range(K):
+                    Np[y, k] = Nw[i, y, k] * fk[k]
+            np.dot(Np.T, Np, Wt)
+            for k in range(K):
+                for j in range(K):
+                    W[k, j] += Wt[k, j]
+            for y in range(bs):
+                f = Ny[i, y]
+                for k in range(K):
+                    v[k] += Np[y, k] * f
+    return 0
 
 
 @numba.njit(cache=True, nogil=True)
-def _capacitance_rhs(X, g, psi, Pgi, ci, rhs):  # pragma: no cover
-    """``rhs = [P_i - Q_i W Psi_i | c_i - Q_i v]`` from ``X = (Q_i g) [W' | v']`` (``W = g W' g``)."""
-    bs, K = Pgi.shape
-    for k in range(K):
-        f = g[k] * psi[k]
-        for r in range(bs):
-            rhs[r, k] = Pgi[r, k] - X[r, k] * f
-    for r in range(bs):
-        rhs[r, K] = ci[r] - X[r, K]
+def _segment_products(ratio, frames, seg):  # pragma: no cover
+    """``seg[i] = prod ratio[frames[i] .. frames[i + 1] - 1]`` (row by row, in order: what
+    ``np.multiply.reduceat`` computes, without its ~1 ms over the whole (n, K) array)."""
+    K = ratio.shape[1]
+    for i in range(len(frames) - 1):
+        for k in range(K):
+            seg[i, k] = ratio[frames[i], k]
+        for t in range(frames[i] + 1, frames[i + 1]):
+            for k in range(K):
+                seg[i, k] *= ratio[t, k]
 
 
 @numba.njit(cache=True, nogil=True)
-def _capacitance_advance(g, psi, phi, Wv, sol, Np, thr, Qn, Qsc):  # pragma: no cover
-    """The state's scale ``g <- g Psi_i Phi_i``; the rows and columns of ``W'`` (and ``v'``) of
-    directions whose ``g`` fell below ``thr`` absorb it (``g = 1`` there); then
-    ``Np = [N_i^T Phi_i / g | y_i]``, the rank update ``W' += Np^T Np`` left to BLAS, and
-    ``Qsc = Q_(i+1) g`` (``Qn``: the next block's ``Q``) for its product with ``[W' | v']``."""
-    K, bs = g.shape[0], sol.shape[0]
-    for k in range(K):
-        gk = g[k] * psi[k] * phi[k]
-        if gk < thr:
-            for j in range(K + 1):
-                Wv[k, j] *= gk
-            for j in range(K):
-                Wv[j, k] *= gk
-            gk = 1.0
-        g[k] = gk
-    for k in range(K):
-        f = phi[k] / g[k]
-        for r in range(bs):
-            Np[r, k] = sol[r, k] * f
-    for r in range(bs):
-        Np[r, K] = sol[r, K]
-    for r in range(bs):
-        for k in range(K):
-            Qsc[r, k] = Qn[r, k] * g[k]
+def _capacitance_back(Li, Nw, Ny, Qg, Psi, Phi, z, lam):  # pragma: no cover
+    """The back substitution of a part: ``lam_i = L_ii^-T (y_i - N_i^T z)`` from its last block
+    to its first, ``z <- (z Psi_i + Q_i^T lam_i) Phi_(i-1)``; ``z`` comes in as the later entries'
+    ``sum Q^T lam`` carried to the part's last entry (0 for a whole system)."""
+    nb = Li.shape[0]
+    t = np.empty(Li.shape[1])
+    for i in range(nb - 1, -1, -1):
+        np.dot(Nw[i], z, t)
+        for y in range(t.shape[0]):
+            t[y] = Ny[i, y] - t[y]
+        np.dot(Li[i].T, t, lam[i])
+        if i:
+            z = (z * Psi[i] + np.dot(Qg[i].T, lam[i])) * Phi[i - 1]
 
 
 def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shapes: np.ndarray,
-                       rhs: np.ndarray, block: int = CAPACITANCE_BLOCK, presorted: bool = False) -> np.ndarray:
+                       rhs: np.ndarray, block: int = CAPACITANCE_BLOCK, presorted: bool = False,
+                       split: Optional[bool] = None, threads: Optional[bool] = None) -> np.ndarray:
     """``lam`` with ``(E^T H^-1 E) lam = rhs`` for the fast path's ``H^-1 = U diag_j(T_j^-1) U^T``.
 
     ``E`` selects the ``p`` entries ``(rows[a], shapes[a])`` (frame in the range's unknown
@@ -464,16 +577,34 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     where ``P`` (``Q``) are the entries' rows of ``U`` (times ``diag T^-1``) carried to the
     block's last (from its first) entry, ``Psi_i`` the transition across block ``i`` and
     ``Phi_i`` from block ``i`` to ``i + 1``: products of ratios <= 1, no division across blocks,
-    no overflow. The dense diagonal blocks are one batched product ``(U e^-l) (Q e^l)^T`` with
-    ``l`` the block-local log ratio products centred on the block's middle entry (formed as
-    products and quotients of the ratios, :func:`_capacitance_blocks`), each ratio floored at
-    ``exp(-36)`` (< eps / 2) so that blocks of up to 39 entries cannot overflow; the floor changes
-    an entry by less than rounding. The state is kept as ``W = diag(g) W' diag(g)`` (and
-    ``v = g v'``): each block multiplies ``g`` by ``Psi_i Phi_i`` instead of scaling the K x K
-    state, and a direction's ``g`` is folded into ``W'`` once it falls below 1e-60
-    (:func:`_capacitance_advance`). Each ``L_ii`` is inverted (32 x 32) and applied by one product.
-    Cost ``O(p (block + K) K)`` time and ``O(p (block + K))`` memory instead of the dense
-    ``O(p^3)``.
+    no overflow. ``W_i = Z^T C_<i^-1 Z`` (``Z``: the earlier entries' ``P`` carried to block
+    ``i``) and ``v_i = Z^T C_<i^-1 rhs_<i``. The dense diagonal blocks are ``(U e^-l) (Q e^l)^T``
+    with ``l`` the block-local log ratio products centred on the block's middle entry (formed as
+    products and quotients of the ratios), each ratio floored at ``exp(-36)`` (< eps / 2) so that
+    blocks of up to 39 entries cannot overflow; the floor changes an entry by less than rounding.
+    The state is kept as ``W = diag(g) W' diag(g)`` (and ``v = g v'``): each block multiplies
+    ``g`` by ``Psi_i Phi_i`` instead of scaling the K x K state, and a direction's ``g`` is
+    folded into ``W'`` once it falls below 1e-60. Cost ``O(p (block + K) K)`` time and
+    ``O(p (block + K))`` memory instead of the dense ``O(p^3)``; the recursion is compiled
+    (:func:`_capacitance_part`, :func:`_capacitance_back`).
+
+    Two halves in parallel (``split``; by default from ``4 K`` entries on): the
+    recursion is sequential in time, so the entries are cut at a block boundary into an early
+    part 1 and a late part 2, and ``C12 = Z1 Q2^T`` (rank <= K: ``Z1`` part 1's ``P`` carried to
+    part 2's first entry, ``Q2`` part 2's ``Q`` from there). Part 1 runs the recursion above and
+    ends with ``W1 = Z1^T C11^-1 Z1``, ``v1 = Z1^T C11^-1 rhs1``; part 2 runs the *same* recursion
+    in reversed order -- a reversed tridiagonal's inverse is semiseparable with the ratios
+    ``theta'_c = T^-1[s, c + 1] / T^-1[s, c] = theta_c T^-1[c+1, c+1] / T^-1[c, c]`` and the
+    diagonal on the other index, so ``Q2 = D P2'`` with ``D = diag T^-1`` at part 2's first
+    frame and ``P2'`` the reversed run's ``P`` carried to its end -- and ends with
+    ``W2 = P2'^T C22^-1 P2'``, ``v2``. With ``c = Z1^T x1`` and ``a' = P2'^T x2``:
+
+        c = v1 - W1 D a',   a' = v2 - W2 D c    (solved as (I - S W1 S S W2 S) S c = ..., S = D^1/2)
+
+    and each part's back substitution starts from the other's: ``z = Phi a`` (``a = D a'``) at
+    part 1's last block, ``z = D c`` at part 2's. Both parts run in threads when a second core
+    is free (:func:`core.transfer.decompose._cores`; ``threads`` forces it); the arithmetic is
+    the same either way, so the results are bit-identical.
 
     Raises
     ------
@@ -487,89 +618,103 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
     order = None if presorted else np.lexsort((shapes, rows))
     if order is not None:
         rows, shapes, rhs = rows[order], shapes[order], rhs[order]
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    shapes = np.ascontiguousarray(shapes, dtype=np.int64)
     bs = int(max(1, min(block, p, _MAX_BLOCK)))
     nb = -(-p // bs)
-    P = nb * bs
     # ratio products from each entry to the next (1 within a frame): row ``sidx[e]`` of ``seg``
     # (its last row is ones)
     frames = np.unique(rows)
     seg = np.ones((len(frames), K))
-    sidx = np.full(P, len(frames) - 1)
+    sidx = np.full(nb * bs, len(frames) - 1, dtype=np.int64)
+    nxt = np.flatnonzero(rows[1:] > rows[:-1])
     if len(frames) > 1:
-        seg[:-1] = np.multiply.reduceat(tri.ratio_t, frames, axis=0)[:-1]  # frames[i] -> frames[i+1]
-        nxt = np.flatnonzero(rows[1:] > rows[:-1])
+        _segment_products(tri.ratio_t, frames, seg)  # frames[i] -> frames[i+1]
         sidx[nxt] = np.searchsorted(frames, rows[nxt])
-    Phi = seg[sidx[bs - 1::bs]]  # (nb, K): last entry of block i -> first of i + 1
-    c = np.zeros(P)
-    c[:p] = rhs
-    c = c.reshape(nb, bs)
-    # the blocks' own arrays are made CHUNK blocks at a time, inside the recursion: (P, K) arrays of
-    # the whole system made in one pass each were 45 % of the solve (4,300 entries x 165 shapes: a
-    # dozen passes over 5.7 MB each); a chunk's stay in cache
-    chunk = max(1, min(nb, _CAPACITANCE_CHUNK // bs))
-    Psi = np.empty((nb, K))
-    Qs = []  # Qg of each chunk: the back substitution reads them
-    # [W' | v']: the recursion's state W = g W' g, v = g v' (the diagonal scaling by Psi Phi of every
-    # block applied to g, folded into W' only where g gets small), propagated in one product;
-    # Fortran order, so that BLAS adds each block's N N^T to it in place
-    Wv = np.zeros((K, K + 1), order="F")
-    g = np.ones(K)
-    Np = np.empty((bs, K + 1), order="F")
-    Ls, Ns = [], []  # L_ii^-T and [N_i^T | y_i]
-    rhs_i = np.empty((bs, K + 1), order="F")
     U = np.ascontiguousarray(U, dtype=float)
-    inv_diag = np.ascontiguousarray(tri.inv_diag_t)
-    rows_c, shapes_c = np.ascontiguousarray(rows, dtype=np.int64), np.ascontiguousarray(shapes, dtype=np.int64)
-    sidx = sidx.astype(np.int64)
-    Pc, Qc = np.empty((chunk, bs, K)), np.empty((chunk, bs, K))
-    for b0 in range(0, nb, chunk):
-        b1 = min(nb, b0 + chunk)
-        nc = b1 - b0
-        Pg, Qg = np.empty((nc, bs, K)), np.empty((nc, bs, K))
-        _capacitance_blocks(U, shapes_c, rows_c, inv_diag, seg, sidx, b0 * bs, p, Pc[:nc], Qc[:nc], Pg, Qg, Psi[b0:b1])
-        # diagonal blocks, transposed: Cd[y, x] = C_ii[x, y] for x <= y, so that Cd[i].T (Fortran order)
-        # holds C_ii's upper triangle, all that dpotrf(lower=0) reads; the other one is e^(l_y - l_x) >= 1
-        # and may overflow in long blocks of frames far apart: never read
-        with np.errstate(over="ignore", invalid="ignore"):
-            Cd = np.matmul(Qc[:nc], np.transpose(Pc[:nc], (0, 2, 1)))
-        if b1 == nb and P > p:  # padding entries: decoupled identity rows
-            k = np.arange(bs - (P - p), bs)
-            Cd[-1, k, k] = 1.0
-        Qs.append(Qg)
-        Qsc = Qg[0] * g  # Q_i [W | v] = (Q_i g) [W' g | v']; the chunk's next blocks' made by _capacitance_advance
-        for i in range(b0, b1):
-            X = dgemm(1.0, Qsc, Wv)  # (numpy's matmul of this C- by an F-ordered array: 54 us, dgemm 32)
-            _capacitance_rhs(X, g, Psi[i], Pg[i - b0], c[i], rhs_i)
-            # C_ii - Q_i W Q_i^T in place: its transpose (Fortran order, no copy) has the valid upper
-            # triangle, all that dpotrf(lower=0) reads: R^T R = C_ii, R = L_ii^T
-            Cii = dgemm(-1.0, X[:, :K], Qsc.T, beta=1.0, c=Cd[i - b0].T, overwrite_c=1)
-            R, info = dpotrf(Cii, lower=0, clean=1, overwrite_a=1)
-            if info != 0:
-                raise np.linalg.LinAlgError("capacitance system not positive definite")
-            # the block's inverse factor (32 x 32) and one product: dtrtrs of the 32 x (K + 1) right-hand
-            # sides took 25-30 us a block (small-matrix dtrsm), dtrtri + dgemm ~10
-            Rin, info = dtrtri(R, lower=0, overwrite_c=1)
-            if info != 0:
-                raise np.linalg.LinAlgError("capacitance system not positive definite")
-            Ls.append(Rin)  # L_ii^-1 = Rin^T
-            Ns.append(dgemm(1.0, Rin, rhs_i, trans_a=1))  # [N_i^T | y_i]
-            if i < nb - 1:
-                # W <- Phi (Psi W Psi + N N^T) Phi = a W a + (N Phi)(N Phi)^T, v <- a v + Phi N y
-                _capacitance_advance(g, Psi[i], Phi[i], Wv, Ns[-1], Np, _STATE_RESCALE, Qg[min(i + 1, b1 - 1) - b0], Qsc)
-                Wv = dgemm(1.0, Np[:, :K], Np, beta=1.0, c=Wv, trans_a=1, overwrite_c=1)
-    lam = np.empty((nb, bs))
-    z = np.zeros(K)
-    for i in range(nb - 1, -1, -1):
-        lam[i] = Ls[i] @ (Ns[i][:, K] - Ns[i][:, :K] @ z)  # L_ii^-T (y_i - N_i^T z)
-        if i:
-            z = (z * Psi[i] + Qs[i // chunk][i % chunk].T @ lam[i]) * Phi[i - 1]
+    inv_diag = tri.inv_diag_t
+    if split is None:  # by the system's size only: the arithmetic never depends on the machine's load
+        split = nb >= 4 and p >= _SPLIT_ENTRIES_PER_SHAPE * K
+    # part 1 (this thread) takes the odd block: part 2 (the worker, which starts a little later)
+    # also advances past its last block
+    nb1 = (nb + 1) // 2 if split and nb >= 2 else nb
+    s = nb1 * bs  # part 1: entries 0 .. s - 1 (whole blocks, s < p when split)
+
+    def part(rows_, shapes_, c_, p_, sidx_, seg_, Phi_, final):
+        n_ = len(Phi_)
+        out = dict(W=np.zeros((K, K)), v=np.zeros(K), g=np.ones(K), Psi=np.empty((n_, K)),
+                   Qg=np.empty((n_, bs, K)), Li=np.empty((n_, bs, bs)), Nw=np.empty((n_, bs, K)),
+                   Ny=np.empty((n_, bs)), Phi=Phi_)
+        c_ = np.concatenate([c_, np.zeros(n_ * bs - len(c_))])
+        segc = np.maximum(seg_, _RATIO_TINY)  # (each ratio product floored, see above)
+        out["err"] = _capacitance_part(U, shapes_, rows_, inv_diag, segc, 1.0 / segc, sidx_, c_, p_, Phi_, final,
+                                       _STATE_RESCALE, out["W"], out["v"], out["g"], out["Psi"], out["Qg"],
+                                       out["Li"], out["Nw"], out["Ny"])
+        return out
+
+    def back(f, z):
+        lam_ = np.empty((len(f["Li"]), bs))
+        _capacitance_back(f["Li"], f["Nw"], f["Ny"], f["Qg"], f["Psi"], f["Phi"], z, lam_)
+        return lam_
+
+    def check(*fs):
+        if any(f["err"] for f in fs):
+            raise np.linalg.LinAlgError("capacitance system not positive definite")
+
+    Phi = seg[sidx[bs - 1::bs]]  # (nb, K): last entry of block i -> first of i + 1 (the last: ones)
+    if nb1 == nb:
+        f = part(rows, shapes, rhs, p, sidx, seg, Phi, False)
+        check(f)
+        lam = back(f, np.zeros(K)).ravel()[:p]
+    else:
+        # part 2 reversed: its entries from the last; the ratio products of the reversed order are
+        # seg's times diag(T^-1) at the later frame over the earlier one (see above)
+        m2 = p - s
+        nb2 = -(-m2 // bs)
+        rows2, shapes2 = rows[s:][::-1].copy(), shapes[s:][::-1].copy()
+        f0 = int(np.searchsorted(frames, rows[s]))  # part 2's frames: frames[f0:]
+        seg2 = np.ones((len(frames) - f0, K))
+        seg2[:-1] = seg[f0:-1] * (inv_diag[frames[f0 + 1:]] / inv_diag[frames[f0:-1]])
+        sidx2 = np.full(nb2 * bs, len(seg2) - 1, dtype=np.int64)
+        j = nxt[nxt >= s]  # entries j -> j + 1 change frame: reversed, entry j + 1 -> j
+        sidx2[p - 2 - j] = sidx[j] - f0
+        Phi2 = seg2[sidx2[bs - 1::bs]]
+        Phi2[-1] = 1.0  # part 2's state at its own last entry (the first of part 2 in time)
+        args1 = (rows[:s], shapes[:s], rhs[:s], s, sidx[:s], seg, Phi[:nb1], True)
+        args2 = (rows2, shapes2, rhs[s:][::-1], m2, sidx2, seg2, Phi2, True)
+        f1, f2 = _both(lambda: part(*args1), lambda: part(*args2), threads)
+        check(f1, f2)
+        # the interface in S-scaled coordinates: A_k = S W_k S = (S g) W_k' (S g), S v_k = (S g) v_k'
+        D = inv_diag[rows[s]]
+        S = np.sqrt(D)
+        h1, h2 = S * f1["g"], S * f2["g"]
+        A1 = f1["W"] * h1[:, None] * h1
+        A2 = f2["W"] * h2[:, None] * h2
+        r2 = h2 * f2["v"]  # S v2
+        M = A1 @ A2
+        M *= -1.0
+        M.flat[::K + 1] += 1.0
+        # LAPACK's dgesv itself: scipy.linalg.solve adds a condition estimate, 0.5 ms against 0.15
+        _, _, ct, info = dgesv(M, h1 * f1["v"] - A1 @ r2, overwrite_a=1, overwrite_b=1)  # S c
+        if info != 0:
+            raise np.linalg.LinAlgError("capacitance interface singular")
+        cc = ct / S
+        a = S * (r2 - A2 @ ct)  # D (v2 - W2 D c)
+        lam1, lam2 = _both(lambda: back(f1, Phi[nb1 - 1] * a), lambda: back(f2, D * cc), threads)
+        lam = np.concatenate([lam1.ravel(), lam2.ravel()[:m2][::-1]])
     if not np.isfinite(lam).all():
         raise np.linalg.LinAlgError("capacitance solve not finite")
     if order is None:
-        return lam.ravel()[:p].copy()
+        return np.array(lam)
     out = np.empty(p)
-    out[order] = lam.ravel()[:p]
+    out[order] = lam
     return out
+
+
+#: :func:`_capacitance_solve` runs as two halves from this many entries per shape on: each half
+#: saves ~p / 2 blocks of ``4 block K^2`` flops, the interface costs ~``3 K^3`` (a K x K product and
+#: LU), plus the threads' hand-over
+_SPLIT_ENTRIES_PER_SHAPE = 4
 
 
 class RangeSystem:
@@ -604,6 +749,7 @@ class RangeSystem:
         self.scale = solver.scale_
         self.curvature = 2.0 * (2.0 * np.diag(solver._A) + np.diag(solver._C))
         self._Z0 = self._X0 = None
+        self._work = None  # the capacitance steps' work arrays (made on first use)
         if path == "fast":
             self._setup_fast()
 
@@ -727,17 +873,29 @@ class RangeSystem:
                 return self._solve_block(fx, self.values if val is None else val, linear)
             first = np.r_[True, rows[1:] != rows[:-1]]
             dr = rows[first]  # frames with constrained entries
-            Ld = np.zeros((len(dr), K))
+            # three (n_u, K) work arrays kept for every step of this range (fresh ones each step were
+            # ~1 ms of page faults and allocator work a step at 1,000 x 165, more with two threads)
+            if self._work is None:
+                self._work = (np.empty((len(uidx), K)), np.empty((len(uidx), K)), np.empty((K, len(uidx))))
+            Lw, Pw, Vu = self._work
+            Ld = Lw[:len(dr)]
+            Ld.fill(0.0)
             Ld[np.cumsum(first) - 1, ks] = lam
-            Vu = np.zeros((K, len(uidx)))
-            Vu[:, dr] = (Ld @ U).T  # U^T E lam, nonzero only on those frames
-            Z = Z - tri.solve(Vu, overwrite=True)
+            LU = np.matmul(Ld, U, out=Pw[:len(dr)])
+            Vu.fill(0.0)
+            Vu[:, dr] = LU.T  # U^T E lam, nonzero only on those frames
+            Y = tri.solve(Vu, overwrite=True)  # in place
+            Z = np.subtract(Z, Y, out=Y)  # Z itself is kept for the next step
             s.method_ = "fast+capacitance"
         else:
             s.method_ = "fast"
         X = np.empty((n, K))
         if self._contiguous and len(uidx):
-            np.matmul(Z.T, U.T, out=X[uidx[0]:uidx[-1] + 1])
+            # the frames' weights in two halves of frames (two threads when a core is free); always
+            # two, so that the numbers never depend on the machine's load
+            Xu, m = X[uidx[0]:uidx[-1] + 1], len(uidx) // 2
+            _both(lambda: np.matmul(Z[:, :m].T, U.T, out=Xu[:m]), lambda: np.matmul(Z[:, m:].T, U.T, out=Xu[m:]),
+                  None if Z.size >= _THREAD_ENTRIES else False)
         elif len(uidx):
             X[uidx] = Z.T @ U.T
         # constraints hold exactly (they already do to rounding)
@@ -1296,8 +1454,10 @@ class SpacetimeSolver:
         sl = slice(lo, lo + len(X))
         Rb = X @ self._A - self._SB[sl]  # R_t B = (B w_t - s_t)^T B on a frame with every marker
         Re = Rb[1:] - Rb[:-1]
-        pos = self._bt[sl, None] * (X @ self._G - self._SGB[sl])
         holes, pairs = self._holes_in(sl)
+        bt = self._bt[sl]
+        # without the position term (beta = 0, the default) its product and passes are zeros: skipped
+        pos = bt[:, None] * (X @ self._G - self._SGB[sl]) if len(holes) or bt.any() else 0.0
         if len(holes) or len(pairs):  # frames with missing markers: their terms in marker space
             Bm, S, V = self._B, self._S[sl], self.valid_[sl]
             if len(holes):
