@@ -309,7 +309,15 @@ class PoissonReconstructor:
             self._screened[dtype] = CholeskyFactor(self._A, dtype)
         return self._screened[dtype]
 
-    def solve(self, B: np.ndarray, block: int | None = None, dtype=np.float64) -> np.ndarray:
+    def prepare(self, dtype=np.float64) -> None:
+        """Factorise now what :meth:`solve` in ``dtype`` will use (else built on first use; a
+        thread pool calls this once before its threads solve)."""
+        if self.screening == 0:
+            self.solver
+        else:
+            self._screened_factor(dtype)
+
+    def solve(self, B: np.ndarray, block: int | None = None, dtype=np.float64, out=None) -> np.ndarray:
         r"""Solve for (V, m) right-hand sides at once: ``(L + εI)^{-1} B`` when screened, else
         the zero-mean ``L^+ B`` (``B`` must then be orthogonal to the per-component constants).
 
@@ -317,14 +325,15 @@ class PoissonReconstructor:
         solved in blocks of ``block`` (default :attr:`~._mesh.CholeskyFactor.BLOCK`). The
         screened solve runs in ``dtype`` (float64, or float32 for the float32 detail stage;
         each precision factorised once, on first use); the plain one always in float64.
-        Returns (V, m) in that precision.
+        Returns (V, m) in that precision; the screened solve writes it into ``out`` when given
+        (C-ordered (V, m) of that dtype).
         """
         B = np.asarray(B)
         if B.ndim != 2 or B.shape[0] != self.n:
             raise ValueError(f"B: expected ({self.n}, m), got {B.shape}")
         if self.screening == 0:
             return self.solver.solve(np.asarray(B, dtype=np.float64), None, block)
-        return self._screened_factor(dtype).solve(B, block)
+        return self._screened_factor(dtype).solve(B, block, out)
 
     def displacement(self, coating: np.ndarray, mean=None, prior=None) -> np.ndarray:
         """``L^+ ξ + m`` (or the screened solve with ``prior`` (V, 3)) for (V, 3) or (T, V, 3)

@@ -28,33 +28,35 @@ How it is computed (the result is eq. 5 exactly; only the order of the work diff
   ``y_t = y_0 + L^{-1}(c_t - T̂_0)`` where ``c_t`` is the target coating: the constant part
   is known without a solve, and only the change ``c_t - T̂_0`` (``g R_v(ξ_t - ξ_0)`` in the
   paper's form) goes through the factorisation.
-* **Component-major blocks.** A chunk of ``t`` frames is held as (3, V, t) / (3, F, t)
-  arrays: every coordinate is one contiguous block for the per-frame arithmetic (the frames
-  are one compiled pass, :func:`_frames_from_edges`), and the right-hand sides of all
+* **Component-major blocks.** A chunk of ``t`` frames is held as (3, V, t) arrays: every coordinate is one contiguous block for the per-frame arithmetic (the frames
+  are one compiled pass, :func:`_frames_from_positions`), and the right-hand sides of all
   frames × coordinates of the chunk go to one sparse Cholesky factorisation as one (V, 3t)
   block (solved in column blocks, :meth:`~core.transfer.decompose.PoissonReconstructor.solve`).
-* **Linear parts from the factorisation.** Face edges and tangent edges are linear in the
-  positions, so for a factored sequence ``base + Σ a_j basis_j`` they are one small matrix
-  product ``E [1, a_t]`` with the edge matrices ``E`` of base and basis formed in float64
-  (no per-frame gathers, and edges exact to float32 rounding of the *edge*, not of the
-  absolute position). Normals, normalisation and the frame rotation are nonlinear and run
-  per frame in float32 (``_WORK``), and so does the screened Poisson solve (one sparse
-  Cholesky factorisation in the working precision, :class:`~core.transfer._mesh.CholeskyFactor`;
-  relative error ~1e-6 on the screened operator, whose condition number is ~200; on the
-  56K-vertex benchmark the details moved by at most 3.4e-10 m against the float64 solve, for a
-  third less CPU in the solves). On that benchmark the float32 frames are within 6e-10 m (2e-6
-  of the largest detail) of the same computation in float64, which costs ~60% more time; the
-  tests check the algorithm in float64 against the per-frame formulas to 1e-9 and the float32
-  result to its precision.
-* **Two stages on two cores.** Per chunk, forming the right-hand sides (frames, rotation:
-  compiled kernels and BLAS) and the solve (CHOLMOD) both run without the GIL; with a second
-  core the solve of one chunk (and, first, the factorisation) runs in a worker thread while
-  the next chunk's right-hand sides are formed. Each chunk's arithmetic is the same either way:
-  the result is bit for bit that of one core (tested).
+* **Positions from the factorisation, frames in float64.** For a factored sequence
+  ``base + Σ a_j basis_j`` a chunk's positions are one float64 matrix product ``X [1, a_t]``
+  (no per-frame gathers). Edges, normals and tangents are computed from them in float64 in one
+  compiled pass and the frames rounded once to float32 (``_WORK``): within rounding of the unit
+  vectors everywhere (float32 throughout, as before, was up to 1e-4 off where the tangent edge
+  is near the normal), for ~10% more time than float32 arithmetic. The rotation and the
+  screened Poisson solve run in float32 (one sparse Cholesky factorisation in the working
+  precision, :class:`~core.transfer._mesh.CholeskyFactor`; relative error ~1e-6 on the
+  screened operator, whose condition number is ~200; on the 56K-vertex benchmark the details
+  moved by at most 3.4e-10 m against the float64 solve, for a third less CPU in the solves).
+  The tests check the algorithm in float64 against the per-frame formulas to 1e-9 and the
+  float32 result to its precision.
+* **Buffers reused.** Every chunk's arrays are views of one workspace per thread
+  (:class:`_Workspace`): fresh (3, V, t) temporaries for every chunk made 2 s of system time
+  (page faults) of the 10 s the benchmark took.
+* **Two cores.** The chunks are independent: with a second core two threads take whole
+  chunks (frames and rotation: compiled kernels and BLAS; the solve: CHOLMOD; all without the
+  GIL), each with its own workspace; the factorisation runs beside the first chunk's
+  right-hand sides. Each chunk's arithmetic is the same either way: the result is bit for bit
+  that of one core (tested).
 """
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Union
 
@@ -78,26 +80,50 @@ def local_coating(frames, coating: np.ndarray) -> np.ndarray:
 # Hand-written rather than geometry.vertex_frames: that one works on (t, V, 3) sequences, whose
 # per-vertex gathers copy 12-byte rows and whose component slices are 3-strided (2.3 ms per
 # frame for the face cross products of a 112K-face mesh). Here a chunk of t frames is held
-# as (3, V, t) / (3, F, t): every component is one contiguous block, the linear parts come out
-# of one matrix product in this layout, and the nonlinear rest (cross products, normal sums,
+# as (3, V, t): every component is one contiguous block, the positions come out of one matrix
+# product in this layout, and the nonlinear rest (edges, cross products, normal sums,
 # normalisations, the tangent's projection) is one compiled pass (numba) over faces and
-# vertices instead of ~30 numpy passes over (3, F, t) temporaries: 0.04 s of CPU per 32-frame
-# chunk of the 56K-vertex benchmark against 0.16-0.20 s, bit for bit the same frames. Tested
-# equal to vertex_frames.
+# vertices instead of ~30 numpy passes over (3, F, t) temporaries: 0.06 s of CPU per 32-frame
+# chunk of the 56K-vertex benchmark. Tested equal to vertex_frames.
 
 
-_WORK = np.float32  # working precision of the frames and the rotation
+_WORK = np.float32  # precision of the stored frames, the rotation and the solve
 
 
 #: a vertex whose normal is rounding noise, ``|Σ N_f| < NORMAL_CANCEL · Σ |e1_f| |e2_f|``, has
-#: no frame (see :func:`_frames_from_edges`)
+#: no frame (see :func:`_frames_from_positions`)
 NORMAL_CANCEL = 1e-3
 
 
-def _frames_from_edges(e1: np.ndarray, e2: np.ndarray, et: np.ndarray, faces: np.ndarray, flags: bool = False) -> tuple:
-    """Frames ``(t, b, n)`` of :func:`core.geometry.vertex_frames`, each (3, V, t),
-    from the face edges ``e1 = x_1 - x_0``, ``e2 = x_2 - x_0`` ((3, F, t)) and the tangent
-    edges ``et = x_nb - x`` ((3, V, t), overwritten) of the triangles ``faces`` (F, 3).
+class _Workspace:
+    """Named scratch arrays of one thread, reused from chunk to chunk of the detail stage.
+
+    Fresh (3, V, t) arrays for every chunk cost more in page faults than the arithmetic they
+    hold: on the 56K-vertex benchmark the ~360 MB of temporaries a chunk allocated made 2 s of
+    the run's 10 s of CPU system time (zeroing new pages). ``work(name, shape, dtype)`` returns
+    a C-ordered view of the first elements of one flat buffer per name (a smaller last chunk
+    reuses it too)."""
+
+    def __init__(self):
+        self._bufs = {}
+
+    def __call__(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        dtype = np.dtype(dtype)
+        n = int(np.prod(shape))
+        buf = self._bufs.get(name)
+        if buf is None or buf.dtype != dtype or buf.size < n:
+            buf = self._bufs[name] = np.empty(n, dtype=dtype)
+        return buf[:n].reshape(shape)
+
+
+def _frames_from_positions(x: np.ndarray, faces: np.ndarray, nbi: np.ndarray, flags: bool = False,
+                           work: "_Workspace | None" = None, side: str = "") -> tuple:
+    """Frames ``(t, b, n)`` of :func:`core.geometry.vertex_frames`, each (3, V, t) in the
+    working precision ``_WORK``, from positions ``x`` (3, V, t) (float64: every edge is formed in
+    float64 and rounded once, exact to rounding of the *edge*, not of the absolute position) of
+    the triangles ``faces`` (F, 3), with tangent edges towards the neighbours ``nbi`` (V,).
+    The arrays are views of ``work``'s buffers (named with the prefix ``side``): valid until
+    the next call with the same names.
 
     With ``flags`` a fourth item, ``ok`` (V, t) bool, flags the vertices
     that have a frame: ``|Σ N_f| >=`` :data:`NORMAL_CANCEL` ``· Σ |e1_f| |e2_f|``. The
@@ -111,65 +137,81 @@ def _frames_from_edges(e1: np.ndarray, e2: np.ndarray, et: np.ndarray, faces: np
     moved the details by 10 mm), and collapse to needles 4 mm long and 5e-9 m across, where the
     float32 cross product of two long edges is off by a few percent (0.01-0.03 rad between a GLB
     and an OBJ of one take, 0.11 mm in the details). Such a vertex keeps its change unrotated."""
-    V, t = et.shape[1], et.shape[2]
-    n = np.zeros((3, V, t), dtype=et.dtype)
-    ok = np.empty((V, t), dtype=np.bool_)
-    b = np.empty_like(n)
-    _frames_kernel(e1, e2, et, faces, np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0], dtype=et.dtype), n, b, ok)
-    return (et, b, n, ok) if flags else (et, b, n)
+    work = work if work is not None else _Workspace()
+    V, t = x.shape[1], x.shape[2]
+    tg, b, n = (work(side + k, (3, V, t), _WORK) for k in "tbn")
+    ok = work(side + "ok", (V, t), np.bool_)
+    _frames_kernel(np.asarray(x, dtype=np.float64), faces, nbi, np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0]), tg, b, n, ok,
+                   work("normal_sums", (3, V, t), np.float64), work("bound", (V, t), np.float64))
+    return (tg, b, n, ok) if flags else (tg, b, n)
 
 
 @numba.njit(cache=True, nogil=True)
-def _frames_kernel(e1, e2, et, faces, consts, n, b, ok):  # pragma: no cover - compiled
-    """The arithmetic of :func:`_frames_from_edges` in one pass over the faces and two over the
-    vertices, each operation in the arrays' precision and in numpy's order (the face sums in
-    increasing face order, as the CSR incidence product summed them; a face listing a vertex
-    twice counts once). ``n`` (3, V, t) zeros on entry; writes ``et``, ``b``, ``n`` and ``ok``."""
-    nF, t = e1.shape[1], e1.shape[2]
-    V = et.shape[1]
+def _frames_kernel(x, faces, nbi, consts, tg, b, n, ok, acc, bound):  # pragma: no cover - compiled
+    """The arithmetic of :func:`_frames_from_positions` in one pass over the faces and two over
+    the vertices, all in float64 (the face sums in increasing face order, as the CSR incidence
+    product summed them; a face listing a vertex twice counts once), the frames rounded once to
+    the dtype of ``tg``, ``b``, ``n`` when they are stored. Writes those and ``ok``; ``acc``
+    (3, V, t) and ``bound`` (V, t) are float64 scratch."""
+    nF = faces.shape[0]
+    V, t = x.shape[1], x.shape[2]
     cancel, tiny, near, one = consts[0], consts[1], consts[2], consts[3]
-    bound = np.zeros((V, t), dtype=et.dtype)  # Σ_f∋v |e1_f| |e2_f|
-    nf = np.empty((4, t), dtype=et.dtype)  # one face's N_f (3 rows) and |e1_f| |e2_f|
-    for f in range(nF):
+    for v in range(V):
         for j in range(t):
-            x0, x1, x2 = e1[0, f, j], e1[1, f, j], e1[2, f, j]
-            y0, y1, y2 = e2[0, f, j], e2[1, f, j], e2[2, f, j]
+            acc[0, v, j] = 0.0
+            acc[1, v, j] = 0.0
+            acc[2, v, j] = 0.0
+            bound[v, j] = 0.0  # Σ_f∋v |e1_f| |e2_f|
+    nf = np.empty((4, t))  # one face's N_f (3 rows) and |e1_f| |e2_f|
+    for f in range(nF):
+        a0, a1, a2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        for j in range(t):
+            x0 = x[0, a1, j] - x[0, a0, j]
+            x1 = x[1, a1, j] - x[1, a0, j]
+            x2 = x[2, a1, j] - x[2, a0, j]
+            y0 = x[0, a2, j] - x[0, a0, j]
+            y1 = x[1, a2, j] - x[1, a0, j]
+            y2 = x[2, a2, j] - x[2, a0, j]
             nf[0, j] = x1 * y2 - x2 * y1
             nf[1, j] = x2 * y0 - x0 * y2
             nf[2, j] = x0 * y1 - x1 * y0
             nf[3, j] = np.sqrt((x0 * x0 + x1 * x1 + x2 * x2) * (y0 * y0 + y1 * y1 + y2 * y2))
-        a0, a1 = faces[f, 0], faces[f, 1]
         for k in range(3):
             v = faces[f, k]
             if (k == 1 and v == a0) or (k == 2 and (v == a0 or v == a1)):
                 continue
             for j in range(t):
-                n[0, v, j] += nf[0, j]
-                n[1, v, j] += nf[1, j]
-                n[2, v, j] += nf[2, j]
+                acc[0, v, j] += nf[0, j]
+                acc[1, v, j] += nf[1, j]
+                acc[2, v, j] += nf[2, j]
                 bound[v, j] += nf[3, j]
-    tmax = np.zeros(t, dtype=et.dtype)
+    tmax = np.zeros(t)
     for v in range(V):
+        w = nbi[v]
         for j in range(t):
-            n0, n1, n2 = n[0, v, j], n[1, v, j], n[2, v, j]
+            n0, n1, n2 = acc[0, v, j], acc[1, v, j], acc[2, v, j]
             nl = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
             ok[v, j] = nl >= cancel * bound[v, j]
             if nl > 0:
                 n0 /= nl
                 n1 /= nl
                 n2 /= nl
-                n[0, v, j], n[1, v, j], n[2, v, j] = n0, n1, n2
-            d = et[0, v, j] * n0 + et[1, v, j] * n1 + et[2, v, j] * n2
-            et[0, v, j] -= d * n0
-            et[1, v, j] -= d * n1
-            et[2, v, j] -= d * n2
-            tn = np.sqrt(et[0, v, j] * et[0, v, j] + et[1, v, j] * et[1, v, j] + et[2, v, j] * et[2, v, j])
+            acc[0, v, j], acc[1, v, j], acc[2, v, j] = n0, n1, n2
+            e0 = x[0, w, j] - x[0, v, j]  # the tangent edge, projected
+            e1 = x[1, w, j] - x[1, v, j]
+            e2 = x[2, w, j] - x[2, v, j]
+            d = e0 * n0 + e1 * n1 + e2 * n2
+            e0 -= d * n0
+            e1 -= d * n1
+            e2 -= d * n2
+            tn = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
             bound[v, j] = tn  # reused: the projected tangent's length
             if tn > tmax[j]:
                 tmax[j] = tn
-    for v in range(V):
+    for v in range(V):  # the tangent again (cheaper than a float64 (3, V, t) array of it)
+        w = nbi[v]
         for j in range(t):
-            n0, n1, n2 = n[0, v, j], n[1, v, j], n[2, v, j]
+            n0, n1, n2 = acc[0, v, j], acc[1, v, j], acc[2, v, j]
             tn = bound[v, j]
             if tn <= tiny * tmax[j]:
                 # as vertex_frames: an edge (nearly) along the normal falls back to an axis
@@ -181,12 +223,17 @@ def _frames_kernel(e1, e2, et, faces, consts, n, b, ok):  # pragma: no cover - c
                     t0, t1, t2 = -d * n0, one - d * n1, -d * n2
                 tn = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
             else:
-                t0, t1, t2 = et[0, v, j], et[1, v, j], et[2, v, j]
+                t0, t1, t2 = x[0, w, j] - x[0, v, j], x[1, w, j] - x[1, v, j], x[2, w, j] - x[2, v, j]
+                d = t0 * n0 + t1 * n1 + t2 * n2
+                t0 -= d * n0
+                t1 -= d * n1
+                t2 -= d * n2
             if tn > 0:
                 t0 /= tn
                 t1 /= tn
                 t2 /= tn
-            et[0, v, j], et[1, v, j], et[2, v, j] = t0, t1, t2
+            tg[0, v, j], tg[1, v, j], tg[2, v, j] = t0, t1, t2
+            n[0, v, j], n[1, v, j], n[2, v, j] = n0, n1, n2
             b[0, v, j] = n1 * t2 - n2 * t1
             b[1, v, j] = n2 * t0 - n0 * t2
             b[2, v, j] = n0 * t1 - n1 * t0
@@ -195,61 +242,50 @@ def _frames_kernel(e1, e2, et, faces, consts, n, b, ok):  # pragma: no cover - c
 class _FramedSequence:
     """Per-vertex frames of the frames of a sequence, in (3, V, t) blocks.
 
-    From a :class:`FactoredSequence` ``x(a) = base + Σ_j a_j basis_j``, the face and tangent
-    edges are linear in ``ã = [1, a]``: they are the edge matrices of base and basis (formed
-    in float64) times ``ã`` — one float32 product per chunk, no per-frame gathers, and each
-    edge exact to float32 rounding of the edge rather than of the absolute position. From a
-    callable ``idx -> (t, V, 3)`` positions the edges are gathered per chunk (float32).
-    Normals and everything after them are nonlinear and computed per frame.
+    From a :class:`FactoredSequence` ``x(a) = base + Σ_j a_j basis_j`` the positions of a chunk
+    are one float64 product ``X [1, a_t]`` (X: base and basis as (3V, m) columns, in the
+    (3, V, t) layout, no per-frame gathers); from a callable ``idx -> (t, V, 3)`` they are
+    copied into that layout. Edges, normals and everything after them are computed per frame
+    (:func:`_frames_from_positions`). This replaced float32 edge matrices of base and basis
+    (``E [1, a_t]`` for face and tangent edges, 5x the rows of the positions): their (3, F, t)
+    products made 107 MB of temporaries a chunk, and the frames of both sides took 1.7 s of the
+    56K-vertex benchmark against 0.8 s now, each edge now formed from float64 positions.
     """
 
     def __init__(self, seq: Union[FactoredSequence, Callable], faces: np.ndarray, nbi: np.ndarray):
-        self.faces, self.nbi = np.ascontiguousarray(faces, dtype=np.int64), nbi
+        self.faces = np.ascontiguousarray(faces, dtype=np.int64)
+        self.nbi = np.ascontiguousarray(nbi, dtype=np.int64)
         self.seq = seq
+        self.V = len(self.nbi)
         if isinstance(seq, FactoredSequence):
-            X = np.ascontiguousarray(np.concatenate([seq.base[None], seq.basis]).transpose(2, 1, 0),
-                                     dtype=np.float64)  # (3, V, m)
-            # (3n, m): row p*n + i is coordinate p of the edge of face/vertex i, differences in
-            # float64 rounded once to the working precision
-            rows = lambda a, b: _edge_rows(X, np.ascontiguousarray(a), np.ascontiguousarray(b),
-                                           np.empty((3, len(a), X.shape[2]), dtype=_WORK)).reshape(3 * len(a), -1)
-            self.E1 = rows(self.faces[:, 1], self.faces[:, 0])
-            self.E2 = rows(self.faces[:, 2], self.faces[:, 0])
-            self.Et = rows(np.asarray(nbi, dtype=np.int64), np.arange(len(nbi), dtype=np.int64))
+            # (3V, m): row p V + i is coordinate p of vertex i; columns base, basis_1..r
+            self.X = np.ascontiguousarray(np.concatenate([seq.base[None], seq.basis]).transpose(2, 1, 0),
+                                          dtype=np.float64).reshape(3 * self.V, -1)
 
-    def frames(self, idx: slice, flags: bool = False) -> tuple:
-        """``(t, b, n)`` (each (3, V, t) float32) of the frames ``idx``; with ``flags`` also
-        ``ok`` (V, t): the vertices that have a frame (:func:`_frames_from_edges`)."""
-        nF, V = len(self.faces), len(self.nbi)
+    def positions(self, idx: slice, work: "_Workspace | None" = None) -> np.ndarray:
+        """(3, V, t) float64 positions of the frames ``idx`` (a view of ``work``'s buffer
+        ``"x"`` when given)."""
+        V = self.V
+        buf = (lambda t: np.empty((3, V, t))) if work is None else (lambda t: work("x", (3, V, t), np.float64))
         if isinstance(self.seq, FactoredSequence):
             c = np.atleast_2d(self.seq.coeffs[idx])
-            t = len(c)
-            a = np.empty((c.shape[1] + 1, t), dtype=_WORK)  # ã = [1, a_t] as columns
+            a = np.empty((c.shape[1] + 1, len(c)))  # ã = [1, a_t] as columns
             a[0] = 1.0
             a[1:] = c.T
-            e1 = (self.E1 @ a).reshape(3, nF, t)
-            e2 = (self.E2 @ a).reshape(3, nF, t)
-            et = (self.Et @ a).reshape(3, V, t)
-        else:
-            x = np.ascontiguousarray(np.asarray(self.seq(idx), dtype=_WORK).transpose(2, 1, 0))  # (3, V, t)
-            p0 = np.take(x, self.faces[:, 0], axis=1)
-            e1 = np.take(x, self.faces[:, 1], axis=1) - p0
-            e2 = np.take(x, self.faces[:, 2], axis=1) - p0
-            et = np.take(x, self.nbi, axis=1) - x
-        return _frames_from_edges(e1, e2, et, self.faces, flags)
+            x = buf(len(c))
+            np.matmul(self.X, a, out=x.reshape(3 * V, len(c)))
+            return x
+        p = np.asarray(self.seq(idx), dtype=np.float64)
+        x = buf(len(p))
+        x[...] = p.transpose(2, 1, 0)
+        return x
 
-
-@numba.njit(cache=True, nogil=True)
-def _edge_rows(X, head, tail, out):  # pragma: no cover - compiled
-    """``out[p, i] = X[p, head[i]] - X[p, tail[i]]`` for (3, V, m) float64 ``X``, rounded to
-    ``out``'s dtype; returns ``out`` (3, n, m)."""
-    m = X.shape[2]
-    for p in range(3):
-        for i in range(len(head)):
-            a, b = head[i], tail[i]
-            for k in range(m):
-                out[p, i, k] = X[p, a, k] - X[p, b, k]
-    return out
+    def frames(self, idx: slice, flags: bool = False, work: "_Workspace | None" = None, side: str = "") -> tuple:
+        """``(t, b, n)`` (each (3, V, t) ``_WORK``) of the frames ``idx``; with ``flags`` also
+        ``ok`` (V, t): the vertices that have a frame (:func:`_frames_from_positions`). With
+        ``work``, views of its buffers (prefix ``side``), overwritten by the next call."""
+        work = work if work is not None else _Workspace()
+        return _frames_from_positions(self.positions(idx, work), self.faces, self.nbi, flags, work, side)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -396,41 +432,51 @@ class DetailTransfer:
         xi_base = xi_base.T.astype(_WORK)[:, :, None]
         y0 = np.zeros((len(rows), 3)) if relative else self.ref_displacement[rows]
 
-        def solve(B, start):  # the Poisson solve of a chunk, written into its frames of out
-            _scatter_frames(self.poisson.solve(B, dtype=_WORK), rows, y0, out, start)
+        def run(s: int, work: _Workspace, ready=None):  # one chunk: right-hand sides, solve, its frames of out
+            idx = slice(s, min(s + chunk, n_frames))
+            t = idx.stop - idx.start
+            Fs, Ft = src.frames(idx, True, work, "s"), tgt.frames(idx, True, work, "t")
+            xi = work("xi", (3, V, t), _WORK)
+            np.matmul(G, np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK), out=xi.reshape(3 * V, t))
+            xi += xi_base
+            # all frames x coordinates of the chunk as the columns of one (V, 3t) solve
+            B = self._change(Fs, Ft, xi, out=work("B", (V, 3 * t), _WORK))
+            if ready is not None:
+                ready.result()
+            y = self.poisson.solve(B, dtype=_WORK, out=work("y", (V, 3 * t), _WORK))
+            _scatter_frames(y, rows, y0, out, idx.start)
 
-        # two stages per chunk: its right-hand sides (frames, rotation: compiled kernels and
-        # BLAS, all without the GIL) and its solve (CHOLMOD, without the GIL). With a second
-        # core the solve of one chunk runs while the next chunk's right-hand sides are formed
-        # (each chunk's arithmetic is the same either way: the result is bit for bit the same)
-        pool = ThreadPoolExecutor(1) if n_frames > chunk and _cores() > 1 else None
-        pending = None  # (future, frames done when it is)
-        try:
-            if pool is not None and self.poisson.screening > 0:  # factorised while chunk 0 is formed
-                pool.submit(self.poisson._screened_factor, _WORK)
-            for s in range(0, n_frames, chunk):
-                idx = slice(s, min(s + chunk, n_frames))
-                t = idx.stop - idx.start
-                Fs, Ft = src.frames(idx, flags=True), tgt.frames(idx, flags=True)
-                xi = (G @ np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK)).reshape(3, V, t)
-                xi += xi_base
-                # all frames x coordinates of the chunk as the columns of one (V, 3t) solve
-                B = self._change(Fs, Ft, xi, out=np.empty((V, 3 * t), dtype=_WORK))
-                del Fs, Ft, xi
-                if pool is None:
-                    solve(B, idx.start)
-                    _report(progress, idx.stop, n_frames)
-                    continue
-                if pending is not None:
-                    pending[0].result()
-                    _report(progress, pending[1], n_frames)
-                pending = (pool.submit(solve, B, idx.start), idx.stop)
-            if pending is not None:
-                pending[0].result()
-                _report(progress, pending[1], n_frames)
-        finally:
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=True)
+        # Chunks are independent: with a second core two threads take whole chunks (frames,
+        # rotation: compiled kernels and BLAS; solve: CHOLMOD; all without the GIL), each with
+        # its own workspace. Each chunk's arithmetic is the same on any thread: the result is
+        # bit for bit that of one core (tested). Progress is reported in frame order.
+        starts = list(range(0, n_frames, chunk))
+        n_work = min(len(starts), _cores())
+        if n_work <= 1:
+            work = _Workspace()
+            for s in starts:
+                run(s, work)
+                _report(progress, min(s + chunk, n_frames), n_frames)
+            return out
+        local = threading.local()
+
+        def task(s):
+            if not hasattr(local, "work"):
+                local.work = _Workspace()
+            run(s, local.work, ready)
+
+        with ThreadPoolExecutor(n_work) as pool:
+            # the factorisation (once, before any solve) beside the first chunk's right-hand sides
+            ready = pool.submit(self.poisson.prepare, _WORK)
+            futures = [pool.submit(task, s) for s in starts]
+            try:
+                for s, f in zip(starts, futures):
+                    f.result()
+                    _report(progress, min(s + chunk, n_frames), n_frames)
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
         return out
 
 
