@@ -294,6 +294,34 @@ def test_detail_chunks_on_two_cores_are_bit_identical_to_one(tiger_detail_case, 
     assert np.abs(runs[1]).max() > 1e-4 * c["size"]  # the details move
 
 
+def test_transfer_on_two_cores_is_bit_identical_to_one(tiger, monkeypatch):
+    """With a second core, transfer_sequence builds the eq. 9 system, the detail factorisation
+    and the output pages in a second thread beside the decomposition (and the Taubin blocks
+    and detail chunks run on two threads): the same floats as one core, and the system built
+    beside is the one used (its references are the decomposition's, bit for bit)."""
+    import core.transfer as ct
+    from core.transfer import decompose
+
+    K = tiger.n_shapes
+    t = np.arange(40)
+    W = np.clip(0.5 + 0.5 * np.sin(t[:, None] / (3 + np.arange(K))), 0, 1)
+    target = tiger.neutral * [1.1, 0.9, 1.05]
+    built = []
+    real = ct.transfer_system
+    monkeypatch.setattr(ct, "transfer_system", lambda *a: built.append(real(*a)) or built[-1])
+    runs = {}
+    for cores in (1, 2):
+        for m in (ct, details, decompose):
+            monkeypatch.setattr(m, "_cores", lambda: cores)
+        runs[cores] = ct.transfer_sequence(tiger.neutral, tiger.faces, tiger.evaluate(W), target, tiger.faces,
+                                           max_bases=4, chunk=16)
+    assert len(built) == 1 and runs[2].system is built[0]  # one core builds it inside transfer_bases
+    a, b = runs[1], runs[2]
+    for name in ("neutral", "deltas", "weights", "details", "frames", "target_smooth_ref", "source_bases"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert np.abs(a.details).max() > 1e-5 * tiger.size  # the details move
+
+
 def test_screened_detail_reference_is_a_dense_solve(tiger_detail_case, monkeypatch):
     """The batched details, for one frame, against np.linalg.solve of eq. 5 screened."""
     monkeypatch.setattr(details, "_WORK", np.float64)

@@ -25,6 +25,7 @@ Conventions
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -281,6 +282,7 @@ class PoissonReconstructor:
         self.average = sp.csr_matrix((1.0 / counts[labels], (labels, np.arange(n_vertices))), shape=(ncomp, n_vertices))
         self._pinned = None
         self._screened = {}  # dtype -> CholeskyFactor of L + εI
+        self._lock = threading.Lock()  # one factorisation when threads ask at once
         if self.screening > 0:
             self.eps = self.screening * float(self.L.diagonal().mean())
             self._A = (self.L + self.eps * sp.identity(n_vertices)).tocsr()
@@ -289,8 +291,9 @@ class PoissonReconstructor:
     def solver(self) -> PinnedSolver:
         """The factorisation of the plain ``L`` (built on first use: the screened
         reconstruction never needs it)."""
-        if self._pinned is None:
-            self._pinned = PinnedSolver(self.L, self.labels, self.n_components)
+        with self._lock:
+            if self._pinned is None:
+                self._pinned = PinnedSolver(self.L, self.labels, self.n_components)
         return self._pinned
 
     def component_mean(self, x: np.ndarray) -> np.ndarray:
@@ -305,13 +308,14 @@ class PoissonReconstructor:
 
     def _screened_factor(self, dtype) -> CholeskyFactor:
         dtype = np.dtype(dtype)
-        if dtype not in self._screened:
-            self._screened[dtype] = CholeskyFactor(self._A, dtype)
+        with self._lock:
+            if dtype not in self._screened:
+                self._screened[dtype] = CholeskyFactor(self._A, dtype)
         return self._screened[dtype]
 
     def prepare(self, dtype=np.float64) -> None:
-        """Factorise now what :meth:`solve` in ``dtype`` will use (else built on first use; a
-        thread pool calls this once before its threads solve)."""
+        """Factorise now what :meth:`solve` in ``dtype`` will use (else built on first use;
+        thread-safe: a thread asking while another factorises waits for that factorisation)."""
         if self.screening == 0:
             self.solver
         else:

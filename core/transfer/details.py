@@ -400,7 +400,7 @@ class DetailTransfer:
 
     def displacements(self, source_smooth: FactoredSequence, source_coating: FactoredSequence,
                       target_smooth_frames, n_frames: int, chunk: int = 32, dtype=np.float32,
-                      relative: bool = False, vertices=None, progress=None) -> np.ndarray:
+                      relative: bool = False, vertices=None, progress=None, out=None) -> np.ndarray:
         """Detail displacements ``y_t = T_t - T̄_t`` for all frames, (T, V, 3) ``dtype``.
 
         Parameters
@@ -419,10 +419,14 @@ class DetailTransfer:
         vertices : (V',) int, optional
             Output rows (e.g. the unwelded vertex order): the result is (T, V', 3).
         progress : ``(fraction, message) -> None``, optional, called after every chunk
+        out : (T, V', 3) ``dtype`` array to write into, optional (else a new one)
         """
         V = self.poisson.n
         rows = np.arange(V) if vertices is None else np.asarray(vertices, dtype=np.int64)
-        out = np.empty((n_frames, len(rows), 3), dtype=dtype)
+        if out is None:
+            out = np.empty((n_frames, len(rows), 3), dtype=dtype)
+        elif out.shape != (n_frames, len(rows), 3) or out.dtype != np.dtype(dtype):
+            raise ValueError(f"out: expected {(n_frames, len(rows), 3)} {np.dtype(dtype)}, got {out.shape} {out.dtype}")
         src = _FramedSequence(source_smooth, self.faces, self._nbi)
         tgt = _FramedSequence(target_smooth_frames, self.faces, self._nbi)
         # ξ_t - ξ_0 (or ξ_t) straight from the factorisation (float32 product: the change is
@@ -478,6 +482,19 @@ class DetailTransfer:
                     f.cancel()
                 raise
         return out
+
+
+def load_kernels() -> None:
+    """Load this module's compiled kernels (numba, from its on-disk cache) by running them once
+    on a triangle, with the argument types of the detail stage: the first call of each costs
+    ~0.2 s in a new process, which :func:`core.transfer.transfer_sequence` spends in its
+    second thread beside the decomposition instead of in the detail stage."""
+    x = np.zeros((3, 3, 1))
+    x[0, 1, 0] = x[1, 2, 0] = 1.0
+    faces = np.array([[0, 1, 2]], dtype=np.int64)
+    Fs = _frames_from_positions(x, faces, np.array([1, 2, 0], dtype=np.int64), True)
+    B = _rotate(Fs[:3], Fs[:3], np.zeros((3, 3, 1), dtype=_WORK), 1.0, ok=Fs[3] & Fs[3], out=np.empty((3, 3), dtype=_WORK))
+    _scatter_frames(B, np.arange(3, dtype=np.int64), np.zeros((3, 3)), np.empty((1, 3, 3), dtype=_WORK), 0)
 
 
 def _report(progress, done: int, n_frames: int):
