@@ -41,7 +41,7 @@ from .welded import WeldedSource, weld_source
 __all__ = [
     "TransferSettings", "TransferResult", "transfer_sequence", "naive_transfer",
     "WeldedSource", "weld_source", "register_target", "Decomposition", "decompose_sequence", "select_sequence_bases",
-    "BasisTransfer", "transfer_bases", "transfer_details", "assemble_result", "decomposition_operators", "transfer_system",
+    "BasisTransfer", "transfer_bases", "transfer_details", "assemble_result", "decomposition_operators", "transfer_system", "detail_transfer",
     "TaubinFilter", "taubin_smooth", "laplacian_operator", "laplacian_coating", "PoissonReconstructor",
     "FactoredSequence", "factor_sequence", "nnls_gram", "select_bases", "BasisSelection",
     "DeformationTransfer", "deformation_transfer", "deformation_gradients", "line_gradients",
@@ -248,18 +248,26 @@ def transfer_system(src: WeldedSource, filt: TaubinFilter, target_welded, settin
                                settings.alpha)
 
 
+def detail_transfer(src: WeldedSource, dec: Decomposition, target_welded, target_smooth_ref,
+                    settings: TransferSettings) -> DetailTransfer:
+    """The :class:`DetailTransfer` of :func:`transfer_details` (reference frames and coatings of
+    both sides), from the decomposition and the smoothed target reference ``T̄_0``."""
+    Tw0 = np.asarray(target_welded, dtype=np.float64)
+    gain = settings.detail_gain if settings.detail_gain is not None else bbox_size(Tw0) / max(bbox_size(src.welded_neutral), 1e-300)
+    return DetailTransfer(src.faces, dec.reconstructor, dec.smooth.base, dec.coating.base, Tw0, target_smooth_ref, gain,
+                          settings.rotate_reference_details)
+
+
 def transfer_details(src: WeldedSource, dec: Decomposition, sel: BasisSelection, target_welded, bt: BasisTransfer,
-                     settings: TransferSettings, progress: Optional[ProgressFn] = None, out=None) -> Optional[np.ndarray]:
+                     settings: TransferSettings, progress: Optional[ProgressFn] = None, out=None,
+                     det: Optional[DetailTransfer] = None) -> Optional[np.ndarray]:
     """Fine-scale detail transfer (eq. 16, 5): (T, V, 3) float32 displacements relative to the
     target neutral, in the source vertex order; None when ``settings.details`` is off. ``out``:
     an array of that shape and dtype to write them into (e.g. allocated and paged in
-    beforehand)."""
+    beforehand); ``det``: :func:`detail_transfer`'s object for these inputs, if built already."""
     if not settings.details:
         return None
-    Tw0 = np.asarray(target_welded, dtype=np.float64)
-    gain = settings.detail_gain if settings.detail_gain is not None else bbox_size(Tw0) / max(bbox_size(src.welded_neutral), 1e-300)
-    det = DetailTransfer(src.faces, dec.reconstructor, dec.smooth.base, dec.coating.base, Tw0, bt.target_smooth_ref, gain,
-                         settings.rotate_reference_details)
+    det = det or detail_transfer(src, dec, target_welded, bt.target_smooth_ref, settings)
     # T̄_t = T̄_0 + W_t Δ (eq. 8) as a factored sequence; details relative to the neutral
     # T_0, written straight in the unwelded vertex order
     target_smooth = FactoredSequence(bt.target_smooth_ref, sel.weights, bt.deltas, 0.0)
@@ -358,6 +366,9 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         t = time.perf_counter()
         dec = decompose_sequence(src, seq, settings, filt, poisson)
         timings["decomposition"] = time.perf_counter() - t
+        det = None
+        if side is not None and settings.details:  # beside the basis selection and transfer
+            det = side.submit(lambda: detail_transfer(src, dec, Tw0, system.result().T0, settings))
 
         report(progress, 0.45, "basis selection")
         t = time.perf_counter()
@@ -372,7 +383,8 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         t = time.perf_counter()
         details = transfer_details(src, dec, sel, Tw0, bt, settings,
                                    None if progress is None else (lambda f, m: progress(0.55 + 0.45 * f, m)),
-                                   None if out is None else out.result())
+                                   None if out is None else out.result(),
+                                   det.result() if det is not None and bt.system is system.result() else None)
         timings["details"] = time.perf_counter() - t
     finally:
         if side is not None:
