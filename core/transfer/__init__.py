@@ -305,9 +305,10 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     The composition of the steps :func:`weld_source`, :func:`register_target`,
     :func:`decompose_sequence`, :func:`select_sequence_bases`, :func:`transfer_bases`,
     :func:`transfer_details` and :func:`assemble_result` (the pipeline's dense stages run the
-    same steps, each cached on its own). With a second core free, the operators that depend on
-    the meshes alone (:func:`decomposition_operators`, :func:`transfer_system`) are built in a
-    second thread beside the decomposition.
+    same steps, each cached on its own). With a second core free, what depends on the meshes
+    alone (:func:`transfer_system`, the detail factorisation and kernels,
+    :func:`detail_transfer`, the output's pages) is made ready in a second thread beside the
+    decomposition, basis selection and transfer; the result is the same either way.
 
     Parameters
     ----------

@@ -28,8 +28,10 @@ How it is computed (the result is eq. 5 exactly; only the order of the work diff
   ``y_t = y_0 + L^{-1}(c_t - T̂_0)`` where ``c_t`` is the target coating: the constant part
   is known without a solve, and only the change ``c_t - T̂_0`` (``g R_v(ξ_t - ξ_0)`` in the
   paper's form) goes through the factorisation.
-* **Component-major blocks.** A chunk of ``t`` frames is held as (3, V, t) arrays: every coordinate is one contiguous block for the per-frame arithmetic (the frames
-  are one compiled pass, :func:`_frames_from_positions`), and the right-hand sides of all
+* **Component-major blocks.** A chunk of ``t`` frames is held as (3, V, t) arrays: every
+  coordinate is one contiguous block for the per-frame arithmetic (the frames are one
+  compiled pass, :func:`_frames_from_positions`, in a local vertex numbering,
+  :func:`_local_numbering`), and the right-hand sides of all
   frames × coordinates of the chunk go to one sparse Cholesky factorisation as one (V, 3t)
   block (solved in column blocks, :meth:`~core.transfer.decompose.PoissonReconstructor.solve`).
 * **Positions from the factorisation, frames in float64.** For a factored sequence
