@@ -297,6 +297,32 @@ class _FramedSequence:
 
 
 @numba.njit(cache=True, nogil=True)
+def _chunk_rhs(Xs, As, Xt, At, faces, nbi, consts, G, C, xi_base, scale, add, sub, sub2, rows, x, acc, bound,
+               st, sb, sn, sok, tt, tb, tn, tok, ok, xi, B):  # pragma: no cover - compiled
+    """The right-hand sides ``B`` (V, 3t) of a chunk of two factored sequences in one call
+    without the GIL: positions ``X [1, a_t]`` of each side (``x``, (3V, t)), their frames
+    (:func:`_frames_kernel`), the source coating change ``G c_t + xi_base`` (``xi``, (3V, t))
+    and its rotation (:func:`_rotate_kernel`) -- the same arithmetic, in the same order, as
+    :meth:`DetailTransfer.displacements` does call by call for other sequences."""
+    V, t = st.shape[1], st.shape[2]
+    x3 = x.reshape(3, V, t)
+    np.dot(Xs, As, x)
+    _frames_kernel(x3, faces, nbi, consts, st, sb, sn, sok, acc, bound)
+    np.dot(Xt, At, x)
+    _frames_kernel(x3, faces, nbi, consts, tt, tb, tn, tok, acc, bound)
+    np.dot(G, C, xi)
+    xi3 = xi.reshape(3, V, t)
+    for p in range(3):
+        for v in range(V):
+            for j in range(t):
+                xi3[p, v, j] += xi_base[p, v]
+    for v in range(V):
+        for j in range(t):
+            ok[v, j] = sok[v, j] and tok[v, j]
+    _rotate_kernel(st, sb, sn, tt, tb, tn, xi3, scale, add, sub, ok, sub2, B, rows)
+
+
+@numba.njit(cache=True, nogil=True)
 def _scatter_frames(y, rows, y0, out, start):  # pragma: no cover - compiled
     """``out[start + j, i, p] = y[rows[i], p t + j] + y0[i, p]`` for the (V, 3t) solution ``y``
     of a chunk of t frames, rounded to ``out``'s dtype."""
@@ -470,47 +496,76 @@ class DetailTransfer:
         xi_base = xi_base[order].T.astype(_WORK)[:, :, None]
         y0 = np.zeros((len(rows), 3)) if relative else self.ref_displacement[rows]
 
-        def run(s: int, work: _Workspace, ready=None):  # one chunk: right-hand sides, solve, its frames of out
-            idx = slice(s, min(s + chunk, n_frames))
+        starts = list(range(0, n_frames, chunk))
+        fused = isinstance(source_smooth, FactoredSequence) and isinstance(target_smooth_frames, FactoredSequence)
+        if fused:  # the small per-chunk inputs, made before any thread runs (see below)
+            coeff = lambda c: np.concatenate([np.ones((1, len(c))), c.T])  # ã = [1, a_t] as columns
+            ends = [min(s + chunk, n_frames) for s in starts]
+            parts = [(np.ascontiguousarray(coeff(np.atleast_2d(source_smooth.coeffs[s:e]))),
+                      np.ascontiguousarray(coeff(np.atleast_2d(target_smooth_frames.coeffs[s:e]))),
+                      np.ascontiguousarray(np.atleast_2d(source_coating.coeffs[s:e]).T, dtype=_WORK))
+                     for s, e in zip(starts, ends)]
+            z = np.zeros((V, 3), dtype=_WORK)
+            if self.rotate_reference:
+                prm = [np.ascontiguousarray(a[order], dtype=_WORK) for a in (self.lt0 - self.gain * self.l0, self.That0, self.xi0)]
+            else:
+                prm = [z, z, z]
+            consts = np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0])
+            xib = np.ascontiguousarray(xi_base[:, :, 0])
+
+        def rhs(i: int, work: _Workspace) -> np.ndarray:  # chunk i's (V, 3t) right-hand sides
+            idx = slice(starts[i], min(starts[i] + chunk, n_frames))
             t = idx.stop - idx.start
+            B = work("B", (V, 3 * t), _WORK)
+            if fused:
+                As, At, C = parts[i]
+                f3 = lambda k: work(k, (3, V, t), _WORK)
+                _chunk_rhs(src.X, As, tgt.X, At, faces, nbi, consts, G, C, xib, np.array([self.gain], dtype=_WORK),
+                           prm[0], prm[1], prm[2], order, work("x", (3 * V, t), np.float64),
+                           work("normal_sums", (3, V, t), np.float64), work("bound", (V, t), np.float64),
+                           f3("st"), f3("sb"), f3("sn"), work("sok", (V, t), np.bool_),
+                           f3("tt"), f3("tb"), f3("tn"), work("tok", (V, t), np.bool_),
+                           work("ok", (V, t), np.bool_), work("xi", (3 * V, t), _WORK), B)
+                return B
             Fs, Ft = src.frames(idx, True, work, "s"), tgt.frames(idx, True, work, "t")
             xi = work("xi", (3, V, t), _WORK)
             np.matmul(G, np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK), out=xi.reshape(3 * V, t))
             xi += xi_base
-            # all frames x coordinates of the chunk as the columns of one (V, 3t) solve
-            B = self._change(Fs, Ft, xi, out=work("B", (V, 3 * t), _WORK), order=order)
-            if ready is not None:
-                ready.result()
-            y = self.poisson.solve(B, dtype=_WORK, out=work("y", (V, 3 * t), _WORK))
-            _scatter_frames(y, rows, y0, out, idx.start)
+            return self._change(Fs, Ft, xi, out=B, order=order)
 
-        # Chunks are independent: with a second core two threads take whole chunks (frames,
-        # rotation: compiled kernels and BLAS; solve: CHOLMOD; all without the GIL), each with
-        # its own workspace. Each chunk's arithmetic is the same on any thread: the result is
-        # bit for bit that of one core (tested). Progress is reported in frame order.
-        starts = list(range(0, n_frames, chunk))
-        n_work = min(len(starts), _cores())
-        if n_work <= 1:
+        def finish(i: int, B: np.ndarray, work: _Workspace):  # chunk i's solve, into its frames of out
+            y = self.poisson.solve(B, dtype=_WORK, out=work("y", B.shape, _WORK))
+            _scatter_frames(y, rows, y0, out, starts[i])
+
+        def done(i: int):
+            _report(progress, min(starts[i] + chunk, n_frames), n_frames)
+
+        if len(starts) <= 1 or _cores() <= 1:
             work = _Workspace()
-            for s in starts:
-                run(s, work)
-                _report(progress, min(s + chunk, n_frames), n_frames)
+            for i in range(len(starts)):
+                finish(i, rhs(i, work), work)
+                done(i)
             return out
-        local = threading.local()
-
-        def task(s):
-            if not hasattr(local, "work"):
-                local.work = _Workspace()
-            run(s, local.work, ready)
-
-        with ThreadPoolExecutor(n_work) as pool:
-            # the factorisation (once, before any solve) beside the first chunk's right-hand sides
-            ready = pool.submit(self.poisson.prepare, _WORK)
-            futures = [pool.submit(task, s) for s in starts]
+        # Two stages on two threads: this one forms chunk i's right-hand sides while a worker
+        # solves chunk i-1 (and first factorises). cholespy holds the GIL through every CHOLMOD
+        # call, so whole chunks on two threads (each solving its own) waited on each other's
+        # solves at every numpy call; here the right-hand sides of a factored chunk are one
+        # compiled call without the GIL (_chunk_rhs), and only the worker calls cholespy. Two
+        # workspaces alternate; each chunk's arithmetic is the same as on one core: the result is
+        # bit for bit that of one core (tested). Progress is reported in frame order.
+        works = (_Workspace(), _Workspace())
+        futures = []
+        with ThreadPoolExecutor(1) as pool:
+            pool.submit(self.poisson.prepare, _WORK)  # beside chunk 0's right-hand sides
             try:
-                for s, f in zip(starts, futures):
-                    f.result()
-                    _report(progress, min(s + chunk, n_frames), n_frames)
+                for i in range(len(starts)):
+                    if i >= 2:  # chunk i-2 used this workspace
+                        futures[i - 2].result()
+                        done(i - 2)
+                    futures.append(pool.submit(finish, i, rhs(i, works[i % 2]), works[i % 2]))
+                for i in range(max(0, len(starts) - 2), len(starts)):
+                    futures[i].result()
+                    done(i)
             except BaseException:
                 for f in futures:
                     f.cancel()
@@ -529,6 +584,14 @@ def load_kernels() -> None:
     Fs = _frames_from_positions(x, faces, np.array([1, 2, 0], dtype=np.int64), True)
     B = _rotate(Fs[:3], Fs[:3], np.zeros((3, 3, 1), dtype=_WORK), 1.0, ok=Fs[3] & Fs[3], out=np.empty((3, 3), dtype=_WORK))
     _scatter_frames(B, np.arange(3, dtype=np.int64), np.zeros((3, 3)), np.empty((1, 3, 3), dtype=_WORK), 0)
+    f3 = lambda: np.empty((3, 3, 1), dtype=_WORK)
+    b2 = lambda: np.empty((3, 1), dtype=np.bool_)
+    z = np.zeros((3, 3), dtype=_WORK)
+    _chunk_rhs(x.reshape(9, 1), np.ones((1, 1)), x.reshape(9, 1), np.ones((1, 1)), faces, np.array([1, 2, 0], dtype=np.int64),
+               np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0]), np.zeros((9, 1), dtype=_WORK), np.zeros((1, 1), dtype=_WORK), z,
+               np.ones(1, dtype=_WORK), z, z, z, np.arange(3, dtype=np.int64), np.empty((9, 1)), np.empty((3, 3, 1)),
+               np.empty((3, 1)), f3(), f3(), f3(), b2(), f3(), f3(), f3(), b2(), b2(), np.empty((9, 1), dtype=_WORK),
+               np.empty((3, 3), dtype=_WORK))
 
 
 def _report(progress, done: int, n_frames: int):
