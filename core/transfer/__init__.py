@@ -306,8 +306,8 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     :func:`decompose_sequence`, :func:`select_sequence_bases`, :func:`transfer_bases`,
     :func:`transfer_details` and :func:`assemble_result` (the pipeline's dense stages run the
     same steps, each cached on its own). With a second core free, what depends on the meshes
-    alone (:func:`transfer_system`, the detail factorisation and kernels,
-    :func:`detail_transfer`, the output's pages) is made ready in a second thread beside the
+    alone (:func:`transfer_system`, the detail kernels, :func:`detail_transfer`, the
+    output's pages) is made ready in a second thread beside the
     decomposition, basis selection and transfer; the result is the same either way.
 
     Parameters
@@ -347,10 +347,10 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     timings["preprocessing"] = time.perf_counter() - t0
 
     # What depends on the meshes alone -- the eq. 9 system on the smoothed references, the
-    # detail stage's Poisson factorisation, its compiled kernels and the pages of its
-    # 363 x 56K x 3 output on the benchmark -- is made ready by a second thread while the
-    # sequence is factored and smoothed (CHOLMOD, BLAS and page faults run without the GIL).
-    # The same objects either way: the result does not depend on it (tested).
+    # detail stage's compiled kernels, reference frames and the pages of its 363 x 56K x 3
+    # output on the benchmark -- is made ready by a second thread while the sequence is
+    # factored and smoothed and the bases selected and transferred (BLAS and page faults run
+    # without the GIL). The same objects either way: the result does not depend on it (tested).
     filt, poisson = decomposition_operators(src, settings)
     side = ThreadPoolExecutor(1) if _cores() > 1 else None
     try:
@@ -366,8 +366,9 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         timings["decomposition"] = time.perf_counter() - t
         if side is not None and settings.details:
             # beside the basis selection and transfer (~0.6 s), so that the Taubin filter of the
-            # decomposition had both cores
-            side.submit(poisson.prepare, _WORK)
+            # decomposition had both cores. Not the detail factorisation: cholespy holds the GIL
+            # while it factorises, which stalled basis selection (0.18 -> 0.6 s); the detail
+            # stage makes it beside its first chunk's right-hand sides (one GIL-free call)
             out = side.submit(_paged_in, (len(seq), len(src.neutral), 3), _WORK)
             det = side.submit(lambda: detail_transfer(src, dec, Tw0, system.result().T0, settings))
 
