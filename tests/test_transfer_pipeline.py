@@ -277,8 +277,9 @@ def test_detail_displacements_match_per_frame_reference(tiger_detail_case, rotat
 
 
 def test_detail_chunks_on_two_cores_are_bit_identical_to_one(tiger_detail_case, monkeypatch):
-    """With a second core the solve of one chunk runs while the next chunk's right-hand sides are
-    formed; every chunk lands in its own frames, in the same floats, with progress in order."""
+    """With a second core a worker solves one chunk while this thread forms the next one's
+    right-hand sides (one compiled call, two alternating workspaces); every chunk lands in its
+    own frames, in the same floats, with progress in order."""
     c = tiger_detail_case
     P = PoissonReconstructor(c["Fw"], len(c["N"]), screening=0.01)
     coat = _coat(P, c["fac"], c["smooth"])

@@ -46,19 +46,18 @@ How it is computed (the result is eq. 5 exactly; only the order of the work diff
   moved by at most 3.4e-10 m against the float64 solve, for a third less CPU in the solves).
   The tests check the algorithm in float64 against the per-frame formulas to 1e-9 and the
   float32 result to its precision.
-* **Buffers reused.** Every chunk's arrays are views of one workspace per thread
+* **Buffers reused.** Every chunk's arrays are views of a reused workspace
   (:class:`_Workspace`): fresh (3, V, t) temporaries for every chunk made 2 s of system time
   (page faults) of the 10 s the benchmark took.
-* **Two cores.** The chunks are independent: with a second core two threads take whole
-  chunks (frames and rotation: compiled kernels and BLAS; the solve: CHOLMOD; all without the
-  GIL), each with its own workspace; the factorisation runs beside the first chunk's
-  right-hand sides. Each chunk's arithmetic is the same either way: the result is bit for bit
-  that of one core (tested).
+* **Two cores.** ``cholespy`` holds the GIL through every CHOLMOD call, so with a second
+  core the stage runs as two stages: this thread forms a chunk's right-hand sides in one
+  compiled call without the GIL (:func:`_chunk_rhs`, for factored sequences) while one worker
+  factorises (first) and solves the previous chunk; two workspaces alternate. Each chunk's
+  arithmetic is the same either way: the result is bit for bit that of one core (tested).
 """
 
 from __future__ import annotations
 
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Union
 
