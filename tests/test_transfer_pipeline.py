@@ -291,7 +291,10 @@ def test_detail_chunks_on_two_cores_are_bit_identical_to_one(tiger_detail_case, 
         runs[cores] = det.displacements(c["smooth"], coat, c["tgt"], 7, chunk=2, relative=True, vertices=c["wi"],
                                         progress=lambda f, m: calls.append(m))
         assert calls == [f"fine details: {n}/7 frames" for n in (2, 4, 6, 7)]
+        # a callable target takes the call-by-call path (no compiled chunk): the same pipeline
+        runs[cores, "callable"] = det.displacements(c["smooth"], coat, lambda idx: c["tgt"].frames(idx), 7, chunk=2)
     np.testing.assert_array_equal(runs[1], runs[2])
+    np.testing.assert_array_equal(runs[1, "callable"], runs[2, "callable"])
     assert np.abs(runs[1]).max() > 1e-4 * c["size"]  # the details move
 
 
