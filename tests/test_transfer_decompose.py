@@ -372,3 +372,16 @@ def test_taubin_on_two_cores_is_bit_identical_to_one(tiger, monkeypatch):
     two = filt.apply(x)
     np.testing.assert_array_equal(one, two)
     assert np.abs(one - x).max() > 1e-3 * np.abs(x).max()  # it did smooth
+
+
+def test_poisson_reconstructor_pickles_without_its_lock():
+    """The lock that keeps threads from factorising twice does not make it unpicklable."""
+    import pickle
+
+    from core.transfer import PoissonReconstructor
+
+    box = trimesh.creation.box()
+    P = PoissonReconstructor(np.asarray(box.faces), len(box.vertices), screening=0.01)
+    Q = pickle.loads(pickle.dumps(P))
+    b = np.random.default_rng(0).random((len(box.vertices), 3))
+    np.testing.assert_array_equal(Q.solve(b), P.solve(b))

@@ -322,6 +322,15 @@ class PoissonReconstructor:
             self.eps = self.screening * float(self.L.diagonal().mean())
             self._A = (self.L + self.eps * sp.identity(n_vertices)).tocsr()
 
+    def __getstate__(self):  # picklable as before the lock (a lock is not)
+        state = self.__dict__.copy()
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
     @property
     def solver(self) -> PinnedSolver:
         """The factorisation of the plain ``L`` (built on first use: the screened
