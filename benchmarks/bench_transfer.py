@@ -19,9 +19,11 @@ edit over 1,300 frames (:mod:`core.transfer.edit`) against a dense reference sol
 Both sides run with one OpenBLAS thread, as under ``benchmarks/run.py``, the CLI and the
 dashboard (``blas_threads`` in the line): on the shared 2-core machine OpenBLAS's second
 thread spins against the other processes (ours took 41 s of CPU for 43 s wall with two
-threads, 22 s with one). Ours uses the second core through its own threads (Taubin blocks,
-the detail stage's solves beside the next chunk's right-hand sides; bit-identical to one
-core): compare ``ours_cpu_s`` with ``ours_s`` to see how much it got.
+threads, 22 s with one). Ours uses the second core through its own threads when no other
+process runs on it (the operators that depend on the meshes alone beside the decomposition,
+Taubin blocks, the detail stage's right-hand sides beside its solves; bit-identical to one
+core): compare ``ours_cpu_s`` with ``ours_s`` to see how much it got; the naive reference
+runs on one core.
 
 Run: ``python benchmarks/bench_transfer.py``
 """

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -28,10 +29,10 @@ from ._mesh import bbox_size, check_faces, check_positions
 from .bases import BasisSelection, gram_from_factored, nnls_gram, select_bases
 from .correspond import Registration, landmarks_from_shapes, register
 from .decompose import (
-    FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence, laplacian_coating, laplacian_operator,
+    FactoredSequence, PoissonReconstructor, TaubinFilter, _cores, factor_sequence, laplacian_coating, laplacian_operator,
     taubin_smooth)
 from .deformation import DeformationTransfer, deformation_gradients, deformation_transfer, line_gradients
-from .details import DetailTransfer
+from .details import _WORK, DetailTransfer, load_kernels
 from .edit import TransferEditor
 from .features import feature_lines_near, hole_loops, line_edges, loops_near, marker_loop, seam_loops
 from .settings import TransferSettings
@@ -40,7 +41,7 @@ from .welded import WeldedSource, weld_source
 __all__ = [
     "TransferSettings", "TransferResult", "transfer_sequence", "naive_transfer",
     "WeldedSource", "weld_source", "register_target", "Decomposition", "decompose_sequence", "select_sequence_bases",
-    "BasisTransfer", "transfer_bases", "transfer_details", "assemble_result",
+    "BasisTransfer", "transfer_bases", "transfer_details", "assemble_result", "decomposition_operators", "transfer_system", "detail_transfer",
     "TaubinFilter", "taubin_smooth", "laplacian_operator", "laplacian_coating", "PoissonReconstructor",
     "FactoredSequence", "factor_sequence", "nnls_gram", "select_bases", "BasisSelection",
     "DeformationTransfer", "deformation_transfer", "deformation_gradients", "line_gradients",
@@ -162,9 +163,12 @@ class Decomposition:
     reconstructor: PoissonReconstructor
 
 
-def decompose_sequence(src: WeldedSource, source_seq, settings: TransferSettings) -> Decomposition:
+def decompose_sequence(src: WeldedSource, source_seq, settings: TransferSettings, filt: Optional[TaubinFilter] = None,
+                       poisson: Optional[PoissonReconstructor] = None) -> Decomposition:
     """Multi-scale decomposition (eq. 1-4) of a (T, V, 3) source sequence in the topology of
-    ``src``: one low-rank factorisation, the (linear) filter and coating applied to its basis."""
+    ``src``: one low-rank factorisation, the (linear) filter and coating applied to its basis.
+    ``filt`` and ``poisson``, when given, are the filter and reconstructor this step would build
+    (:func:`decomposition_operators`, e.g. built beside it in another thread)."""
     V = src.n
     seq = np.asarray(source_seq)
     if seq.ndim != 3 or seq.shape[1:] != (len(src.neutral), 3) or len(seq) == 0:
@@ -172,20 +176,30 @@ def decompose_sequence(src: WeldedSource, source_seq, settings: TransferSettings
     # factor the frames as given and weld the (linear) basis: no welded copy of the sequence
     fac = factor_sequence(seq, settings.rank_rtol, base=src.neutral)
     fac = FactoredSequence(fac.base[src.rep], fac.coeffs, fac.basis[:, src.rep], fac.residual_rms)
-    filt = TaubinFilter(src.faces, V, settings.iterations, settings.lam, settings.mu)
+    if filt is None or poisson is None:
+        f, p = decomposition_operators(src, settings, filt is None)
+        filt, poisson = filt or f, poisson or p
     # S̄_t = P S_t with P linear: one filter pass over base and basis together
     r = fac.rank
     block = np.concatenate([fac.base[:, :, None], fac.basis.transpose(1, 2, 0)], axis=2)
     block = filt.apply(block.reshape(V, 3 * (r + 1))).reshape(V, 3, r + 1)
     smooth = FactoredSequence(block[:, :, 0].copy(), fac.coeffs, block[:, :, 1:].transpose(2, 0, 1).copy(), fac.residual_rms)
-    poisson = PoissonReconstructor(src.faces, V, settings.laplacian, src.welded_neutral if settings.laplacian == "cotangent" else None,
-                                   settings.detail_screening)
     # eq. 1 on base and basis: ξ = L (S - S̄), linear, one sparse product for the whole block
     detail = np.concatenate([(fac.base - smooth.base)[None], fac.basis - smooth.basis])  # (r+1, V, 3)
     lap = np.asarray(poisson.L @ detail.transpose(1, 2, 0).reshape(V, 3 * (r + 1))).reshape(V, 3, r + 1)
     coat = FactoredSequence(np.ascontiguousarray(lap[:, :, 0]), fac.coeffs,
                             np.ascontiguousarray(lap[:, :, 1:].transpose(2, 0, 1)), fac.residual_rms)
     return Decomposition(fac, smooth, coat, filt, poisson)
+
+
+def decomposition_operators(src: WeldedSource, settings: TransferSettings, taubin: bool = True) -> tuple:
+    """``(TaubinFilter or None, PoissonReconstructor)`` of the welded topology: the linear
+    operators of eq. 1-4, which depend on the mesh and the settings only."""
+    V = src.n
+    filt = TaubinFilter(src.faces, V, settings.iterations, settings.lam, settings.mu) if taubin else None
+    poisson = PoissonReconstructor(src.faces, V, settings.laplacian, src.welded_neutral if settings.laplacian == "cotangent" else None,
+                                   settings.detail_screening)
+    return filt, poisson
 
 
 def select_sequence_bases(dec: Decomposition, settings: TransferSettings) -> tuple:
@@ -209,31 +223,56 @@ class BasisTransfer:
     deltas: np.ndarray
 
 
-def transfer_bases(src: WeldedSource, dec: Decomposition, source_bases, target_welded, settings: TransferSettings) -> BasisTransfer:
-    """Feature-preserving deformation transfer of the source bases (eq. 9-11)."""
-    Tb0 = dec.filter.apply(np.asarray(target_welded, dtype=np.float64))
-    edges = _feature_edges(settings, src.index, src.n)
-    dt = DeformationTransfer(dec.smooth.base, Tb0, src.faces, edges, settings.alpha)
+def transfer_bases(src: WeldedSource, dec: Decomposition, source_bases, target_welded, settings: TransferSettings,
+                   system: Optional[DeformationTransfer] = None) -> BasisTransfer:
+    """Feature-preserving deformation transfer of the source bases (eq. 9-11). ``system``, when
+    given, is :func:`transfer_system`'s (built beside the decomposition in another thread);
+    used only if its references are exactly this decomposition's."""
+    if system is not None and np.array_equal(system.S0, dec.smooth.base):
+        dt, Tb0 = system, system.T0
+    else:
+        Tb0 = dec.filter.apply(np.asarray(target_welded, dtype=np.float64))
+        dt = DeformationTransfer(dec.smooth.base, Tb0, src.faces, _feature_edges(settings, src.index, src.n), settings.alpha)
     K = len(source_bases)
     deltas = (dt.transfer(source_bases) - Tb0) if K else np.zeros((0, src.n, 3))
     return BasisTransfer(Tb0, dt, deltas)
 
 
-def transfer_details(src: WeldedSource, dec: Decomposition, sel: BasisSelection, target_welded, bt: BasisTransfer,
-                     settings: TransferSettings, progress: Optional[ProgressFn] = None) -> Optional[np.ndarray]:
-    """Fine-scale detail transfer (eq. 16, 5): (T, V, 3) float32 displacements relative to the
-    target neutral, in the source vertex order; None when ``settings.details`` is off."""
-    if not settings.details:
-        return None
+def transfer_system(src: WeldedSource, filt: TaubinFilter, target_welded, settings: TransferSettings) -> DeformationTransfer:
+    """The factorised eq. 9 system of :func:`transfer_bases`, from the meshes alone: its
+    references are the smoothed source and target references ``S̄_0 = P S_0`` and ``T̄_0``
+    (the filter is linear and column by column, so ``P S_0`` is bit for bit the base of the
+    decomposition's smoothed sequence)."""
+    refs = filt.apply(np.concatenate([src.welded_neutral, np.asarray(target_welded, dtype=np.float64)], axis=1))
+    return DeformationTransfer(refs[:, :3].copy(), refs[:, 3:].copy(), src.faces, _feature_edges(settings, src.index, src.n),
+                               settings.alpha)
+
+
+def detail_transfer(src: WeldedSource, dec: Decomposition, target_welded, target_smooth_ref,
+                    settings: TransferSettings) -> DetailTransfer:
+    """The :class:`DetailTransfer` of :func:`transfer_details` (reference frames and coatings of
+    both sides), from the decomposition and the smoothed target reference ``T̄_0``."""
     Tw0 = np.asarray(target_welded, dtype=np.float64)
     gain = settings.detail_gain if settings.detail_gain is not None else bbox_size(Tw0) / max(bbox_size(src.welded_neutral), 1e-300)
-    det = DetailTransfer(src.faces, dec.reconstructor, dec.smooth.base, dec.coating.base, Tw0, bt.target_smooth_ref, gain,
-                         settings.rotate_reference_details)
+    return DetailTransfer(src.faces, dec.reconstructor, dec.smooth.base, dec.coating.base, Tw0, target_smooth_ref, gain,
+                          settings.rotate_reference_details)
+
+
+def transfer_details(src: WeldedSource, dec: Decomposition, sel: BasisSelection, target_welded, bt: BasisTransfer,
+                     settings: TransferSettings, progress: Optional[ProgressFn] = None, out=None,
+                     det: Optional[DetailTransfer] = None) -> Optional[np.ndarray]:
+    """Fine-scale detail transfer (eq. 16, 5): (T, V, 3) float32 displacements relative to the
+    target neutral, in the source vertex order; None when ``settings.details`` is off. ``out``:
+    an array of that shape and dtype to write them into (e.g. allocated and paged in
+    beforehand); ``det``: :func:`detail_transfer`'s object for these inputs, if built already."""
+    if not settings.details:
+        return None
+    det = det or detail_transfer(src, dec, target_welded, bt.target_smooth_ref, settings)
     # T̄_t = T̄_0 + W_t Δ (eq. 8) as a factored sequence; details relative to the neutral
     # T_0, written straight in the unwelded vertex order
     target_smooth = FactoredSequence(bt.target_smooth_ref, sel.weights, bt.deltas, 0.0)
     return det.displacements(dec.smooth, dec.coating, target_smooth, dec.frames.n_frames, settings.chunk, relative=True,
-                             vertices=src.index, progress=progress)
+                             vertices=src.index, progress=progress, out=out)
 
 
 def assemble_result(src: WeldedSource, target_welded, dec: Decomposition, sel: BasisSelection, source_bases,
@@ -266,7 +305,10 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     The composition of the steps :func:`weld_source`, :func:`register_target`,
     :func:`decompose_sequence`, :func:`select_sequence_bases`, :func:`transfer_bases`,
     :func:`transfer_details` and :func:`assemble_result` (the pipeline's dense stages run the
-    same steps, each cached on its own).
+    same steps, each cached on its own). With a second core free, what depends on the meshes
+    alone (:func:`transfer_system`, the detail kernels, :func:`detail_transfer`, the
+    output's pages) is made ready in a second thread beside the
+    decomposition, basis selection and transfer; the result is the same either way.
 
     Parameters
     ----------
@@ -304,28 +346,63 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
                                         None if progress is None else (lambda f, m: progress(0.4 * f, m)))
     timings["preprocessing"] = time.perf_counter() - t0
 
-    report(progress, 0.4, "decomposition (smoothing + Laplacian coating)")
-    t = time.perf_counter()
-    dec = decompose_sequence(src, seq, settings)
-    timings["decomposition"] = time.perf_counter() - t
+    # What depends on the meshes alone -- the eq. 9 system on the smoothed references, the
+    # detail stage's compiled kernels, reference frames and the pages of its 363 x 56K x 3
+    # output on the benchmark -- is made ready by a second thread while the sequence is
+    # factored and smoothed and the bases selected and transferred (BLAS and page faults run
+    # without the GIL). The same objects either way: the result does not depend on it (tested).
+    filt, poisson = decomposition_operators(src, settings)
+    side = ThreadPoolExecutor(1) if _cores() > 1 else None
+    try:
+        system = out = det = None
+        if side is not None:  # beside the sequence factorisation (~1.1 s on the benchmark)
+            if settings.details:
+                side.submit(load_kernels)
+            system = side.submit(transfer_system, src, filt, Tw0, settings)
 
-    report(progress, 0.45, "basis selection")
-    t = time.perf_counter()
-    sel, src_bases = select_sequence_bases(dec, settings)
-    timings["basis_selection"] = time.perf_counter() - t
+        report(progress, 0.4, "decomposition (smoothing + Laplacian coating)")
+        t = time.perf_counter()
+        dec = decompose_sequence(src, seq, settings, filt, poisson)
+        timings["decomposition"] = time.perf_counter() - t
+        if side is not None and settings.details:
+            # beside the basis selection and transfer (~0.6 s), so that the Taubin filter of the
+            # decomposition had both cores. Not the detail factorisation: cholespy holds the GIL
+            # while it factorises, which stalled basis selection (0.18 -> 0.6 s); the detail
+            # stage makes it beside its first chunk's right-hand sides (one GIL-free call)
+            out = side.submit(_paged_in, (len(seq), len(src.neutral), 3), _WORK)
+            det = side.submit(lambda: detail_transfer(src, dec, Tw0, system.result().T0, settings))
 
-    report(progress, 0.5, f"deformation transfer of {sel.n_bases} bases")
-    t = time.perf_counter()
-    bt = transfer_bases(src, dec, src_bases, Tw0, settings)
-    timings["transfer"] = time.perf_counter() - t
+        report(progress, 0.45, "basis selection")
+        t = time.perf_counter()
+        sel, src_bases = select_sequence_bases(dec, settings)
+        timings["basis_selection"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    details = transfer_details(src, dec, sel, Tw0, bt, settings,
-                               None if progress is None else (lambda f, m: progress(0.55 + 0.45 * f, m)))
-    timings["details"] = time.perf_counter() - t
+        report(progress, 0.5, f"deformation transfer of {sel.n_bases} bases")
+        t = time.perf_counter()
+        bt = transfer_bases(src, dec, src_bases, Tw0, settings, None if system is None else system.result())
+        timings["transfer"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        details = transfer_details(src, dec, sel, Tw0, bt, settings,
+                                   None if progress is None else (lambda f, m: progress(0.55 + 0.45 * f, m)),
+                                   None if out is None else out.result(),
+                                   det.result() if det is not None and bt.system is system.result() else None)
+        timings["details"] = time.perf_counter() - t
+    finally:
+        if side is not None:
+            side.shutdown(wait=True, cancel_futures=True)
 
     report(progress, 1.0, f"{len(seq)} frames, {sel.n_bases} bases")
     return assemble_result(src, Tw0, dec, sel, src_bases, bt, details, registration, timings)
+
+
+def _paged_in(shape: tuple, dtype) -> np.ndarray:
+    """An uninitialised array with every page already mapped (a write per 4 KiB page): the
+    first writes to a fresh 245 MB array cost ~0.4 s of page faults, better spent beside
+    other work than in the detail stage's threads."""
+    a = np.empty(shape, dtype=dtype)
+    a.reshape(-1)[:: max(1, 4096 // a.itemsize)] = 0
+    return a
 
 
 def naive_transfer(source_ref, target_ref, faces, frames, feature_edges=None, alpha: float = 100.0,

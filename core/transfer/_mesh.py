@@ -103,8 +103,9 @@ class CholeskyFactor:
         self._chol = solver(self.n, A.indptr.astype(np.int32), A.indices.astype(np.int32),
                             np.ascontiguousarray(A.data, dtype=self.dtype), cholespy.MatrixType.CSR)
 
-    def solve(self, b: np.ndarray, block: int | None = None) -> np.ndarray:
-        """``A^{-1} b`` for (n,) or (n, m) ``b``; in the factor's dtype, a new C-ordered array."""
+    def solve(self, b: np.ndarray, block: int | None = None, out: np.ndarray | None = None) -> np.ndarray:
+        """``A^{-1} b`` for (n,) or (n, m) ``b``; in the factor's dtype, a new C-ordered array
+        (or written into ``out``, C-ordered (n, m) of that dtype, for 2-d ``b``)."""
         b = np.asarray(b, dtype=self.dtype)
         if b.shape[0] != self.n or b.ndim not in (1, 2):
             raise ValueError(f"b: expected ({self.n},) or ({self.n}, m), got {b.shape}")
@@ -112,11 +113,12 @@ class CholeskyFactor:
             return self.solve(b[:, None], block)[:, 0]
         block = block or self.BLOCK
         m = b.shape[1]
+        if out is not None and (out.shape != b.shape or out.dtype != self.dtype or not out.flags.c_contiguous):
+            raise ValueError(f"out: expected a C-ordered {b.shape} {self.dtype} array")
+        x = np.empty((self.n, m), dtype=self.dtype) if out is None else out
         if m <= block:
-            x = np.empty((self.n, m), dtype=self.dtype)
             self._chol.solve(np.ascontiguousarray(b), x)
             return x
-        x = np.empty((self.n, m), dtype=self.dtype)
         xb = np.empty((self.n, block), dtype=self.dtype)
         for s in range(0, m, block):
             w = min(block, m - s)

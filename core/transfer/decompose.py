@@ -25,6 +25,8 @@ Conventions
 from __future__ import annotations
 
 import os
+import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -167,18 +169,52 @@ def _csr_times(indptr, indices, data, y, out):  # pragma: no cover - compiled
 
 def _cores() -> int:
     """The cores this process may use that other processes leave free: the cores of its affinity
-    less the 1-minute load beyond this process's own one (at least 1).
+    less the threads of other processes running right now (at least 1).
 
     Threads only help when a core is idle: on the shared 2-core machine with two other busy
     processes (load 2-3) the threaded Taubin and detail stages ran 8-16% slower than one thread
     (more CPU for the same work, and the pipeline waiting on a starved worker), with a free core
-    25-45% faster. The result never depends on it (bit-identical, tested)."""
+    25-45% faster. The result never depends on it (bit-identical, tested).
+
+    "Right now" (:func:`_running_elsewhere`, Linux), not the 1-minute load average as before:
+    that lags a minute behind a process that starts or stops, and counts this process's own
+    threads of the last minute, so back-to-back runs that had used two threads saw a load of
+    ~2 and took one core on an idle machine, while a run starting beside a job that had just
+    begun took two and ran oversubscribed (13.6 s of CPU for main's 10.6). Elsewhere the load
+    average less this process's own 1 is used."""
     n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    try:
-        busy = max(0.0, os.getloadavg()[0] - 1.0)
-    except OSError:  # no load average on this platform
-        busy = 0.0
+    busy = _running_elsewhere()
+    if busy is None:
+        try:
+            busy = max(0.0, os.getloadavg()[0] - 1.0)
+        except OSError:  # no load average on this platform
+            busy = 0.0
     return max(1, min(n, int(n - busy + 0.5)))
+
+
+def _running_elsewhere(samples: int = 3) -> "int | None":
+    """Threads of other processes running or waiting for a core (Linux: the running count of
+    ``/proc/loadavg`` less this process's threads in state R), the largest of ``samples``
+    readings 0.5 ms apart; None where ``/proc`` does not tell."""
+    try:
+        most = 0
+        for i in range(samples):
+            if i:
+                time.sleep(0.0005)
+            with open("/proc/loadavg") as f:
+                running = int(f.read().split()[3].split("/")[0])
+            own = 0
+            for tid in os.listdir("/proc/self/task"):
+                try:
+                    with open(f"/proc/self/task/{tid}/stat") as f:
+                        st = f.read()
+                except OSError:  # the thread ended
+                    continue
+                own += st[st.rindex(")") + 2] == "R"
+            most = max(most, running - own)
+        return most
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def _renumber(M: sp.csr_matrix, order: np.ndarray) -> sp.csr_matrix:
@@ -281,16 +317,27 @@ class PoissonReconstructor:
         self.average = sp.csr_matrix((1.0 / counts[labels], (labels, np.arange(n_vertices))), shape=(ncomp, n_vertices))
         self._pinned = None
         self._screened = {}  # dtype -> CholeskyFactor of L + εI
+        self._lock = threading.Lock()  # one factorisation when threads ask at once
         if self.screening > 0:
             self.eps = self.screening * float(self.L.diagonal().mean())
             self._A = (self.L + self.eps * sp.identity(n_vertices)).tocsr()
+
+    def __getstate__(self):  # picklable as before the lock (a lock is not)
+        state = self.__dict__.copy()
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
 
     @property
     def solver(self) -> PinnedSolver:
         """The factorisation of the plain ``L`` (built on first use: the screened
         reconstruction never needs it)."""
-        if self._pinned is None:
-            self._pinned = PinnedSolver(self.L, self.labels, self.n_components)
+        with self._lock:
+            if self._pinned is None:
+                self._pinned = PinnedSolver(self.L, self.labels, self.n_components)
         return self._pinned
 
     def component_mean(self, x: np.ndarray) -> np.ndarray:
@@ -305,11 +352,20 @@ class PoissonReconstructor:
 
     def _screened_factor(self, dtype) -> CholeskyFactor:
         dtype = np.dtype(dtype)
-        if dtype not in self._screened:
-            self._screened[dtype] = CholeskyFactor(self._A, dtype)
+        with self._lock:
+            if dtype not in self._screened:
+                self._screened[dtype] = CholeskyFactor(self._A, dtype)
         return self._screened[dtype]
 
-    def solve(self, B: np.ndarray, block: int | None = None, dtype=np.float64) -> np.ndarray:
+    def prepare(self, dtype=np.float64) -> None:
+        """Factorise now what :meth:`solve` in ``dtype`` will use (else built on first use;
+        thread-safe: a thread asking while another factorises waits for that factorisation)."""
+        if self.screening == 0:
+            self.solver
+        else:
+            self._screened_factor(dtype)
+
+    def solve(self, B: np.ndarray, block: int | None = None, dtype=np.float64, out=None) -> np.ndarray:
         r"""Solve for (V, m) right-hand sides at once: ``(L + εI)^{-1} B`` when screened, else
         the zero-mean ``L^+ B`` (``B`` must then be orthogonal to the per-component constants).
 
@@ -317,14 +373,15 @@ class PoissonReconstructor:
         solved in blocks of ``block`` (default :attr:`~._mesh.CholeskyFactor.BLOCK`). The
         screened solve runs in ``dtype`` (float64, or float32 for the float32 detail stage;
         each precision factorised once, on first use); the plain one always in float64.
-        Returns (V, m) in that precision.
+        Returns (V, m) in that precision; the screened solve writes it into ``out`` when given
+        (C-ordered (V, m) of that dtype).
         """
         B = np.asarray(B)
         if B.ndim != 2 or B.shape[0] != self.n:
             raise ValueError(f"B: expected ({self.n}, m), got {B.shape}")
         if self.screening == 0:
             return self.solver.solve(np.asarray(B, dtype=np.float64), None, block)
-        return self._screened_factor(dtype).solve(B, block)
+        return self._screened_factor(dtype).solve(B, block, out)
 
     def displacement(self, coating: np.ndarray, mean=None, prior=None) -> np.ndarray:
         """``L^+ ξ + m`` (or the screened solve with ``prior`` (V, 3)) for (V, 3) or (T, V, 3)

@@ -28,29 +28,32 @@ How it is computed (the result is eq. 5 exactly; only the order of the work diff
   ``y_t = y_0 + L^{-1}(c_t - T̂_0)`` where ``c_t`` is the target coating: the constant part
   is known without a solve, and only the change ``c_t - T̂_0`` (``g R_v(ξ_t - ξ_0)`` in the
   paper's form) goes through the factorisation.
-* **Component-major blocks.** A chunk of ``t`` frames is held as (3, V, t) / (3, F, t)
-  arrays: every coordinate is one contiguous block for the per-frame arithmetic (the frames
-  are one compiled pass, :func:`_frames_from_edges`), and the right-hand sides of all
+* **Component-major blocks.** A chunk of ``t`` frames is held as (3, V, t) arrays: every
+  coordinate is one contiguous block for the per-frame arithmetic (the frames are one
+  compiled pass, :func:`_frames_from_positions`, in a local vertex numbering,
+  :func:`_local_numbering`), and the right-hand sides of all
   frames × coordinates of the chunk go to one sparse Cholesky factorisation as one (V, 3t)
   block (solved in column blocks, :meth:`~core.transfer.decompose.PoissonReconstructor.solve`).
-* **Linear parts from the factorisation.** Face edges and tangent edges are linear in the
-  positions, so for a factored sequence ``base + Σ a_j basis_j`` they are one small matrix
-  product ``E [1, a_t]`` with the edge matrices ``E`` of base and basis formed in float64
-  (no per-frame gathers, and edges exact to float32 rounding of the *edge*, not of the
-  absolute position). Normals, normalisation and the frame rotation are nonlinear and run
-  per frame in float32 (``_WORK``), and so does the screened Poisson solve (one sparse
-  Cholesky factorisation in the working precision, :class:`~core.transfer._mesh.CholeskyFactor`;
-  relative error ~1e-6 on the screened operator, whose condition number is ~200; on the
-  56K-vertex benchmark the details moved by at most 3.4e-10 m against the float64 solve, for a
-  third less CPU in the solves). On that benchmark the float32 frames are within 6e-10 m (2e-6
-  of the largest detail) of the same computation in float64, which costs ~60% more time; the
-  tests check the algorithm in float64 against the per-frame formulas to 1e-9 and the float32
-  result to its precision.
-* **Two stages on two cores.** Per chunk, forming the right-hand sides (frames, rotation:
-  compiled kernels and BLAS) and the solve (CHOLMOD) both run without the GIL; with a second
-  core the solve of one chunk (and, first, the factorisation) runs in a worker thread while
-  the next chunk's right-hand sides are formed. Each chunk's arithmetic is the same either way:
-  the result is bit for bit that of one core (tested).
+* **Positions from the factorisation, frames in float64.** For a factored sequence
+  ``base + Σ a_j basis_j`` a chunk's positions are one float64 matrix product ``X [1, a_t]``
+  (no per-frame gathers). Edges, normals and tangents are computed from them in float64 in one
+  compiled pass and the frames rounded once to float32 (``_WORK``): within rounding of the unit
+  vectors everywhere (float32 throughout, as before, was up to 1e-4 off where the tangent edge
+  is near the normal), for ~10% more time than float32 arithmetic. The rotation and the
+  screened Poisson solve run in float32 (one sparse Cholesky factorisation in the working
+  precision, :class:`~core.transfer._mesh.CholeskyFactor`; relative error ~1e-6 on the
+  screened operator, whose condition number is ~200; on the 56K-vertex benchmark the details
+  moved by at most 3.4e-10 m against the float64 solve, for a third less CPU in the solves).
+  The tests check the algorithm in float64 against the per-frame formulas to 1e-9 and the
+  float32 result to its precision.
+* **Buffers reused.** Every chunk's arrays are views of a reused workspace
+  (:class:`_Workspace`): fresh (3, V, t) temporaries for every chunk made 2 s of system time
+  (page faults) of the 10 s the benchmark took.
+* **Two cores.** ``cholespy`` holds the GIL through every CHOLMOD call, so with a second
+  core the stage runs as two stages: this thread forms a chunk's right-hand sides in one
+  compiled call without the GIL (:func:`_chunk_rhs`, for factored sequences) while one worker
+  factorises (first) and solves the previous chunk; two workspaces alternate. Each chunk's
+  arithmetic is the same either way: the result is bit for bit that of one core (tested).
 """
 
 from __future__ import annotations
@@ -60,8 +63,9 @@ from typing import Callable, Union
 
 import numba
 import numpy as np
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from ..geometry import first_neighbour, vertex_face_incidence, vertex_frames
+from ..geometry import first_neighbour, vertex_adjacency, vertex_face_incidence, vertex_frames
 from ._mesh import to_local
 from .decompose import FactoredSequence, PoissonReconstructor, _cores
 
@@ -78,26 +82,50 @@ def local_coating(frames, coating: np.ndarray) -> np.ndarray:
 # Hand-written rather than geometry.vertex_frames: that one works on (t, V, 3) sequences, whose
 # per-vertex gathers copy 12-byte rows and whose component slices are 3-strided (2.3 ms per
 # frame for the face cross products of a 112K-face mesh). Here a chunk of t frames is held
-# as (3, V, t) / (3, F, t): every component is one contiguous block, the linear parts come out
-# of one matrix product in this layout, and the nonlinear rest (cross products, normal sums,
+# as (3, V, t): every component is one contiguous block, the positions come out of one matrix
+# product in this layout, and the nonlinear rest (edges, cross products, normal sums,
 # normalisations, the tangent's projection) is one compiled pass (numba) over faces and
-# vertices instead of ~30 numpy passes over (3, F, t) temporaries: 0.04 s of CPU per 32-frame
-# chunk of the 56K-vertex benchmark against 0.16-0.20 s, bit for bit the same frames. Tested
-# equal to vertex_frames.
+# vertices instead of ~30 numpy passes over (3, F, t) temporaries: 0.06 s of CPU per 32-frame
+# chunk of the 56K-vertex benchmark. Tested equal to vertex_frames.
 
 
-_WORK = np.float32  # working precision of the frames and the rotation
+_WORK = np.float32  # precision of the stored frames, the rotation and the solve
 
 
 #: a vertex whose normal is rounding noise, ``|Σ N_f| < NORMAL_CANCEL · Σ |e1_f| |e2_f|``, has
-#: no frame (see :func:`_frames_from_edges`)
+#: no frame (see :func:`_frames_from_positions`)
 NORMAL_CANCEL = 1e-3
 
 
-def _frames_from_edges(e1: np.ndarray, e2: np.ndarray, et: np.ndarray, faces: np.ndarray, flags: bool = False) -> tuple:
-    """Frames ``(t, b, n)`` of :func:`core.geometry.vertex_frames`, each (3, V, t),
-    from the face edges ``e1 = x_1 - x_0``, ``e2 = x_2 - x_0`` ((3, F, t)) and the tangent
-    edges ``et = x_nb - x`` ((3, V, t), overwritten) of the triangles ``faces`` (F, 3).
+class _Workspace:
+    """Named scratch arrays of one thread, reused from chunk to chunk of the detail stage.
+
+    Fresh (3, V, t) arrays for every chunk cost more in page faults than the arithmetic they
+    hold: on the 56K-vertex benchmark the ~360 MB of temporaries a chunk allocated made 2 s of
+    the run's 10 s of CPU system time (zeroing new pages). ``work(name, shape, dtype)`` returns
+    a C-ordered view of the first elements of one flat buffer per name (a smaller last chunk
+    reuses it too)."""
+
+    def __init__(self):
+        self._bufs = {}
+
+    def __call__(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        dtype = np.dtype(dtype)
+        n = int(np.prod(shape))
+        buf = self._bufs.get(name)
+        if buf is None or buf.dtype != dtype or buf.size < n:
+            buf = self._bufs[name] = np.empty(n, dtype=dtype)
+        return buf[:n].reshape(shape)
+
+
+def _frames_from_positions(x: np.ndarray, faces: np.ndarray, nbi: np.ndarray, flags: bool = False,
+                           work: "_Workspace | None" = None, side: str = "") -> tuple:
+    """Frames ``(t, b, n)`` of :func:`core.geometry.vertex_frames`, each (3, V, t) in the
+    working precision ``_WORK``, from positions ``x`` (3, V, t) (float64: every edge is formed in
+    float64 and rounded once, exact to rounding of the *edge*, not of the absolute position) of
+    the triangles ``faces`` (F, 3), with tangent edges towards the neighbours ``nbi`` (V,).
+    The arrays are views of ``work``'s buffers (named with the prefix ``side``): valid until
+    the next call with the same names.
 
     With ``flags`` a fourth item, ``ok`` (V, t) bool, flags the vertices
     that have a frame: ``|Σ N_f| >=`` :data:`NORMAL_CANCEL` ``· Σ |e1_f| |e2_f|``. The
@@ -111,65 +139,81 @@ def _frames_from_edges(e1: np.ndarray, e2: np.ndarray, et: np.ndarray, faces: np
     moved the details by 10 mm), and collapse to needles 4 mm long and 5e-9 m across, where the
     float32 cross product of two long edges is off by a few percent (0.01-0.03 rad between a GLB
     and an OBJ of one take, 0.11 mm in the details). Such a vertex keeps its change unrotated."""
-    V, t = et.shape[1], et.shape[2]
-    n = np.zeros((3, V, t), dtype=et.dtype)
-    ok = np.empty((V, t), dtype=np.bool_)
-    b = np.empty_like(n)
-    _frames_kernel(e1, e2, et, faces, np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0], dtype=et.dtype), n, b, ok)
-    return (et, b, n, ok) if flags else (et, b, n)
+    work = work if work is not None else _Workspace()
+    V, t = x.shape[1], x.shape[2]
+    tg, b, n = (work(side + k, (3, V, t), _WORK) for k in "tbn")
+    ok = work(side + "ok", (V, t), np.bool_)
+    _frames_kernel(np.asarray(x, dtype=np.float64), faces, nbi, np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0]), tg, b, n, ok,
+                   work("normal_sums", (3, V, t), np.float64), work("bound", (V, t), np.float64))
+    return (tg, b, n, ok) if flags else (tg, b, n)
 
 
 @numba.njit(cache=True, nogil=True)
-def _frames_kernel(e1, e2, et, faces, consts, n, b, ok):  # pragma: no cover - compiled
-    """The arithmetic of :func:`_frames_from_edges` in one pass over the faces and two over the
-    vertices, each operation in the arrays' precision and in numpy's order (the face sums in
-    increasing face order, as the CSR incidence product summed them; a face listing a vertex
-    twice counts once). ``n`` (3, V, t) zeros on entry; writes ``et``, ``b``, ``n`` and ``ok``."""
-    nF, t = e1.shape[1], e1.shape[2]
-    V = et.shape[1]
+def _frames_kernel(x, faces, nbi, consts, tg, b, n, ok, acc, bound):  # pragma: no cover - compiled
+    """The arithmetic of :func:`_frames_from_positions` in one pass over the faces and two over
+    the vertices, all in float64 (the face sums in increasing face order, as the CSR incidence
+    product summed them; a face listing a vertex twice counts once), the frames rounded once to
+    the dtype of ``tg``, ``b``, ``n`` when they are stored. Writes those and ``ok``; ``acc``
+    (3, V, t) and ``bound`` (V, t) are float64 scratch."""
+    nF = faces.shape[0]
+    V, t = x.shape[1], x.shape[2]
     cancel, tiny, near, one = consts[0], consts[1], consts[2], consts[3]
-    bound = np.zeros((V, t), dtype=et.dtype)  # Σ_f∋v |e1_f| |e2_f|
-    nf = np.empty((4, t), dtype=et.dtype)  # one face's N_f (3 rows) and |e1_f| |e2_f|
-    for f in range(nF):
+    for v in range(V):
         for j in range(t):
-            x0, x1, x2 = e1[0, f, j], e1[1, f, j], e1[2, f, j]
-            y0, y1, y2 = e2[0, f, j], e2[1, f, j], e2[2, f, j]
+            acc[0, v, j] = 0.0
+            acc[1, v, j] = 0.0
+            acc[2, v, j] = 0.0
+            bound[v, j] = 0.0  # Σ_f∋v |e1_f| |e2_f|
+    nf = np.empty((4, t))  # one face's N_f (3 rows) and |e1_f| |e2_f|
+    for f in range(nF):
+        a0, a1, a2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        for j in range(t):
+            x0 = x[0, a1, j] - x[0, a0, j]
+            x1 = x[1, a1, j] - x[1, a0, j]
+            x2 = x[2, a1, j] - x[2, a0, j]
+            y0 = x[0, a2, j] - x[0, a0, j]
+            y1 = x[1, a2, j] - x[1, a0, j]
+            y2 = x[2, a2, j] - x[2, a0, j]
             nf[0, j] = x1 * y2 - x2 * y1
             nf[1, j] = x2 * y0 - x0 * y2
             nf[2, j] = x0 * y1 - x1 * y0
             nf[3, j] = np.sqrt((x0 * x0 + x1 * x1 + x2 * x2) * (y0 * y0 + y1 * y1 + y2 * y2))
-        a0, a1 = faces[f, 0], faces[f, 1]
         for k in range(3):
             v = faces[f, k]
             if (k == 1 and v == a0) or (k == 2 and (v == a0 or v == a1)):
                 continue
             for j in range(t):
-                n[0, v, j] += nf[0, j]
-                n[1, v, j] += nf[1, j]
-                n[2, v, j] += nf[2, j]
+                acc[0, v, j] += nf[0, j]
+                acc[1, v, j] += nf[1, j]
+                acc[2, v, j] += nf[2, j]
                 bound[v, j] += nf[3, j]
-    tmax = np.zeros(t, dtype=et.dtype)
+    tmax = np.zeros(t)
     for v in range(V):
+        w = nbi[v]
         for j in range(t):
-            n0, n1, n2 = n[0, v, j], n[1, v, j], n[2, v, j]
+            n0, n1, n2 = acc[0, v, j], acc[1, v, j], acc[2, v, j]
             nl = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
             ok[v, j] = nl >= cancel * bound[v, j]
             if nl > 0:
                 n0 /= nl
                 n1 /= nl
                 n2 /= nl
-                n[0, v, j], n[1, v, j], n[2, v, j] = n0, n1, n2
-            d = et[0, v, j] * n0 + et[1, v, j] * n1 + et[2, v, j] * n2
-            et[0, v, j] -= d * n0
-            et[1, v, j] -= d * n1
-            et[2, v, j] -= d * n2
-            tn = np.sqrt(et[0, v, j] * et[0, v, j] + et[1, v, j] * et[1, v, j] + et[2, v, j] * et[2, v, j])
+            acc[0, v, j], acc[1, v, j], acc[2, v, j] = n0, n1, n2
+            e0 = x[0, w, j] - x[0, v, j]  # the tangent edge, projected
+            e1 = x[1, w, j] - x[1, v, j]
+            e2 = x[2, w, j] - x[2, v, j]
+            d = e0 * n0 + e1 * n1 + e2 * n2
+            e0 -= d * n0
+            e1 -= d * n1
+            e2 -= d * n2
+            tn = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
             bound[v, j] = tn  # reused: the projected tangent's length
             if tn > tmax[j]:
                 tmax[j] = tn
-    for v in range(V):
+    for v in range(V):  # the tangent again (cheaper than a float64 (3, V, t) array of it)
+        w = nbi[v]
         for j in range(t):
-            n0, n1, n2 = n[0, v, j], n[1, v, j], n[2, v, j]
+            n0, n1, n2 = acc[0, v, j], acc[1, v, j], acc[2, v, j]
             tn = bound[v, j]
             if tn <= tiny * tmax[j]:
                 # as vertex_frames: an edge (nearly) along the normal falls back to an axis
@@ -181,12 +225,17 @@ def _frames_kernel(e1, e2, et, faces, consts, n, b, ok):  # pragma: no cover - c
                     t0, t1, t2 = -d * n0, one - d * n1, -d * n2
                 tn = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
             else:
-                t0, t1, t2 = et[0, v, j], et[1, v, j], et[2, v, j]
+                t0, t1, t2 = x[0, w, j] - x[0, v, j], x[1, w, j] - x[1, v, j], x[2, w, j] - x[2, v, j]
+                d = t0 * n0 + t1 * n1 + t2 * n2
+                t0 -= d * n0
+                t1 -= d * n1
+                t2 -= d * n2
             if tn > 0:
                 t0 /= tn
                 t1 /= tn
                 t2 /= tn
-            et[0, v, j], et[1, v, j], et[2, v, j] = t0, t1, t2
+            tg[0, v, j], tg[1, v, j], tg[2, v, j] = t0, t1, t2
+            n[0, v, j], n[1, v, j], n[2, v, j] = n0, n1, n2
             b[0, v, j] = n1 * t2 - n2 * t1
             b[1, v, j] = n2 * t0 - n0 * t2
             b[2, v, j] = n0 * t1 - n1 * t0
@@ -195,61 +244,81 @@ def _frames_kernel(e1, e2, et, faces, consts, n, b, ok):  # pragma: no cover - c
 class _FramedSequence:
     """Per-vertex frames of the frames of a sequence, in (3, V, t) blocks.
 
-    From a :class:`FactoredSequence` ``x(a) = base + Σ_j a_j basis_j``, the face and tangent
-    edges are linear in ``ã = [1, a]``: they are the edge matrices of base and basis (formed
-    in float64) times ``ã`` — one float32 product per chunk, no per-frame gathers, and each
-    edge exact to float32 rounding of the edge rather than of the absolute position. From a
-    callable ``idx -> (t, V, 3)`` positions the edges are gathered per chunk (float32).
-    Normals and everything after them are nonlinear and computed per frame.
+    From a :class:`FactoredSequence` ``x(a) = base + Σ_j a_j basis_j`` the positions of a chunk
+    are one float64 product ``X [1, a_t]`` (X: base and basis as (3V, m) columns, in the
+    (3, V, t) layout, no per-frame gathers); from a callable ``idx -> (t, V, 3)`` they are
+    copied into that layout. Edges, normals and everything after them are computed per frame
+    (:func:`_frames_from_positions`). This replaced float32 edge matrices of base and basis
+    (``E [1, a_t]`` for face and tangent edges, 5x the rows of the positions): their (3, F, t)
+    products made 107 MB of temporaries a chunk, and the frames of both sides took 1.7 s of the
+    56K-vertex benchmark against 0.8 s now, each edge now formed from float64 positions.
     """
 
-    def __init__(self, seq: Union[FactoredSequence, Callable], faces: np.ndarray, nbi: np.ndarray):
-        self.faces, self.nbi = np.ascontiguousarray(faces, dtype=np.int64), nbi
+    def __init__(self, seq: Union[FactoredSequence, Callable], faces: np.ndarray, nbi: np.ndarray, order=None):
+        self.faces = np.ascontiguousarray(faces, dtype=np.int64)
+        self.nbi = np.ascontiguousarray(nbi, dtype=np.int64)
         self.seq = seq
+        self.V = len(self.nbi)
+        # ``order`` (V,): the frames' vertex i is the sequence's vertex order[i] (``faces`` and
+        # ``nbi`` given in that numbering, see :func:`_local_numbering`)
+        self.order = None if order is None else np.asarray(order, dtype=np.int64)
         if isinstance(seq, FactoredSequence):
-            X = np.ascontiguousarray(np.concatenate([seq.base[None], seq.basis]).transpose(2, 1, 0),
-                                     dtype=np.float64)  # (3, V, m)
-            # (3n, m): row p*n + i is coordinate p of the edge of face/vertex i, differences in
-            # float64 rounded once to the working precision
-            rows = lambda a, b: _edge_rows(X, np.ascontiguousarray(a), np.ascontiguousarray(b),
-                                           np.empty((3, len(a), X.shape[2]), dtype=_WORK)).reshape(3 * len(a), -1)
-            self.E1 = rows(self.faces[:, 1], self.faces[:, 0])
-            self.E2 = rows(self.faces[:, 2], self.faces[:, 0])
-            self.Et = rows(np.asarray(nbi, dtype=np.int64), np.arange(len(nbi), dtype=np.int64))
+            m = np.concatenate([seq.base[None], seq.basis])
+            m = m if self.order is None else m[:, self.order]
+            # (3V, m): row p V + i is coordinate p of vertex i; columns base, basis_1..r
+            self.X = np.ascontiguousarray(m.transpose(2, 1, 0), dtype=np.float64).reshape(3 * self.V, -1)
 
-    def frames(self, idx: slice, flags: bool = False) -> tuple:
-        """``(t, b, n)`` (each (3, V, t) float32) of the frames ``idx``; with ``flags`` also
-        ``ok`` (V, t): the vertices that have a frame (:func:`_frames_from_edges`)."""
-        nF, V = len(self.faces), len(self.nbi)
+    def positions(self, idx: slice, work: "_Workspace | None" = None) -> np.ndarray:
+        """(3, V, t) float64 positions of the frames ``idx`` (a view of ``work``'s buffer
+        ``"x"`` when given)."""
+        V = self.V
+        buf = (lambda t: np.empty((3, V, t))) if work is None else (lambda t: work("x", (3, V, t), np.float64))
         if isinstance(self.seq, FactoredSequence):
             c = np.atleast_2d(self.seq.coeffs[idx])
-            t = len(c)
-            a = np.empty((c.shape[1] + 1, t), dtype=_WORK)  # ã = [1, a_t] as columns
+            a = np.empty((c.shape[1] + 1, len(c)))  # ã = [1, a_t] as columns
             a[0] = 1.0
             a[1:] = c.T
-            e1 = (self.E1 @ a).reshape(3, nF, t)
-            e2 = (self.E2 @ a).reshape(3, nF, t)
-            et = (self.Et @ a).reshape(3, V, t)
-        else:
-            x = np.ascontiguousarray(np.asarray(self.seq(idx), dtype=_WORK).transpose(2, 1, 0))  # (3, V, t)
-            p0 = np.take(x, self.faces[:, 0], axis=1)
-            e1 = np.take(x, self.faces[:, 1], axis=1) - p0
-            e2 = np.take(x, self.faces[:, 2], axis=1) - p0
-            et = np.take(x, self.nbi, axis=1) - x
-        return _frames_from_edges(e1, e2, et, self.faces, flags)
+            x = buf(len(c))
+            np.matmul(self.X, a, out=x.reshape(3 * V, len(c)))
+            return x
+        p = np.asarray(self.seq(idx), dtype=np.float64)
+        p = p if self.order is None else p[:, self.order]
+        x = buf(len(p))
+        x[...] = p.transpose(2, 1, 0)
+        return x
+
+    def frames(self, idx: slice, flags: bool = False, work: "_Workspace | None" = None, side: str = "") -> tuple:
+        """``(t, b, n)`` (each (3, V, t) ``_WORK``) of the frames ``idx``; with ``flags`` also
+        ``ok`` (V, t): the vertices that have a frame (:func:`_frames_from_positions`). With
+        ``work``, views of its buffers (prefix ``side``), overwritten by the next call."""
+        work = work if work is not None else _Workspace()
+        return _frames_from_positions(self.positions(idx, work), self.faces, self.nbi, flags, work, side)
 
 
 @numba.njit(cache=True, nogil=True)
-def _edge_rows(X, head, tail, out):  # pragma: no cover - compiled
-    """``out[p, i] = X[p, head[i]] - X[p, tail[i]]`` for (3, V, m) float64 ``X``, rounded to
-    ``out``'s dtype; returns ``out`` (3, n, m)."""
-    m = X.shape[2]
+def _chunk_rhs(Xs, As, Xt, At, faces, nbi, consts, G, C, xi_base, scale, add, sub, sub2, rows, x, acc, bound,
+               st, sb, sn, sok, tt, tb, tn, tok, ok, xi, B):  # pragma: no cover - compiled
+    """The right-hand sides ``B`` (V, 3t) of a chunk of two factored sequences in one call
+    without the GIL: positions ``X [1, a_t]`` of each side (``x``, (3V, t)), their frames
+    (:func:`_frames_kernel`), the source coating change ``G c_t + xi_base`` (``xi``, (3V, t))
+    and its rotation (:func:`_rotate_kernel`) -- the same arithmetic, in the same order, as
+    :meth:`DetailTransfer.displacements` does call by call for other sequences."""
+    V, t = st.shape[1], st.shape[2]
+    x3 = x.reshape(3, V, t)
+    np.dot(Xs, As, x)
+    _frames_kernel(x3, faces, nbi, consts, st, sb, sn, sok, acc, bound)
+    np.dot(Xt, At, x)
+    _frames_kernel(x3, faces, nbi, consts, tt, tb, tn, tok, acc, bound)
+    np.dot(G, C, xi)
+    xi3 = xi.reshape(3, V, t)
     for p in range(3):
-        for i in range(len(head)):
-            a, b = head[i], tail[i]
-            for k in range(m):
-                out[p, i, k] = X[p, a, k] - X[p, b, k]
-    return out
+        for v in range(V):
+            for j in range(t):
+                xi3[p, v, j] += xi_base[p, v]
+    for v in range(V):
+        for j in range(t):
+            ok[v, j] = sok[v, j] and tok[v, j]
+    _rotate_kernel(st, sb, sn, tt, tb, tn, xi3, scale, add, sub, ok, sub2, B, rows)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -264,30 +333,49 @@ def _scatter_frames(y, rows, y0, out, start):  # pragma: no cover - compiled
                 out[start + j, i, p] = y[r, p * t + j] + y0[i, p]
 
 
+def _local_numbering(faces: np.ndarray, nbi: np.ndarray) -> tuple:
+    """``(order, faces', nbi')``: the vertices renumbered by reverse Cuthill-McKee (vertex i is
+    vertex order[i]), the faces in that numbering sorted by their smallest vertex (stable), and
+    the first neighbours in it. The frames kernel gathers and scatters per face over (3, V, t)
+    arrays far larger than the cache; with neighbours close in memory it ran 0.61-0.65 s
+    against 0.75-0.76 s for the 12 chunks of one side on the 56K-vertex benchmark (a
+    Loop-subdivided mesh numbers its new edge vertices after all the old ones). The face sums
+    change order: the frames move by float64 rounding before they are rounded to float32."""
+    V = len(nbi)
+    order = reverse_cuthill_mckee(vertex_adjacency(faces, V), symmetric_mode=True).astype(np.int64)
+    inv = np.empty_like(order)
+    inv[order] = np.arange(V)
+    f = inv[faces]
+    f = np.ascontiguousarray(f[np.argsort(f.min(axis=1), kind="stable")])
+    return order, f, np.ascontiguousarray(inv[nbi[order]])
+
+
 def _rotate(Fs: tuple, Ft: tuple, x: np.ndarray, scale: float = 1.0, add_local=None, sub=None, ok=None,
-            sub_frameless=None, out=None) -> np.ndarray:
+            sub_frameless=None, out=None, rows=None) -> np.ndarray:
     """``F'_t (scale * F_t^T x + add_local) - sub`` for (3, V, t) blocks; ``scale * (x - sub_frameless)``
     where ``ok`` (V, t) is False (``add_local``, ``sub``, ``sub_frameless``: (V, 3) or None).
 
     Returns (3, V, t) in the frames' dtype, or writes ``out`` (V, 3t) (column ``p t + j`` is
-    coordinate p of frame j: the right-hand sides of the Poisson solve) and returns it."""
+    coordinate p of frame j: the right-hand sides of the Poisson solve) and returns it; with
+    ``rows`` (V,), vertex v of the blocks goes to row ``rows[v]`` of ``out``."""
     V, t = x.shape[1], x.shape[2]
     z = np.zeros((V, 3), dtype=x.dtype)
     prm = lambda a: z if a is None else np.ascontiguousarray(a, dtype=x.dtype)
     okb = np.ones((V, t), dtype=np.bool_) if ok is None else ok
     res = np.empty((V, 3 * t), dtype=x.dtype) if out is None else out
     _rotate_kernel(Fs[0], Fs[1], Fs[2], Ft[0], Ft[1], Ft[2], x, np.array([scale], dtype=x.dtype), prm(add_local),
-                   prm(sub), okb, prm(sub_frameless), res)
+                   prm(sub), okb, prm(sub_frameless), res, np.arange(V) if rows is None else rows)
     return res.reshape(V, 3, t).transpose(1, 0, 2) if out is None else res
 
 
 @numba.njit(cache=True, nogil=True)
-def _rotate_kernel(s0, s1, s2, t0, t1, t2, x, scale, add, sub, ok, sub2, out):  # pragma: no cover - compiled
+def _rotate_kernel(s0, s1, s2, t0, t1, t2, x, scale, add, sub, ok, sub2, out, rows):  # pragma: no cover - compiled
     """The arithmetic of :func:`_rotate` per vertex and frame, in the order of the numpy
-    version it replaced; ``out`` (V, 3t)."""
+    version it replaced; ``out`` (V, 3t), vertex v in row ``rows[v]``."""
     V, t = x.shape[1], x.shape[2]
     g = scale[0]
     for v in range(V):
+        r = rows[v]
         for j in range(t):
             x0, x1, x2 = x[0, v, j], x[1, v, j], x[2, v, j]
             if ok[v, j]:
@@ -299,7 +387,7 @@ def _rotate_kernel(s0, s1, s2, t0, t1, t2, x, scale, add, sub, ok, sub2, out):  
                 c2 = t0[2, v, j] * l0 + t1[2, v, j] * l1 + t2[2, v, j] * l2 - sub[v, 2]
             else:
                 c0, c1, c2 = g * (x0 - sub2[v, 0]), g * (x1 - sub2[v, 1]), g * (x2 - sub2[v, 2])
-            out[v, j], out[v, t + j], out[v, 2 * t + j] = c0, c1, c2
+            out[r, j], out[r, t + j], out[r, 2 * t + j] = c0, c1, c2
 
 
 class DetailTransfer:
@@ -336,6 +424,7 @@ class DetailTransfer:
         self.lt0 = local_coating(Ft0, self.That0)
         self.ref_displacement = T0 - Tb0
         self.mean = poisson.component_mean(T0 - Tb0)
+        self._local = _local_numbering(self.faces, self._nbi)
 
     def coatings(self, source_smooth: np.ndarray, source_coating: np.ndarray, target_smooth: np.ndarray) -> np.ndarray:
         """Target coatings for (t, V, 3) chunks: ``T̂_0 + g F'_t F_t^T (ξ_t - ξ_0)`` (eq. 5, 16),
@@ -349,22 +438,25 @@ class DetailTransfer:
         c += self.That0.T.astype(_WORK)[:, :, None]
         return np.ascontiguousarray(c.transpose(2, 1, 0))
 
-    def _change(self, Fs: tuple, Ft: tuple, xi: np.ndarray, out=None) -> np.ndarray:
+    def _change(self, Fs: tuple, Ft: tuple, xi: np.ndarray, out=None, order=None) -> np.ndarray:
         """``c_t - T̂_0`` (3, V, t) float32: ``g F'_t F_t^T (ξ_t - ξ_0)`` for ``xi = ξ_t - ξ_0``,
         or, with ``rotate_reference`` and ``xi = ξ_t``, ``F'_t(F'^T_0 T̂_0 + g(F_t^T ξ_t - F_0^T ξ_0)) - T̂_0``;
-        with ``out`` (V, 3t), written there as the Poisson right-hand sides (see :func:`_rotate`)."""
+        with ``out`` (V, 3t), written there as the Poisson right-hand sides (see :func:`_rotate`).
+        ``order``: the blocks' vertex i is vertex order[i] (its row in ``out``)."""
         ok = None
         if len(Fs) == 4:  # frames with flags: no rotation where either side has no frame
             ok = Fs[3] & Ft[3]
             Fs, Ft = Fs[:3], Ft[:3]
         if not self.rotate_reference:
-            return _rotate(Fs, Ft, xi, self.gain, ok=ok, out=out)
+            return _rotate(Fs, Ft, xi, self.gain, ok=ok, out=out, rows=order)
         # frameless: the change as is, the reference unrotated
-        return _rotate(Fs, Ft, xi, self.gain, self.lt0 - self.gain * self.l0, self.That0, ok, self.xi0, out=out)
+        sel = (lambda a: a) if order is None else (lambda a: a[order])
+        return _rotate(Fs, Ft, xi, self.gain, sel(self.lt0 - self.gain * self.l0), sel(self.That0), ok, sel(self.xi0),
+                       out=out, rows=order)
 
     def displacements(self, source_smooth: FactoredSequence, source_coating: FactoredSequence,
                       target_smooth_frames, n_frames: int, chunk: int = 32, dtype=np.float32,
-                      relative: bool = False, vertices=None, progress=None) -> np.ndarray:
+                      relative: bool = False, vertices=None, progress=None, out=None) -> np.ndarray:
         """Detail displacements ``y_t = T_t - T̄_t`` for all frames, (T, V, 3) ``dtype``.
 
         Parameters
@@ -383,55 +475,122 @@ class DetailTransfer:
         vertices : (V',) int, optional
             Output rows (e.g. the unwelded vertex order): the result is (T, V', 3).
         progress : ``(fraction, message) -> None``, optional, called after every chunk
+        out : (T, V', 3) ``dtype`` array to write into, optional (else a new one)
         """
         V = self.poisson.n
         rows = np.arange(V) if vertices is None else np.asarray(vertices, dtype=np.int64)
-        out = np.empty((n_frames, len(rows), 3), dtype=dtype)
-        src = _FramedSequence(source_smooth, self.faces, self._nbi)
-        tgt = _FramedSequence(target_smooth_frames, self.faces, self._nbi)
+        if out is None:
+            out = np.empty((n_frames, len(rows), 3), dtype=dtype)
+        elif out.shape != (n_frames, len(rows), 3) or out.dtype != np.dtype(dtype):
+            raise ValueError(f"out: expected {(n_frames, len(rows), 3)} {np.dtype(dtype)}, got {out.shape} {out.dtype}")
+        # the per-chunk arithmetic runs in a local vertex numbering (_local_numbering); the
+        # right-hand sides land in the original rows
+        order, faces, nbi = self._local
+        src = _FramedSequence(source_smooth, faces, nbi, order)
+        tgt = _FramedSequence(target_smooth_frames, faces, nbi, order)
         # ξ_t - ξ_0 (or ξ_t) straight from the factorisation (float32 product: the change is
         # rotated in float32 anyway); (3V, r) so that the product lands in (3, V, t)
-        G = source_coating.basis.transpose(2, 1, 0).reshape(3 * V, source_coating.rank).astype(_WORK)
+        G = source_coating.basis[:, order].transpose(2, 1, 0).reshape(3 * V, source_coating.rank).astype(_WORK)
         xi_base = ((source_coating.base - self.xi0) if not self.rotate_reference else source_coating.base)
-        xi_base = xi_base.T.astype(_WORK)[:, :, None]
+        xi_base = xi_base[order].T.astype(_WORK)[:, :, None]
         y0 = np.zeros((len(rows), 3)) if relative else self.ref_displacement[rows]
 
-        def solve(B, start):  # the Poisson solve of a chunk, written into its frames of out
-            _scatter_frames(self.poisson.solve(B, dtype=_WORK), rows, y0, out, start)
+        starts = list(range(0, n_frames, chunk))
+        fused = isinstance(source_smooth, FactoredSequence) and isinstance(target_smooth_frames, FactoredSequence)
+        if fused:  # the small per-chunk inputs, made before any thread runs (see below)
+            coeff = lambda c: np.concatenate([np.ones((1, len(c))), c.T])  # ã = [1, a_t] as columns
+            ends = [min(s + chunk, n_frames) for s in starts]
+            parts = [(np.ascontiguousarray(coeff(np.atleast_2d(source_smooth.coeffs[s:e]))),
+                      np.ascontiguousarray(coeff(np.atleast_2d(target_smooth_frames.coeffs[s:e]))),
+                      np.ascontiguousarray(np.atleast_2d(source_coating.coeffs[s:e]).T, dtype=_WORK))
+                     for s, e in zip(starts, ends)]
+            z = np.zeros((V, 3), dtype=_WORK)
+            if self.rotate_reference:
+                prm = [np.ascontiguousarray(a[order], dtype=_WORK) for a in (self.lt0 - self.gain * self.l0, self.That0, self.xi0)]
+            else:
+                prm = [z, z, z]
+            consts = np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0])
+            xib = np.ascontiguousarray(xi_base[:, :, 0])
 
-        # two stages per chunk: its right-hand sides (frames, rotation: compiled kernels and
-        # BLAS, all without the GIL) and its solve (CHOLMOD, without the GIL). With a second
-        # core the solve of one chunk runs while the next chunk's right-hand sides are formed
-        # (each chunk's arithmetic is the same either way: the result is bit for bit the same)
-        pool = ThreadPoolExecutor(1) if n_frames > chunk and _cores() > 1 else None
-        pending = None  # (future, frames done when it is)
-        try:
-            if pool is not None and self.poisson.screening > 0:  # factorised while chunk 0 is formed
-                pool.submit(self.poisson._screened_factor, _WORK)
-            for s in range(0, n_frames, chunk):
-                idx = slice(s, min(s + chunk, n_frames))
-                t = idx.stop - idx.start
-                Fs, Ft = src.frames(idx, flags=True), tgt.frames(idx, flags=True)
-                xi = (G @ np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK)).reshape(3, V, t)
-                xi += xi_base
-                # all frames x coordinates of the chunk as the columns of one (V, 3t) solve
-                B = self._change(Fs, Ft, xi, out=np.empty((V, 3 * t), dtype=_WORK))
-                del Fs, Ft, xi
-                if pool is None:
-                    solve(B, idx.start)
-                    _report(progress, idx.stop, n_frames)
-                    continue
-                if pending is not None:
-                    pending[0].result()
-                    _report(progress, pending[1], n_frames)
-                pending = (pool.submit(solve, B, idx.start), idx.stop)
-            if pending is not None:
-                pending[0].result()
-                _report(progress, pending[1], n_frames)
-        finally:
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=True)
+        def rhs(i: int, work: _Workspace) -> np.ndarray:  # chunk i's (V, 3t) right-hand sides
+            idx = slice(starts[i], min(starts[i] + chunk, n_frames))
+            t = idx.stop - idx.start
+            B = work("B", (V, 3 * t), _WORK)
+            if fused:
+                As, At, C = parts[i]
+                f3 = lambda k: work(k, (3, V, t), _WORK)
+                _chunk_rhs(src.X, As, tgt.X, At, faces, nbi, consts, G, C, xib, np.array([self.gain], dtype=_WORK),
+                           prm[0], prm[1], prm[2], order, work("x", (3 * V, t), np.float64),
+                           work("normal_sums", (3, V, t), np.float64), work("bound", (V, t), np.float64),
+                           f3("st"), f3("sb"), f3("sn"), work("sok", (V, t), np.bool_),
+                           f3("tt"), f3("tb"), f3("tn"), work("tok", (V, t), np.bool_),
+                           work("ok", (V, t), np.bool_), work("xi", (3 * V, t), _WORK), B)
+                return B
+            Fs, Ft = src.frames(idx, True, work, "s"), tgt.frames(idx, True, work, "t")
+            xi = work("xi", (3, V, t), _WORK)
+            np.matmul(G, np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK), out=xi.reshape(3 * V, t))
+            xi += xi_base
+            return self._change(Fs, Ft, xi, out=B, order=order)
+
+        def finish(i: int, B: np.ndarray, work: _Workspace):  # chunk i's solve, into its frames of out
+            y = self.poisson.solve(B, dtype=_WORK, out=work("y", B.shape, _WORK))
+            _scatter_frames(y, rows, y0, out, starts[i])
+
+        def done(i: int):
+            _report(progress, min(starts[i] + chunk, n_frames), n_frames)
+
+        if len(starts) <= 1 or _cores() <= 1:
+            work = _Workspace()
+            for i in range(len(starts)):
+                finish(i, rhs(i, work), work)
+                done(i)
+            return out
+        # Two stages on two threads: this one forms chunk i's right-hand sides while a worker
+        # solves chunk i-1 (and first factorises). cholespy holds the GIL through every CHOLMOD
+        # call, so whole chunks on two threads (each solving its own) waited on each other's
+        # solves at every numpy call; here the right-hand sides of a factored chunk are one
+        # compiled call without the GIL (_chunk_rhs), and only the worker calls cholespy. Two
+        # workspaces alternate; each chunk's arithmetic is the same as on one core: the result is
+        # bit for bit that of one core (tested). Progress is reported in frame order.
+        works = (_Workspace(), _Workspace())
+        futures = []
+        with ThreadPoolExecutor(1) as pool:
+            pool.submit(self.poisson.prepare, _WORK)  # beside chunk 0's right-hand sides
+            try:
+                for i in range(len(starts)):
+                    if i >= 2:  # chunk i-2 used this workspace
+                        futures[i - 2].result()
+                        done(i - 2)
+                    futures.append(pool.submit(finish, i, rhs(i, works[i % 2]), works[i % 2]))
+                for i in range(max(0, len(starts) - 2), len(starts)):
+                    futures[i].result()
+                    done(i)
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
         return out
+
+
+def load_kernels() -> None:
+    """Load this module's compiled kernels (numba, from its on-disk cache) by running them once
+    on a triangle, with the argument types of the detail stage: the first call of each costs
+    ~0.2 s in a new process, which :func:`core.transfer.transfer_sequence` spends in its
+    second thread beside the decomposition instead of in the detail stage."""
+    x = np.zeros((3, 3, 1))
+    x[0, 1, 0] = x[1, 2, 0] = 1.0
+    faces = np.array([[0, 1, 2]], dtype=np.int64)
+    Fs = _frames_from_positions(x, faces, np.array([1, 2, 0], dtype=np.int64), True)
+    B = _rotate(Fs[:3], Fs[:3], np.zeros((3, 3, 1), dtype=_WORK), 1.0, ok=Fs[3] & Fs[3], out=np.empty((3, 3), dtype=_WORK))
+    _scatter_frames(B, np.arange(3, dtype=np.int64), np.zeros((3, 3)), np.empty((1, 3, 3), dtype=_WORK), 0)
+    f3 = lambda: np.empty((3, 3, 1), dtype=_WORK)
+    b2 = lambda: np.empty((3, 1), dtype=np.bool_)
+    z = np.zeros((3, 3), dtype=_WORK)
+    _chunk_rhs(x.reshape(9, 1), np.ones((1, 1)), x.reshape(9, 1), np.ones((1, 1)), faces, np.array([1, 2, 0], dtype=np.int64),
+               np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0]), np.zeros((9, 1), dtype=_WORK), np.zeros((1, 1), dtype=_WORK), z,
+               np.ones(1, dtype=_WORK), z, z, z, np.arange(3, dtype=np.int64), np.empty((9, 1)), np.empty((3, 3, 1)),
+               np.empty((3, 1)), f3(), f3(), f3(), b2(), f3(), f3(), f3(), b2(), b2(), np.empty((9, 1), dtype=_WORK),
+               np.empty((3, 3), dtype=_WORK))
 
 
 def _report(progress, done: int, n_frames: int):
