@@ -67,6 +67,7 @@ from importlib.metadata import version
 from pathlib import Path
 from typing import Callable, Iterable, Optional
 
+from .cores import affinity
 from .evaluate import summarize
 from .io.layout import sidecar_layout_path
 from .io.rigs import NoLayoutError
@@ -766,7 +767,7 @@ def start_local_cluster(workers: Optional[int] = None, dashboard_address: Option
         from distributed import Client, LocalCluster
     except ImportError as e:
         raise ImportError(f"batch needs dask distributed ({e}); pip install 'dask[distributed]'") from None
-    n = workers or _cores()
+    n = workers or affinity()
     env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {})
     env.update(WORKER_ENV)
     with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
@@ -969,7 +970,7 @@ def _run_on_dask(todo, out_dir, options, client, workers, files, resolved, resul
 
     owned = client is None or isinstance(client, str)
     if client is None:
-        client = start_local_cluster(workers or min(len(todo), _cores()), dashboard_address)
+        client = start_local_cluster(workers or min(len(todo), affinity()), dashboard_address)
     elif isinstance(client, str):
         client = Client(client, set_as_default=False)
     futures: dict = {}
@@ -1023,5 +1024,3 @@ def _run_on_dask(todo, out_dir, options, client, workers, files, resolved, resul
                 cluster.close()
 
 
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

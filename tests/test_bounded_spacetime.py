@@ -675,7 +675,7 @@ def test_threads_or_not_the_same_numbers(rocketbox_problem, monkeypatch):
 
     monkeypatch.setattr(spacetime, "_capacitance_solve", spy)
     for cores in (1, 2):
-        monkeypatch.setattr(bounded_spacetime, "_free_cores", lambda: cores)
+        monkeypatch.setattr(bounded_spacetime, "free_cores", lambda: cores)
         s = SpacetimeSolver(B, S, alpha=0.01, ridge=1e-3, lower=0.0, upper=1.0)
         out.append((s.solve(), dict(s.info_)))
     assert any(calls)  # split systems were solved

@@ -1,7 +1,6 @@
 """Xu 2014 §3 decomposition: Taubin smoothing, Laplacian coating, Poisson reconstruction,
 sequence factorisation -- each against a slow, obviously-correct reference."""
 
-import os
 
 import numpy as np
 import pytest
@@ -335,30 +334,6 @@ def test_cholesky_factor_matches_dense_solves_in_any_block():
         CholeskyFactor(sp.csr_matrix(np.array([[1.0, 1, 0], [1, 1, 0], [0, 0, 1]])))
 
 
-def test_cores_leave_out_what_other_processes_run_now(monkeypatch):
-    """The threads use the cores that other processes leave free right now, never fewer than 1;
-    the 1-minute load average only where /proc cannot tell."""
-    from core.transfer import decompose
-
-    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
-    for elsewhere, want in ((0, 2), (1, 1), (2, 1), (5, 1)):
-        monkeypatch.setattr(decompose, "_running_elsewhere", lambda samples=3, e=elsewhere: e)
-        assert decompose._cores() == want
-    monkeypatch.setattr(decompose, "_running_elsewhere", lambda samples=3: None)
-    monkeypatch.setattr(os, "getloadavg", lambda: (1.2, 1.0, 1.0))  # this process's own 1 and a little
-    assert decompose._cores() == 2
-    monkeypatch.setattr(os, "getloadavg", lambda: (2.4, 1.0, 1.0))
-    assert decompose._cores() == 1
-
-
-@pytest.mark.skipif(not os.path.exists("/proc/loadavg"), reason="Linux /proc only")
-def test_running_elsewhere_reads_proc():
-    from core.transfer import decompose
-
-    n = decompose._running_elsewhere()
-    assert isinstance(n, int) and n >= 0
-
-
 def test_taubin_on_two_cores_is_bit_identical_to_one(tiger, monkeypatch):
     """The column blocks of the filter run on the cores the process may use (the compiled CSR
     product releases the GIL); the blocks are independent, so the floats are the same."""
@@ -366,9 +341,9 @@ def test_taubin_on_two_cores_is_bit_identical_to_one(tiger, monkeypatch):
 
     filt = TaubinFilter(tiger.faces, tiger.n_vertices, 40)
     x = np.random.default_rng(3).standard_normal((tiger.n_vertices, 3 * 26))  # several blocks
-    monkeypatch.setattr(decompose, "_cores", lambda: 1)
+    monkeypatch.setattr(decompose, "free_cores", lambda: 1)
     one = filt.apply(x)
-    monkeypatch.setattr(decompose, "_cores", lambda: 2)
+    monkeypatch.setattr(decompose, "free_cores", lambda: 2)
     two = filt.apply(x)
     np.testing.assert_array_equal(one, two)
     assert np.abs(one - x).max() > 1e-3 * np.abs(x).max()  # it did smooth

@@ -285,7 +285,7 @@ def test_detail_chunks_on_two_cores_are_bit_identical_to_one(tiger_detail_case, 
     coat = _coat(P, c["fac"], c["smooth"])
     runs = {}
     for cores in (1, 2):
-        monkeypatch.setattr(details, "_cores", lambda: cores)
+        monkeypatch.setattr(details, "free_cores", lambda: cores)
         det = DetailTransfer(c["Fw"], P, c["smooth"].base, coat.base, c["T0"], c["Tb0"], 1.3)
         calls = []
         runs[cores] = det.displacements(c["smooth"], coat, c["tgt"], 7, chunk=2, relative=True, vertices=c["wi"],
@@ -316,7 +316,7 @@ def test_transfer_on_two_cores_is_bit_identical_to_one(tiger, monkeypatch):
     runs = {}
     for cores in (1, 2):
         for m in (ct, details, decompose):
-            monkeypatch.setattr(m, "_cores", lambda: cores)
+            monkeypatch.setattr(m, "free_cores", lambda: cores)
         runs[cores] = ct.transfer_sequence(tiger.neutral, tiger.faces, tiger.evaluate(W), target, tiger.faces,
                                            max_bases=4, chunk=16)
     assert len(built) == 1 and runs[2].system is built[0]  # one core builds it inside transfer_bases

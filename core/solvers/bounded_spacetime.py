@@ -116,13 +116,14 @@ from __future__ import annotations
 import concurrent.futures
 import functools
 import os
-import time
 import warnings
 from typing import Optional
 
 import numba
 import numpy as np
 from threadpoolctl import ThreadpoolController
+
+from ..cores import free_cores
 
 __all__ = ["solve_bounded", "kkt_violation_per_entry", "KKT_RTOL"]
 
@@ -204,49 +205,10 @@ def _both(f1, f2, threads: Optional[bool] = None):
     """``(f1(), f2())``, ``f2`` in the worker thread when a second core is free (numba's nogil
     kernels, BLAS and LAPACK run without the GIL; ``threads`` forces it either way): the same
     work, so the numbers never depend on which."""
-    if threads if threads is not None else _free_cores() >= 2:
+    if threads if threads is not None else free_cores() >= 2:
         fut = _worker_pool().submit(f2)
         return f1(), fut.result()
     return f1(), f2()
-
-
-#: what :func:`_free_cores` saw last: (monotonic time, the machine's busy CPU seconds, this
-#: process's CPU seconds, its answer)
-_CPU_SEEN = [0.0, 0.0, 0.0, 1]
-
-
-def _free_cores() -> int:
-    """The cores this process may use that other processes leave free, from the machine's and this
-    process's CPU time since the previous look (``/proc/stat``, at most every 0.2 s; the first look
-    and other systems: :func:`core.transfer.decompose._cores`, the 1-minute load average less one).
-
-    The load average alone does not do here: a change's solve is a fraction of a second, and this
-    process's own two threads lift the load average to ~2 -- the policy then saw no free core on
-    an otherwise idle machine and switched the threads off every other minute."""
-    now = time.monotonic()
-    seen = _CPU_SEEN
-    if seen[0] and now - seen[0] < 0.2:
-        return seen[3]
-    try:
-        with open("/proc/stat", "rb") as f:
-            v = [int(x) for x in f.readline().split()[1:9]]
-        busy = (sum(v) - v[3] - v[4]) / os.sysconf("SC_CLK_TCK")  # all but idle and iowait
-        n = len(os.sched_getaffinity(0))
-    except (OSError, ValueError, AttributeError):
-        from core.transfer.decompose import _cores
-
-        return _cores()
-    t = os.times()
-    own = t.user + t.system
-    if seen[0]:
-        others = max(0.0, (busy - seen[1]) - (own - seen[2])) / (now - seen[0])  # cores other processes used
-        free = max(1, min(n, int(n - others + 0.5)))
-    else:
-        from core.transfer.decompose import _cores
-
-        free = _cores()
-    seen[:] = [now, busy, own, free]
-    return free
 
 
 @functools.lru_cache(maxsize=1)

@@ -603,7 +603,7 @@ def _capacitance_solve(tri: _Tridiagonals, U: np.ndarray, rows: np.ndarray, shap
 
     and each part's back substitution starts from the other's: ``z = Phi a`` (``a = D a'``) at
     part 1's last block, ``z = D c`` at part 2's. Both parts run in threads when a second core
-    is free (:func:`core.transfer.decompose._cores`; ``threads`` forces it); the arithmetic is
+    is free (:func:`core.cores.free_cores`; ``threads`` forces it); the arithmetic is
     the same either way, so the results are bit-identical.
 
     Raises

@@ -22,6 +22,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..cores import free_cores
 from ..geometry import weld_vertices
 from ..model import Rig
 from ..progress import ProgressFn, report
@@ -29,7 +30,7 @@ from ._mesh import bbox_size, check_faces, check_positions
 from .bases import BasisSelection, gram_from_factored, nnls_gram, select_bases
 from .correspond import Registration, landmarks_from_shapes, register
 from .decompose import (
-    FactoredSequence, PoissonReconstructor, TaubinFilter, _cores, factor_sequence, laplacian_coating, laplacian_operator,
+    FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence, laplacian_coating, laplacian_operator,
     taubin_smooth)
 from .deformation import DeformationTransfer, deformation_gradients, deformation_transfer, line_gradients
 from .details import _WORK, DetailTransfer, load_kernels
@@ -352,7 +353,7 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     # factored and smoothed and the bases selected and transferred (BLAS and page faults run
     # without the GIL). The same objects either way: the result does not depend on it (tested).
     filt, poisson = decomposition_operators(src, settings)
-    side = ThreadPoolExecutor(1) if _cores() > 1 else None
+    side = ThreadPoolExecutor(1) if free_cores() > 1 else None
     try:
         system = out = det = None
         if side is not None:  # beside the sequence factorisation (~1.1 s on the benchmark)

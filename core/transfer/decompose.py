@@ -24,9 +24,7 @@ Conventions
 
 from __future__ import annotations
 
-import os
 import threading
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -36,6 +34,7 @@ import scipy.sparse as sp
 from scipy.linalg import solve_triangular
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from ..cores import free_cores
 from ..geometry import cotangent_laplacian, uniform_laplacian, vertex_adjacency, vertex_components
 from ._mesh import CholeskyFactor, PinnedSolver, bbox_size, check_faces
 
@@ -125,7 +124,7 @@ class TaubinFilter:
         # The blocks share the cores this process may use (the product kernel releases the GIL)
         m = max(x.shape[1], 1)
         n_blocks = -(-m // max(8, (1 << 21) // max(self.n, 1)))
-        n_work = min(n_blocks, _cores())
+        n_work = min(n_blocks, free_cores())
         n_blocks = max(n_work, n_work * round(n_blocks / n_work))  # a whole number of blocks per core
         width = -(-m // n_blocks)
         blocks = [slice(s, s + width) for s in range(0, m, width)]
@@ -165,56 +164,6 @@ def _csr_times(indptr, indices, data, y, out):  # pragma: no cover - compiled
             a, j = data[k], indices[k]
             for c in range(w):
                 out[i, c] += a * y[j, c]
-
-
-def _cores() -> int:
-    """The cores this process may use that other processes leave free: the cores of its affinity
-    less the threads of other processes running right now (at least 1).
-
-    Threads only help when a core is idle: on the shared 2-core machine with two other busy
-    processes (load 2-3) the threaded Taubin and detail stages ran 8-16% slower than one thread
-    (more CPU for the same work, and the pipeline waiting on a starved worker), with a free core
-    25-45% faster. The result never depends on it (bit-identical, tested).
-
-    "Right now" (:func:`_running_elsewhere`, Linux), not the 1-minute load average as before:
-    that lags a minute behind a process that starts or stops, and counts this process's own
-    threads of the last minute, so back-to-back runs that had used two threads saw a load of
-    ~2 and took one core on an idle machine, while a run starting beside a job that had just
-    begun took two and ran oversubscribed (13.6 s of CPU for main's 10.6). Elsewhere the load
-    average less this process's own 1 is used."""
-    n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    busy = _running_elsewhere()
-    if busy is None:
-        try:
-            busy = max(0.0, os.getloadavg()[0] - 1.0)
-        except OSError:  # no load average on this platform
-            busy = 0.0
-    return max(1, min(n, int(n - busy + 0.5)))
-
-
-def _running_elsewhere(samples: int = 3) -> "int | None":
-    """Threads of other processes running or waiting for a core (Linux: the running count of
-    ``/proc/loadavg`` less this process's threads in state R), the largest of ``samples``
-    readings 0.5 ms apart; None where ``/proc`` does not tell."""
-    try:
-        most = 0
-        for i in range(samples):
-            if i:
-                time.sleep(0.0005)
-            with open("/proc/loadavg") as f:
-                running = int(f.read().split()[3].split("/")[0])
-            own = 0
-            for tid in os.listdir("/proc/self/task"):
-                try:
-                    with open(f"/proc/self/task/{tid}/stat") as f:
-                        st = f.read()
-                except OSError:  # the thread ended
-                    continue
-                own += st[st.rindex(")") + 2] == "R"
-            most = max(most, running - own)
-        return most
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 def _renumber(M: sp.csr_matrix, order: np.ndarray) -> sp.csr_matrix:

@@ -67,7 +67,8 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from ..geometry import first_neighbour, vertex_adjacency, vertex_face_incidence, vertex_frames
 from ._mesh import to_local
-from .decompose import FactoredSequence, PoissonReconstructor, _cores
+from ..cores import free_cores
+from .decompose import FactoredSequence, PoissonReconstructor
 
 __all__ = ["local_coating", "DetailTransfer", "detail_morph_targets"]
 
@@ -539,7 +540,7 @@ class DetailTransfer:
         def done(i: int):
             _report(progress, min(starts[i] + chunk, n_frames), n_frames)
 
-        if len(starts) <= 1 or _cores() <= 1:
+        if len(starts) <= 1 or free_cores() <= 1:
             work = _Workspace()
             for i in range(len(starts)):
                 finish(i, rhs(i, work), work)
