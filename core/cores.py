@@ -22,8 +22,8 @@ import time
 __all__ = ["affinity", "free_cores", "running_elsewhere"]
 
 #: how long an answer of :func:`free_cores` is reused (s): a spacetime change asks at every
-#: active-set step, and a look costs ~1 ms
-MAX_AGE = 0.2
+#: active-set step, and a look costs ~1 ms (a dense change is ~0.15 s: one look, not two)
+MAX_AGE = 0.5
 
 _SEEN = [float("-inf"), 1]  # (monotonic time of the last look, its answer)
 

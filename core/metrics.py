@@ -273,7 +273,8 @@ def squared_errors(P: ErrorProducts, W, used=None) -> tuple:
     T = len(W)
     used = np.ones(T, dtype=bool) if used is None else np.asarray(used, dtype=bool)
     Wz = np.where(used[:, None], W, 0.0) if not used.all() else W
-    frame = np.einsum("ij,ij->i", Wz @ P.G, Wz) - 2 * np.einsum("ij,ij->i", Wz, P.SB) + P.s2
+    WG = Wz @ P.G
+    frame = np.einsum("ij,ij->i", WG, Wz) - 2 * np.einsum("ij,ij->i", Wz, P.SB) + P.s2
     np.maximum(frame, 0.0, out=frame)
     frame[~used] = np.nan
     s2 = P.p2 if used.all() else P.p2 - np.einsum("ij,ij->j", P.S[~used], P.S[~used])
@@ -283,7 +284,7 @@ def squared_errors(P: ErrorProducts, W, used=None) -> tuple:
     velocity = np.zeros(T)
     if T > 1:
         dW, dC = np.diff(Wz, axis=0), np.diff(P.SB, axis=0)
-        v = np.einsum("ij,ij->i", dW @ P.G, dW) - 2 * np.einsum("ij,ij->i", dW, dC) + P.ds2[1:]
+        v = np.einsum("ij,ij->i", np.diff(WG, axis=0), dW) - 2 * np.einsum("ij,ij->i", dW, dC) + P.ds2[1:]  # dW G = diff(W G)
         velocity[1:] = np.where(used[1:] & used[:-1], np.maximum(v, 0.0), 0.0)
     return frame, marker, velocity
 
