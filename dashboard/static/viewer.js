@@ -95,6 +95,11 @@ REGISTRY.nextScaleStep = nextScaleStep; // the streamed drawing's resolution rul
 REGISTRY.renderScales = RENDER_SCALES;
 
 // ---------------------------------------------------------------------------------------
+// How long after a pause the echoes of frames reported while playing are still ignored (ms): a
+// user's own seek to one of those frames this soon after pausing is ignored too (the views and
+// the slider then stay on the frame the page stopped on).
+const ECHO_AFTER_STOP_MS = 1000;
+
 // A playback clock shared by the viewers of one sync group (or private to one viewer).
 class Clock {
   constructor(name) {
@@ -108,6 +113,7 @@ class Clock {
     this.f0 = 0;
     this.raf = null;
     this.recent = []; // [frame, time] reported to Python lately: their echoes are ignored
+    this.stoppedAt = -Infinity; // when playback last stopped (performance.now())
     this.camera = { azimuth: 0, elevation: 0, zoom: 1, panX: 0, panY: 0 };
   }
   get nFrames() {
@@ -149,6 +155,15 @@ class Clock {
     const now = performance.now();
     return this.recent.some(([g, t]) => g === f && now - t < 2000);
   }
+  // A frame from Python that is only the echo of one this page reported while it played: stale
+  // while playing, and for ECHO_AFTER_STOP_MS after it stopped too -- the server's echo of a
+  // frame reported just before the pause can reach the page after the pause (the two cross),
+  // and seeking to it put the views a frame behind the Frame slider, which had the frame the
+  // page stopped on (seen in the browser test of Play, ~1 run in 10 on a loaded machine).
+  isStaleEcho(f) {
+    if (!this.playing && performance.now() - this.stoppedAt > ECHO_AFTER_STOP_MS) return false;
+    return this.isEcho(f);
+  }
   seek(f) {
     this.frame = this.clamp(f);
     if (this.playing) { this.t0 = performance.now(); this.f0 = this.frame; }
@@ -171,6 +186,7 @@ class Clock {
       this.startLoop();
     } else {
       this.stopLoop();
+      this.stoppedAt = performance.now();
       for (const m of this.members) m.playbackStopped(this.frame);
     }
   }
@@ -1541,7 +1557,12 @@ class Viewer {
     m.on("frame", () => {
       if (this.reporting) return;
       const f = this.clock.clamp(m.frame);
-      if (this.clock.playing && this.clock.isEcho(m.frame)) return;
+      if (this.clock.isStaleEcho(m.frame)) {
+        // the frame shown stands; after a pause, Python is told it again (the stale echo set
+        // this model's frame to the older one)
+        if (!this.clock.playing && f !== this.clock.frame) this.reportFrame(this.clock.frame);
+        return;
+      }
       this.clock.seek(f);
     });
     m.on("playing", () => { if (!this.reporting) this.clock.play(m.playing); });
