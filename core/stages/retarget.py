@@ -606,7 +606,7 @@ class ErrorGram(Stage):
     """The take's products that the marker and velocity errors of any weights need
     (:func:`core.metrics.error_products`: ``B^T B``, ``S B``, the squared norms of the take): they
     depend on the take and the rig, not on a setting, so every setting change's ``evaluate`` sums
-    its errors in weight space (1,000 dense points: ~50 -> ~25 ms a change). None with a missing
+    its errors in weight space (1,000 dense points: evaluate ~62 -> ~12 ms a change). None with a missing
     sample or few points (``3M <= 2K``: the 41 markers score faster from their residual)."""
 
     deps = ("calibrate", "personalize")
