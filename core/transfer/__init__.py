@@ -33,7 +33,7 @@ from .decompose import (
     FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence, laplacian_coating, laplacian_operator,
     taubin_smooth)
 from .deformation import DeformationTransfer, deformation_gradients, deformation_transfer, line_gradients
-from .details import _WORK, DetailTransfer, load_kernels
+from .details import _WORK, DetailTransfer, detail_workspace, load_kernels
 from .edit import TransferEditor
 from .features import feature_lines_near, hole_loops, line_edges, loops_near, marker_loop, seam_loops
 from .settings import TransferSettings
@@ -261,11 +261,12 @@ def detail_transfer(src: WeldedSource, dec: Decomposition, target_welded, target
 
 def transfer_details(src: WeldedSource, dec: Decomposition, sel: BasisSelection, target_welded, bt: BasisTransfer,
                      settings: TransferSettings, progress: Optional[ProgressFn] = None, out=None,
-                     det: Optional[DetailTransfer] = None) -> Optional[np.ndarray]:
+                     det: Optional[DetailTransfer] = None, work=None) -> Optional[np.ndarray]:
     """Fine-scale detail transfer (eq. 16, 5): (T, V, 3) float32 displacements relative to the
     target neutral, in the source vertex order; None when ``settings.details`` is off. ``out``:
     an array of that shape and dtype to write them into (e.g. allocated and paged in
-    beforehand); ``det``: :func:`detail_transfer`'s object for these inputs, if built already."""
+    beforehand); ``det``: :func:`detail_transfer`'s object for these inputs, if built already;
+    ``work``: the stage's scratch (:func:`.details.detail_workspace`), if made already."""
     if not settings.details:
         return None
     det = det or detail_transfer(src, dec, target_welded, bt.target_smooth_ref, settings)
@@ -273,7 +274,7 @@ def transfer_details(src: WeldedSource, dec: Decomposition, sel: BasisSelection,
     # T_0, written straight in the unwelded vertex order
     target_smooth = FactoredSequence(bt.target_smooth_ref, sel.weights, bt.deltas, 0.0)
     return det.displacements(dec.smooth, dec.coating, target_smooth, dec.frames.n_frames, settings.chunk, relative=True,
-                             vertices=src.index, progress=progress, out=out)
+                             vertices=src.index, progress=progress, out=out, work=work)
 
 
 def assemble_result(src: WeldedSource, target_welded, dec: Decomposition, sel: BasisSelection, source_bases,
@@ -355,10 +356,16 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     filt, poisson = decomposition_operators(src, settings)
     side = ThreadPoolExecutor(1) if free_cores() > 1 else None
     try:
-        system = out = det = None
+        system = out = det = work = None
         if side is not None:  # beside the sequence factorisation (~1.1 s on the benchmark)
             if settings.details:
+                # the compiled kernels, the pages of the output and of the detail stage's
+                # scratch (~800 MB on the benchmark, up to ~2 s of page faults), first: then
+                # the eq. 9 system, whose factorisation holds the GIL (cholespy) while the
+                # decomposition's Taubin filter runs without it
                 side.submit(load_kernels)
+                out = side.submit(_paged_in, (len(seq), len(src.neutral), 3), _WORK)
+                work = [side.submit(detail_workspace, src.n, settings.chunk, len(seq)) for _ in range(2)]
             system = side.submit(transfer_system, src, filt, Tw0, settings)
 
         report(progress, 0.4, "decomposition (smoothing + Laplacian coating)")
@@ -366,12 +373,10 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         dec = decompose_sequence(src, seq, settings, filt, poisson)
         timings["decomposition"] = time.perf_counter() - t
         if side is not None and settings.details:
-            # beside the basis selection and transfer (~0.6 s), so that the Taubin filter of the
-            # decomposition had both cores. Not the detail factorisation: cholespy holds the GIL
-            # while it factorises, which stalled basis selection (0.18 -> 0.6 s); the detail
-            # stage makes it beside its first chunk's right-hand sides (one GIL-free call)
-            out = side.submit(_paged_in, (len(seq), len(src.neutral), 3), _WORK)
+            # beside the basis selection and transfer (~0.6 s), with the detail stage's
+            # factorisation (compiled, without the GIL)
             det = side.submit(lambda: detail_transfer(src, dec, Tw0, system.result().T0, settings))
+            side.submit(poisson.prepare, _WORK)
 
         report(progress, 0.45, "basis selection")
         t = time.perf_counter()
@@ -387,7 +392,8 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         details = transfer_details(src, dec, sel, Tw0, bt, settings,
                                    None if progress is None else (lambda f, m: progress(0.55 + 0.45 * f, m)),
                                    None if out is None else out.result(),
-                                   det.result() if det is not None and bt.system is system.result() else None)
+                                   det.result() if det is not None and bt.system is system.result() else None,
+                                   None if work is None else [w.result() for w in work])
         timings["details"] = time.perf_counter() - t
     finally:
         if side is not None:

@@ -6,9 +6,9 @@ Only what no other package needs (mesh operators others use are public in
 * :func:`to_local` / :func:`to_world` change coordinates to and from the per-vertex frames
   of :func:`core.geometry.vertex_frames` (Xu 2014 §5.1);
 * :class:`CholeskyFactor` the sparse Cholesky factorisation of a symmetric positive-definite
-  mesh operator (CHOLMOD's supernodal factorisation, through ``cholespy``), in float64 or
-  float32, solved for many right-hand sides at once; every SPD solve of the dense transfer
-  goes through it;
+  mesh operator (CHOLMOD, through ``cholespy``), in float64, solved for many right-hand sides
+  at once: the eq. 9 system and the plain Laplacian (the detail stage's screened Laplacian is
+  :class:`core.transfer._cholesky.SparseCholesky`'s);
 * :class:`PinnedSolver` one factorisation of a symmetric positive semi-definite mesh
   operator whose null space is the per-component constants (Laplacians), used for every
   Poisson / deformation-transfer solve with many right-hand sides.
@@ -62,46 +62,40 @@ def to_world(frames: tuple, x: np.ndarray) -> np.ndarray:
 
 class CholeskyFactor:
     r"""Sparse Cholesky factorisation ``A = L L^T`` of a symmetric positive-definite (n, n)
-    matrix, factorised once, solved for any number of right-hand sides.
+    matrix, factorised once, solved for any number of right-hand sides in float64.
 
-    CHOLMOD's supernodal factorisation (fill-reducing AMD ordering) through ``cholespy``: the
-    triangular solves of a supernode run as BLAS-3 over a block of right-hand sides. Blocks of
-    16 columns were fastest on a 56K-vertex head (2.1-2.3 ms per column for 1,089 columns of
-    the screened Laplacian, against 3-5 ms for SuperLU in float32 and 7.7 ms for CHOLMOD given
-    all 1,089 at once, whose dense workspace then outgrows the cache).
-
-    ``dtype=np.float32`` factorises and solves in single precision (CHOLMOD's single-precision
-    path, ``cholespy.CholeskySolverF``): a third less CPU for the 1,089 detail solves of the
-    56K-vertex benchmark (the factor is half the bytes), with a relative error of ~1e-6 on the
-    screened Laplacian (condition ~200), far below what the float32 detail stage resolves.
+    CHOLMOD through ``cholespy`` (a simplicial factorisation in METIS's nested-dissection
+    ordering; every solve converts its block to a column-major float64 copy and holds the GIL).
+    Blocks of 16 columns were fastest on a 56K-vertex head (2.1-2.3 ms per column for 1,089
+    columns of the screened Laplacian, against 3-5 ms for SuperLU and 7.7 ms for CHOLMOD given
+    all 1,089 at once). The detail stage's many solves use
+    :class:`~core.transfer._cholesky.SparseCholesky` instead (float32, without the GIL); this
+    one factorises the eq. 9 system and the plain Laplacian, which the naive per-frame
+    reference shares.
 
     Parameters
     ----------
     A : (n, n) sparse, symmetric positive definite (both triangles given; not checked)
-    dtype : np.float64 (default) or np.float32, the precision of the factor and the solves
 
     Raises
     ------
     ValueError
-        ``A`` not square, or not positive definite (CHOLMOD's verdict), or another ``dtype``.
+        ``A`` not square, or not positive definite (CHOLMOD's verdict).
     """
 
     #: right-hand sides per CHOLMOD call (see above)
     BLOCK = 16
 
-    def __init__(self, A: sp.spmatrix, dtype=np.float64):
-        self.dtype = np.dtype(dtype)
-        if self.dtype not in (np.float64, np.float32):
-            raise ValueError(f"dtype: expected float64 or float32, got {self.dtype}")
+    def __init__(self, A: sp.spmatrix):
         A = sp.csr_matrix(A, dtype=np.float64)
         if A.shape[0] != A.shape[1]:
             raise ValueError(f"A: expected a square matrix, got {A.shape}")
         A.sum_duplicates()
         A.sort_indices()
         self.n = A.shape[0]
-        solver = cholespy.CholeskySolverD if self.dtype == np.float64 else cholespy.CholeskySolverF
-        self._chol = solver(self.n, A.indptr.astype(np.int32), A.indices.astype(np.int32),
-                            np.ascontiguousarray(A.data, dtype=self.dtype), cholespy.MatrixType.CSR)
+        self.dtype = np.dtype(np.float64)
+        self._chol = cholespy.CholeskySolverD(self.n, A.indptr.astype(np.int32), A.indices.astype(np.int32),
+                                              np.ascontiguousarray(A.data), cholespy.MatrixType.CSR)
 
     def solve(self, b: np.ndarray, block: int | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """``A^{-1} b`` for (n,) or (n, m) ``b``; in the factor's dtype, a new C-ordered array

@@ -36,7 +36,8 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from ..cores import free_cores
 from ..geometry import cotangent_laplacian, uniform_laplacian, vertex_adjacency, vertex_components
-from ._mesh import CholeskyFactor, PinnedSolver, bbox_size, check_faces
+from ._cholesky import SparseCholesky
+from ._mesh import PinnedSolver, bbox_size, check_faces
 
 __all__ = [
     "TaubinFilter",
@@ -143,16 +144,15 @@ class TaubinFilter:
     def _iterate(self, y: np.ndarray) -> np.ndarray:
         """All iterations on one (V, w) block (renumbered): ``y <- B (A y)``."""
         A, B = self._steps
-        z = np.empty_like(y)
-        for _ in range(self.iterations):
-            _csr_times(A.indptr, A.indices, A.data, y, z)
-            _csr_times(B.indptr, B.indices, B.data, z, y)
+        _taubin_iterations(A.indptr, A.indices, A.data, B.indptr, B.indices, B.data, y, np.empty_like(y), self.iterations)
         return y
 
 
 # Hand-written rather than scipy's ``A @ y``: the same sums in the same order (each row's
 # entries in stored order, from 0: bit for bit scipy's csr_matvecs), but without the GIL, so
-# that the column blocks of the filter run on two cores.
+# that the column blocks of the filter run on two cores; all iterations in one call, so that a
+# block needs the GIL once, not 80 times (another thread holding it -- a CHOLMOD factorisation
+# -- stalled every product).
 @numba.njit(cache=True, nogil=True)
 def _csr_times(indptr, indices, data, y, out):  # pragma: no cover - compiled
     """``out = M y`` for CSR ``M`` (indptr, indices, data) and C-ordered (n, w) ``y``."""
@@ -164,6 +164,14 @@ def _csr_times(indptr, indices, data, y, out):  # pragma: no cover - compiled
             a, j = data[k], indices[k]
             for c in range(w):
                 out[i, c] += a * y[j, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _taubin_iterations(ap, ai, ax, bp, bi, bx, y, z, iterations):  # pragma: no cover - compiled
+    """``iterations`` times ``y <- B (A y)`` (``z``: scratch of y's shape)."""
+    for _ in range(iterations):
+        _csr_times(ap, ai, ax, y, z)
+        _csr_times(bp, bi, bx, z, y)
 
 
 def _renumber(M: sp.csr_matrix, order: np.ndarray) -> sp.csr_matrix:
@@ -265,7 +273,7 @@ class PoissonReconstructor:
         # (components, V) averaging operator of the gauge
         self.average = sp.csr_matrix((1.0 / counts[labels], (labels, np.arange(n_vertices))), shape=(ncomp, n_vertices))
         self._pinned = None
-        self._screened = {}  # dtype -> CholeskyFactor of L + εI
+        self._screened = {}  # dtype -> SparseCholesky of L + εI
         self._lock = threading.Lock()  # one factorisation when threads ask at once
         if self.screening > 0:
             self.eps = self.screening * float(self.L.diagonal().mean())
@@ -294,16 +302,16 @@ class PoissonReconstructor:
         return self.average @ np.asarray(x, dtype=np.float64)
 
     @property
-    def screened_factor(self) -> CholeskyFactor:
+    def screened_factor(self) -> SparseCholesky:
         """The float64 Cholesky factorisation of ``L + εI`` (built on first use: the
         decomposition needs only ``L``, the detail stage the solves)."""
         return self._screened_factor(np.float64)
 
-    def _screened_factor(self, dtype) -> CholeskyFactor:
+    def _screened_factor(self, dtype) -> SparseCholesky:
         dtype = np.dtype(dtype)
         with self._lock:
             if dtype not in self._screened:
-                self._screened[dtype] = CholeskyFactor(self._A, dtype)
+                self._screened[dtype] = SparseCholesky(self._A, dtype)
         return self._screened[dtype]
 
     def prepare(self, dtype=np.float64) -> None:
@@ -318,10 +326,11 @@ class PoissonReconstructor:
         r"""Solve for (V, m) right-hand sides at once: ``(L + εI)^{-1} B`` when screened, else
         the zero-mean ``L^+ B`` (``B`` must then be orthogonal to the per-component constants).
 
-        One sparse Cholesky factorisation (:class:`~._mesh.CholeskyFactor`), all m columns
-        solved in blocks of ``block`` (default :attr:`~._mesh.CholeskyFactor.BLOCK`). The
-        screened solve runs in ``dtype`` (float64, or float32 for the float32 detail stage;
-        each precision factorised once, on first use); the plain one always in float64.
+        One sparse Cholesky factorisation, all m columns solved in blocks of ``block``: the
+        screened operator's is :class:`~._cholesky.SparseCholesky` (its solves run without the
+        GIL, in ``dtype``: float64, or float32 for the float32 detail stage; each precision
+        factorised once, on first use), the plain one's :class:`~._mesh.PinnedSolver`, always
+        float64.
         Returns (V, m) in that precision; the screened solve writes it into ``out`` when given
         (C-ordered (V, m) of that dtype).
         """

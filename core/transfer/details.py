@@ -33,31 +33,35 @@ How it is computed (the result is eq. 5 exactly; only the order of the work diff
   compiled pass, :func:`_frames_from_positions`, in a local vertex numbering,
   :func:`_local_numbering`), and the right-hand sides of all
   frames × coordinates of the chunk go to one sparse Cholesky factorisation as one (V, 3t)
-  block (solved in column blocks, :meth:`~core.transfer.decompose.PoissonReconstructor.solve`).
+  block, solved in place (:meth:`~core.transfer.decompose.PoissonReconstructor.solve`).
 * **Positions from the factorisation, frames in float64.** For a factored sequence
   ``base + Σ a_j basis_j`` a chunk's positions are one float64 matrix product ``X [1, a_t]``
   (no per-frame gathers). Edges, normals and tangents are computed from them in float64 in one
   compiled pass and the frames rounded once to float32 (``_WORK``): within rounding of the unit
   vectors everywhere (float32 throughout, as before, was up to 1e-4 off where the tangent edge
   is near the normal), for ~10% more time than float32 arithmetic. The rotation and the
-  screened Poisson solve run in float32 (one sparse Cholesky factorisation in the working
-  precision, :class:`~core.transfer._mesh.CholeskyFactor`; relative error ~1e-6 on the
-  screened operator, whose condition number is ~200; on the 56K-vertex benchmark the details
-  moved by at most 3.4e-10 m against the float64 solve, for a third less CPU in the solves).
+  screened Poisson solve run in float32 (a sparse Cholesky factor stored and solved in the
+  working precision, :class:`~core.transfer._cholesky.SparseCholesky`; relative error ~1.5e-6
+  on the screened operator, whose condition number is ~200; on the 56K-vertex benchmark the
+  details moved by at most 4.4e-10 m against CHOLMOD's float64 solves, at 0.55 ms per column
+  against 1.6).
   The tests check the algorithm in float64 against the per-frame formulas to 1e-9 and the
   float32 result to its precision.
 * **Buffers reused.** Every chunk's arrays are views of a reused workspace
   (:class:`_Workspace`): fresh (3, V, t) temporaries for every chunk made 2 s of system time
   (page faults) of the 10 s the benchmark took.
-* **Two cores.** ``cholespy`` holds the GIL through every CHOLMOD call, so with a second
-  core the stage runs as two stages: this thread forms a chunk's right-hand sides in one
-  compiled call without the GIL (:func:`_chunk_rhs`, for factored sequences) while one worker
-  factorises (first) and solves the previous chunk; two workspaces alternate. Each chunk's
-  arithmetic is the same either way: the result is bit for bit that of one core (tested).
+* **Two cores.** A chunk's right-hand sides (for factored sequences one compiled call,
+  :func:`_chunk_rhs`) and its solve run without the GIL, so with a second core two threads
+  take the chunks in turn, each with its own workspace (made beforehand and paged in by
+  :func:`detail_workspace` in :func:`core.transfer.transfer_sequence`). Each chunk's arithmetic
+  is the same either way: the result is bit for bit that of one core (tested). (Before, with
+  ``cholespy``'s solves holding the GIL, a worker solved while this thread formed the next
+  chunk, and the stage waited on the solves: 3.3-4.1 s of the benchmark against ~1.4 s now.)
 """
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Union
 
@@ -457,7 +461,8 @@ class DetailTransfer:
 
     def displacements(self, source_smooth: FactoredSequence, source_coating: FactoredSequence,
                       target_smooth_frames, n_frames: int, chunk: int = 32, dtype=np.float32,
-                      relative: bool = False, vertices=None, progress=None, out=None) -> np.ndarray:
+                      relative: bool = False, vertices=None, progress=None, out=None,
+                      work: "_Workspace | None" = None) -> np.ndarray:
         """Detail displacements ``y_t = T_t - T̄_t`` for all frames, (T, V, 3) ``dtype``.
 
         Parameters
@@ -477,6 +482,8 @@ class DetailTransfer:
             Output rows (e.g. the unwelded vertex order): the result is (T, V', 3).
         progress : ``(fraction, message) -> None``, optional, called after every chunk
         out : (T, V', 3) ``dtype`` array to write into, optional (else a new one)
+        work : the scratch of the stage's threads (one, or a list of one per thread), optional
+            (else new ones; see :func:`detail_workspace`)
         """
         V = self.poisson.n
         rows = np.arange(V) if vertices is None else np.asarray(vertices, dtype=np.int64)
@@ -513,64 +520,104 @@ class DetailTransfer:
             consts = np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0])
             xib = np.ascontiguousarray(xi_base[:, :, 0])
 
-        def rhs(i: int, work: _Workspace) -> np.ndarray:  # chunk i's (V, 3t) right-hand sides
+        def chunk_of(i: int, work: _Workspace):  # chunk i: right-hand sides, solve, into its frames of out
             idx = slice(starts[i], min(starts[i] + chunk, n_frames))
             t = idx.stop - idx.start
             B = work("B", (V, 3 * t), _WORK)
             if fused:
                 As, At, C = parts[i]
-                f3 = lambda k: work(k, (3, V, t), _WORK)
+                b = rhs_buffers(work, V, t)
                 _chunk_rhs(src.X, As, tgt.X, At, faces, nbi, consts, G, C, xib, np.array([self.gain], dtype=_WORK),
-                           prm[0], prm[1], prm[2], order, work("x", (3 * V, t), np.float64),
-                           work("normal_sums", (3, V, t), np.float64), work("bound", (V, t), np.float64),
-                           f3("st"), f3("sb"), f3("sn"), work("sok", (V, t), np.bool_),
-                           f3("tt"), f3("tb"), f3("tn"), work("tok", (V, t), np.bool_),
-                           work("ok", (V, t), np.bool_), work("xi", (3 * V, t), _WORK), B)
-                return B
-            Fs, Ft = src.frames(idx, True, work, "s"), tgt.frames(idx, True, work, "t")
-            xi = work("xi", (3, V, t), _WORK)
-            np.matmul(G, np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK), out=xi.reshape(3 * V, t))
-            xi += xi_base
-            return self._change(Fs, Ft, xi, out=B, order=order)
-
-        def finish(i: int, B: np.ndarray, work: _Workspace):  # chunk i's solve, into its frames of out
-            y = self.poisson.solve(B, dtype=_WORK, out=work("y", B.shape, _WORK))
+                           prm[0], prm[1], prm[2], order, b["x"], b["normal_sums"], b["bound"], b["st"], b["sb"], b["sn"],
+                           b["sok"], b["tt"], b["tb"], b["tn"], b["tok"], b["ok"], b["xi"], B)
+            else:
+                Fs, Ft = src.frames(idx, True, work, "s"), tgt.frames(idx, True, work, "t")
+                xi = work("xi", (3, V, t), _WORK)
+                np.matmul(G, np.atleast_2d(source_coating.coeffs[idx]).T.astype(_WORK), out=xi.reshape(3 * V, t))
+                xi += xi_base
+                self._change(Fs, Ft, xi, out=B, order=order)
+            y = self.poisson.solve(B, dtype=_WORK, out=B)  # in place
             _scatter_frames(y, rows, y0, out, starts[i])
 
-        def done(i: int):
-            _report(progress, min(starts[i] + chunk, n_frames), n_frames)
-
-        if len(starts) <= 1 or free_cores() <= 1:
-            work = _Workspace()
+        # Every chunk's arithmetic is the same whichever thread runs it: the result is bit for
+        # bit that of one core (tested). With a second core the two threads take chunks in
+        # turn, each with its own scratch (~280 MB for 32 frames of a 56K-vertex mesh): the
+        # right-hand sides of a factored chunk are one compiled call without the GIL
+        # (_chunk_rhs), the solves too (SparseCholesky), so the threads wait on nothing but the
+        # next chunk's number. Progress is reported from this thread.
+        works = list(work) if isinstance(work, (list, tuple)) else [work if work is not None else _Workspace()]
+        n_threads = 1 if len(starts) <= 1 else min(2, free_cores())
+        if n_threads == 1:
             for i in range(len(starts)):
-                finish(i, rhs(i, work), work)
-                done(i)
+                chunk_of(i, works[0])
+                _report(progress, min(starts[i] + chunk, n_frames), n_frames)
             return out
-        # Two stages on two threads: this one forms chunk i's right-hand sides while a worker
-        # solves chunk i-1 (and first factorises). cholespy holds the GIL through every CHOLMOD
-        # call, so whole chunks on two threads (each solving its own) waited on each other's
-        # solves at every numpy call; here the right-hand sides of a factored chunk are one
-        # compiled call without the GIL (_chunk_rhs), and only the worker calls cholespy. Two
-        # workspaces alternate; each chunk's arithmetic is the same as on one core: the result is
-        # bit for bit that of one core (tested). Progress is reported in frame order.
-        works = (_Workspace(), _Workspace())
-        futures = []
-        with ThreadPoolExecutor(1) as pool:
-            pool.submit(self.poisson.prepare, _WORK)  # beside chunk 0's right-hand sides
+        works += [_Workspace() for _ in range(n_threads - len(works))]
+        lock = threading.Lock()
+        state = {"next": 0, "stop": False, "reported": 0}
+        finished = [False] * len(starts)
+
+        def take() -> int:
+            with lock:
+                i = state["next"]
+                state["next"] += 1
+                return i if i < len(starts) and not state["stop"] else -1
+
+        def report_done():  # every chunk of the finished prefix not yet reported, in order
+            while True:
+                with lock:
+                    i = state["reported"]
+                    if i >= len(starts) or not finished[i]:
+                        return
+                    state["reported"] += 1
+                _report(progress, min(starts[i] + chunk, n_frames), n_frames)
+
+        def run(work: _Workspace, reports: bool):
             try:
-                for i in range(len(starts)):
-                    if i >= 2:  # chunk i-2 used this workspace
-                        futures[i - 2].result()
-                        done(i - 2)
-                    futures.append(pool.submit(finish, i, rhs(i, works[i % 2]), works[i % 2]))
-                for i in range(max(0, len(starts) - 2), len(starts)):
-                    futures[i].result()
-                    done(i)
+                while (i := take()) >= 0:
+                    chunk_of(i, work)
+                    finished[i] = True
+                    if reports:
+                        report_done()
             except BaseException:
-                for f in futures:
-                    f.cancel()
+                state["stop"] = True
                 raise
+
+        self.poisson.prepare(_WORK)  # once, before two threads ask for it
+        with ThreadPoolExecutor(1) as pool:  # on an error either thread stops taking chunks
+            other = pool.submit(run, works[1], False)
+            run(works[0], True)
+            other.result()
+        report_done()
         return out
+
+
+def rhs_buffers(work: _Workspace, V: int, t: int) -> dict:
+    """The named scratch arrays of one chunk's right-hand sides (:func:`_chunk_rhs`) for ``V``
+    vertices and ``t`` frames, views of ``work``'s buffers."""
+    f3 = lambda k: work(k, (3, V, t), _WORK)
+    b = {"x": work("x", (3 * V, t), np.float64), "normal_sums": work("normal_sums", (3, V, t), np.float64),
+         "bound": work("bound", (V, t), np.float64), "xi": work("xi", (3 * V, t), _WORK)}
+    for side in "st":
+        b.update({side + k: f3(side + k) for k in "tbn"})
+        b[side + "ok"] = work(side + "ok", (V, t), np.bool_)
+    b["ok"] = work("ok", (V, t), np.bool_)
+    return b
+
+
+def detail_workspace(n_vertices: int, chunk: int, n_frames: int) -> _Workspace:
+    """The scratch of one thread of :meth:`DetailTransfer.displacements` for ``n_vertices``
+    and ``chunk`` frames of ``n_frames``, allocated and with every page mapped (a write per 4 KiB page):
+    fresh memory costs more than the arithmetic done in it (~2 ms per MB on the benchmark's
+    machines, where the host backs a page only when it is first touched), better spent in a
+    second thread beside other work, as :func:`core.transfer.transfer_sequence` does."""
+    work = _Workspace()
+    t = min(chunk, n_frames)
+    arrays = list(rhs_buffers(work, n_vertices, t).values())
+    arrays.append(work("B", (n_vertices, 3 * t), _WORK))
+    for a in arrays:
+        a.reshape(-1).view(np.uint8)[::4096] = 0
+    return work
 
 
 def load_kernels() -> None:
