@@ -33,6 +33,7 @@ from .decompose import (
     FactoredSequence, PoissonReconstructor, TaubinFilter, factor_sequence, laplacian_coating, laplacian_operator,
     taubin_smooth)
 from .deformation import DeformationTransfer, deformation_gradients, deformation_transfer, line_gradients
+from ._cholesky import SparseCholesky
 from .details import _WORK, DetailTransfer, detail_workspace, load_kernels
 from .edit import TransferEditor
 from .features import feature_lines_near, hole_loops, line_edges, loops_near, marker_loop, seam_loops
@@ -41,7 +42,8 @@ from .welded import WeldedSource, weld_source
 
 __all__ = [
     "TransferSettings", "TransferResult", "transfer_sequence", "naive_transfer",
-    "WeldedSource", "weld_source", "register_target", "Decomposition", "decompose_sequence", "select_sequence_bases",
+    "WeldedSource", "weld_source", "register_target", "Decomposition", "factor_source_sequence", "decompose_sequence",
+    "select_sequence_bases",
     "BasisTransfer", "transfer_bases", "transfer_details", "assemble_result", "decomposition_operators", "transfer_system", "detail_transfer",
     "TaubinFilter", "taubin_smooth", "laplacian_operator", "laplacian_coating", "PoissonReconstructor",
     "FactoredSequence", "factor_sequence", "nnls_gram", "select_bases", "BasisSelection",
@@ -164,19 +166,27 @@ class Decomposition:
     reconstructor: PoissonReconstructor
 
 
-def decompose_sequence(src: WeldedSource, source_seq, settings: TransferSettings, filt: Optional[TaubinFilter] = None,
-                       poisson: Optional[PoissonReconstructor] = None) -> Decomposition:
-    """Multi-scale decomposition (eq. 1-4) of a (T, V, 3) source sequence in the topology of
-    ``src``: one low-rank factorisation, the (linear) filter and coating applied to its basis.
-    ``filt`` and ``poisson``, when given, are the filter and reconstructor this step would build
-    (:func:`decomposition_operators`, e.g. built beside it in another thread)."""
-    V = src.n
+def factor_source_sequence(src: WeldedSource, source_seq, settings: TransferSettings) -> FactoredSequence:
+    """The low-rank factorisation of a (T, V, 3) source sequence in the topology of ``src``,
+    welded (:func:`.decompose.factor_sequence` of the frames as given, its linear basis welded:
+    no welded copy of the sequence); the first step of :func:`decompose_sequence`."""
     seq = np.asarray(source_seq)
     if seq.ndim != 3 or seq.shape[1:] != (len(src.neutral), 3) or len(seq) == 0:
         raise ValueError(f"source_seq: expected (T, {len(src.neutral)}, 3) frames in the topology of source_ref, got {seq.shape}")
-    # factor the frames as given and weld the (linear) basis: no welded copy of the sequence
     fac = factor_sequence(seq, settings.rank_rtol, base=src.neutral)
-    fac = FactoredSequence(fac.base[src.rep], fac.coeffs, fac.basis[:, src.rep], fac.residual_rms)
+    return FactoredSequence(fac.base[src.rep], fac.coeffs, fac.basis[:, src.rep], fac.residual_rms)
+
+
+def decompose_sequence(src: WeldedSource, source_seq, settings: TransferSettings, filt: Optional[TaubinFilter] = None,
+                       poisson: Optional[PoissonReconstructor] = None,
+                       factored: Optional[FactoredSequence] = None) -> Decomposition:
+    """Multi-scale decomposition (eq. 1-4) of a (T, V, 3) source sequence in the topology of
+    ``src``: one low-rank factorisation, the (linear) filter and coating applied to its basis.
+    ``filt`` and ``poisson``, when given, are the filter and reconstructor this step would build
+    (:func:`decomposition_operators`, e.g. built beside it in another thread); ``factored``, the
+    sequence's :func:`factor_source_sequence`, if made already."""
+    V = src.n
+    fac = factored if factored is not None else factor_source_sequence(src, source_seq, settings)
     if filt is None or poisson is None:
         f, p = decomposition_operators(src, settings, filt is None)
         filt, poisson = filt or f, poisson or p
@@ -233,20 +243,24 @@ def transfer_bases(src: WeldedSource, dec: Decomposition, source_bases, target_w
         dt, Tb0 = system, system.T0
     else:
         Tb0 = dec.filter.apply(np.asarray(target_welded, dtype=np.float64))
-        dt = DeformationTransfer(dec.smooth.base, Tb0, src.faces, _feature_edges(settings, src.index, src.n), settings.alpha)
+        dt = DeformationTransfer(dec.smooth.base, Tb0, src.faces, _feature_edges(settings, src.index, src.n), settings.alpha,
+                                 factor=SparseCholesky)
     K = len(source_bases)
     deltas = (dt.transfer(source_bases) - Tb0) if K else np.zeros((0, src.n, 3))
     return BasisTransfer(Tb0, dt, deltas)
 
 
-def transfer_system(src: WeldedSource, filt: TaubinFilter, target_welded, settings: TransferSettings) -> DeformationTransfer:
+def transfer_system(src: WeldedSource, filt: TaubinFilter, target_welded, settings: TransferSettings,
+                    factorise: bool = True) -> DeformationTransfer:
     """The factorised eq. 9 system of :func:`transfer_bases`, from the meshes alone: its
     references are the smoothed source and target references ``S̄_0 = P S_0`` and ``T̄_0``
     (the filter is linear and column by column, so ``P S_0`` is bit for bit the base of the
-    decomposition's smoothed sequence)."""
+    decomposition's smoothed sequence). Factorised by :class:`._cholesky.SparseCholesky`, without
+    the GIL (beside the sequence factorisation in :func:`transfer_sequence`); ``factorise=False``:
+    on first use or by its ``prepare()``."""
     refs = filt.apply(np.concatenate([src.welded_neutral, np.asarray(target_welded, dtype=np.float64)], axis=1))
     return DeformationTransfer(refs[:, :3].copy(), refs[:, 3:].copy(), src.faces, _feature_edges(settings, src.index, src.n),
-                               settings.alpha)
+                               settings.alpha, factorise=factorise, factor=SparseCholesky)
 
 
 def detail_transfer(src: WeldedSource, dec: Decomposition, target_welded, target_smooth_ref,
@@ -358,25 +372,25 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
     try:
         system = out = det = work = None
         if side is not None:  # beside the sequence factorisation (~1.1 s on the benchmark)
+            # in this order: what the main thread needs first first. The eq. 9 system and the
+            # detail stage's factorisation are compiled without the GIL; the pages of the output
+            # and of the detail stage's scratch (~800 MB on the benchmark: 0.1-2 s of page
+            # faults, by how long ago the memory was last used) fill the rest of the time
             if settings.details:
-                # the compiled kernels, the pages of the output and of the detail stage's
-                # scratch (~800 MB on the benchmark, up to ~2 s of page faults), first: then
-                # the eq. 9 system, whose factorisation holds the GIL (cholespy) while the
-                # decomposition's Taubin filter runs without it
                 side.submit(load_kernels)
+            system = side.submit(transfer_system, src, filt, Tw0, settings)
+            if settings.details:
+                side.submit(poisson.prepare, _WORK)
                 out = side.submit(_paged_in, (len(seq), len(src.neutral), 3), _WORK)
                 work = [side.submit(detail_workspace, src.n, settings.chunk, len(seq)) for _ in range(2)]
-            system = side.submit(transfer_system, src, filt, Tw0, settings)
 
         report(progress, 0.4, "decomposition (smoothing + Laplacian coating)")
         t = time.perf_counter()
-        dec = decompose_sequence(src, seq, settings, filt, poisson)
+        fac = factor_source_sequence(src, seq, settings)
+        dec = decompose_sequence(src, seq, settings, filt, poisson, fac)
         timings["decomposition"] = time.perf_counter() - t
-        if side is not None and settings.details:
-            # beside the basis selection and transfer (~0.6 s), with the detail stage's
-            # factorisation (compiled, without the GIL)
+        if side is not None and settings.details:  # beside the basis selection and transfer
             det = side.submit(lambda: detail_transfer(src, dec, Tw0, system.result().T0, settings))
-            side.submit(poisson.prepare, _WORK)
 
         report(progress, 0.45, "basis selection")
         t = time.perf_counter()

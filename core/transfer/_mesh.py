@@ -132,9 +132,14 @@ class PinnedSolver:
     mean equals ``mean`` (default 0): the gauge is fixed *after* the solve, so it never
     biases the result. ``b`` must be (numerically) orthogonal to the null space, which it
     is whenever it is ``A`` applied to something or a divergence (``G^T w``).
+
+    ``factor``: the class that factorises the block, :class:`CholeskyFactor` (default) or
+    :class:`core.transfer._cholesky.SparseCholesky` (float64; factorises and solves without
+    the GIL).
     """
 
-    def __init__(self, A: sp.spmatrix, labels: np.ndarray | None = None, n_components: int | None = None):
+    def __init__(self, A: sp.spmatrix, labels: np.ndarray | None = None, n_components: int | None = None,
+                 factor=None):
         A = sp.csr_matrix(A, dtype=np.float64)
         n = A.shape[0]
         if labels is None:
@@ -154,7 +159,7 @@ class PinnedSolver:
         keep[pins] = False
         self.keep = np.flatnonzero(keep)
         self.pins = pins
-        self.factor = CholeskyFactor(A[self.keep][:, self.keep])
+        self.factor = (factor or CholeskyFactor)(A[self.keep][:, self.keep])
         self.counts = np.bincount(labels, minlength=self.n_components).astype(np.float64)
         # (components, n) averaging operator for the gauge shift
         self.average = sp.csr_matrix((1.0 / self.counts[labels], (labels, np.arange(n))), shape=(self.n_components, n))

@@ -29,6 +29,8 @@ connected component of the target equals the source's, scaled by ``size(T̄_0) /
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -135,10 +137,15 @@ class DeformationTransfer:
         (Dirichlet) norm. It only matters where target triangles are degenerate (a
         closest-point resampling can collapse some): their vertices then follow their
         neighbours instead of making the system singular. Identity stays exact.
+    factorise : bool, default True
+        Factorise the system now; else on first use or :meth:`prepare`.
+    factor : the class of the factorisation (:class:`~._mesh.PinnedSolver`'s ``factor``):
+        default ``cholespy``'s CHOLMOD, which holds the GIL (~0.4 s to factorise a 56K-vertex
+        head); :class:`~._cholesky.SparseCholesky` does not.
     """
 
     def __init__(self, source_ref, target_ref, faces, feature_edges=None, alpha: float = 100.0,
-                 regularization: float = 1e-9):
+                 regularization: float = 1e-9, factorise: bool = True, factor=None):
         S0 = check_positions(source_ref, "source_ref")
         V = len(S0)
         T0 = check_positions(target_ref, "target_ref", V)
@@ -178,8 +185,34 @@ class DeformationTransfer:
         self.reg_rhs = self.reg * np.asarray(Lu @ T0)  # (V, 3)
         A = (A + self.reg * Lu).tocsr()
         ncomp, labels = vertex_components(faces, V)
-        self.solver = PinnedSolver(A, labels, ncomp)
+        self._system = (A, labels, ncomp, factor)
+        self._solver = None
+        self._lock = threading.Lock()
         self.scale = bbox_size(T0) / max(bbox_size(S0), 1e-300)
+        if factorise:
+            self.prepare()
+
+    def __getstate__(self):  # picklable (a lock is not)
+        state = self.__dict__.copy()
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+    @property
+    def solver(self) -> PinnedSolver:
+        """The factorised system (made on first use unless made already)."""
+        with self._lock:
+            if self._solver is None:
+                self._solver = PinnedSolver(*self._system)
+        return self._solver
+
+    def prepare(self) -> None:
+        """Factorise the system now (thread-safe: a thread asking while another factorises
+        waits for that factorisation)."""
+        self.solver
 
     def rhs(self, deformed: np.ndarray) -> np.ndarray:
         """(V, 3K) right-hand side of the normal equations for (K, V, 3) deformed sources."""

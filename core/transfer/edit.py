@@ -38,6 +38,7 @@ from scipy.optimize import lsq_linear
 from ..geometry import weld_vertices
 from ..io.gltf import read_rig
 from .decompose import TaubinFilter, taubin_smooth
+from ._cholesky import SparseCholesky
 from .deformation import DeformationTransfer
 from .detail_edit import _reference_propagation, propagate_details
 from .features import line_edges
@@ -332,7 +333,7 @@ class TransferEditor:
             edges = (line_edges([self.welded_index[np.asarray(ln, dtype=np.int64)] for ln in s.feature_lines], closed=True)
                      if s.feature_lines is not None else None)
             self.transfer = DeformationTransfer(smooth_src, np.asarray(result.target_smooth_ref)[self.rep], src.faces, edges,
-                                                s.alpha)
+                                                s.alpha, factor=SparseCholesky)  # as transfer_sequence's
         self.reference = np.asarray(result.neutral, dtype=np.float64)[self.rep]
 
     @property
