@@ -403,11 +403,14 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
         timings["transfer"] = time.perf_counter() - t
 
         t = time.perf_counter()
+        # what the second thread has not started yet is made here instead (it is behind: the
+        # page faults of cold memory can take seconds)
+        det = _made(det)
+        if system is None or bt.system is not system.result():
+            det = None  # made for another system's references
         details = transfer_details(src, dec, sel, Tw0, bt, settings,
                                    None if progress is None else (lambda f, m: progress(0.55 + 0.45 * f, m)),
-                                   None if out is None else out.result(),
-                                   det.result() if det is not None and bt.system is system.result() else None,
-                                   None if work is None else [w.result() for w in work])
+                                   _made(out), det, None if work is None else [w for w in map(_made, work) if w is not None])
         timings["details"] = time.perf_counter() - t
     finally:
         if side is not None:
@@ -415,6 +418,14 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
 
     report(progress, 1.0, f"{len(seq)} frames, {sel.n_bases} bases")
     return assemble_result(src, Tw0, dec, sel, src_bases, bt, details, registration, timings)
+
+
+def _made(future):
+    """The result of a second thread's task, or None when it had not started (then cancelled:
+    the caller makes it itself)."""
+    if future is None or future.cancel():
+        return None
+    return future.result()
 
 
 def _paged_in(shape: tuple, dtype) -> np.ndarray:

@@ -483,8 +483,13 @@ def factor_sequence(sequence, rtol: float = 1e-6, max_rank: int | None = None, p
     b = base.reshape(3 * V)
     blocks = _column_blocks(T, 3 * V)
 
+    # two (T, c) buffers reused by every block: fresh 16 MB temporaries were an mmap and munmap
+    # per block, which serialise with the page faults of any other thread of the process
+    width = max(c.stop - c.start for c in blocks)
+    buf, buf2 = np.empty((T, width)), np.empty((T, width))
+
     def X(cols):  # (T, c) float64 block of the displacements
-        return np.subtract(S2[:, cols], b[cols], dtype=np.float64)
+        return np.subtract(S2[:, cols], b[cols], dtype=np.float64, out=buf[:, :cols.stop - cols.start])
 
     G = np.zeros((T, T))
     for cols in blocks:
@@ -528,7 +533,8 @@ def factor_sequence(sequence, rtol: float = 1e-6, max_rank: int | None = None, p
         C = np.concatenate([C, Cn], axis=1)
     res2 = 0.0
     for cols in blocks:  # the residual, measured
-        r = X(cols) - C @ Q[:, cols]
+        r = X(cols)
+        r -= np.matmul(C, Q[:, cols], out=buf2[:, :cols.stop - cols.start])
         res2 += float(np.einsum("ij,ij->", r, r))
     r = len(Q)
     return FactoredSequence(base, C, Q.reshape(r, V, 3), float(np.sqrt(res2 / (T * V))))

@@ -545,7 +545,7 @@ class DetailTransfer:
         # right-hand sides of a factored chunk are one compiled call without the GIL
         # (_chunk_rhs), the solves too (SparseCholesky), so the threads wait on nothing but the
         # next chunk's number. Progress is reported from this thread.
-        works = list(work) if isinstance(work, (list, tuple)) else [work if work is not None else _Workspace()]
+        works = [w for w in (work if isinstance(work, (list, tuple)) else [work]) if w is not None] or [_Workspace()]
         n_threads = 1 if len(starts) <= 1 else min(2, free_cores())
         if n_threads == 1:
             for i in range(len(starts)):
