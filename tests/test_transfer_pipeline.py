@@ -295,6 +295,12 @@ def test_detail_chunks_on_two_cores_are_bit_identical_to_one(tiger_detail_case, 
         runs[cores, "callable"] = det.displacements(c["smooth"], coat, lambda idx: c["tgt"].frames(idx), 7, chunk=2)
     np.testing.assert_array_equal(runs[1], runs[2])
     np.testing.assert_array_equal(runs[1, "callable"], runs[2, "callable"])
+    # the compiled chunk (target frames rotating as they are made, not stored) is the
+    # call-by-call path's arithmetic, rounded the same way
+    for rotate in (False, True):
+        det = DetailTransfer(c["Fw"], P, c["smooth"].base, coat.base, c["T0"], c["Tb0"], 1.3, rotate)
+        fused = det.displacements(c["smooth"], coat, c["tgt"], 7, chunk=3)
+        np.testing.assert_array_equal(fused, det.displacements(c["smooth"], coat, lambda idx: c["tgt"].frames(idx), 7, chunk=3))
     assert np.abs(runs[1]).max() > 1e-4 * c["size"]  # the details move
 
 

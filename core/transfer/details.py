@@ -160,9 +160,24 @@ def _frames_kernel(x, faces, nbi, consts, tg, b, n, ok, acc, bound):  # pragma: 
     product summed them; a face listing a vertex twice counts once), the frames rounded once to
     the dtype of ``tg``, ``b``, ``n`` when they are stored. Writes those and ``ok``; ``acc``
     (3, V, t) and ``bound`` (V, t) are float64 scratch."""
+    V, t = x.shape[1], x.shape[2]
+    tmax = _normals_pass(x, faces, nbi, consts, ok, acc, bound)
+    for v in range(V):
+        for j in range(t):
+            t0, t1, t2, n0, n1, n2, b0, b1, b2 = _frame_at(x, nbi, acc, bound, tmax, consts, v, j)
+            tg[0, v, j], tg[1, v, j], tg[2, v, j] = t0, t1, t2
+            n[0, v, j], n[1, v, j], n[2, v, j] = n0, n1, n2
+            b[0, v, j], b[1, v, j], b[2, v, j] = b0, b1, b2
+
+
+@numba.njit(cache=True, nogil=True)
+def _normals_pass(x, faces, nbi, consts, ok, acc, bound):  # pragma: no cover - compiled
+    """The pass over the faces and the first over the vertices of :func:`_frames_kernel`:
+    ``acc`` <- unit vertex normals, ``ok``, ``bound`` <- the projected tangent edge's length;
+    returns its largest per frame (t,)."""
     nF = faces.shape[0]
     V, t = x.shape[1], x.shape[2]
-    cancel, tiny, near, one = consts[0], consts[1], consts[2], consts[3]
+    cancel = consts[0]
     for v in range(V):
         for j in range(t):
             acc[0, v, j] = 0.0
@@ -215,35 +230,37 @@ def _frames_kernel(x, faces, nbi, consts, tg, b, n, ok, acc, bound):  # pragma: 
             bound[v, j] = tn  # reused: the projected tangent's length
             if tn > tmax[j]:
                 tmax[j] = tn
-    for v in range(V):  # the tangent again (cheaper than a float64 (3, V, t) array of it)
-        w = nbi[v]
-        for j in range(t):
-            n0, n1, n2 = acc[0, v, j], acc[1, v, j], acc[2, v, j]
-            tn = bound[v, j]
-            if tn <= tiny * tmax[j]:
-                # as vertex_frames: an edge (nearly) along the normal falls back to an axis
-                if abs(n0) < near:
-                    d = n0
-                    t0, t1, t2 = one - d * n0, -d * n1, -d * n2
-                else:
-                    d = n1
-                    t0, t1, t2 = -d * n0, one - d * n1, -d * n2
-                tn = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-            else:
-                t0, t1, t2 = x[0, w, j] - x[0, v, j], x[1, w, j] - x[1, v, j], x[2, w, j] - x[2, v, j]
-                d = t0 * n0 + t1 * n1 + t2 * n2
-                t0 -= d * n0
-                t1 -= d * n1
-                t2 -= d * n2
-            if tn > 0:
-                t0 /= tn
-                t1 /= tn
-                t2 /= tn
-            tg[0, v, j], tg[1, v, j], tg[2, v, j] = t0, t1, t2
-            n[0, v, j], n[1, v, j], n[2, v, j] = n0, n1, n2
-            b[0, v, j] = n1 * t2 - n2 * t1
-            b[1, v, j] = n2 * t0 - n0 * t2
-            b[2, v, j] = n0 * t1 - n1 * t0
+    return tmax
+
+
+@numba.njit(cache=True, inline="always")
+def _frame_at(x, nbi, acc, bound, tmax, consts, v, j):  # pragma: no cover - compiled
+    """Vertex v's frame in frame j after :func:`_normals_pass` (the tangent again: cheaper than
+    a float64 (3, V, t) array of it): ``(t0, t1, t2, n0, n1, n2, b0, b1, b2)`` in float64."""
+    tiny, near, one = consts[1], consts[2], consts[3]
+    w = nbi[v]
+    n0, n1, n2 = acc[0, v, j], acc[1, v, j], acc[2, v, j]
+    tn = bound[v, j]
+    if tn <= tiny * tmax[j]:
+        # as vertex_frames: an edge (nearly) along the normal falls back to an axis
+        if abs(n0) < near:
+            d = n0
+            t0, t1, t2 = one - d * n0, -d * n1, -d * n2
+        else:
+            d = n1
+            t0, t1, t2 = -d * n0, one - d * n1, -d * n2
+        tn = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    else:
+        t0, t1, t2 = x[0, w, j] - x[0, v, j], x[1, w, j] - x[1, v, j], x[2, w, j] - x[2, v, j]
+        d = t0 * n0 + t1 * n1 + t2 * n2
+        t0 -= d * n0
+        t1 -= d * n1
+        t2 -= d * n2
+    if tn > 0:
+        t0 /= tn
+        t1 /= tn
+        t2 /= tn
+    return t0, t1, t2, n0, n1, n2, n1 * t2 - n2 * t1, n2 * t0 - n0 * t2, n0 * t1 - n1 * t0
 
 
 class _FramedSequence:
@@ -302,28 +319,35 @@ class _FramedSequence:
 
 @numba.njit(cache=True, nogil=True)
 def _chunk_rhs(Xs, As, Xt, At, faces, nbi, consts, G, C, xi_base, scale, add, sub, sub2, rows, x, acc, bound,
-               st, sb, sn, sok, tt, tb, tn, tok, ok, xi, B):  # pragma: no cover - compiled
+               st, sb, sn, sok, tok, xi, B):  # pragma: no cover - compiled
     """The right-hand sides ``B`` (V, 3t) of a chunk of two factored sequences in one call
-    without the GIL: positions ``X [1, a_t]`` of each side (``x``, (3V, t)), their frames
-    (:func:`_frames_kernel`), the source coating change ``G c_t + xi_base`` (``xi``, (3V, t))
-    and its rotation (:func:`_rotate_kernel`) -- the same arithmetic, in the same order, as
-    :meth:`DetailTransfer.displacements` does call by call for other sequences."""
+    without the GIL: positions ``X [1, a_t]`` of each side (``x``, (3V, t)), the source's frames
+    (:func:`_frames_kernel`), the source coating change ``G c_t + xi_base`` (``xi``, (3V, t)),
+    and the target's frames rotating it as they are made (:func:`_rotate_entry`, not stored: a
+    (3, V, t) array less of each three, ~65 MB a thread on the 56K-vertex benchmark) -- the
+    same arithmetic, rounded the same way, as :meth:`DetailTransfer.displacements` does call
+    by call for other sequences."""
     V, t = st.shape[1], st.shape[2]
     x3 = x.reshape(3, V, t)
     np.dot(Xs, As, x)
     _frames_kernel(x3, faces, nbi, consts, st, sb, sn, sok, acc, bound)
-    np.dot(Xt, At, x)
-    _frames_kernel(x3, faces, nbi, consts, tt, tb, tn, tok, acc, bound)
     np.dot(G, C, xi)
     xi3 = xi.reshape(3, V, t)
     for p in range(3):
         for v in range(V):
             for j in range(t):
                 xi3[p, v, j] += xi_base[p, v]
+    np.dot(Xt, At, x)
+    tmax = _normals_pass(x3, faces, nbi, consts, tok, acc, bound)
+    g = scale[0]
+    f = B.dtype.type  # the stored frames' precision: the target's frames are rounded to it
     for v in range(V):
+        r = rows[v]
         for j in range(t):
-            ok[v, j] = sok[v, j] and tok[v, j]
-    _rotate_kernel(st, sb, sn, tt, tb, tn, xi3, scale, add, sub, ok, sub2, B, rows)
+            t0, t1, t2, n0, n1, n2, b0, b1, b2 = _frame_at(x3, nbi, acc, bound, tmax, consts, v, j)
+            c0, c1, c2 = _rotate_entry(st, sb, sn, v, j, f(t0), f(t1), f(t2), f(b0), f(b1), f(b2), f(n0), f(n1), f(n2),
+                                       xi3[0, v, j], xi3[1, v, j], xi3[2, v, j], sok[v, j] and tok[v, j], g, add, sub, sub2)
+            B[r, j], B[r, t + j], B[r, 2 * t + j] = c0, c1, c2
 
 
 @numba.njit(cache=True, nogil=True)
@@ -375,24 +399,33 @@ def _rotate(Fs: tuple, Ft: tuple, x: np.ndarray, scale: float = 1.0, add_local=N
 
 @numba.njit(cache=True, nogil=True)
 def _rotate_kernel(s0, s1, s2, t0, t1, t2, x, scale, add, sub, ok, sub2, out, rows):  # pragma: no cover - compiled
-    """The arithmetic of :func:`_rotate` per vertex and frame, in the order of the numpy
-    version it replaced; ``out`` (V, 3t), vertex v in row ``rows[v]``."""
+    """The arithmetic of :func:`_rotate` per vertex and frame (:func:`_rotate_entry`); ``out``
+    (V, 3t), vertex v in row ``rows[v]``."""
     V, t = x.shape[1], x.shape[2]
     g = scale[0]
     for v in range(V):
         r = rows[v]
         for j in range(t):
-            x0, x1, x2 = x[0, v, j], x[1, v, j], x[2, v, j]
-            if ok[v, j]:
-                l0 = (s0[0, v, j] * x0 + s0[1, v, j] * x1 + s0[2, v, j] * x2) * g + add[v, 0]
-                l1 = (s1[0, v, j] * x0 + s1[1, v, j] * x1 + s1[2, v, j] * x2) * g + add[v, 1]
-                l2 = (s2[0, v, j] * x0 + s2[1, v, j] * x1 + s2[2, v, j] * x2) * g + add[v, 2]
-                c0 = t0[0, v, j] * l0 + t1[0, v, j] * l1 + t2[0, v, j] * l2 - sub[v, 0]
-                c1 = t0[1, v, j] * l0 + t1[1, v, j] * l1 + t2[1, v, j] * l2 - sub[v, 1]
-                c2 = t0[2, v, j] * l0 + t1[2, v, j] * l1 + t2[2, v, j] * l2 - sub[v, 2]
-            else:
-                c0, c1, c2 = g * (x0 - sub2[v, 0]), g * (x1 - sub2[v, 1]), g * (x2 - sub2[v, 2])
+            c0, c1, c2 = _rotate_entry(s0, s1, s2, v, j, t0[0, v, j], t0[1, v, j], t0[2, v, j], t1[0, v, j], t1[1, v, j],
+                                       t1[2, v, j], t2[0, v, j], t2[1, v, j], t2[2, v, j], x[0, v, j], x[1, v, j], x[2, v, j],
+                                       ok[v, j], g, add, sub, sub2)
             out[r, j], out[r, t + j], out[r, 2 * t + j] = c0, c1, c2
+
+
+@numba.njit(cache=True, inline="always")
+def _rotate_entry(s0, s1, s2, v, j, a00, a01, a02, a10, a11, a12, a20, a21, a22, x0, x1, x2, ok, g, add, sub,
+                  sub2):  # pragma: no cover - compiled
+    """One vertex and frame of ``F'_t (g F_t^T x + add) - sub`` (``g (x - sub2)`` where not
+    ``ok``): the source frame from ``s0, s1, s2`` (tangent, binormal, normal; (3, V, t)), the
+    target's as scalars, ``a_pq`` component q of its tangent (p = 0), binormal (1), normal (2),
+    in the order of the numpy version this replaced."""
+    if ok:
+        l0 = (s0[0, v, j] * x0 + s0[1, v, j] * x1 + s0[2, v, j] * x2) * g + add[v, 0]
+        l1 = (s1[0, v, j] * x0 + s1[1, v, j] * x1 + s1[2, v, j] * x2) * g + add[v, 1]
+        l2 = (s2[0, v, j] * x0 + s2[1, v, j] * x1 + s2[2, v, j] * x2) * g + add[v, 2]
+        return (a00 * l0 + a10 * l1 + a20 * l2 - sub[v, 0], a01 * l0 + a11 * l1 + a21 * l2 - sub[v, 1],
+                a02 * l0 + a12 * l1 + a22 * l2 - sub[v, 2])
+    return g * (x0 - sub2[v, 0]), g * (x1 - sub2[v, 1]), g * (x2 - sub2[v, 2])
 
 
 class DetailTransfer:
@@ -529,7 +562,7 @@ class DetailTransfer:
                 b = rhs_buffers(work, V, t)
                 _chunk_rhs(src.X, As, tgt.X, At, faces, nbi, consts, G, C, xib, np.array([self.gain], dtype=_WORK),
                            prm[0], prm[1], prm[2], order, b["x"], b["normal_sums"], b["bound"], b["st"], b["sb"], b["sn"],
-                           b["sok"], b["tt"], b["tb"], b["tn"], b["tok"], b["ok"], b["xi"], B)
+                           b["sok"], b["tok"], b["xi"], B)
             else:
                 Fs, Ft = src.frames(idx, True, work, "s"), tgt.frames(idx, True, work, "t")
                 xi = work("xi", (3, V, t), _WORK)
@@ -595,13 +628,10 @@ class DetailTransfer:
 def rhs_buffers(work: _Workspace, V: int, t: int) -> dict:
     """The named scratch arrays of one chunk's right-hand sides (:func:`_chunk_rhs`) for ``V``
     vertices and ``t`` frames, views of ``work``'s buffers."""
-    f3 = lambda k: work(k, (3, V, t), _WORK)
     b = {"x": work("x", (3 * V, t), np.float64), "normal_sums": work("normal_sums", (3, V, t), np.float64),
          "bound": work("bound", (V, t), np.float64), "xi": work("xi", (3 * V, t), _WORK)}
-    for side in "st":
-        b.update({side + k: f3(side + k) for k in "tbn"})
-        b[side + "ok"] = work(side + "ok", (V, t), np.bool_)
-    b["ok"] = work("ok", (V, t), np.bool_)
+    b.update({"s" + k: work("s" + k, (3, V, t), _WORK) for k in "tbn"})
+    b["sok"], b["tok"] = work("sok", (V, t), np.bool_), work("tok", (V, t), np.bool_)
     return b
 
 
@@ -637,8 +667,7 @@ def load_kernels() -> None:
     _chunk_rhs(x.reshape(9, 1), np.ones((1, 1)), x.reshape(9, 1), np.ones((1, 1)), faces, np.array([1, 2, 0], dtype=np.int64),
                np.array([NORMAL_CANCEL, 1e-6, 0.9, 1.0]), np.zeros((9, 1), dtype=_WORK), np.zeros((1, 1), dtype=_WORK), z,
                np.ones(1, dtype=_WORK), z, z, z, np.arange(3, dtype=np.int64), np.empty((9, 1)), np.empty((3, 3, 1)),
-               np.empty((3, 1)), f3(), f3(), f3(), b2(), f3(), f3(), f3(), b2(), b2(), np.empty((9, 1), dtype=_WORK),
-               np.empty((3, 3), dtype=_WORK))
+               np.empty((3, 1)), f3(), f3(), f3(), b2(), b2(), np.empty((9, 1), dtype=_WORK), np.empty((3, 3), dtype=_WORK))
 
 
 def _report(progress, done: int, n_frames: int):
