@@ -37,7 +37,7 @@ import scipy.sparse as sp
 
 from ..cores import free_cores
 from ..geometry import cross, face_cross, gradient, uniform_laplacian, vertex_components
-from ._mesh import PinnedSolver, bbox_size, check_faces, check_positions
+from ._mesh import LazyFactors, PinnedSolver, bbox_size, check_faces, check_positions
 
 __all__ = ["triangle_frames", "deformation_gradients", "line_gradients", "DeformationTransfer", "deformation_transfer"]
 
@@ -124,7 +124,7 @@ def line_gradients(reference, deformed, edges) -> np.ndarray:
     return Mi @ _safe_inv(M0)
 
 
-class DeformationTransfer:
+class DeformationTransfer(LazyFactors):
     """Precomputed, factorised deformation transfer from ``source_ref`` to ``target_ref``
     (same topology), eq. 9-11; :meth:`transfer` maps any number of deformed source meshes.
 
@@ -193,15 +193,6 @@ class DeformationTransfer:
         self.scale = bbox_size(T0) / max(bbox_size(S0), 1e-300)
         if factorise:
             self.prepare()
-
-    def __getstate__(self):  # picklable (a lock is not)
-        state = self.__dict__.copy()
-        del state["_lock"]
-        return state
-
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        self._lock = threading.Lock()
 
     @property
     def solver(self) -> PinnedSolver:
