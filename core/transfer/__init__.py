@@ -42,8 +42,7 @@ from .welded import WeldedSource, weld_source
 
 __all__ = [
     "TransferSettings", "TransferResult", "transfer_sequence", "naive_transfer",
-    "WeldedSource", "weld_source", "register_target", "Decomposition", "factor_source_sequence", "decompose_sequence",
-    "select_sequence_bases",
+    "WeldedSource", "weld_source", "register_target", "Decomposition", "decompose_sequence", "select_sequence_bases",
     "BasisTransfer", "transfer_bases", "transfer_details", "assemble_result", "decomposition_operators", "transfer_system", "detail_transfer",
     "TaubinFilter", "taubin_smooth", "laplacian_operator", "laplacian_coating", "PoissonReconstructor",
     "FactoredSequence", "factor_sequence", "nnls_gram", "select_bases", "BasisSelection",
@@ -166,27 +165,19 @@ class Decomposition:
     reconstructor: PoissonReconstructor
 
 
-def factor_source_sequence(src: WeldedSource, source_seq, settings: TransferSettings) -> FactoredSequence:
-    """The low-rank factorisation of a (T, V, 3) source sequence in the topology of ``src``,
-    welded (:func:`.decompose.factor_sequence` of the frames as given, its linear basis welded:
-    no welded copy of the sequence); the first step of :func:`decompose_sequence`."""
-    seq = np.asarray(source_seq)
-    if seq.ndim != 3 or seq.shape[1:] != (len(src.neutral), 3) or len(seq) == 0:
-        raise ValueError(f"source_seq: expected (T, {len(src.neutral)}, 3) frames in the topology of source_ref, got {seq.shape}")
-    fac = factor_sequence(seq, settings.rank_rtol, base=src.neutral)
-    return FactoredSequence(fac.base[src.rep], fac.coeffs, fac.basis[:, src.rep], fac.residual_rms)
-
-
 def decompose_sequence(src: WeldedSource, source_seq, settings: TransferSettings, filt: Optional[TaubinFilter] = None,
-                       poisson: Optional[PoissonReconstructor] = None,
-                       factored: Optional[FactoredSequence] = None) -> Decomposition:
+                       poisson: Optional[PoissonReconstructor] = None) -> Decomposition:
     """Multi-scale decomposition (eq. 1-4) of a (T, V, 3) source sequence in the topology of
     ``src``: one low-rank factorisation, the (linear) filter and coating applied to its basis.
     ``filt`` and ``poisson``, when given, are the filter and reconstructor this step would build
-    (:func:`decomposition_operators`, e.g. built beside it in another thread); ``factored``, the
-    sequence's :func:`factor_source_sequence`, if made already."""
+    (:func:`decomposition_operators`, e.g. built beside it in another thread)."""
     V = src.n
-    fac = factored if factored is not None else factor_source_sequence(src, source_seq, settings)
+    seq = np.asarray(source_seq)
+    if seq.ndim != 3 or seq.shape[1:] != (len(src.neutral), 3) or len(seq) == 0:
+        raise ValueError(f"source_seq: expected (T, {len(src.neutral)}, 3) frames in the topology of source_ref, got {seq.shape}")
+    # factor the frames as given and weld the (linear) basis: no welded copy of the sequence
+    fac = factor_sequence(seq, settings.rank_rtol, base=src.neutral)
+    fac = FactoredSequence(fac.base[src.rep], fac.coeffs, fac.basis[:, src.rep], fac.residual_rms)
     if filt is None or poisson is None:
         f, p = decomposition_operators(src, settings, filt is None)
         filt, poisson = filt or f, poisson or p
@@ -250,17 +241,15 @@ def transfer_bases(src: WeldedSource, dec: Decomposition, source_bases, target_w
     return BasisTransfer(Tb0, dt, deltas)
 
 
-def transfer_system(src: WeldedSource, filt: TaubinFilter, target_welded, settings: TransferSettings,
-                    factorise: bool = True) -> DeformationTransfer:
+def transfer_system(src: WeldedSource, filt: TaubinFilter, target_welded, settings: TransferSettings) -> DeformationTransfer:
     """The factorised eq. 9 system of :func:`transfer_bases`, from the meshes alone: its
     references are the smoothed source and target references ``S̄_0 = P S_0`` and ``T̄_0``
     (the filter is linear and column by column, so ``P S_0`` is bit for bit the base of the
     decomposition's smoothed sequence). Factorised by :class:`._cholesky.SparseCholesky`, without
-    the GIL (beside the sequence factorisation in :func:`transfer_sequence`); ``factorise=False``:
-    on first use or by its ``prepare()``."""
+    the GIL (beside the sequence factorisation in :func:`transfer_sequence`)."""
     refs = filt.apply(np.concatenate([src.welded_neutral, np.asarray(target_welded, dtype=np.float64)], axis=1))
     return DeformationTransfer(refs[:, :3].copy(), refs[:, 3:].copy(), src.faces, _feature_edges(settings, src.index, src.n),
-                               settings.alpha, factorise=factorise, factor=SparseCholesky)
+                               settings.alpha, factor=SparseCholesky)
 
 
 def detail_transfer(src: WeldedSource, dec: Decomposition, target_welded, target_smooth_ref,
@@ -386,8 +375,7 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
 
         report(progress, 0.4, "decomposition (smoothing + Laplacian coating)")
         t = time.perf_counter()
-        fac = factor_source_sequence(src, seq, settings)
-        dec = decompose_sequence(src, seq, settings, filt, poisson, fac)
+        dec = decompose_sequence(src, seq, settings, filt, poisson)
         timings["decomposition"] = time.perf_counter() - t
         if side is not None and settings.details:  # beside the basis selection and transfer
             det = side.submit(lambda: detail_transfer(src, dec, Tw0, system.result().T0, settings))

@@ -16,8 +16,6 @@ Only what no other package needs (mesh operators others use are public in
 
 from __future__ import annotations
 
-import threading
-
 import cholespy
 import numpy as np
 import scipy.sparse as sp
@@ -60,21 +58,6 @@ def to_world(frames: tuple, x: np.ndarray) -> np.ndarray:
     """Local coordinates (..., V, 3) -> world vectors ``F x`` for frames ``(t, b, n)``."""
     t, b, n = frames
     return t * x[..., 0:1] + b * x[..., 1:2] + n * x[..., 2:3]
-
-
-class LazyFactors:
-    """For objects that factorise on first use under ``self._lock`` (a :class:`threading.Lock`,
-    so that two threads asking at once get one factorisation): pickled without the lock, which
-    cannot be, and given a new one when unpickled."""
-
-    def __getstate__(self):
-        state = self.__dict__.copy()
-        del state["_lock"]
-        return state
-
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        self._lock = threading.Lock()
 
 
 class CholeskyFactor:

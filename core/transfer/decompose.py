@@ -37,7 +37,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 from ..cores import free_cores
 from ..geometry import cotangent_laplacian, uniform_laplacian, vertex_adjacency, vertex_components
 from ._cholesky import SparseCholesky
-from ._mesh import LazyFactors, PinnedSolver, bbox_size, check_faces
+from ._mesh import PinnedSolver, bbox_size, check_faces
 
 __all__ = [
     "TaubinFilter",
@@ -231,7 +231,7 @@ def laplacian_coating(positions, smoothed, L: sp.spmatrix) -> np.ndarray:
     return np.asarray(L @ d.transpose(1, 0, 2).reshape(V, -1)).reshape(V, T, 3).transpose(1, 0, 2).copy()
 
 
-class PoissonReconstructor(LazyFactors):
+class PoissonReconstructor:
     r"""Factorise ``L`` once, reconstruct many frames (Xu et al. 2014 eq. 2, 4, 5).
 
     .. math:: S = L^{-1}(L \bar S + \xi) = \bar S + L^{+}\xi + m
@@ -278,6 +278,15 @@ class PoissonReconstructor(LazyFactors):
         if self.screening > 0:
             self.eps = self.screening * float(self.L.diagonal().mean())
             self._A = (self.L + self.eps * sp.identity(n_vertices)).tocsr()
+
+    def __getstate__(self):  # picklable as before the lock (a lock is not)
+        state = self.__dict__.copy()
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
 
     @property
     def solver(self) -> PinnedSolver:

@@ -29,7 +29,6 @@ connected component of the target equals the source's, scaled by ``size(T̄_0) /
 
 from __future__ import annotations
 
-import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -37,7 +36,7 @@ import scipy.sparse as sp
 
 from ..cores import free_cores
 from ..geometry import cross, face_cross, gradient, uniform_laplacian, vertex_components
-from ._mesh import LazyFactors, PinnedSolver, bbox_size, check_faces, check_positions
+from ._mesh import PinnedSolver, bbox_size, check_faces, check_positions
 
 __all__ = ["triangle_frames", "deformation_gradients", "line_gradients", "DeformationTransfer", "deformation_transfer"]
 
@@ -124,7 +123,7 @@ def line_gradients(reference, deformed, edges) -> np.ndarray:
     return Mi @ _safe_inv(M0)
 
 
-class DeformationTransfer(LazyFactors):
+class DeformationTransfer:
     """Precomputed, factorised deformation transfer from ``source_ref`` to ``target_ref``
     (same topology), eq. 9-11; :meth:`transfer` maps any number of deformed source meshes.
 
@@ -139,15 +138,13 @@ class DeformationTransfer(LazyFactors):
         (Dirichlet) norm. It only matters where target triangles are degenerate (a
         closest-point resampling can collapse some): their vertices then follow their
         neighbours instead of making the system singular. Identity stays exact.
-    factorise : bool, default True
-        Factorise the system now; else on first use or :meth:`prepare`.
     factor : the class of the factorisation (:class:`~._mesh.PinnedSolver`'s ``factor``):
         default ``cholespy``'s CHOLMOD, which holds the GIL (~0.4 s to factorise a 56K-vertex
         head); :class:`~._cholesky.SparseCholesky` does not.
     """
 
     def __init__(self, source_ref, target_ref, faces, feature_edges=None, alpha: float = 100.0,
-                 regularization: float = 1e-9, factorise: bool = True, factor=None):
+                 regularization: float = 1e-9, factor=None):
         S0 = check_positions(source_ref, "source_ref")
         V = len(S0)
         T0 = check_positions(target_ref, "target_ref", V)
@@ -187,25 +184,8 @@ class DeformationTransfer(LazyFactors):
         self.reg_rhs = self.reg * np.asarray(Lu @ T0)  # (V, 3)
         A = (A + self.reg * Lu).tocsr()
         ncomp, labels = vertex_components(faces, V)
-        self._system = (A, labels, ncomp, factor)
-        self._solver = None
-        self._lock = threading.Lock()
+        self.solver = PinnedSolver(A, labels, ncomp, factor)
         self.scale = bbox_size(T0) / max(bbox_size(S0), 1e-300)
-        if factorise:
-            self.prepare()
-
-    @property
-    def solver(self) -> PinnedSolver:
-        """The factorised system (made on first use unless made already)."""
-        with self._lock:
-            if self._solver is None:
-                self._solver = PinnedSolver(*self._system)
-        return self._solver
-
-    def prepare(self) -> None:
-        """Factorise the system now (thread-safe: a thread asking while another factorises
-        waits for that factorisation)."""
-        self.solver
 
     def rhs(self, deformed: np.ndarray) -> np.ndarray:
         """(V, 3K) right-hand side of the normal equations for (K, V, 3) deformed sources."""
