@@ -34,7 +34,7 @@ from .decompose import (
     taubin_smooth)
 from .deformation import DeformationTransfer, deformation_gradients, deformation_transfer, line_gradients
 from ._cholesky import SparseCholesky
-from .details import _WORK, DetailTransfer, detail_workspace, load_kernels
+from .details import _WORK, DetailTransfer, detail_workspace, load_kernels, paged_in
 from .edit import TransferEditor
 from .features import feature_lines_near, hole_loops, line_edges, loops_near, marker_loop, seam_loops
 from .settings import TransferSettings
@@ -370,7 +370,7 @@ def transfer_sequence(source_ref, source_faces, source_seq, target_ref, target_f
             system = side.submit(transfer_system, src, filt, Tw0, settings)
             if settings.details:
                 side.submit(poisson.prepare, _WORK)
-                out = side.submit(_paged_in, (len(seq), len(src.neutral), 3), _WORK)
+                out = side.submit(paged_in, (len(seq), len(src.neutral), 3), _WORK)
                 work = [side.submit(detail_workspace, src.n, settings.chunk, len(seq)) for _ in range(2)]
 
         report(progress, 0.4, "decomposition (smoothing + Laplacian coating)")
@@ -414,15 +414,6 @@ def _made(future):
     if future is None or future.cancel():
         return None
     return future.result()
-
-
-def _paged_in(shape: tuple, dtype) -> np.ndarray:
-    """An uninitialised array with every page already mapped (a write per 4 KiB page): the
-    first writes to a fresh 245 MB array cost ~0.4 s of page faults, better spent beside
-    other work than in the detail stage's threads."""
-    a = np.empty(shape, dtype=dtype)
-    a.reshape(-1)[:: max(1, 4096 // a.itemsize)] = 0
-    return a
 
 
 def naive_transfer(source_ref, target_ref, faces, frames, feature_edges=None, alpha: float = 100.0,

@@ -643,11 +643,23 @@ def detail_workspace(n_vertices: int, chunk: int, n_frames: int) -> _Workspace:
     second thread beside other work, as :func:`core.transfer.transfer_sequence` does."""
     work = _Workspace()
     t = min(chunk, n_frames)
-    arrays = list(rhs_buffers(work, n_vertices, t).values())
-    arrays.append(work("B", (n_vertices, 3 * t), _WORK))
-    for a in arrays:
-        a.reshape(-1).view(np.uint8)[::4096] = 0
+    for a in [*rhs_buffers(work, n_vertices, t).values(), work("B", (n_vertices, 3 * t), _WORK)]:
+        _touch_pages(a)
     return work
+
+
+def paged_in(shape: tuple, dtype) -> np.ndarray:
+    """An uninitialised array with every page already mapped (the stage's output: the first
+    writes to a fresh 245 MB array cost ~0.4 s of page faults, better spent beside other work
+    than in the stage's threads)."""
+    a = np.empty(shape, dtype=dtype)
+    _touch_pages(a)
+    return a
+
+
+def _touch_pages(a: np.ndarray) -> None:
+    """One write per 4 KiB page of the contiguous array ``a`` (its values are not kept)."""
+    a.reshape(-1).view(np.uint8)[::4096] = 0
 
 
 def load_kernels() -> None:
